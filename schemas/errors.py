@@ -1,0 +1,36 @@
+"""The one error hierarchy of shapeloc.
+
+Every error the project raises on purpose derives from :class:`ShapelocError`. The transport
+layer (the Zenoh node) turns these into ``reply_err`` payloads and notices on
+``<prefix>/errors``; anything else escaping a handler is a bug and is reported as such.
+"""
+
+from __future__ import annotations
+
+
+class ShapelocError(Exception):
+    """Base class of all shapeloc errors."""
+
+
+class InvalidMessage(ShapelocError, ValueError):
+    """A wire message (or a file holding one) failed validation; the text says precisely why."""
+
+
+class InvalidWorld(ShapelocError, ValueError):
+    """A world file is malformed; the text names the feature and the problem."""
+
+
+class UnknownRobot(ShapelocError, LookupError):
+    """A request names a robot that has no configuration."""
+
+
+class UnknownMap(ShapelocError, LookupError):
+    """A request names a map id that is not stored."""
+
+
+class StateError(ShapelocError):
+    """Persisted state is missing, unreadable or corrupt (never reset silently)."""
+
+
+class LocalizationError(ShapelocError, ValueError):
+    """The localisation core was given input it cannot use (e.g. mismatched array lengths)."""

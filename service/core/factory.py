@@ -1,0 +1,37 @@
+"""Select a localisation method by its wire name (``shape | icp | lines``)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from schemas.errors import LocalizationError
+from service.core.types import METHODS, Localizer, MapData
+
+
+def create_localizer(
+    method: str,
+    map_data: MapData,
+    initial_pose: np.ndarray | None,
+    config: Any | None = None,
+) -> Localizer:
+    """Return a fresh localiser for one robot.
+
+    ``initial_pose`` ``None`` asks for global localisation (only ``shape`` supports it; the
+    baselines need a start pose). ``config`` is the method's own config model, or ``None`` for
+    its defaults (which may depend on ``map_data.kind``).
+    """
+    if method == "shape":
+        from service.core.localizer import ShapeLocalizer
+
+        return ShapeLocalizer(map_data, initial_pose, config)
+    if method == "icp":
+        from service.core.baselines.icp import ICPLocalizer
+
+        return ICPLocalizer(map_data, initial_pose, config)
+    if method == "lines":
+        from service.core.baselines.lines import LineLocalizer
+
+        return LineLocalizer(map_data, initial_pose, config)
+    raise LocalizationError(f"unknown method {method!r}; expected one of {', '.join(METHODS)}")

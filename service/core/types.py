@@ -1,0 +1,125 @@
+"""Value types shared by every localisation method (shape, icp, lines).
+
+Conventions (REP 103): map frame x/y in metres; robot frame x forward, y left; a pose is
+``np.array([x, y, theta])`` (float64) with theta in radians, counter-clockwise from the map x
+axis, normalised to (-pi, pi]. The laser sits at the robot origin facing forward.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal, Protocol
+
+import numpy as np
+
+from schemas.errors import LocalizationError
+
+MapKind = Literal["metric", "schematic"]
+Status = Literal["tracking", "lost", "initializing"]
+METHODS: tuple[str, ...] = ("shape", "icp", "lines")
+
+
+def wrap_angle(a: float | np.ndarray) -> float | np.ndarray:
+    """Normalise angle(s) to (-pi, pi]."""
+    w = np.pi - np.mod(np.pi - np.asarray(a, dtype=np.float64), 2.0 * np.pi)
+    return float(w) if np.ndim(w) == 0 else w
+
+
+@dataclass(frozen=True)
+class MapData:
+    """A map as the core sees it: a kind and a tuple of polylines, each ``(k, 2)`` float64, k >= 2.
+
+    A closed ring repeats its first point last (as on the wire).
+    """
+
+    map_id: str
+    kind: MapKind
+    polylines: tuple[np.ndarray, ...]
+
+    @staticmethod
+    def from_lists(map_id: str, kind: MapKind, polylines: list) -> MapData:
+        """Build from nested lists/arrays, checking shapes and finiteness."""
+        out = []
+        for i, p in enumerate(polylines):
+            a = np.asarray(p, dtype=np.float64)
+            if a.ndim != 2 or a.shape[1] != 2 or a.shape[0] < 2:
+                raise LocalizationError(f"polyline {i}: expected (k>=2, 2) points, got {a.shape}")
+            if not np.all(np.isfinite(a)):
+                raise LocalizationError(f"polyline {i}: non-finite coordinate")
+            a.setflags(write=False)
+            out.append(a)
+        if not out:
+            raise LocalizationError("map has no polylines")
+        return MapData(map_id=map_id, kind=kind, polylines=tuple(out))
+
+    def segments(self) -> np.ndarray:
+        """All polyline edges as an ``(s, 4)`` array ``[x0, y0, x1, y1]``."""
+        segs = [np.hstack([p[:-1], p[1:]]) for p in self.polylines]
+        return np.vstack(segs)
+
+    def bounds(self) -> tuple[float, float, float, float]:
+        """``(xmin, ymin, xmax, ymax)`` of all points."""
+        pts = np.vstack(self.polylines)
+        return (
+            float(pts[:, 0].min()),
+            float(pts[:, 1].min()),
+            float(pts[:, 0].max()),
+            float(pts[:, 1].max()),
+        )
+
+
+@dataclass(frozen=True)
+class Match:
+    """One correspondence of the configuration matching: consecutive scan polylines
+    ``scan`` (indices into the scan's configuration) matched to consecutive map polylines
+    ``map`` (indices into the map's abstract sensor reading), with its cost terms."""
+
+    scan: tuple[int, ...]
+    map: tuple[int, ...]
+    shape_distance: float
+    pose_consistency: float
+
+
+@dataclass
+class Estimate:
+    """Result of one :meth:`Localizer.update`.
+
+    ``score`` is a match quality in [0, 1], higher is better (1: every scan feature explained
+    at zero cost). ``explained`` is the fraction of the scan's polyline length matched to the
+    map; ``ambiguity`` is best-vs-second-best hypothesis cost ratio in [0, 1] (1: tie), both
+    ``None`` where a method does not compute them. ``covariance`` is 3x3 or ``None``.
+    """
+
+    pose: np.ndarray
+    status: Status
+    score: float
+    matches: tuple[Match, ...] = ()
+    explained: float | None = None
+    ambiguity: float | None = None
+    covariance: np.ndarray | None = None
+    extras: dict[str, float] = field(default_factory=dict)
+
+
+class Localizer(Protocol):
+    """What every method implements. One instance per robot; not thread-safe.
+
+    ``ranges`` are metres with NaN for "no return"; ``angles`` are the beam angles in the
+    robot frame (same length). ``odom`` (optional) is the odometry pose in its own frame; a
+    method may use it only to seed its estimate.
+    """
+
+    method: str
+    map_data: MapData
+
+    def update(
+        self, ranges: np.ndarray, angles: np.ndarray, odom: np.ndarray | None = None
+    ) -> Estimate: ...
+
+    def reset(self, initial_pose: np.ndarray | None) -> None:
+        """Forget the history; ``None`` means global localisation (unknown pose)."""
+        ...
+
+    @property
+    def pose(self) -> np.ndarray | None:
+        """Last pose estimate, or ``None`` before the first fix."""
+        ...

@@ -1,0 +1,1 @@
+"""shapeloc simulator: worlds, laser simulation, trajectories and the Zenoh publisher."""
