@@ -34,3 +34,15 @@ class StateError(ShapelocError):
 
 class LocalizationError(ShapelocError, ValueError):
     """The localisation core was given input it cannot use (e.g. mismatched array lengths)."""
+
+
+class Unreachable(ShapelocError, ConnectionError):
+    """No Zenoh peer/router could be reached at the configured endpoints."""
+
+
+class ServiceTimeout(ShapelocError, TimeoutError):
+    """A request got no reply within its timeout (service down, or not serving that key)."""
+
+
+class RemoteError(ShapelocError):
+    """The service answered a request with ``reply_err``; the text is the service's reason."""
