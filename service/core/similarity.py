@@ -1,0 +1,421 @@
+"""Shape similarity of polylines: S* (paper §5.1), partial optimal similarity (§4.1/§5.1) and
+shape complexity (§5.3).
+
+Shapes here are metric: polylines are ``(k, 2)`` arrays of vertices in metres (any Cartesian
+frame; scan polylines in the robot frame, map polylines in the viewpoint frame). Every measure
+is invariant to translation and rotation of either polyline, not to scale or reflection.
+
+S* in short. A (DCE-simplified) polyline is a chain of *arcs* (its edges), each with a metric
+length and a direction. Two chains are compared in tangent space: a dynamic programme finds
+the optimal correspondence of *maximal arcs*, where a run of up to ``max_merge`` consecutive
+arcs of one polyline may correspond to a single arc of the other (1:1, 1:n, n:1); a merged run
+is represented by its chord. The cost accumulated along the correspondence is, in metres:
+
+* turn misfit: at every interior matched vertex, the difference of the turn angles (relative
+  angular directions of consecutive matched arcs) of the two polylines, in radians, weighted by
+  the shortest of the four adjacent matched arc lengths (metres);
+* length misfit: ``|l_p - l_q|`` of every matched arc pair; for the first and the last pair
+  only ``end_weight`` times that, because range scans truncate objects at occlusion
+  boundaries, so an end arc may be shorter in one shape at little cost;
+* merge cost: a merged run costs the length it loses, ``sum(arc lengths) - chord`` (the
+  relevance of eq. 2 generalised to a run), so merging away noise vertices is cheap and merging
+  away a corner is not;
+* skipped ends: whole arcs at the start or end of one polyline left without counterpart (an
+  occluded corner) cost ``skip_weight`` times their length.
+
+Scale: S* is 0 for identical shapes and is measured in metres. For two noisy observations of
+the same object it grows roughly linearly with the object's size (more arcs and corners, each
+contributing a few times the range noise; ~1-3 cm per vertex for 1 cm noise), which is the
+paper's reason for a penalty R linear in angular size. Truly different shapes cost on the order
+of their size (an L of two 1 m legs vs a 2 m straight line costs ~0.6). The matcher can add S*
+directly to eq. 4's ``||dt|| + 10 dPhi`` (both metres-like); a weight of order 1 keeps both
+terms comparable.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from schemas.errors import LocalizationError
+from service.core.dce import DCE_NOISE_THRESHOLD, CurveEvolution, dce
+
+#: Default weight of the length misfit of the first / last matched arc pair (occlusion cuts).
+END_WEIGHT = 0.1
+#: Default cost per metre of whole end arcs left without counterpart.
+SKIP_WEIGHT = 0.5
+#: Default maximal number of consecutive arcs merged into one chord.
+MAX_MERGE = 4
+
+_TWO_PI = 2.0 * math.pi
+
+
+class ShapeArcs:
+    """A polyline prepared for S*: vertices, cumulative arc length and chord tables.
+
+    Build once per polyline (``prepare``) and reuse across many :func:`shape_distance` calls.
+    ``points`` ``(k, 2)`` metres, k >= 2, finite. Zero-length edges are dropped.
+    """
+
+    __slots__ = ("chord_dir", "chord_len", "cum", "k", "max_merge", "merge_cost", "x", "y")
+
+    def __init__(self, points: np.ndarray, max_merge: int = MAX_MERGE) -> None:
+        p = np.asarray(points, dtype=np.float64)
+        if p.ndim != 2 or p.shape[1] != 2 or p.shape[0] < 2:
+            raise LocalizationError(f"expected (k >= 2, 2) points, got {p.shape}")
+        if not np.all(np.isfinite(p)):
+            raise LocalizationError("polyline has non-finite coordinates")
+        if max_merge < 1:
+            raise LocalizationError(f"max_merge must be >= 1, got {max_merge}")
+        d = np.diff(p, axis=0)
+        keep = np.concatenate(([True], np.hypot(d[:, 0], d[:, 1]) > 1e-12))
+        if keep.sum() < 2:
+            raise LocalizationError("polyline has zero length")
+        p = p[keep]
+        x: list[float] = p[:, 0].tolist()
+        y: list[float] = p[:, 1].tolist()
+        k = len(x)
+        cum = [0.0] * k
+        for i in range(1, k):
+            cum[i] = cum[i - 1] + math.hypot(x[i] - x[i - 1], y[i] - y[i - 1])
+        self.x, self.y, self.k, self.cum = x, y, k, cum
+        self.max_merge = max_merge
+        # chord tables indexed [a][i]: chord from vertex i over a arcs (a = 1..max_merge).
+        chord_len: list[list[float]] = [[]]
+        chord_dir: list[list[float]] = [[]]
+        merge_cost: list[list[float]] = [[]]
+        for a in range(1, max_merge + 1):
+            ln, dr, mc = [], [], []
+            for i in range(k - a):
+                dx, dy = x[i + a] - x[i], y[i + a] - y[i]
+                c = math.hypot(dx, dy)
+                ln.append(c)
+                dr.append(math.atan2(dy, dx))
+                mc.append(max(cum[i + a] - cum[i] - c, 0.0))
+            chord_len.append(ln)
+            chord_dir.append(dr)
+            merge_cost.append(mc)
+        self.chord_len, self.chord_dir, self.merge_cost = chord_len, chord_dir, merge_cost
+
+    @property
+    def length(self) -> float:
+        """Total length in metres."""
+        return self.cum[-1]
+
+    def vertex(self, i: int) -> tuple[float, float]:
+        """Vertex ``i`` as ``(x, y)`` metres."""
+        return self.x[i], self.y[i]
+
+
+def prepare(points: np.ndarray | ShapeArcs, max_merge: int = MAX_MERGE) -> ShapeArcs:
+    """Return ``points`` as :class:`ShapeArcs` (no-op if it already is one with enough merges)."""
+    if isinstance(points, ShapeArcs) and points.max_merge >= max_merge:
+        return points
+    if isinstance(points, ShapeArcs):
+        points = np.column_stack((points.x, points.y))
+    return ShapeArcs(points, max_merge)
+
+
+@dataclass(frozen=True)
+class ShapeMatch:
+    """Result of :func:`shape_match`.
+
+    ``distance`` S* (metres); ``pairs`` the arc correspondence as tuples
+    ``(p_start, p_end, q_start, q_end)`` of vertex indices into the prepared polylines (a run
+    ``p_start..p_end`` of p's vertices corresponds to ``q_start..q_end`` of q's);
+    ``angle`` (radians) and ``t`` ``(2,)`` (metres) the rigid transform
+    ``x_q = R(angle) @ x_p + t`` that the correspondence induces (least squares over points
+    sampled by arc length along corresponding arcs).
+    """
+
+    distance: float
+    pairs: tuple[tuple[int, int, int, int], ...]
+    angle: float
+    t: np.ndarray
+
+
+def _dp(
+    P: ShapeArcs,
+    Q: ShapeArcs,
+    max_merge: int,
+    end_weight: float,
+    skip_weight: float,
+    want_path: bool,
+) -> tuple[float, list[tuple[int, int, int, int]]]:
+    """Core DP of S*. States are matched vertex pairs (i, j); see the module docstring."""
+    kp, kq = P.k, Q.k
+    lastp, lastq = kp - 1, kq - 1
+    cum_p, cum_q = P.cum, Q.cum
+    tot_p, tot_q = cum_p[-1], cum_q[-1]
+    Lp, Dp, Mp = P.chord_len, P.chord_dir, P.merge_cost
+    Lq, Dq, Mq = Q.chord_len, Q.chord_dir, Q.merge_cost
+    mp = min(max_merge, P.max_merge)
+    mq = min(max_merge, Q.max_merge)
+    moves = [(1, 1)] + [(a, 1) for a in range(2, mp + 1)] + [(1, b) for b in range(2, mq + 1)]
+    inf = math.inf
+    n = kp * kq
+    cost = [inf] * n  # accumulated cost excluding the incoming pair's length misfit
+    pend = [0.0] * n  # weighted length misfit of the incoming pair (still pending)
+    dpi = [0.0] * n  # incoming chord direction in p
+    dqi = [0.0] * n
+    lpi = [0.0] * n  # incoming chord length in p
+    lqi = [0.0] * n
+    start = [False] * n  # state is a start (no incoming chord)
+    back = [-1] * n if want_path else None
+    # Starts: p's first vertex against any q vertex (q's leading arcs skipped) and vice versa.
+    for j in range(lastq):
+        s = j
+        cost[s] = skip_weight * cum_q[j]
+        start[s] = True
+    for i in range(1, lastp):
+        s = i * kq
+        cost[s] = skip_weight * cum_p[i]
+        start[s] = True
+    best = inf
+    best_end = (-1, -1)  # (state, target) of the best final transition
+    for i in range(lastp):
+        row = i * kq
+        for j in range(lastq):
+            s = row + j
+            c0 = cost[s]
+            if c0 == inf:
+                continue
+            if start[s]:
+                base = c0
+            else:
+                base = c0 + pend[s]
+                di, dj, li, lj = dpi[s], dqi[s], lpi[s], lqi[s]
+            if base >= best:
+                continue
+            for a, b in moves:
+                i2 = i + a
+                j2 = j + b
+                if i2 > lastp or j2 > lastq:
+                    continue
+                lp = Lp[a][i]
+                lq = Lq[b][j]
+                dp = Dp[a][i]
+                dq = Dq[b][j]
+                c = base + Mp[a][i] + Mq[b][j]
+                if start[s]:
+                    mis_w = end_weight
+                else:
+                    dt = (dp - di) - (dq - dj)
+                    dt = abs((dt + math.pi) % _TWO_PI - math.pi)
+                    w = lp
+                    if lq < w:
+                        w = lq
+                    if li < w:
+                        w = li
+                    if lj < w:
+                        w = lj
+                    c += dt * w
+                    mis_w = 1.0
+                mis = lp - lq if lp > lq else lq - lp
+                if i2 == lastp or j2 == lastq:
+                    total = (
+                        c
+                        + end_weight * mis
+                        + skip_weight * ((tot_p - cum_p[i2]) + (tot_q - cum_q[j2]))
+                    )
+                    if total < best:
+                        best = total
+                        best_end = (s, i2 * kq + j2)
+                    continue
+                s2 = i2 * kq + j2
+                pm = mis_w * mis
+                if c + pm < cost[s2] + pend[s2]:
+                    cost[s2] = c
+                    pend[s2] = pm
+                    dpi[s2] = dp
+                    dqi[s2] = dq
+                    lpi[s2] = lp
+                    lqi[s2] = lq
+                    start[s2] = False
+                    if back is not None:
+                        back[s2] = s
+    path: list[tuple[int, int, int, int]] = []
+    if want_path and best_end[0] >= 0 and back is not None:
+        s, s2 = best_end
+        while s >= 0:
+            path.append((s // kq, s2 // kq, s % kq, s2 % kq))
+            s2 = s
+            s = back[s]
+        path.reverse()
+    return best, path
+
+
+def shape_distance(
+    p: np.ndarray | ShapeArcs,
+    q: np.ndarray | ShapeArcs,
+    *,
+    max_merge: int = MAX_MERGE,
+    end_weight: float = END_WEIGHT,
+    skip_weight: float = SKIP_WEIGHT,
+) -> float:
+    """Shape distance S* (paper §5.1) between two polylines, in metres (0 = identical shape).
+
+    ``p``, ``q``: ``(k, 2)`` vertices in metres (typically DCE-simplified, 2-15 vertices) or
+    :class:`ShapeArcs` prepared with :func:`prepare` (faster when reused). Tangent-space
+    comparison with an optimal correspondence of maximal arcs by dynamic programming; see the
+    module docstring for the cost terms and their scale. Invariant to translation and rotation,
+    tolerant of ends cut by occlusion. Cost O(k_p * k_q * max_merge).
+    """
+    P = prepare(p, max_merge)
+    Q = prepare(q, max_merge)
+    d, _ = _dp(P, Q, max_merge, end_weight, skip_weight, False)
+    return d
+
+
+def _alignment(
+    P: ShapeArcs, Q: ShapeArcs, pairs: list[tuple[int, int, int, int]]
+) -> tuple[float, np.ndarray]:
+    """Weighted least-squares rigid transform p -> q from points sampled on matched arcs."""
+    sp: list[tuple[float, float, float]] = []  # (x, y, w) in p
+    sq: list[tuple[float, float]] = []
+    last = len(pairs) - 1
+    for n, (i0, i1, j0, j1) in enumerate(pairs):
+        ax, ay, bx, by = P.x[i0], P.y[i0], P.x[i1], P.y[i1]
+        cx, cy, dx, dy = Q.x[j0], Q.y[j0], Q.x[j1], Q.y[j1]
+        lp = math.hypot(bx - ax, by - ay)
+        lq = math.hypot(dx - cx, dy - cy)
+        m = min(lp, lq)
+        if m <= 1e-12:
+            continue
+        upx, upy = (bx - ax) / lp, (by - ay) / lp
+        uqx, uqy = (dx - cx) / lq, (dy - cy) / lq
+        first, final = n == 0, n == last
+        if first and final:  # both ends may be cut: anchor the middles
+            op = ((ax + bx) / 2 - upx * m / 2, (ay + by) / 2 - upy * m / 2)
+            oq = ((cx + dx) / 2 - uqx * m / 2, (cy + dy) / 2 - uqy * m / 2)
+            samples = [(op, oq, s) for s in (0.0, 0.5 * m, m)]
+        elif first:  # start may be cut: anchor at the (real) end vertex
+            samples = [((bx, by), (dx, dy), -s) for s in (0.0, 0.5 * m, m)]
+        elif final:  # end may be cut: anchor at the (real) start vertex
+            samples = [((ax, ay), (cx, cy), s) for s in (0.0, 0.5 * m, m)]
+        else:  # interior: same fractions of both chords
+            w = m / 3.0
+            for f in (0.0, 0.5, 1.0):
+                sp.append((ax + f * (bx - ax), ay + f * (by - ay), w))
+                sq.append((cx + f * (dx - cx), cy + f * (dy - cy)))
+            continue
+        w = m / 3.0
+        for o_p, o_q, s in samples:
+            sp.append((o_p[0] + upx * s, o_p[1] + upy * s, w))
+            sq.append((o_q[0] + uqx * s, o_q[1] + uqy * s))
+    if not sp:
+        return 0.0, np.zeros(2)
+    W = sum(s[2] for s in sp)
+    mpx = sum(s[0] * s[2] for s in sp) / W
+    mpy = sum(s[1] * s[2] for s in sp) / W
+    mqx = sum(q[0] * s[2] for s, q in zip(sp, sq, strict=True)) / W
+    mqy = sum(q[1] * s[2] for s, q in zip(sp, sq, strict=True)) / W
+    sxx = sxy = 0.0
+    for (px, py, w), (qx, qy) in zip(sp, sq, strict=True):
+        px -= mpx
+        py -= mpy
+        qx -= mqx
+        qy -= mqy
+        sxx += w * (px * qx + py * qy)
+        sxy += w * (px * qy - py * qx)
+    ang = math.atan2(sxy, sxx)
+    c, s_ = math.cos(ang), math.sin(ang)
+    t = np.array([mqx - (c * mpx - s_ * mpy), mqy - (s_ * mpx + c * mpy)])
+    return ang, t
+
+
+def shape_match(
+    p: np.ndarray | ShapeArcs,
+    q: np.ndarray | ShapeArcs,
+    *,
+    max_merge: int = MAX_MERGE,
+    end_weight: float = END_WEIGHT,
+    skip_weight: float = SKIP_WEIGHT,
+) -> ShapeMatch:
+    """S* together with its arc correspondence and the alignment it induces (§5.1, §5.2).
+
+    Same DP as :func:`shape_distance`; see :class:`ShapeMatch` for the fields.
+    """
+    P = prepare(p, max_merge)
+    Q = prepare(q, max_merge)
+    d, pairs = _dp(P, Q, max_merge, end_weight, skip_weight, True)
+    ang, t = _alignment(P, Q, pairs)
+    return ShapeMatch(distance=d, pairs=tuple(pairs), angle=ang, t=t)
+
+
+def shape_alignment(
+    p: np.ndarray | ShapeArcs, q: np.ndarray | ShapeArcs, **kwargs: float
+) -> tuple[float, np.ndarray]:
+    """Rigid transform ``(angle [rad], t (2,) [m])`` with ``x_q ~ R(angle) x_p + t``.
+
+    Estimated by least squares from points sampled by arc length along the arcs that S*
+    puts in correspondence (end arcs are anchored at their uncut vertex, a lone arc pair at its
+    middle). For a single straight arc the shift along it is unobservable and set by the middles.
+    """
+    m = shape_match(p, q, **kwargs)  # type: ignore[arg-type]
+    return m.angle, m.t
+
+
+def partial_optimal_similarity(
+    p_points: np.ndarray,
+    q_points: np.ndarray,
+    stop_threshold: float = DCE_NOISE_THRESHOLD,
+    *,
+    simplify_q: bool = True,
+    max_merge: int = MAX_MERGE,
+    end_weight: float = END_WEIGHT,
+    skip_weight: float = SKIP_WEIGHT,
+) -> tuple[float, np.ndarray]:
+    """Partial optimal similarity (paper §4.1 and §5.1): DCE of p continued under S*.
+
+    ``p_points`` (a perceived polyline, metres) is first evolved by plain DCE up to
+    ``stop_threshold`` (metres, the fixed first stage). Then DCE continues one vertex at a
+    time (least relevance first) for as long as the simplified p' gets strictly more similar to
+    ``q_points`` (the map polyline, the reference; DCE'd at ``stop_threshold`` first when
+    ``simplify_q``); it stops at the first removal that does not reduce S*(p', q).
+
+    Returns ``(S*(p', q), kept)`` where ``kept`` are the indices into ``p_points`` of p's
+    vertices (sorted, including both ends).
+    """
+    ce = CurveEvolution(p_points)
+    ce.evolve_to(stop_threshold)
+    q = np.asarray(q_points, dtype=np.float64)
+    if simplify_q and q.ndim == 2 and q.shape[0] > 2:
+        q = q[dce(q, stop_threshold)]
+    Q = prepare(q, max_merge)
+    p_all = np.asarray(p_points, dtype=np.float64)
+    kept = ce.kept_indices()
+    d, _ = _dp(prepare(p_all[kept], max_merge), Q, max_merge, end_weight, skip_weight, False)
+    while ce.step():
+        cand = ce.kept_indices()
+        d2, _ = _dp(prepare(p_all[cand], max_merge), Q, max_merge, end_weight, skip_weight, False)
+        if not d2 < d:
+            break
+        d, kept = d2, cand
+    return d, kept
+
+
+def shape_complexity(points: np.ndarray, simplify: float | None = None) -> float:
+    """Shape complexity (paper §5.3), metres x radians.
+
+    Sum over interior vertices of ``|turn angle| * min(adjacent edge lengths)``: a long
+    featureless straight wall scores ~0, a right-angle corner with 1 m legs ~1.57, and
+    zig-zags or curved objects (many turns with substantial arms) score high. Small wiggles
+    score little because the shorter arm weights them. ``points`` ``(k, 2)`` metres; apply
+    DCE first (``simplify`` = threshold in metres, or do it yourself) so sensor noise does
+    not count as shape.
+    """
+    p = np.asarray(points, dtype=np.float64)
+    if p.ndim != 2 or p.shape[1] != 2 or p.shape[0] < 2:
+        raise LocalizationError(f"expected (k >= 2, 2) points, got {p.shape}")
+    if simplify is not None and p.shape[0] > 2:
+        p = p[dce(p, simplify)]
+    if p.shape[0] < 3:
+        return 0.0
+    d = np.diff(p, axis=0)
+    ln = np.hypot(d[:, 0], d[:, 1])
+    th = np.arctan2(d[:, 1], d[:, 0])
+    turn = np.abs((np.diff(th) + np.pi) % (2.0 * np.pi) - np.pi)
+    return float(np.sum(turn * np.minimum(ln[:-1], ln[1:])))
