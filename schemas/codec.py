@@ -1,0 +1,184 @@
+"""Bytes <-> wire models, and wire models -> core arrays.
+
+Payloads are msgpack maps with string keys; a payload whose Zenoh encoding is JSON
+(``application/json``, optionally with ``;``-parameters, or ``text/json``) is the same map as
+JSON. Every failure raises :class:`schemas.errors.InvalidMessage` with a compact
+``<field>: <reason>`` text.
+"""
+
+from __future__ import annotations
+
+import json as _json
+import math
+from typing import Any, TypeVar
+
+import msgpack
+import numpy as np
+
+from schemas.errors import InvalidMessage
+from schemas.limits import MAX_NESTING, MAX_PAYLOAD_BYTES
+from schemas.messages import Map, Scan, WireModel
+from service.core.types import MapData
+
+__all__ = [
+    "JSON_ENCODING",
+    "MSGPACK_ENCODING",
+    "check_key_id",
+    "decode",
+    "encode",
+    "is_json_encoding",
+    "map_to_map_data",
+    "scan_arrays",
+]
+
+#: Encoding strings to attach to published samples.
+JSON_ENCODING = "application/json"
+MSGPACK_ENCODING = "application/msgpack"
+
+M = TypeVar("M", bound=WireModel)
+
+
+def is_json_encoding(encoding: object) -> bool:
+    """True if a Zenoh encoding (object or its ``str`` form) says the payload is JSON."""
+    if encoding is None:
+        return False
+    text = (encoding if isinstance(encoding, str) else str(encoding)).strip().lower()
+    base = text.split(";", 1)[0].strip()
+    return base in ("application/json", "text/json")
+
+
+def _as_bytes(payload: object) -> bytes:
+    if isinstance(payload, bytes):
+        return payload
+    if isinstance(payload, (bytearray, memoryview)):
+        return bytes(payload)
+    to_bytes = getattr(payload, "to_bytes", None)  # zenoh.ZBytes
+    if callable(to_bytes):
+        out = to_bytes()
+        if isinstance(out, (bytes, bytearray, memoryview)):
+            return bytes(out)
+    raise InvalidMessage(f"payload: must be bytes, got {type(payload).__name__}")
+
+
+def _check_structure(obj: dict) -> None:
+    """Reject nesting deeper than ``MAX_NESTING`` and maps with non-string keys."""
+    stack: list[tuple[Any, int]] = [(obj, 1)]
+    while stack:
+        node, depth = stack.pop()
+        if depth > MAX_NESTING:
+            raise InvalidMessage(f"message: nesting deeper than {MAX_NESTING} levels")
+        if isinstance(node, dict):
+            for k, v in node.items():
+                if not isinstance(k, str):
+                    raise InvalidMessage(
+                        f"message: map keys must be strings, got {type(k).__name__}"
+                    )
+                if isinstance(v, (dict, list)):
+                    stack.append((v, depth + 1))
+        else:
+            for v in node:
+                if isinstance(v, (dict, list)):
+                    stack.append((v, depth + 1))
+
+
+def _loads(data: bytes, as_json: bool) -> Any:
+    if as_json:
+        try:
+            text = data.decode("utf-8")
+        except UnicodeDecodeError as e:
+            raise InvalidMessage(f"json: not UTF-8 (byte {e.start})") from None
+        try:
+            return _json.loads(text)
+        except _json.JSONDecodeError as e:
+            raise InvalidMessage(f"json: {e.msg} at line {e.lineno} column {e.colno}") from None
+        except RecursionError:
+            raise InvalidMessage(f"message: nesting deeper than {MAX_NESTING} levels") from None
+    try:
+        return msgpack.unpackb(data, raw=False, strict_map_key=True, use_list=True)
+    except msgpack.ExtraData:
+        raise InvalidMessage("msgpack: trailing data after the message") from None
+    except msgpack.StackError:
+        raise InvalidMessage(f"message: nesting deeper than {MAX_NESTING} levels") from None
+    except UnicodeDecodeError:
+        raise InvalidMessage("msgpack: a string is not valid UTF-8") from None
+    except msgpack.FormatError:
+        raise InvalidMessage("msgpack: malformed (invalid type byte)") from None
+    except (ValueError, TypeError, msgpack.UnpackException) as e:
+        text = str(e) or type(e).__name__
+        if "map key" in text:
+            raise InvalidMessage("message: map keys must be strings") from None
+        if "incomplete" in text:
+            raise InvalidMessage("msgpack: truncated payload") from None
+        raise InvalidMessage(f"msgpack: malformed ({text[:160]})") from None
+
+
+def decode(model_cls: type[M], payload: bytes, encoding: str | None = None) -> M:
+    """Decode and validate one message.
+
+    ``payload``: bytes (or bytearray/memoryview/``zenoh.ZBytes``), at most 16 MiB.
+    ``encoding``: the sample's Zenoh encoding (``str`` or ``zenoh.Encoding``); JSON if it is
+    ``application/json[;...]`` or ``text/json``, msgpack otherwise.
+    Raises ``InvalidMessage`` naming the offending field.
+    """
+    data = _as_bytes(payload)
+    if len(data) > MAX_PAYLOAD_BYTES:
+        raise InvalidMessage(f"payload: {len(data)} bytes exceeds limit {MAX_PAYLOAD_BYTES}")
+    if not data:
+        raise InvalidMessage("payload: empty")
+    obj = _loads(data, is_json_encoding(encoding))
+    if not isinstance(obj, dict):
+        raise InvalidMessage(f"message: must be a map, got {_wire_type(obj)}")
+    _check_structure(obj)
+    return model_cls.parse(obj)
+
+
+def _wire_type(obj: object) -> str:
+    if obj is None:
+        return "nil"
+    return {list: "array", str: "string", bytes: "binary"}.get(type(obj), type(obj).__name__)
+
+
+def encode(msg: WireModel, json: bool = False, ranges_as_bytes: bool = False) -> bytes:
+    """Serialise a message: msgpack (default) or JSON (``json=True``; non-finite ranges become
+    ``null``). ``ranges_as_bytes`` (msgpack only) sends ``Scan.ranges`` as little-endian
+    float32 bytes. Raises ``InvalidMessage`` if the payload would exceed 16 MiB."""
+    if json and ranges_as_bytes:
+        raise InvalidMessage("encode: ranges_as_bytes is msgpack-only (JSON has no bytes)")
+    if ranges_as_bytes and not isinstance(msg, Scan):
+        raise InvalidMessage(f"encode: ranges_as_bytes needs a Scan, got {type(msg).__name__}")
+    wire = msg.to_wire(ranges_as_bytes=ranges_as_bytes)
+    if json:
+        if isinstance(msg, Scan):
+            wire["ranges"] = [r if math.isfinite(r) else None for r in wire["ranges"]]
+        data = _json.dumps(wire, allow_nan=False, separators=(",", ":")).encode("utf-8")
+    else:
+        data = msgpack.packb(wire, use_bin_type=True)
+    if len(data) > MAX_PAYLOAD_BYTES:
+        raise InvalidMessage(f"payload: {len(data)} bytes exceeds limit {MAX_PAYLOAD_BYTES}")
+    return data
+
+
+def check_key_id(msg_id: str, key_id: str, field: str) -> None:
+    """Raise ``InvalidMessage`` unless the id inside a message equals the id in its key."""
+    if msg_id != key_id:
+        raise InvalidMessage(f"{field} {msg_id!r} does not match key {key_id!r}")
+
+
+def map_to_map_data(m: Map) -> MapData:
+    """The core's view of a map (same id, kind and read-only ``(k, 2)`` polylines, metres)."""
+    return MapData(map_id=m.map_id, kind=m.kind, polylines=m.polylines)
+
+
+def scan_arrays(scan: Scan) -> tuple[np.ndarray, np.ndarray]:
+    """``(ranges, angles)`` for the core, both float64 ``(n,)``.
+
+    ``ranges`` in metres with NaN for every "no return" (NaN, inf, or outside
+    ``[range_min, range_max]``); ``angles`` in radians in the robot frame,
+    ``angle_min + i * angle_increment``.
+    """
+    r = np.array(scan.ranges, dtype=np.float64)
+    with np.errstate(invalid="ignore"):
+        bad = ~np.isfinite(r) | (r < scan.range_min) | (r > scan.range_max)
+    r[bad] = np.nan
+    angles = scan.angle_min + np.arange(r.size, dtype=np.float64) * scan.angle_increment
+    return r, angles
