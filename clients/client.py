@@ -1,0 +1,536 @@
+"""Python client of the shapeloc localizer service (wire contract v1) over Eclipse Zenoh.
+
+:class:`ShapelocClient` opens its own Zenoh session (client mode by default, so it fails fast
+when nothing listens at the given endpoints) or wraps a session the caller owns. Requests
+(``get``) time out after ``timeout`` seconds with :class:`~schemas.errors.ServiceTimeout`;
+``reply_err`` answers become :class:`~schemas.errors.RemoteError`, or
+:class:`~schemas.errors.UnknownRobot` / :class:`~schemas.errors.UnknownMap` when the service
+says so. Poses and maps are in the map frame (metres, radians, REP 103).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import queue
+import threading
+import time
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from pathlib import Path
+from typing import Any, Generic, TypeVar
+
+import msgpack
+import numpy as np
+import zenoh
+from pydantic import BaseModel
+
+from schemas import keys
+from schemas.codec import MSGPACK_ENCODING, decode, encode
+from schemas.errors import (
+    InvalidMessage,
+    RemoteError,
+    ServiceTimeout,
+    ShapelocError,
+    UnknownMap,
+    UnknownRobot,
+    Unreachable,
+)
+from schemas.messages import ErrorNotice, Health, Map, PoseMsg, RobotConfig, Scan
+from service.core.types import MapData
+
+DEFAULT_CONNECT = "tcp/127.0.0.1:7447"
+DEFAULT_PREFIX = "shapeloc"
+DEFAULT_TIMEOUT = 2.0
+
+M = TypeVar("M", bound=BaseModel)
+
+
+def zenoh_config(
+    mode: str = "client",
+    connect: Sequence[str] = (),
+    listen: Sequence[str] = (),
+    multicast: bool = False,
+) -> zenoh.Config:
+    """Build a Zenoh config with explicit endpoints and (by default) no multicast scouting.
+
+    ``mode`` is ``client`` (needs a reachable router/peer in ``connect``; fails at once
+    otherwise), ``peer`` or ``router``. Scouting delay is 0 so opening is immediate.
+    """
+    if mode not in ("client", "peer", "router"):
+        raise ValueError(f"zenoh mode must be client, peer or router, not {mode!r}")
+    conf = zenoh.Config()
+    conf.insert_json5("mode", json.dumps(mode))
+    conf.insert_json5("scouting/multicast/enabled", "true" if multicast else "false")
+    conf.insert_json5("scouting/delay", "0")
+    if connect:
+        conf.insert_json5("connect/endpoints", json.dumps(list(connect)))
+    if listen:
+        conf.insert_json5("listen/endpoints", json.dumps(list(listen)))
+    return conf
+
+
+def open_session(conf: zenoh.Config, endpoints: Sequence[str] = ()) -> zenoh.Session:
+    """Open a Zenoh session, turning a connection failure into :class:`Unreachable`."""
+    try:
+        return zenoh.open(conf)
+    except zenoh.ZError as exc:
+        where = ", ".join(endpoints) if endpoints else "the configured endpoints"
+        reason = str(exc).split(" at /", 1)[0].strip()
+        raise Unreachable(
+            f"cannot reach a zenoh router or shapeloc service at {where} ({reason})"
+        ) from exc
+
+
+def _remote_error(key: str, payload: bytes) -> ShapelocError:
+    """Map a ``reply_err`` payload (text, or a JSON/msgpack ``{"error": ...}`` map) to an error."""
+    text = ""
+    data: Any = None
+    try:
+        data = msgpack.unpackb(payload, raw=False)
+    except Exception:
+        try:
+            data = json.loads(payload)
+        except Exception:
+            data = None
+    if isinstance(data, dict) and isinstance(data.get("error"), str):
+        text = data["error"]
+        kind = str(data.get("type", ""))
+    else:
+        text = payload.decode("utf-8", errors="replace").strip()
+        kind = ""
+    low = text.lower()
+    msg = f"{key}: {text}" if text else f"{key}: the service answered with an empty error"
+    if kind == "UnknownRobot" or "unknown robot" in low:
+        return UnknownRobot(text)
+    if kind == "UnknownMap" or "unknown map" in low:
+        return UnknownMap(text)
+    return RemoteError(msg)
+
+
+def _encoding_of(sample: Any) -> str | None:
+    enc = getattr(sample, "encoding", None)
+    return None if enc is None else str(enc)
+
+
+def load_map_file(path: str | Path, map_id: str | None = None, kind: str | None = None) -> Map:
+    """Read a map file: a wire map (JSON/msgpack ``{"map_id","kind","polylines"}``), or GeoJSON.
+
+    GeoJSON of kind ``metric`` (the default for GeoJSON) is read as a world of obstacle
+    polygons by :func:`sim_publisher.world.load_world` (all their boundaries become polylines);
+    GeoJSON of kind ``schematic`` may hold LineStrings (room outlines) and Polygons. ``map_id``
+    defaults to the file's ``map_id`` or its stem. Raises :class:`InvalidMessage` /
+    :class:`~schemas.errors.InvalidWorld` with the reason.
+    """
+    p = Path(path)
+    try:
+        raw = p.read_bytes()
+    except OSError as exc:
+        raise InvalidMessage(f"cannot read map file {p}: {exc.strerror or exc}") from exc
+    data: Any
+    try:
+        data = json.loads(raw)
+    except (UnicodeDecodeError, json.JSONDecodeError):
+        try:
+            data = msgpack.unpackb(raw, raw=False)
+        except Exception as exc:
+            raise InvalidMessage(f"{p}: neither JSON nor msgpack") from exc
+    if not isinstance(data, dict):
+        raise InvalidMessage(f"{p}: expected a JSON object, got {type(data).__name__}")
+    mid = map_id or data.get("map_id") or p.stem
+    if data.get("type") == "FeatureCollection" or data.get("type") == "Feature":
+        kind = kind or "metric"
+        if kind == "metric":
+            from sim_publisher.world import load_world
+
+            md = load_world(p).to_map_data(mid)
+            return map_from_data(md)
+        return Map(map_id=mid, kind=kind, polylines=_geojson_lines(data, p))
+    wire = dict(data)
+    wire["map_id"] = mid
+    if kind is not None:
+        wire["kind"] = kind
+    return decode(Map, json.dumps(wire).encode(), "application/json")
+
+
+def _geojson_lines(data: dict, p: Path) -> list[list[list[float]]]:
+    feats = data["features"] if data.get("type") == "FeatureCollection" else [data]
+    if not isinstance(feats, list):
+        raise InvalidMessage(f"{p}: 'features' must be a list")
+    out: list[list[list[float]]] = []
+    for i, f in enumerate(feats):
+        geom = f.get("geometry") if isinstance(f, dict) else None
+        if not isinstance(geom, dict):
+            raise InvalidMessage(f"{p}: feature {i} has no geometry")
+        gtype, coords = geom.get("type"), geom.get("coordinates")
+        if gtype == "LineString":
+            parts = [coords]
+        elif gtype == "MultiLineString" or gtype == "Polygon":
+            parts = coords
+        elif gtype == "MultiPolygon":
+            parts = [ring for poly in coords for ring in poly]
+        else:
+            raise InvalidMessage(f"{p}: feature {i}: unsupported geometry {gtype!r}")
+        for part in parts:
+            try:
+                arr = np.asarray(part, dtype=np.float64)
+            except (TypeError, ValueError) as exc:
+                raise InvalidMessage(f"{p}: feature {i}: coordinates are not numbers") from exc
+            if arr.ndim != 2 or arr.shape[0] < 2 or arr.shape[1] < 2:
+                raise InvalidMessage(f"{p}: feature {i}: need >= 2 points of [x, y]")
+            out.append(arr[:, :2].tolist())
+    if not out:
+        raise InvalidMessage(f"{p}: no LineString or Polygon features")
+    return out
+
+
+def map_from_data(md: MapData, name: str | None = None) -> Map:
+    """Wire :class:`Map` message of a core :class:`MapData`."""
+    return Map(
+        map_id=md.map_id,
+        kind=md.kind,
+        polylines=[p.tolist() for p in md.polylines],
+        name=name,
+    )
+
+
+class Stream(Generic[M]):
+    """Decoded samples of a subscription, as an iterator (blocking) or via :meth:`get`.
+
+    The Zenoh callback only queues raw payloads; decoding happens in the consumer. Undecodable
+    samples are counted in :attr:`rejected` and skipped; messages failing ``accept`` are
+    dropped. Close it (or use ``with``) to undeclare the subscriber.
+    """
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        key_expr: str,
+        model: type[M],
+        accept: Callable[[M], bool] | None = None,
+    ) -> None:
+        self._model = model
+        self._accept = accept
+        self._queue: queue.Queue[tuple[str, bytes, str | None]] = queue.Queue()
+        self.rejected = 0
+        self._closed = threading.Event()
+        self._sub = session.declare_subscriber(key_expr, self._on_sample)
+
+    def _on_sample(self, sample: Any) -> None:
+        self._queue.put((str(sample.key_expr), sample.payload.to_bytes(), _encoding_of(sample)))
+
+    def _decode(self, item: tuple[str, bytes, str | None]) -> tuple[str, M] | None:
+        key, payload, enc = item
+        try:
+            msg = decode(self._model, payload, enc)
+        except InvalidMessage:
+            self.rejected += 1
+            return None
+        if self._accept is not None and not self._accept(msg):
+            return None
+        return key, msg
+
+    def get(self, timeout: float | None = None) -> tuple[str, M] | None:
+        """Next ``(key, message)``; ``None`` if nothing valid arrives within ``timeout`` s
+        (``None``: wait until closed)."""
+        end = None if timeout is None else time.monotonic() + timeout
+        while not self._closed.is_set():
+            wait = 0.2 if end is None else min(0.2, max(0.0, end - time.monotonic()))
+            try:
+                item = self._queue.get(timeout=wait)
+            except queue.Empty:
+                if end is not None and time.monotonic() >= end:
+                    return None
+                continue
+            got = self._decode(item)
+            if got is not None:
+                return got
+        return None
+
+    def drain(self) -> list[tuple[str, M]]:
+        """Everything already received, without waiting."""
+        out = []
+        while True:
+            try:
+                item = self._queue.get_nowait()
+            except queue.Empty:
+                return out
+            got = self._decode(item)
+            if got is not None:
+                out.append(got)
+
+    def __iter__(self) -> Iterator[tuple[str, M]]:
+        while True:
+            item = self.get(timeout=None)
+            if item is None:
+                return
+            yield item
+
+    def close(self) -> None:
+        """Undeclare the subscriber (idempotent)."""
+        if not self._closed.is_set():
+            self._closed.set()
+            with contextlib.suppress(zenoh.ZError):
+                self._sub.undeclare()
+
+    def __enter__(self) -> Stream[M]:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class ShapelocClient:
+    """Talk to a shapeloc service: maps, robot configuration, scans, poses, health, errors.
+
+    Either ``connect`` endpoints (a Zenoh session is opened in ``mode``, default ``client``)
+    or an existing ``session`` (not closed by this object). ``timeout`` (s) bounds every
+    request. Use as a context manager so the session and subscriptions are always closed.
+    """
+
+    def __init__(
+        self,
+        connect: str | Sequence[str] | None = DEFAULT_CONNECT,
+        *,
+        session: zenoh.Session | None = None,
+        prefix: str = DEFAULT_PREFIX,
+        timeout: float = DEFAULT_TIMEOUT,
+        mode: str = "client",
+    ) -> None:
+        if timeout <= 0:
+            raise ValueError(f"timeout must be > 0 s, got {timeout}")
+        self.prefix = keys.validate_prefix(prefix)
+        self.timeout = float(timeout)
+        self._streams: list[Stream[Any]] = []
+        self._subs: list[Any] = []
+        if session is not None:
+            self.session = session
+            self._owns = False
+            self.endpoints: tuple[str, ...] = ()
+        else:
+            eps = (connect,) if isinstance(connect, str) else tuple(connect or ())
+            self.endpoints = eps
+            self.session = open_session(zenoh_config(mode, connect=eps), eps)
+            self._owns = True
+
+    # ----------------------------------------------------------------- lifecycle
+    def close(self) -> None:
+        """Undeclare subscriptions and close the session if this client opened it."""
+        for s in self._streams:
+            s.close()
+        self._streams.clear()
+        for sub in self._subs:
+            with contextlib.suppress(zenoh.ZError):
+                sub.undeclare()
+        self._subs.clear()
+        if self._owns and not self.session.is_closed():
+            self.session.close()
+
+    def __enter__(self) -> ShapelocClient:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # ----------------------------------------------------------------- requests
+    def _get(self, key: str, many: bool = False) -> list[tuple[str, bytes, str | None]]:
+        """Run a get; return the ok replies; raise on error replies or on no reply at all."""
+        oks: list[tuple[str, bytes, str | None]] = []
+        err: ShapelocError | None = None
+        try:
+            replies = self.session.get(key, timeout=self.timeout)
+            for reply in replies:
+                if reply.ok is not None:
+                    s = reply.ok
+                    oks.append((str(s.key_expr), s.payload.to_bytes(), _encoding_of(s)))
+                elif reply.err is not None and err is None:
+                    err = _remote_error(key, reply.err.payload.to_bytes())
+        except zenoh.ZError as exc:
+            raise Unreachable(f"zenoh request on {key} failed: {exc}") from exc
+        if err is not None and not oks:
+            raise err
+        if not oks and not many:
+            raise ServiceTimeout(f"no shapeloc service answered on {key} within {self.timeout} s")
+        return oks
+
+    def _get_one(self, key: str, model: type[M]) -> M:
+        _, payload, enc = self._get(key)[0]
+        return decode(model, payload, enc)
+
+    def _put(self, key: str, msg: BaseModel) -> None:
+        self.session.put(
+            key,
+            encode(msg),
+            encoding=zenoh.Encoding(MSGPACK_ENCODING),
+            congestion_control=zenoh.CongestionControl.BLOCK,
+        )
+
+    def health(self) -> Health:
+        """The service's health (``get <prefix>/service/health``)."""
+        return self._get_one(keys.health_key(self.prefix), Health)
+
+    def wait_for_service(self, within: float) -> Health:
+        """Poll :meth:`health` until the service answers or ``within`` seconds pass."""
+        end = time.monotonic() + within
+        while True:
+            try:
+                return self.health()
+            except ServiceTimeout:
+                if time.monotonic() >= end:
+                    raise ServiceTimeout(
+                        f"no shapeloc service answered on {keys.health_key(self.prefix)} "
+                        f"within {within} s"
+                    ) from None
+                time.sleep(0.1)
+
+    def put_map(
+        self,
+        map_: MapData | Map | str | Path,
+        *,
+        map_id: str | None = None,
+        kind: str | None = None,
+        confirm: bool = False,
+    ) -> Map:
+        """Store a map (``put <prefix>/maps/<map_id>``); returns the message sent.
+
+        ``map_`` is a core :class:`MapData`, a wire :class:`Map` or a file path (see
+        :func:`load_map_file`). With ``confirm`` the map is read back until the service holds
+        it (raises :class:`ServiceTimeout` otherwise).
+        """
+        if isinstance(map_, MapData):
+            msg = map_from_data(map_)
+        elif isinstance(map_, Map):
+            msg = map_
+        else:
+            msg = load_map_file(map_, map_id=map_id, kind=kind)
+        if (map_id is not None and msg.map_id != map_id) or (kind is not None and msg.kind != kind):
+            msg = Map(
+                map_id=map_id or msg.map_id,
+                kind=kind or msg.kind,
+                polylines=msg.polylines,
+                name=msg.name,
+            )
+        key = keys.map_key(self.prefix, msg.map_id)
+        self._put(key, msg)
+        if confirm:
+            self._confirm(lambda: self._map_matches(msg))
+        return msg
+
+    def _map_matches(self, msg: Map) -> bool:
+        try:
+            got = self.get_map(msg.map_id)
+        except (ServiceTimeout, UnknownMap, RemoteError):
+            return False
+        return got.kind == msg.kind and len(got.polylines) == len(msg.polylines)
+
+    def _confirm(self, check: Callable[[], bool]) -> None:
+        end = time.monotonic() + self.timeout
+        while not check():
+            if time.monotonic() >= end:
+                raise ServiceTimeout(
+                    f"the service did not confirm the change within {self.timeout} s"
+                )
+            time.sleep(0.05)
+
+    def delete_map(self, map_id: str) -> None:
+        """Remove a stored map (``delete <prefix>/maps/<map_id>``)."""
+        self.session.delete(keys.map_key(self.prefix, map_id))
+
+    def get_map(self, map_id: str) -> Map:
+        """The stored map ``map_id``; :class:`UnknownMap` if the service does not hold it."""
+        key = keys.map_key(self.prefix, map_id)
+        oks = self._get(key, many=True)
+        if not oks:
+            raise UnknownMap(f"the service holds no map {map_id!r} (or did not answer on {key})")
+        _, payload, enc = oks[0]
+        return decode(Map, payload, enc)
+
+    def list_maps(self) -> list[Map]:
+        """All stored maps, sorted by id (a running service with no maps gives ``[]``)."""
+        oks = self._get(keys.maps_wildcard(self.prefix), many=True)
+        maps = [decode(Map, payload, enc) for _, payload, enc in oks]
+        return sorted(maps, key=lambda m: m.map_id)
+
+    def configure(
+        self,
+        robot_id: str,
+        map_id: str,
+        method: str = "shape",
+        initial_pose: Sequence[float] | np.ndarray | None = None,
+    ) -> RobotConfig:
+        """Configure (and reset) a robot: its map, method and initial pose (``None``: global)."""
+        pose = None if initial_pose is None else [float(v) for v in np.asarray(initial_pose)]
+        msg = RobotConfig(map_id=map_id, method=method, initial_pose=pose)
+        self._put(keys.robot_key(self.prefix, robot_id, "config"), msg)
+        return msg
+
+    def send_scan(self, robot_id: str, scan: Scan) -> None:
+        """Publish one scan of ``robot_id`` (``put <prefix>/robots/<id>/scan``)."""
+        self.session.put(
+            keys.robot_key(self.prefix, robot_id, "scan"),
+            encode(scan),
+            encoding=zenoh.Encoding(MSGPACK_ENCODING),
+        )
+
+    def get_pose(self, robot_id: str) -> PoseMsg:
+        """Latest estimate of ``robot_id``; :class:`UnknownRobot` if it is not configured."""
+        return self._get_one(keys.robot_key(self.prefix, robot_id, "pose"), PoseMsg)
+
+    # ----------------------------------------------------------------- subscriptions
+    def _subscribe(
+        self,
+        key_expr: str,
+        model: type[M],
+        callback: Callable[[M], None] | None,
+        accept: Callable[[M], bool] | None = None,
+    ) -> Stream[M] | Any:
+        if callback is None:
+            stream = Stream(self.session, key_expr, model, accept)
+            self._streams.append(stream)
+            return stream
+
+        def on_sample(sample: Any) -> None:
+            try:
+                msg = decode(model, sample.payload.to_bytes(), _encoding_of(sample))
+            except InvalidMessage:
+                return
+            if accept is None or accept(msg):
+                callback(msg)
+
+        sub = self.session.declare_subscriber(key_expr, on_sample)
+        self._subs.append(sub)
+        return sub
+
+    def watch_poses(
+        self,
+        robot_ids: str | Iterable[str] = "*",
+        callback: Callable[[PoseMsg], None] | None = None,
+    ) -> Stream[PoseMsg] | Any:
+        """Subscribe to pose estimates of one robot, of all (``"*"``) or of several ids.
+
+        Without ``callback``: a :class:`Stream` of ``(key, PoseMsg)``. With ``callback``: the
+        Zenoh subscriber (the callback runs on Zenoh's thread; keep it short). Either is
+        undeclared by :meth:`close`.
+        """
+        accept = None
+        if robot_ids == "*":
+            key_expr = keys.robots_wildcard(self.prefix, "pose")
+        elif isinstance(robot_ids, str):
+            key_expr = keys.robot_key(self.prefix, robot_ids, "pose")
+        else:
+            wanted = frozenset(robot_ids)
+            if not wanted:
+                raise ValueError("robot_ids is empty")
+            key_expr = keys.robots_wildcard(self.prefix, "pose")
+
+            def accept(m: PoseMsg) -> bool:
+                return m.robot_id in wanted
+
+        return self._subscribe(key_expr, PoseMsg, callback, accept)
+
+    def watch_errors(
+        self, callback: Callable[[ErrorNotice], None] | None = None
+    ) -> Stream[ErrorNotice] | Any:
+        """Subscribe to the service's error notices (``<prefix>/errors``)."""
+        return self._subscribe(keys.errors_key(self.prefix), ErrorNotice, callback)
+
+    errors = watch_errors

@@ -1,0 +1,297 @@
+"""``python -m sim_publisher`` / ``shapeloc-sim``: drive simulated robots and publish over Zenoh.
+
+Puts the maps, configures every robot, then publishes per robot and tick a scan on
+``<prefix>/robots/<id>/scan`` and the ground truth on ``<prefix>/robots/<id>/truth`` (msgpack,
+wire contract v1) until ``--scans`` / ``--duration`` is reached or SIGINT/SIGTERM arrives.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import signal
+import sys
+import threading
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import zenoh
+
+from clients.client import DEFAULT_PREFIX, ShapelocClient, open_session, zenoh_config
+from schemas import keys
+from schemas.codec import MSGPACK_ENCODING, encode
+from schemas.errors import ServiceTimeout, ShapelocError
+from service.core.types import METHODS
+from sim_publisher.publisher import SimFleet, fleet_specs
+
+log = logging.getLogger("shapeloc.sim")
+
+
+@dataclass
+class SimOptions:
+    """Options of one simulator run (see ``--help`` for their meaning; rates in Hz, s)."""
+
+    robots: int = 1
+    maps: list[str] = field(default_factory=lambda: ["metric"])
+    methods: list[str] = field(default_factory=lambda: ["shape"])
+    setup: int | None = None
+    step_mm: float | None = None
+    starts: list[float] | None = None
+    seed: int = 0
+    id_prefix: str = "sim-"
+    global_localization: bool = False
+    odom: bool = True
+    rate: float = 10.0
+    max_rate: bool = False
+    scans: int | None = None
+    duration: float | None = None
+    prefix: str = DEFAULT_PREFIX
+    wait_service: float = 30.0
+    configure: bool = True
+    put_maps: bool = True
+
+
+def main(
+    conf: zenoh.Config,
+    options: SimOptions,
+    stop: threading.Event | None = None,
+    endpoints: Sequence[str] = (),
+) -> int:
+    """Run the simulator on a Zenoh session opened from ``conf``; returns the exit code.
+
+    ``stop`` (set from a signal handler or another thread) ends the run after the current tick.
+    """
+    stop = stop or threading.Event()
+    fleet = SimFleet.from_specs(
+        fleet_specs(
+            options.robots,
+            options.maps,
+            options.methods,
+            setup=options.setup,
+            step_mm=options.step_mm,
+            seed=options.seed,
+            starts=options.starts,
+            id_prefix=options.id_prefix,
+        ),
+        global_localization=options.global_localization,
+        send_odom=options.odom,
+    )
+    with open_session(conf, endpoints) as session:
+        client = ShapelocClient(session=session, prefix=options.prefix, timeout=2.0)
+        try:
+            if options.wait_service > 0:
+                try:
+                    h = client.wait_for_service(options.wait_service)
+                    log.info("service %s up: %d maps, %d robots", h.version, h.maps, h.robots)
+                except ServiceTimeout as exc:
+                    log.warning("%s; publishing anyway", exc)
+            if options.put_maps:
+                for m in fleet.map_messages():
+                    try:
+                        client.put_map(m, confirm=options.wait_service > 0)
+                    except ServiceTimeout:
+                        log.warning("map %s was put but not confirmed by a service", m.map_id)
+                    log.info("map %s (%s, %d polylines)", m.map_id, m.kind, len(m.polylines))
+            if options.configure:
+                for r in fleet.robots:
+                    client.configure(r.robot_id, r.map_id, r.method, r.config().initial_pose)
+                    log.info("robot %s: map %s, method %s", r.robot_id, r.map_id, r.method)
+                time.sleep(0.2)  # let configurations reach the service before the first scan
+            return _publish_loop(session, fleet, options, stop)
+        finally:
+            client.close()
+
+
+def _publish_loop(
+    session: zenoh.Session, fleet: SimFleet, options: SimOptions, stop: threading.Event
+) -> int:
+    enc = zenoh.Encoding(MSGPACK_ENCODING)
+    pubs = []
+    for r in fleet.robots:
+        scan_pub = session.declare_publisher(
+            keys.robot_key(options.prefix, r.robot_id, "scan"), encoding=enc
+        )
+        truth_pub = session.declare_publisher(
+            keys.robot_key(options.prefix, r.robot_id, "truth"), encoding=enc
+        )
+        pubs.append((r, scan_pub, truth_pub))
+    period = 0.0 if options.max_rate else 1.0 / options.rate
+    t0 = time.monotonic()
+    next_tick = t0
+    last_report = t0
+    sent = 0
+    try:
+        while not stop.is_set():
+            now = time.monotonic()
+            if options.duration is not None and now - t0 >= options.duration:
+                break
+            if options.scans is not None and sent >= options.scans:
+                break
+            stamp = time.time()
+            for r, scan_pub, truth_pub in pubs:
+                scan, truth = r.step(stamp)
+                truth_pub.put(encode(truth))
+                scan_pub.put(encode(scan, ranges_as_bytes=True))
+            sent += 1
+            if now - last_report >= 5.0:
+                log.info("%d scans per robot published (%.1f Hz)", sent, sent / (now - t0))
+                last_report = now
+            if period > 0:
+                next_tick += period
+                delay = next_tick - time.monotonic()
+                if delay > 0:
+                    stop.wait(delay)
+                else:
+                    next_tick = time.monotonic()  # fell behind: do not burst to catch up
+    finally:
+        for _, a, b in pubs:
+            a.undeclare()
+            b.undeclare()
+    el = max(time.monotonic() - t0, 1e-9)
+    log.info("done: %d scans per robot in %.1f s (%.1f Hz)", sent, el, sent / el)
+    return 0
+
+
+def _csv(text: str) -> list[str]:
+    return [t.strip() for t in text.split(",") if t.strip()]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The simulator's command line."""
+    p = argparse.ArgumentParser(
+        prog="shapeloc-sim",
+        description="Drive simulated robots along the office tour and publish their laser scans "
+        "and ground truth to a shapeloc service over Zenoh.",
+    )
+    p.add_argument("--robots", type=int, default=1, help="number of robots (ids sim-0..N-1)")
+    p.add_argument(
+        "--map",
+        type=_csv,
+        default=["metric"],
+        help="metric | schematic | a map/world file; a comma list cycles over the robots",
+    )
+    p.add_argument(
+        "--method",
+        type=_csv,
+        default=["shape"],
+        help=f"{' | '.join(METHODS)}; a comma list cycles over the robots",
+    )
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--setup", type=int, choices=(1, 2), help="tour sampling (default per map)")
+    g.add_argument("--step-mm", type=float, help="tour sampling step in mm instead of a setup")
+    p.add_argument(
+        "--starts",
+        type=lambda s: [float(v) for v in _csv(s)],
+        help="start of each robot as a fraction of the tour (default k/N)",
+    )
+    p.add_argument("--seed", type=int, default=0, help="base seed; robot k uses seed+k")
+    p.add_argument("--id-prefix", default="sim-", help="robot id prefix")
+    p.add_argument(
+        "--global",
+        dest="global_localization",
+        action="store_true",
+        help="configure robots with initial_pose null (global localisation)",
+    )
+    p.add_argument("--no-odom", dest="odom", action="store_false", help="omit odometry")
+    p.add_argument("--rate", type=float, default=10.0, help="scans per second per robot")
+    p.add_argument("--max-rate", action="store_true", help="publish as fast as possible")
+    p.add_argument("--scans", type=int, help="stop after this many scans per robot")
+    p.add_argument("--duration", type=float, help="stop after this many seconds")
+    p.add_argument(
+        "--wait-service",
+        type=float,
+        default=30.0,
+        help="seconds to wait for the service's health before publishing (0: don't)",
+    )
+    p.add_argument(
+        "--no-configure",
+        dest="configure",
+        action="store_false",
+        help="do not put the robots' configurations",
+    )
+    p.add_argument("--no-maps", dest="put_maps", action="store_false", help="do not put the maps")
+    p.add_argument("--prefix", default=DEFAULT_PREFIX, help="key prefix")
+    p.add_argument("--mode", choices=("client", "peer", "router"), default="client")
+    p.add_argument(
+        "--connect",
+        action="append",
+        default=None,
+        help="endpoint to connect to (repeatable; default tcp/127.0.0.1:7447 in client mode)",
+    )
+    p.add_argument("--listen", action="append", default=None, help="endpoint to listen on")
+    p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    return p
+
+
+def options_from_args(args: argparse.Namespace) -> SimOptions:
+    """Validate parsed arguments into :class:`SimOptions` (raises ``ValueError``)."""
+    if args.robots < 1:
+        raise ValueError("--robots must be >= 1")
+    if args.rate <= 0:
+        raise ValueError("--rate must be > 0")
+    if args.scans is not None and args.scans < 0:
+        raise ValueError("--scans must be >= 0")
+    if args.duration is not None and args.duration < 0:
+        raise ValueError("--duration must be >= 0")
+    bad = [m for m in args.method if m not in METHODS]
+    if bad:
+        raise ValueError(f"unknown method {bad[0]!r}; expected one of {', '.join(METHODS)}")
+    return SimOptions(
+        robots=args.robots,
+        maps=args.map,
+        methods=args.method,
+        setup=args.setup,
+        step_mm=args.step_mm,
+        starts=args.starts,
+        seed=args.seed,
+        id_prefix=args.id_prefix,
+        global_localization=args.global_localization,
+        odom=args.odom,
+        rate=args.rate,
+        max_rate=args.max_rate,
+        scans=args.scans,
+        duration=args.duration,
+        prefix=args.prefix,
+        wait_service=args.wait_service,
+        configure=args.configure,
+        put_maps=args.put_maps,
+    )
+
+
+def cli(argv: Sequence[str] | None = None) -> int:
+    """Console entry point ``shapeloc-sim``."""
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(
+        level=logging.DEBUG if args.verbose else logging.INFO,
+        format="%(asctime)s %(name)s %(levelname)s %(message)s",
+        stream=sys.stderr,
+    )
+    zenoh.init_log_from_env_or("error")
+    try:
+        options = options_from_args(args)
+    except ValueError as exc:
+        print(f"shapeloc-sim: error: {exc}", file=sys.stderr)
+        return 2
+    connect = args.connect
+    if connect is None and args.mode == "client":
+        connect = ["tcp/127.0.0.1:7447"]
+    endpoints = list(connect or [])
+    conf = zenoh_config(args.mode, connect=endpoints, listen=args.listen or [])
+    stop = threading.Event()
+
+    def on_signal(signum: int, _frame: object) -> None:
+        log.info("signal %d: stopping", signum)
+        stop.set()
+
+    signal.signal(signal.SIGINT, on_signal)
+    signal.signal(signal.SIGTERM, on_signal)
+    try:
+        return main(conf, options, stop, endpoints)
+    except (ShapelocError, ValueError) as exc:
+        print(f"shapeloc-sim: error: {exc}", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(cli())

@@ -1,0 +1,259 @@
+"""Simulated robots that produce wire messages (scan, ground truth, configuration).
+
+Network-free: :class:`SimRobot` walks one robot along the office tour of a
+:func:`sim_publisher.scenario.make_setup` setup and returns :class:`~schemas.messages.Scan` and
+:class:`~schemas.messages.Truth` messages; :class:`SimFleet` holds several robots and the maps
+they use. ``sim_publisher.__main__`` puts these on Zenoh. Poses are map-frame ``[x, y, theta]``
+(metres, radians); scans are in the robot frame (REP 103), with ``range_max`` standing for the
+laser's maximum range and NaN beams ("no return") sent as NaN.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from schemas.codec import map_to_map_data
+from schemas.messages import Map, RobotConfig, Scan, Truth
+from service.core.types import METHODS, MapData
+from sim_publisher.scenario import Setup, make_setup
+
+MAP_CHOICES = ("metric", "schematic")
+#: Setup whose sampling a robot uses by default, per map kind (paper sec. 6).
+DEFAULT_SETUP = {"metric": 1, "schematic": 2}
+
+
+def map_for(spec: str) -> MapData:
+    """The map named by ``spec``: ``metric`` / ``schematic`` (the office) or a map/world file.
+
+    Files are read by :func:`clients.client.load_map_file` (wire JSON map or GeoJSON world).
+    """
+    if spec == "metric":
+        from sim_publisher.office import office_metric_map
+
+        return office_metric_map()
+    if spec == "schematic":
+        from sim_publisher.office import office_schematic_map
+
+        return office_schematic_map()
+    from clients.client import load_map_file
+
+    return map_to_map_data(load_map_file(Path(spec)))
+
+
+class SimRobot:
+    """One simulated robot driving along a setup's tour (back and forth at the ends).
+
+    ``start`` is the first trajectory index, ``stride`` how many setup samples one step
+    advances (to coarsen the sampling, e.g. for ``--step-mm``). Every :meth:`step` returns the
+    next scan and its ground truth with the same ``seq`` and ``stamp``; seq starts at 0.
+    """
+
+    def __init__(
+        self,
+        robot_id: str,
+        setup: Setup,
+        map_id: str,
+        method: str = "shape",
+        *,
+        start: int = 0,
+        stride: int = 1,
+        global_localization: bool = False,
+        send_odom: bool = True,
+    ) -> None:
+        if method not in METHODS:
+            raise ValueError(f"unknown method {method!r}; expected one of {', '.join(METHODS)}")
+        if stride < 1:
+            raise ValueError(f"stride must be >= 1, got {stride}")
+        n = len(setup.truth)
+        if n < 2:
+            raise ValueError("the setup's trajectory has fewer than 2 poses")
+        self.robot_id = robot_id
+        self.setup = setup
+        self.map_id = map_id
+        self.method = method
+        self.global_localization = global_localization
+        self.send_odom = send_odom
+        self.indices = np.arange(0, n, stride)
+        self._pos = int(np.clip(start // stride, 0, len(self.indices) - 1))
+        self._dir = 1
+        self.seq = 0
+        laser = setup.laser
+        self.angle_min = float(laser.angle_min)
+        self.angle_increment = float(laser.angle_increment)
+        self.range_max = float(laser.config.max_range)
+        self.range_min = 0.0
+
+    @property
+    def index(self) -> int:
+        """Setup sample index of the next scan."""
+        return int(self.indices[self._pos])
+
+    @property
+    def start_pose(self) -> np.ndarray:
+        """True pose at the next scan, ``(3,)`` map frame."""
+        return np.asarray(self.setup.truth[self.index], dtype=np.float64).copy()
+
+    def config(self) -> RobotConfig:
+        """Configuration message: the map, the method, and the true pose at the next scan as
+        initial pose (``None`` with global localisation)."""
+        pose = None if self.global_localization else [float(v) for v in self.start_pose]
+        return RobotConfig(map_id=self.map_id, method=self.method, initial_pose=pose)
+
+    def step(self, stamp: float) -> tuple[Scan, Truth]:
+        """Scan and ground truth at the current tour position, then advance one step."""
+        i = self.index
+        ranges, angles = self.setup.scan(i)
+        ranges = np.asarray(ranges, dtype=np.float64)
+        if len(angles) != len(ranges):
+            raise ValueError("laser returned mismatched ranges/angles")
+        odom = None
+        if self.send_odom:
+            odom = [float(v) for v in self.setup.odom[i]]
+        scan = Scan(
+            seq=self.seq,
+            stamp=float(stamp),
+            angle_min=self.angle_min,
+            angle_increment=self.angle_increment,
+            range_min=self.range_min,
+            range_max=self.range_max,
+            ranges=ranges,
+            odom=odom,
+        )
+        truth = Truth(
+            seq=self.seq, stamp=float(stamp), pose=[float(v) for v in self.setup.truth[i]]
+        )
+        self.seq += 1
+        self._advance()
+        return scan, truth
+
+    def _advance(self) -> None:
+        nxt = self._pos + self._dir
+        if not 0 <= nxt < len(self.indices):
+            self._dir = -self._dir
+            nxt = self._pos + self._dir
+        self._pos = nxt
+
+
+@dataclass(frozen=True)
+class RobotSpec:
+    """How to build one robot of a fleet (see :func:`build_fleet`)."""
+
+    robot_id: str
+    map_spec: str
+    method: str
+    setup: int
+    seed: int
+    start_fraction: float
+    step_mm: float | None = None
+
+
+def _cycle(values: Sequence[str], n: int) -> list[str]:
+    if not values:
+        raise ValueError("empty list of choices")
+    return [values[k % len(values)] for k in range(n)]
+
+
+def fleet_specs(
+    n: int,
+    maps: Sequence[str] = ("metric",),
+    methods: Sequence[str] = ("shape",),
+    *,
+    setup: int | None = None,
+    step_mm: float | None = None,
+    seed: int = 0,
+    starts: Sequence[float] | None = None,
+    id_prefix: str = "sim-",
+) -> list[RobotSpec]:
+    """Specs of ``n`` robots ``<id_prefix>0..n-1``: maps and methods cycle over the lists;
+    each robot gets seed ``seed + k`` and starts at fraction ``starts[k]`` of the tour
+    (default ``k / n``). ``setup`` defaults per map (metric: 1, schematic: 2)."""
+    if n < 1:
+        raise ValueError(f"need at least one robot, got {n}")
+    if starts is not None and len(starts) < n:
+        raise ValueError(f"{n} robots but only {len(starts)} start fractions")
+    if step_mm is not None and step_mm <= 0:
+        raise ValueError(f"step must be > 0 mm, got {step_mm}")
+    specs = []
+    for k, (m, meth) in enumerate(zip(_cycle(maps, n), _cycle(methods, n), strict=True)):
+        frac = float(starts[k]) if starts is not None else k / n
+        if not 0.0 <= frac <= 1.0:
+            raise ValueError(f"start fraction must be in [0, 1], got {frac}")
+        st = setup if setup is not None else DEFAULT_SETUP.get(m, 1)
+        if step_mm is not None:
+            st = 1
+        specs.append(
+            RobotSpec(
+                robot_id=f"{id_prefix}{k}",
+                map_spec=m,
+                method=meth,
+                setup=st,
+                seed=seed + k,
+                start_fraction=frac,
+                step_mm=step_mm,
+            )
+        )
+    return specs
+
+
+class SimFleet:
+    """Robots plus the maps they are configured on (keyed by map id)."""
+
+    def __init__(self, robots: Sequence[SimRobot], maps: dict[str, MapData]) -> None:
+        self.robots = list(robots)
+        self.maps = dict(maps)
+        missing = {r.map_id for r in self.robots} - set(self.maps)
+        if missing:
+            raise ValueError(f"robots use maps that the fleet does not hold: {sorted(missing)}")
+
+    @staticmethod
+    def from_specs(
+        specs: Sequence[RobotSpec],
+        *,
+        global_localization: bool = False,
+        send_odom: bool = True,
+    ) -> SimFleet:
+        """Build robots (one setup per robot seed) and load their maps."""
+        maps: dict[str, MapData] = {}
+        by_spec: dict[str, str] = {}
+        robots = []
+        for sp in specs:
+            if sp.map_spec not in by_spec:
+                md = map_for(sp.map_spec)
+                maps[md.map_id] = md
+                by_spec[sp.map_spec] = md.map_id
+            setup = make_setup(sp.setup, seed=sp.seed)
+            n = len(setup.truth)
+            stride = 1
+            if sp.step_mm is not None:
+                mean_mm = _mean_step_mm(setup.truth)
+                stride = max(1, round(sp.step_mm / mean_mm))
+            start = round(sp.start_fraction * (n - 1))
+            robots.append(
+                SimRobot(
+                    sp.robot_id,
+                    setup,
+                    by_spec[sp.map_spec],
+                    sp.method,
+                    start=start,
+                    stride=stride,
+                    global_localization=global_localization,
+                    send_odom=send_odom,
+                )
+            )
+        return SimFleet(robots, maps)
+
+    def map_messages(self) -> list[Map]:
+        """Wire map messages of every map in use."""
+        return [
+            Map(map_id=md.map_id, kind=md.kind, polylines=[p.tolist() for p in md.polylines])
+            for md in self.maps.values()
+        ]
+
+
+def _mean_step_mm(truth: np.ndarray) -> float:
+    d = np.linalg.norm(np.diff(np.asarray(truth)[:, :2], axis=0), axis=1)
+    return float(max(d.mean() * 1000.0, 1e-6))
