@@ -18,6 +18,7 @@ matched scan lines. Association and fit alternate a few times while the gates sh
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass
 
@@ -111,7 +112,7 @@ def fit_line(points: np.ndarray) -> tuple[float, float, np.ndarray]:
     c = points.mean(axis=0)
     d = points - c
     cov = d.T @ d
-    w, v = np.linalg.eigh(cov)
+    _, v = np.linalg.eigh(cov)
     n = v[:, 0]  # smallest eigenvalue: the normal
     r = float(n @ c)
     if r < 0.0:
@@ -160,7 +161,7 @@ def extract_lines(
     cuts = np.flatnonzero(gaps > limit) + 1
     bounds = np.concatenate([[0], cuts, [n]])
     pieces: list[tuple[int, int]] = []  # half-open index ranges, in order
-    for a, b in zip(bounds[:-1], bounds[1:], strict=True):
+    for a, b in itertools.pairwise(bounds):
         if b - a < 2:
             continue
         stack = [(int(a), int(b))]
