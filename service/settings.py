@@ -1,0 +1,231 @@
+"""Configuration of the localizer service: one model, three layers.
+
+Precedence is defaults < environment (``SHAPELOC_*`` variables) < command-line flags. The same
+:class:`ServiceSettings` instance drives the Zenoh session (:func:`zenoh_config`), the state
+store and the worker pool. Times are seconds, sizes are counts of messages or bytes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import re
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+
+from schemas.errors import InvalidMessage
+
+if TYPE_CHECKING:
+    import zenoh
+
+ENV_PREFIX = "SHAPELOC_"
+_ID_RE = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
+_LOG_LEVELS = ("debug", "info", "warning", "error")
+
+log = logging.getLogger("shapeloc.service")
+
+
+def _default_workers() -> int:
+    return max(1, os.cpu_count() or 1)
+
+
+class ServiceSettings(BaseModel):
+    """Every option of ``shapeloc-service`` (see docs/service.md for the table).
+
+    ``listen``/``connect`` are Zenoh endpoints such as ``tcp/127.0.0.1:7447``. ``robots`` is a
+    Zenoh key expression over a single robot-id chunk selecting the robots this instance serves
+    (``**``: all; ``a$*``: ids starting with ``a``); others are ignored silently. ``workers`` is
+    the number of localisation worker processes; 0 computes in the service process itself.
+    """
+
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+    listen: list[str] = Field(default_factory=lambda: ["tcp/127.0.0.1:7447"])
+    connect: list[str] = Field(default_factory=list)
+    mode: Literal["peer", "client", "router"] = "peer"
+    zenoh_config: Path | None = None
+    multicast_scouting: bool = False
+    prefix: str = "shapeloc"
+    state_dir: Path = Path("./state")
+    robots: str = "**"
+    instance_id: str | None = None
+    workers: int = Field(default_factory=_default_workers, ge=0, le=64)
+    pose_save_interval_s: float = Field(default=5.0, gt=0.0)
+    control_queue_size: int = Field(default=1024, ge=1)
+    query_queue_size: int = Field(default=256, ge=1)
+    max_robots: int = Field(default=1000, ge=1)
+    worker_timeout_s: float = Field(default=30.0, gt=0.0)
+    log_level: Literal["debug", "info", "warning", "error"] = "info"
+
+    @field_validator("prefix")
+    @classmethod
+    def _check_prefix(cls, v: str) -> str:
+        chunks = v.split("/")
+        if not v or any(not _ID_RE.match(c) for c in chunks):
+            raise ValueError(
+                f"prefix {v!r} must be '/'-separated chunks of 1-64 characters of [A-Za-z0-9_.-]"
+            )
+        return v
+
+    @field_validator("robots")
+    @classmethod
+    def _check_robots(cls, v: str) -> str:
+        if not v or "/" in v:
+            raise ValueError(f"robots {v!r} must be a key expression over one chunk, e.g. '**'")
+        import zenoh
+
+        try:
+            zenoh.KeyExpr(v)
+        except Exception as e:  # zenoh raises ZError
+            raise ValueError(f"robots {v!r} is not a valid Zenoh key expression: {e}") from e
+        return v
+
+    @field_validator("instance_id")
+    @classmethod
+    def _check_instance(cls, v: str | None) -> str | None:
+        if v is not None and not _ID_RE.match(v):
+            raise ValueError(f"instance_id {v!r} must be 1-64 characters of [A-Za-z0-9_.-]")
+        return v
+
+    @field_validator("listen", "connect")
+    @classmethod
+    def _check_endpoints(cls, v: list[str]) -> list[str]:
+        for e in v:
+            if "/" not in e or not e.split("/", 1)[1]:
+                raise ValueError(f"endpoint {e!r} must look like 'tcp/127.0.0.1:7447'")
+        return v
+
+    def effective_instance_id(self) -> str:
+        """The liveliness id: ``instance_id`` or ``<hostname>-<pid>`` made key-safe."""
+        if self.instance_id:
+            return self.instance_id
+        host = re.sub(r"[^A-Za-z0-9_.-]", "-", os.uname().nodename)[:40] or "host"
+        return f"{host}-{os.getpid()}"
+
+    def summary(self) -> dict[str, Any]:
+        """JSON-friendly dict of the effective settings (for the start-up log)."""
+        return json.loads(self.model_dump_json())
+
+
+# Field -> how to parse an environment string.
+def _env_value(name: str, raw: str) -> Any:
+    field = ServiceSettings.model_fields[name]
+    ann = str(field.annotation)
+    if "list" in ann:
+        raw = raw.strip()
+        if raw.startswith("["):
+            try:
+                return json.loads(raw)
+            except json.JSONDecodeError as e:
+                raise InvalidMessage(f"{ENV_PREFIX}{name.upper()}: invalid JSON list: {e}") from e
+        return [p.strip() for p in raw.split(",") if p.strip()]
+    if "bool" in ann:
+        low = raw.strip().lower()
+        if low in ("1", "true", "yes", "on"):
+            return True
+        if low in ("0", "false", "no", "off"):
+            return False
+        raise InvalidMessage(f"{ENV_PREFIX}{name.upper()}: expected a boolean, got {raw!r}")
+    if "None" in ann and raw.strip() == "":
+        return None
+    return raw
+
+
+def settings_from_env(environ: Mapping[str, str] | None = None) -> dict[str, Any]:
+    """Collect ``SHAPELOC_<FIELD>`` variables (upper-case field names) as raw overrides."""
+    env = os.environ if environ is None else environ
+    out: dict[str, Any] = {}
+    for name in ServiceSettings.model_fields:
+        key = ENV_PREFIX + name.upper()
+        if key in env:
+            out[name] = _env_value(name, env[key])
+    return out
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The ``shapeloc-service`` argument parser (every default is ``None`` = not given)."""
+    p = argparse.ArgumentParser(
+        prog="shapeloc-service",
+        description="Shape-based laser localisation service over Eclipse Zenoh.",
+        argument_default=None,
+    )
+    p.add_argument("--listen", action="append", metavar="ENDPOINT", help="Zenoh listen endpoint")
+    p.add_argument(
+        "--connect", action="append", metavar="ENDPOINT", help="Zenoh endpoint to connect to"
+    )
+    p.add_argument("--mode", choices=["peer", "client", "router"])
+    p.add_argument("--zenoh-config", dest="zenoh_config", metavar="FILE", help="json5 file")
+    p.add_argument(
+        "--multicast-scouting",
+        dest="multicast_scouting",
+        action="store_const",
+        const=True,
+        help="enable Zenoh multicast scouting (off by default)",
+    )
+    p.add_argument("--prefix", help="key prefix (default shapeloc)")
+    p.add_argument("--state-dir", dest="state_dir", metavar="DIR")
+    p.add_argument("--robots", metavar="KEYEXPR", help="serve only robot ids matching this")
+    p.add_argument("--instance-id", dest="instance_id")
+    p.add_argument("--workers", type=int, help="worker processes (0: compute in-process)")
+    p.add_argument("--pose-save-interval", dest="pose_save_interval_s", type=float)
+    p.add_argument("--max-robots", dest="max_robots", type=int)
+    p.add_argument("--log-level", dest="log_level", choices=list(_LOG_LEVELS))
+    return p
+
+
+def load_settings(
+    argv: Sequence[str] | None = None, environ: Mapping[str, str] | None = None
+) -> ServiceSettings:
+    """Defaults, then environment, then CLI flags. Raises :class:`InvalidMessage` on bad values
+    (argparse itself exits with status 2 on unknown flags)."""
+    values = settings_from_env(environ)
+    if argv is not None:
+        ns = build_parser().parse_args(list(argv))
+        values.update({k: v for k, v in vars(ns).items() if v is not None})
+    try:
+        return ServiceSettings(**values)
+    except ValidationError as e:
+        errs = "; ".join(f"{'.'.join(map(str, x['loc']))}: {x['msg']}" for x in e.errors())
+        raise InvalidMessage(f"invalid service settings: {errs}") from e
+
+
+def zenoh_config(settings: ServiceSettings) -> zenoh.Config:
+    """Build the Zenoh session configuration.
+
+    Starts from ``settings.zenoh_config`` (json5 file) if given, else an empty config. Mode,
+    listen and connect endpoints from the settings are applied on top, except that with a file
+    only the options explicitly set (env/CLI) override it. Multicast scouting is switched off
+    unless ``multicast_scouting`` is true; ``scouting/delay`` is 0 so open returns at once.
+    """
+    import zenoh
+
+    explicit = settings.model_fields_set
+    if settings.zenoh_config is not None:
+        try:
+            conf = zenoh.Config.from_file(str(settings.zenoh_config))
+        except Exception as e:
+            raise InvalidMessage(f"zenoh config {settings.zenoh_config}: {e}") from e
+        base_given = True
+    else:
+        conf = zenoh.Config()
+        base_given = False
+
+    def apply(field: str) -> bool:
+        return not base_given or field in explicit
+
+    if apply("mode"):
+        conf.insert_json5("mode", json.dumps(settings.mode))
+    if apply("listen") and settings.mode != "client":
+        conf.insert_json5("listen/endpoints", json.dumps(settings.listen))
+    if apply("connect"):
+        conf.insert_json5("connect/endpoints", json.dumps(settings.connect))
+    conf.insert_json5(
+        "scouting/multicast/enabled", "true" if settings.multicast_scouting else "false"
+    )
+    conf.insert_json5("scouting/delay", "0")
+    return conf

@@ -1,0 +1,308 @@
+"""Persistent state of the localizer service: one SQLite database (WAL) in the state directory.
+
+Layout (``<state_dir>/shapeloc.sqlite3``, schema version in ``PRAGMA user_version``):
+
+* ``maps(map_id PRIMARY KEY, payload BLOB, updated REAL)``: the validated wire map (msgpack).
+* ``robots(robot_id PRIMARY KEY, payload BLOB, updated REAL)``: the validated wire config.
+* ``poses(robot_id PRIMARY KEY, map_id, x, y, theta, seq, stamp, status, updated REAL)``: the
+  last estimate per robot in the map frame (metres, radians), saved periodically and on
+  shutdown.
+
+Every write is committed before the call returns, so a caller may log "stored" afterwards. A
+``<state_dir>/shapeloc.lock`` file held with ``flock`` keeps two services off one directory.
+Anything unreadable raises :class:`~schemas.errors.StateError`; the store never resets itself.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import math
+import os
+import sqlite3
+import threading
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import msgpack
+
+from schemas.errors import StateError
+
+SCHEMA_VERSION = 1
+DB_NAME = "shapeloc.sqlite3"
+LOCK_NAME = "shapeloc.lock"
+
+_TABLES = {
+    "maps": "CREATE TABLE maps (map_id TEXT PRIMARY KEY, payload BLOB NOT NULL, "
+    "updated REAL NOT NULL)",
+    "robots": "CREATE TABLE robots (robot_id TEXT PRIMARY KEY, payload BLOB NOT NULL, "
+    "updated REAL NOT NULL)",
+    "poses": "CREATE TABLE poses (robot_id TEXT PRIMARY KEY, map_id TEXT NOT NULL, "
+    "x REAL NOT NULL, y REAL NOT NULL, theta REAL NOT NULL, seq INTEGER NOT NULL, "
+    "stamp REAL NOT NULL, status TEXT NOT NULL, updated REAL NOT NULL)",
+}
+
+
+@dataclass(frozen=True)
+class SavedPose:
+    """Last estimate of one robot: ``(x, y, theta)`` in the map frame of ``map_id``."""
+
+    map_id: str
+    x: float
+    y: float
+    theta: float
+    seq: int
+    stamp: float
+    status: str
+
+    @property
+    def pose(self) -> tuple[float, float, float]:
+        """``(x, y, theta)`` metres, metres, radians."""
+        return (self.x, self.y, self.theta)
+
+
+class StateStore:
+    """Maps, robot configurations and last poses under ``state_dir`` (thread-safe).
+
+    Raises :class:`StateError` if the directory cannot be created or locked, or the database
+    is corrupt, foreign, or from a newer schema version.
+    """
+
+    def __init__(self, state_dir: str | os.PathLike[str]) -> None:
+        self.state_dir = Path(state_dir)
+        self.path = self.state_dir / DB_NAME
+        self._lock = threading.Lock()
+        try:
+            self.state_dir.mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            raise StateError(f"cannot create state directory {self.state_dir}: {e}") from e
+        if not self.state_dir.is_dir():
+            raise StateError(f"state directory {self.state_dir} is not a directory")
+        self._lock_fd = self._acquire_dir_lock()
+        try:
+            self._db = self._open()
+        except BaseException:
+            self._release_dir_lock()
+            raise
+
+    # ----------------------------------------------------------------- opening
+    def _acquire_dir_lock(self) -> int:
+        lock_path = self.state_dir / LOCK_NAME
+        try:
+            fd = os.open(lock_path, os.O_RDWR | os.O_CREAT, 0o644)
+        except OSError as e:
+            raise StateError(f"cannot open lock file {lock_path}: {e}") from e
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as e:
+            os.close(fd)
+            raise StateError(
+                f"state directory {self.state_dir} is in use by another shapeloc service "
+                f"(lock {lock_path} is held)"
+            ) from e
+        return fd
+
+    def _release_dir_lock(self) -> None:
+        if self._lock_fd >= 0:
+            fcntl.flock(self._lock_fd, fcntl.LOCK_UN)
+            os.close(self._lock_fd)
+            self._lock_fd = -1
+
+    def _open(self) -> sqlite3.Connection:
+        if self.path.exists() and not os.access(self.path, os.R_OK | os.W_OK):
+            raise StateError(f"state file {self.path} is not readable and writable")
+        try:
+            db = sqlite3.connect(self.path, check_same_thread=False, isolation_level=None)
+        except sqlite3.Error as e:
+            raise StateError(f"cannot open state file {self.path}: {e}") from e
+        try:
+            version = db.execute("PRAGMA user_version").fetchone()[0]
+            check = db.execute("PRAGMA quick_check").fetchone()[0]
+            if check != "ok":
+                raise StateError(f"state file {self.path} is corrupt (quick_check: {check})")
+            tables = {
+                r[0]
+                for r in db.execute(
+                    "SELECT name FROM sqlite_master WHERE type='table' AND name NOT LIKE 'sqlite_%'"
+                )
+            }
+            if version == 0:
+                if tables:
+                    raise StateError(
+                        f"state file {self.path} is not a shapeloc state database "
+                        f"(unversioned, tables {sorted(tables)})"
+                    )
+                db.execute("PRAGMA journal_mode=WAL")
+                db.execute("BEGIN")
+                for ddl in _TABLES.values():
+                    db.execute(ddl)
+                db.execute(f"PRAGMA user_version={SCHEMA_VERSION}")
+                db.execute("COMMIT")
+            elif version > SCHEMA_VERSION:
+                raise StateError(
+                    f"state file {self.path} has schema version {version}, newer than the "
+                    f"supported {SCHEMA_VERSION}; upgrade shapeloc"
+                )
+            else:
+                missing = set(_TABLES) - tables
+                if missing:
+                    raise StateError(
+                        f"state file {self.path} (schema {version}) lacks tables {sorted(missing)}"
+                    )
+                db.execute("PRAGMA journal_mode=WAL")
+            db.execute("PRAGMA synchronous=FULL")
+        except sqlite3.DatabaseError as e:
+            db.close()
+            raise StateError(
+                f"state file {self.path} is corrupt or not a shapeloc state database: {e}"
+            ) from e
+        except StateError:
+            db.close()
+            raise
+        return db
+
+    def close(self) -> None:
+        """Close the database and release the directory lock (idempotent)."""
+        with self._lock:
+            if self._db is not None:
+                try:
+                    self._db.close()
+                finally:
+                    self._db = None  # type: ignore[assignment]
+                    self._release_dir_lock()
+
+    def __enter__(self) -> StateStore:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # ----------------------------------------------------------------- helpers
+    def _write(self, sql_params: list[tuple[str, tuple[Any, ...]]]) -> None:
+        with self._lock:
+            if self._db is None:
+                raise StateError("state store is closed")
+            try:
+                self._db.execute("BEGIN IMMEDIATE")
+                for sql, params in sql_params:
+                    self._db.execute(sql, params)
+                self._db.execute("COMMIT")
+            except sqlite3.Error as e:
+                if self._db.in_transaction:
+                    self._db.execute("ROLLBACK")
+                raise StateError(f"cannot write state file {self.path}: {e}") from e
+
+    def _read(self, sql: str) -> list[tuple[Any, ...]]:
+        with self._lock:
+            if self._db is None:
+                raise StateError("state store is closed")
+            try:
+                return list(self._db.execute(sql))
+            except sqlite3.Error as e:
+                raise StateError(f"cannot read state file {self.path}: {e}") from e
+
+    def _unpack(self, table: str, key: str, blob: Any) -> dict[str, Any]:
+        try:
+            obj = msgpack.unpackb(bytes(blob), raw=False, strict_map_key=True)
+        except Exception as e:
+            raise StateError(f"state file {self.path}: {table} row {key!r} is corrupt: {e}") from e
+        if not isinstance(obj, dict):
+            raise StateError(f"state file {self.path}: {table} row {key!r} is not a map")
+        return obj
+
+    # ----------------------------------------------------------------- maps
+    def put_map(self, map_id: str, wire: Mapping[str, Any]) -> None:
+        """Store (replace) a map given as its wire dict; committed on return."""
+        blob = msgpack.packb(dict(wire), use_bin_type=True)
+        self._write(
+            [
+                (
+                    "INSERT OR REPLACE INTO maps(map_id, payload, updated) VALUES (?, ?, ?)",
+                    (map_id, blob, time.time()),
+                )
+            ]
+        )
+
+    def delete_map(self, map_id: str) -> bool:
+        """Remove a map; robots configured on it are kept. Returns whether it existed."""
+        existed = bool(self._read_one("SELECT 1 FROM maps WHERE map_id=?", (map_id,)))
+        self._write([("DELETE FROM maps WHERE map_id=?", (map_id,))])
+        return existed
+
+    def maps(self) -> dict[str, dict[str, Any]]:
+        """All stored maps as wire dicts, by map id."""
+        rows = self._read("SELECT map_id, payload FROM maps ORDER BY map_id")
+        return {k: self._unpack("maps", k, b) for k, b in rows}
+
+    def _read_one(self, sql: str, params: tuple[Any, ...]) -> list[tuple[Any, ...]]:
+        with self._lock:
+            if self._db is None:
+                raise StateError("state store is closed")
+            try:
+                return list(self._db.execute(sql, params))
+            except sqlite3.Error as e:
+                raise StateError(f"cannot read state file {self.path}: {e}") from e
+
+    # ----------------------------------------------------------------- robots
+    def put_robot(self, robot_id: str, config: Mapping[str, Any]) -> None:
+        """Store (replace) a robot's wire config and forget its saved pose (a config put
+        resets the robot); committed on return."""
+        blob = msgpack.packb(dict(config), use_bin_type=True)
+        self._write(
+            [
+                (
+                    "INSERT OR REPLACE INTO robots(robot_id, payload, updated) VALUES (?, ?, ?)",
+                    (robot_id, blob, time.time()),
+                ),
+                ("DELETE FROM poses WHERE robot_id=?", (robot_id,)),
+            ]
+        )
+
+    def delete_robot(self, robot_id: str) -> None:
+        """Forget a robot's configuration and saved pose; committed on return."""
+        self._write(
+            [
+                ("DELETE FROM robots WHERE robot_id=?", (robot_id,)),
+                ("DELETE FROM poses WHERE robot_id=?", (robot_id,)),
+            ]
+        )
+
+    def robots(self) -> dict[str, dict[str, Any]]:
+        """All stored robot configurations as wire dicts, by robot id."""
+        rows = self._read("SELECT robot_id, payload FROM robots ORDER BY robot_id")
+        return {k: self._unpack("robots", k, b) for k, b in rows}
+
+    # ----------------------------------------------------------------- poses
+    def save_poses(self, poses: Mapping[str, SavedPose]) -> None:
+        """Upsert the last pose of each given robot in one transaction."""
+        now = time.time()
+        ops = []
+        for rid, p in poses.items():
+            if not all(math.isfinite(v) for v in (p.x, p.y, p.theta)):
+                continue
+            ops.append(
+                (
+                    "INSERT OR REPLACE INTO poses(robot_id, map_id, x, y, theta, seq, stamp, "
+                    "status, updated) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                    (rid, p.map_id, p.x, p.y, p.theta, int(p.seq), p.stamp, p.status, now),
+                )
+            )
+        if ops:
+            self._write(ops)
+
+    def poses(self) -> dict[str, SavedPose]:
+        """Last saved pose per robot."""
+        rows = self._read(
+            "SELECT robot_id, map_id, x, y, theta, seq, stamp, status FROM poses ORDER BY robot_id"
+        )
+        out: dict[str, SavedPose] = {}
+        for rid, map_id, x, y, th, seq, stamp, status in rows:
+            try:
+                out[rid] = SavedPose(
+                    str(map_id), float(x), float(y), float(th), int(seq), float(stamp), str(status)
+                )
+            except (TypeError, ValueError) as e:
+                raise StateError(f"state file {self.path}: poses row {rid!r} is corrupt") from e
+        return out

@@ -1,0 +1,274 @@
+"""Where localisation runs: per-robot localisers owned by workers, sharded by robot id.
+
+:class:`WorkerCore` holds the maps and, for the robots it owns, their configuration, last
+pose and localiser; :meth:`WorkerCore.handle` executes one request tuple and returns one reply
+tuple. It runs either in the service process (:class:`InlineWorker`, ``--workers 0``) or in a
+child process started with the ``spawn`` method (:class:`ProcessWorker`), which is the default
+because the shape method is CPU-bound Python and one process saturates one core.
+
+Requests (all picklable):
+
+* ``("map", MapData)``: store/replace a map; robots on it restart from their last pose.
+* ``("map_delete", map_id)``: drop a map; its robots are kept and fail on scans until a new
+  map of that id is put.
+* ``("config", robot_id, method, map_id, initial_pose | None, start_pose | None)``: (re)create
+  the robot's localiser at once (``start_pose`` overrides ``initial_pose``: restore from a saved
+  pose). On failure the previous configuration stays.
+* ``("scan", robot_id, ranges, angles, odom | None)``: one update; ranges in metres with NaN
+  for no return, angles in radians in the robot frame, odom ``(x, y, theta)`` or ``None``.
+* ``("forget", robot_id)``.
+
+Replies are ``("ok", payload)`` or ``("err", reason)``; a scan's payload is a dict with
+``pose`` (list of 3 floats, map frame), ``status``, ``score``, ``explained``, ``ambiguity``
+and ``covariance`` (9 floats row-major, or ``None``).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import multiprocessing as mp
+import signal
+import traceback
+import zlib
+from dataclasses import dataclass
+from multiprocessing.connection import Connection
+from typing import Any
+
+import numpy as np
+
+from schemas.errors import LocalizationError, ServiceTimeout, ShapelocError
+from service.core.factory import create_localizer
+from service.core.types import Localizer, MapData, wrap_angle
+
+log = logging.getLogger("shapeloc.service.worker")
+
+Reply = tuple[str, Any]
+
+
+def shard_of(robot_id: str, n: int) -> int:
+    """Stable worker index of a robot (CRC-32 of its id modulo ``n``; same on every run)."""
+    return zlib.crc32(robot_id.encode("utf-8")) % max(1, n)
+
+
+@dataclass
+class _Robot:
+    method: str
+    map_id: str
+    initial_pose: np.ndarray | None
+    last_pose: np.ndarray | None
+    localizer: Localizer | None
+
+
+def _opt_float(v: Any) -> float | None:
+    if v is None:
+        return None
+    f = float(v)
+    return f if np.isfinite(f) else None
+
+
+class WorkerCore:
+    """Maps and per-robot localisers of one worker. Not thread-safe: one caller at a time."""
+
+    def __init__(self) -> None:
+        self.maps: dict[str, MapData] = {}
+        self.robots: dict[str, _Robot] = {}
+
+    def handle(self, req: tuple[Any, ...]) -> Reply:
+        """Execute one request; never raises (errors come back as ``("err", reason)``)."""
+        kind = req[0]
+        try:
+            if kind == "scan":
+                return ("ok", self._scan(*req[1:]))
+            if kind == "map":
+                self._map(req[1])
+                return ("ok", None)
+            if kind == "map_delete":
+                self._map_delete(req[1])
+                return ("ok", None)
+            if kind == "config":
+                self._config(*req[1:])
+                return ("ok", None)
+            if kind == "forget":
+                self.robots.pop(req[1], None)
+                return ("ok", None)
+            if kind == "ping":
+                return ("ok", "pong")
+            return ("err", f"unknown worker request {kind!r}")
+        except ShapelocError as e:
+            return ("err", str(e))
+        except Exception as e:  # a bug in a method must not take the worker down
+            log.error("internal error on %s request:\n%s", kind, traceback.format_exc())
+            return ("err", f"internal error: {type(e).__name__}: {e}")
+
+    def _map(self, md: MapData) -> None:
+        self.maps[md.map_id] = md
+        for r in self.robots.values():
+            if r.map_id == md.map_id:
+                r.localizer = None  # rebuilt on the next scan from its last pose
+
+    def _map_delete(self, map_id: str) -> None:
+        self.maps.pop(map_id, None)
+        for r in self.robots.values():
+            if r.map_id == map_id:
+                r.localizer = None
+
+    def _config(
+        self,
+        robot_id: str,
+        method: str,
+        map_id: str,
+        initial_pose: list[float] | None,
+        start_pose: list[float] | None = None,
+    ) -> None:
+        init = None if initial_pose is None else np.asarray(initial_pose, dtype=np.float64)
+        start = None if start_pose is None else np.asarray(start_pose, dtype=np.float64)
+        md = self.maps.get(map_id)
+        loc = None
+        if md is not None:
+            loc = create_localizer(method, md, start if start is not None else init)
+        self.robots[robot_id] = _Robot(method, map_id, init, start, loc)
+
+    def _scan(
+        self,
+        robot_id: str,
+        ranges: np.ndarray,
+        angles: np.ndarray,
+        odom: np.ndarray | None,
+    ) -> dict[str, Any]:
+        r = self.robots.get(robot_id)
+        if r is None:
+            raise LocalizationError(f"robot {robot_id!r} has no configuration in this worker")
+        md = self.maps.get(r.map_id)
+        if md is None:
+            raise LocalizationError(
+                f"map {r.map_id!r} of robot {robot_id!r} was deleted; the robot waits for a "
+                "map of that id to be put again"
+            )
+        if r.localizer is None:
+            start = r.last_pose if r.last_pose is not None else r.initial_pose
+            r.localizer = create_localizer(r.method, md, start)
+        est = r.localizer.update(ranges, angles, odom)
+        pose = np.asarray(est.pose, dtype=np.float64).reshape(-1)
+        if pose.shape != (3,) or not np.all(np.isfinite(pose)):
+            raise LocalizationError(f"method {r.method!r} produced a non-finite pose {pose}")
+        pose[2] = wrap_angle(pose[2])
+        r.last_pose = pose.copy()
+        cov = None
+        if est.covariance is not None:
+            c = np.asarray(est.covariance, dtype=np.float64).reshape(-1)
+            if c.shape == (9,) and np.all(np.isfinite(c)):
+                cov = [float(v) for v in c]
+        score = float(est.score)
+        return {
+            "pose": [float(v) for v in pose],
+            "status": str(est.status),
+            "score": score if np.isfinite(score) else 0.0,
+            "explained": _opt_float(est.explained),
+            "ambiguity": _opt_float(est.ambiguity),
+            "covariance": cov,
+        }
+
+
+class WorkerDiedError(ShapelocError):
+    """A worker process exited or stopped answering; it must be restarted."""
+
+
+class InlineWorker:
+    """A :class:`WorkerCore` called directly in the service process (``--workers 0``)."""
+
+    def __init__(self, index: int = 0) -> None:
+        self.index = index
+        self.core = WorkerCore()
+
+    def call(self, req: tuple[Any, ...], timeout_s: float | None = None) -> Reply:
+        """Run one request synchronously (``timeout_s`` is ignored in-process)."""
+        return self.core.handle(req)
+
+    def alive(self) -> bool:
+        """Always true in-process."""
+        return True
+
+    def close(self) -> None:
+        """Nothing to release."""
+
+
+def _worker_main(conn: Connection, log_level: str) -> None:
+    """Entry point of a worker process: serve requests until EOF or ``("stop",)``."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent owns shutdown
+    logging.basicConfig(
+        level=getattr(logging, log_level.upper(), logging.INFO),
+        format="%(asctime)s %(levelname)s %(name)s[%(process)d]: %(message)s",
+    )
+    core = WorkerCore()
+    while True:
+        try:
+            req = conn.recv()
+        except (EOFError, OSError):
+            break
+        if req[0] == "stop":
+            break
+        conn.send(core.handle(req))
+    conn.close()
+
+
+class ProcessWorker:
+    """A :class:`WorkerCore` in a ``spawn``-ed child process; one request in flight at a time.
+
+    :meth:`call` raises :class:`WorkerDiedError` if the child exits, or :class:`ServiceTimeout` (and
+    kills the child) if a reply takes longer than ``timeout_s`` seconds.
+    """
+
+    def __init__(self, index: int, log_level: str = "info") -> None:
+        self.index = index
+        self._log_level = log_level
+        ctx = mp.get_context("spawn")
+        self._conn, child = ctx.Pipe(duplex=True)
+        self._proc = ctx.Process(
+            target=_worker_main,
+            args=(child, log_level),
+            name=f"shapeloc-worker-{index}",
+            daemon=True,
+        )
+        self._proc.start()
+        child.close()
+
+    @property
+    def pid(self) -> int | None:
+        """Process id of the child."""
+        return self._proc.pid
+
+    def alive(self) -> bool:
+        """Whether the child process is running."""
+        return self._proc.is_alive()
+
+    def call(self, req: tuple[Any, ...], timeout_s: float | None = None) -> Reply:
+        """Send one request and wait for its reply."""
+        try:
+            self._conn.send(req)
+            if not self._conn.poll(timeout_s):
+                self.kill()
+                raise ServiceTimeout(
+                    f"worker {self.index} took longer than {timeout_s:.1f} s on a "
+                    f"{req[0]} request; restarted"
+                )
+            return self._conn.recv()
+        except (EOFError, OSError, BrokenPipeError) as e:
+            code = self._proc.exitcode
+            raise WorkerDiedError(f"worker {self.index} died (exit code {code}): {e}") from e
+
+    def kill(self) -> None:
+        """Terminate the child at once."""
+        if self._proc.is_alive():
+            self._proc.kill()
+        self._proc.join(timeout=5)
+
+    def close(self) -> None:
+        """Ask the child to stop, then make sure it is gone."""
+        with contextlib.suppress(OSError):
+            self._conn.send(("stop",))
+        self._proc.join(timeout=5)
+        if self._proc.is_alive():
+            self._proc.kill()
+            self._proc.join(timeout=5)
+        self._conn.close()
