@@ -343,7 +343,10 @@ class ShapelocClient:
                     s = reply.ok
                     oks.append((str(s.key_expr), s.payload.to_bytes(), _encoding_of(s)))
                 elif reply.err is not None and err is None:
-                    err = _remote_error(key, reply.err.payload.to_bytes())
+                    payload = reply.err.payload.to_bytes()
+                    if reply.replier_id is None and payload == b"Timeout":
+                        continue  # zenoh's own notice that the query timed out
+                    err = _remote_error(key, payload)
         except zenoh.ZError as exc:
             raise Unreachable(f"zenoh request on {key} failed: {exc}") from exc
         if err is not None and not oks:
