@@ -1,0 +1,198 @@
+"""Shared fixtures of the integration tests: real service processes on loopback.
+
+* ``free_port()`` / ``free_endpoint()``: an unused ``tcp/127.0.0.1:PORT`` (bind to port 0).
+* ``spawn_service(state_dir, *args, workers=1, endpoint=None)``: start
+  ``python -m service --listen <endpoint> --state-dir <state_dir> ...`` and wait until it
+  answers ``get shapeloc/service/health``; returns a :class:`ServiceProc`. Every spawned
+  process is killed at teardown.
+* ``open_session(endpoint)``: a loopback-only Zenoh *client* session connected to
+  ``endpoint`` (multicast scouting off); closed at teardown.
+
+Zenoh is never used with its default peer configuration here.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import pytest
+import zenoh
+
+REPO = Path(__file__).resolve().parents[2]
+PREFIX = "shapeloc"
+STARTUP_TIMEOUT_S = 60.0
+
+
+def free_port() -> int:
+    """A TCP port on 127.0.0.1 that was free a moment ago."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def free_endpoint() -> str:
+    """``tcp/127.0.0.1:<free port>``."""
+    return f"tcp/127.0.0.1:{free_port()}"
+
+
+def client_config(endpoint: str) -> zenoh.Config:
+    """Loopback-only client configuration connecting to ``endpoint``."""
+    conf = zenoh.Config()
+    conf.insert_json5("mode", json.dumps("client"))
+    conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("scouting/delay", "0")
+    return conf
+
+
+def get_health(session: zenoh.Session, prefix: str = PREFIX, timeout_s: float = 2.0) -> Any:
+    """The decoded Health reply of the (first) service, or ``None`` if none answered."""
+    from schemas.codec import decode
+    from schemas.messages import Health
+
+    for reply in session.get(f"{prefix}/service/health", timeout=timeout_s):
+        if reply.ok is not None:
+            return decode(Health, reply.ok.payload.to_bytes(), str(reply.ok.encoding))
+    return None
+
+
+@dataclass
+class ServiceProc:
+    """A running ``python -m service`` child process."""
+
+    proc: subprocess.Popen[bytes]
+    endpoint: str
+    state_dir: Path
+    log_path: Path
+    args: tuple[str, ...] = field(default_factory=tuple)
+
+    @property
+    def port(self) -> int:
+        """TCP port the service listens on."""
+        return int(self.endpoint.rsplit(":", 1)[1])
+
+    def log(self) -> str:
+        """Everything the process wrote so far (stdout and stderr)."""
+        return self.log_path.read_text(errors="replace") if self.log_path.exists() else ""
+
+    def kill(self) -> None:
+        """SIGKILL the service and its workers (its own process group) and reap it."""
+        if self.proc.poll() is None:
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(self.proc.pid, signal.SIGKILL)
+        self.proc.wait(timeout=10)
+
+    def terminate(self, timeout_s: float = 30.0) -> int:
+        """SIGTERM, wait for a clean exit, return the exit code."""
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+        return self.proc.wait(timeout=timeout_s)
+
+
+def _start(state_dir: Path, args: tuple[str, ...], endpoint: str, workers: int) -> ServiceProc:
+    state_dir = Path(state_dir)
+    log_path = state_dir.parent / f"service-{state_dir.name}-{free_port()}.log"
+    cmd = [
+        sys.executable,
+        "-m",
+        "service",
+        "--listen",
+        endpoint,
+        "--state-dir",
+        str(state_dir),
+        "--workers",
+        str(workers),
+        *args,
+    ]
+    env = dict(os.environ)
+    env["PYTHONPATH"] = str(REPO) + os.pathsep + env.get("PYTHONPATH", "")
+    env.pop("RUST_LOG", None)
+    with open(log_path, "ab") as logf:
+        proc = subprocess.Popen(
+            cmd, cwd=REPO, stdout=logf, stderr=subprocess.STDOUT, env=env, start_new_session=True
+        )
+    return ServiceProc(proc, endpoint, state_dir, log_path, tuple(args))
+
+
+def wait_ready(svc: ServiceProc, timeout_s: float = STARTUP_TIMEOUT_S, prefix: str = PREFIX) -> Any:
+    """Poll health until the service answers; fail with its log if it exits or times out."""
+    deadline = time.monotonic() + timeout_s
+    session = None
+    try:
+        while time.monotonic() < deadline:
+            if svc.proc.poll() is not None:
+                raise AssertionError(
+                    f"service exited with {svc.proc.returncode} during start-up:\n{svc.log()}"
+                )
+            if session is None:
+                try:
+                    session = zenoh.open(client_config(svc.endpoint))
+                except zenoh.ZError:
+                    time.sleep(0.2)
+                    continue
+            h = get_health(session, prefix, timeout_s=1.0)
+            if h is not None:
+                return h
+            time.sleep(0.1)
+    finally:
+        if session is not None:
+            session.close()
+    raise AssertionError(f"service not healthy after {timeout_s} s:\n{svc.log()}")
+
+
+@pytest.fixture
+def spawn_service() -> Iterator[Callable[..., ServiceProc]]:
+    """Factory: ``spawn_service(state_dir, *args, workers=1, endpoint=None, wait=True)``."""
+    procs: list[ServiceProc] = []
+
+    def spawn(
+        state_dir: Path | str,
+        *args: str,
+        workers: int = 1,
+        endpoint: str | None = None,
+        wait: bool = True,
+    ) -> ServiceProc:
+        svc = _start(Path(state_dir), tuple(args), endpoint or free_endpoint(), workers)
+        procs.append(svc)
+        if wait:
+            wait_ready(svc, prefix=_prefix_of(args))
+        return svc
+
+    yield spawn
+    for svc in procs:
+        svc.kill()
+
+
+def _prefix_of(args: tuple[str, ...]) -> str:
+    if "--prefix" in args:
+        i = args.index("--prefix")
+        if i + 1 < len(args):
+            return args[i + 1]
+    return PREFIX
+
+
+@pytest.fixture
+def open_session() -> Iterator[Callable[[str], zenoh.Session]]:
+    """Factory: ``open_session(endpoint)`` -> client session, closed at teardown."""
+    sessions: list[zenoh.Session] = []
+
+    def opener(endpoint: str) -> zenoh.Session:
+        s = zenoh.open(client_config(endpoint))
+        sessions.append(s)
+        return s
+
+    yield opener
+    for s in reversed(sessions):
+        with contextlib.suppress(Exception):
+            s.close()
