@@ -136,6 +136,19 @@ class ShapeMatch:
     t: np.ndarray
 
 
+_MOVES_CACHE: dict[tuple[int, int], tuple[tuple[int, int], ...]] = {}
+
+
+def _moves(amax: int, bmax: int) -> tuple[tuple[int, int], ...]:
+    """Allowed (a, b) steps (1:1, n:1, 1:n) when at most amax / bmax arcs remain usable."""
+    key = (amax, bmax)
+    m = _MOVES_CACHE.get(key)
+    if m is None:
+        m = ((1, 1), *((a, 1) for a in range(2, amax + 1)), *((1, b) for b in range(2, bmax + 1)))
+        _MOVES_CACHE[key] = m
+    return m
+
+
 def _dp(
     P: ShapeArcs,
     Q: ShapeArcs,
@@ -143,8 +156,15 @@ def _dp(
     end_weight: float,
     skip_weight: float,
     want_path: bool,
+    upper_bound: float = math.inf,
 ) -> tuple[float, list[tuple[int, int, int, int]]]:
-    """Core DP of S*. States are matched vertex pairs (i, j); see the module docstring."""
+    """Core DP of S*. States are matched vertex pairs (i, j); see the module docstring.
+
+    Branches whose cost plus an admissible lower bound of the rest (every metre of length
+    imbalance between the remaining parts costs at least ``min(end_weight, skip_weight, 1)``)
+    reaches the best complete cost so far, or ``upper_bound``, are pruned; the result is exact
+    whenever it is below ``upper_bound`` (else ``inf``).
+    """
     kp, kq = P.k, Q.k
     lastp, lastq = kp - 1, kq - 1
     cum_p, cum_q = P.cum, Q.cum
@@ -153,7 +173,8 @@ def _dp(
     Lq, Dq, Mq = Q.chord_len, Q.chord_dir, Q.merge_cost
     mp = min(max_merge, P.max_merge)
     mq = min(max_merge, Q.max_merge)
-    moves = [(1, 1)] + [(a, 1) for a in range(2, mp + 1)] + [(1, b) for b in range(2, mq + 1)]
+    lbw = min(end_weight, skip_weight, 1.0)
+    pi = math.pi
     inf = math.inf
     n = kp * kq
     cost = [inf] * n  # accumulated cost excluding the incoming pair's length misfit
@@ -163,57 +184,56 @@ def _dp(
     lpi = [0.0] * n  # incoming chord length in p
     lqi = [0.0] * n
     start = [False] * n  # state is a start (no incoming chord)
-    back = [-1] * n if want_path else None
+    back = [-1] * n
     # Starts: p's first vertex against any q vertex (q's leading arcs skipped) and vice versa.
     for j in range(lastq):
-        s = j
-        cost[s] = skip_weight * cum_q[j]
-        start[s] = True
+        cost[j] = skip_weight * cum_q[j]
+        start[j] = True
     for i in range(1, lastp):
-        s = i * kq
-        cost[s] = skip_weight * cum_p[i]
-        start[s] = True
-    best = inf
+        cost[i * kq] = skip_weight * cum_p[i]
+        start[i * kq] = True
+    best = upper_bound
     best_end = (-1, -1)  # (state, target) of the best final transition
     for i in range(lastp):
         row = i * kq
+        amax = lastp - i
+        if amax > mp:
+            amax = mp
+        rem_p = tot_p - cum_p[i]
         for j in range(lastq):
             s = row + j
             c0 = cost[s]
             if c0 == inf:
                 continue
-            if start[s]:
-                base = c0
-            else:
-                base = c0 + pend[s]
-                di, dj, li, lj = dpi[s], dqi[s], lpi[s], lqi[s]
-            if base >= best:
+            is_start = start[s]
+            base = c0 if is_start else c0 + pend[s]
+            imb = rem_p - (tot_q - cum_q[j])
+            if base + lbw * (imb if imb > 0.0 else -imb) >= best:
                 continue
-            for a, b in moves:
+            if not is_start:
+                di, dj, li, lj = dpi[s], dqi[s], lpi[s], lqi[s]
+            bmax = lastq - j
+            if bmax > mq:
+                bmax = mq
+            for a, b in _moves(amax, bmax):
                 i2 = i + a
                 j2 = j + b
-                if i2 > lastp or j2 > lastq:
-                    continue
                 lp = Lp[a][i]
                 lq = Lq[b][j]
-                dp = Dp[a][i]
-                dq = Dq[b][j]
                 c = base + Mp[a][i] + Mq[b][j]
-                if start[s]:
+                mis = lp - lq if lp > lq else lq - lp
+                if is_start:
                     mis_w = end_weight
                 else:
-                    dt = (dp - di) - (dq - dj)
-                    dt = abs((dt + math.pi) % _TWO_PI - math.pi)
-                    w = lp
-                    if lq < w:
-                        w = lq
+                    dt = (Dp[a][i] - di) - (Dq[b][j] - dj)
+                    dt = abs((dt + pi) % _TWO_PI - pi)
+                    w = lp if lp < lq else lq
                     if li < w:
                         w = li
                     if lj < w:
                         w = lj
                     c += dt * w
                     mis_w = 1.0
-                mis = lp - lq if lp > lq else lq - lp
                 if i2 == lastp or j2 == lastq:
                     total = (
                         c
@@ -224,20 +244,23 @@ def _dp(
                         best = total
                         best_end = (s, i2 * kq + j2)
                     continue
-                s2 = i2 * kq + j2
                 pm = mis_w * mis
+                if c + pm >= best:
+                    continue
+                s2 = i2 * kq + j2
                 if c + pm < cost[s2] + pend[s2]:
                     cost[s2] = c
                     pend[s2] = pm
-                    dpi[s2] = dp
-                    dqi[s2] = dq
+                    dpi[s2] = Dp[a][i]
+                    dqi[s2] = Dq[b][j]
                     lpi[s2] = lp
                     lqi[s2] = lq
                     start[s2] = False
-                    if back is not None:
-                        back[s2] = s
+                    back[s2] = s
+    if best_end[0] < 0:
+        return inf, []
     path: list[tuple[int, int, int, int]] = []
-    if want_path and best_end[0] >= 0 and back is not None:
+    if want_path:
         s, s2 = best_end
         while s >= 0:
             path.append((s // kq, s2 // kq, s % kq, s2 % kq))
