@@ -107,7 +107,9 @@ def _loads(data: bytes, as_json: bool) -> Any:
         text = str(e) or type(e).__name__
         if "map key" in text:
             raise InvalidMessage("message: map keys must be strings") from None
-        if "incomplete" in text:
+        if "incomplete" in text or "exceeds max_" in text:
+            # msgpack caps declared lengths by the payload size: a header promising more
+            # elements than the payload could hold means the payload was cut short.
             raise InvalidMessage("msgpack: truncated payload") from None
         raise InvalidMessage(f"msgpack: malformed ({text[:160]})") from None
 
