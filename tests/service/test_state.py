@@ -1,0 +1,135 @@
+"""SQLite state store: round trip, reset-on-config, corrupt/foreign/newer files, directory lock.
+Pure file I/O in tmp_path; well under a second."""
+
+from __future__ import annotations
+
+import sqlite3
+from pathlib import Path
+
+import msgpack
+import pytest
+
+from schemas.errors import StateError
+from service.state import DB_NAME, SCHEMA_VERSION, SavedPose, StateStore
+
+MAP = {"map_id": "m1", "kind": "metric", "polylines": [[[0.0, 0.0], [1.0, 0.0]]]}
+CFG = {"map_id": "m1", "method": "shape", "initial_pose": [1.0, 2.0, 0.5]}
+
+
+def test_missing_dir_is_created_and_versioned(tmp_path: Path) -> None:
+    d = tmp_path / "a" / "b"
+    with StateStore(d) as st:
+        assert st.maps() == {} and st.robots() == {} and st.poses() == {}
+    db = sqlite3.connect(d / DB_NAME)
+    assert db.execute("PRAGMA user_version").fetchone()[0] == SCHEMA_VERSION
+    assert db.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
+    db.close()
+
+
+def test_round_trip_across_reopen(tmp_path: Path) -> None:
+    with StateStore(tmp_path) as st:
+        st.put_map("m1", MAP)
+        st.put_map("m2", {**MAP, "map_id": "m2", "kind": "schematic"})
+        st.put_robot("r1", CFG)
+        st.save_poses({"r1": SavedPose("m1", 1.5, -2.0, 3.0, 42, 12.5, "tracking")})
+        assert st.delete_map("m2") is True
+        assert st.delete_map("nope") is False
+    with StateStore(tmp_path) as st:
+        assert st.maps() == {"m1": MAP}
+        assert st.robots() == {"r1": CFG}
+        p = st.poses()["r1"]
+        assert p.pose == (1.5, -2.0, 3.0)
+        assert (p.map_id, p.seq, p.stamp, p.status) == ("m1", 42, 12.5, "tracking")
+
+
+def test_config_put_forgets_saved_pose(tmp_path: Path) -> None:
+    with StateStore(tmp_path) as st:
+        st.put_robot("r1", CFG)
+        st.save_poses({"r1": SavedPose("m1", 1.0, 1.0, 0.0, 1, 1.0, "tracking")})
+        st.put_robot("r1", {**CFG, "initial_pose": None})
+        assert st.poses() == {}
+        assert st.robots()["r1"]["initial_pose"] is None
+        st.delete_robot("r1")
+        assert st.robots() == {}
+
+
+def test_non_finite_pose_not_saved(tmp_path: Path) -> None:
+    with StateStore(tmp_path) as st:
+        st.save_poses({"r1": SavedPose("m1", float("nan"), 0.0, 0.0, 1, 1.0, "lost")})
+        assert st.poses() == {}
+
+
+def test_garbage_file_raises_state_error(tmp_path: Path) -> None:
+    (tmp_path / DB_NAME).write_bytes(b"this is definitely not an sqlite database" * 100)
+    with pytest.raises(StateError, match="corrupt or not a shapeloc state database"):
+        StateStore(tmp_path)
+    # the lock was released: a valid directory can be opened by the same process afterwards
+    (tmp_path / DB_NAME).unlink()
+    StateStore(tmp_path).close()
+
+
+def test_foreign_database_raises(tmp_path: Path) -> None:
+    db = sqlite3.connect(tmp_path / DB_NAME)
+    db.execute("CREATE TABLE customers (id INTEGER)")
+    db.commit()
+    db.close()
+    with pytest.raises(StateError, match="not a shapeloc state database"):
+        StateStore(tmp_path)
+
+
+def test_newer_schema_raises(tmp_path: Path) -> None:
+    StateStore(tmp_path).close()
+    db = sqlite3.connect(tmp_path / DB_NAME)
+    db.execute(f"PRAGMA user_version={SCHEMA_VERSION + 1}")
+    db.commit()
+    db.close()
+    with pytest.raises(StateError, match="newer than the supported"):
+        StateStore(tmp_path)
+
+
+def test_missing_table_raises(tmp_path: Path) -> None:
+    StateStore(tmp_path).close()
+    db = sqlite3.connect(tmp_path / DB_NAME)
+    db.execute("DROP TABLE poses")
+    db.commit()
+    db.close()
+    with pytest.raises(StateError, match="lacks tables"):
+        StateStore(tmp_path)
+
+
+def test_corrupt_row_raises(tmp_path: Path) -> None:
+    with StateStore(tmp_path) as st:
+        st.put_map("m1", MAP)
+    db = sqlite3.connect(tmp_path / DB_NAME)
+    db.execute("UPDATE maps SET payload=? WHERE map_id='m1'", (b"\xc1\xc1\xc1",))
+    db.commit()
+    db.close()
+    with StateStore(tmp_path) as st, pytest.raises(StateError, match="maps row 'm1'"):
+        st.maps()
+    db = sqlite3.connect(tmp_path / DB_NAME)
+    db.execute("UPDATE maps SET payload=? WHERE map_id='m1'", (msgpack.packb([1, 2]),))
+    db.commit()
+    db.close()
+    with StateStore(tmp_path) as st, pytest.raises(StateError, match="not a map"):
+        st.maps()
+
+
+def test_second_store_on_same_dir_refused(tmp_path: Path) -> None:
+    with StateStore(tmp_path), pytest.raises(StateError, match="in use by another"):
+        StateStore(tmp_path)
+    StateStore(tmp_path).close()  # released after close
+
+
+def test_state_dir_is_a_file(tmp_path: Path) -> None:
+    f = tmp_path / "file"
+    f.write_text("x")
+    with pytest.raises(StateError, match="state directory"):
+        StateStore(f)
+
+
+def test_closed_store_raises(tmp_path: Path) -> None:
+    st = StateStore(tmp_path)
+    st.close()
+    st.close()
+    with pytest.raises(StateError, match="closed"):
+        st.maps()
