@@ -35,7 +35,7 @@ from schemas.errors import (
     UnknownRobot,
     Unreachable,
 )
-from schemas.messages import ErrorNotice, Health, Map, PoseMsg, RobotConfig, Scan
+from schemas.messages import ErrorNotice, Health, Map, PoseMsg, RobotConfig, Scan, Truth
 from service.core.types import MapData
 
 DEFAULT_CONNECT = "tcp/127.0.0.1:7447"
@@ -207,16 +207,20 @@ class Stream(Generic[M]):
         key_expr: str,
         model: type[M],
         accept: Callable[[M], bool] | None = None,
+        key_filter: Callable[[str], bool] | None = None,
     ) -> None:
         self._model = model
         self._accept = accept
+        self._key_filter = key_filter
         self._queue: queue.Queue[tuple[str, bytes, str | None]] = queue.Queue()
         self.rejected = 0
         self._closed = threading.Event()
         self._sub = session.declare_subscriber(key_expr, self._on_sample)
 
     def _on_sample(self, sample: Any) -> None:
-        self._queue.put((str(sample.key_expr), sample.payload.to_bytes(), _encoding_of(sample)))
+        key = str(sample.key_expr)
+        if self._key_filter is None or self._key_filter(key):
+            self._queue.put((key, sample.payload.to_bytes(), _encoding_of(sample)))
 
     def _decode(self, item: tuple[str, bytes, str | None]) -> tuple[str, M] | None:
         key, payload, enc = item
@@ -277,6 +281,21 @@ class Stream(Generic[M]):
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def _robot_of_key(key: str) -> str:
+    parts = key.rsplit("/", 2)
+    return parts[-2] if len(parts) == 3 else ""
+
+
+class _KeyFilter:
+    """Accept ``<prefix>/robots/<id>/<leaf>`` keys of the given robot ids."""
+
+    def __init__(self, ids: frozenset[str]) -> None:
+        self.ids = ids
+
+    def __call__(self, key: str) -> bool:
+        return _robot_of_key(key) in self.ids
 
 
 class ShapelocClient:
@@ -478,16 +497,30 @@ class ShapelocClient:
         """Latest estimate of ``robot_id``; :class:`UnknownRobot` if it is not configured."""
         return self._get_one(keys.robot_key(self.prefix, robot_id, "pose"), PoseMsg)
 
+    def wait_configured(self, robot_id: str, within: float) -> None:
+        """Poll until the service knows ``robot_id`` (its pose query no longer says "unknown
+        robot"), or raise :class:`ServiceTimeout` after ``within`` seconds."""
+        end = time.monotonic() + within
+        while True:
+            try:
+                self.get_pose(robot_id)
+                return
+            except RemoteError:
+                return  # known, e.g. "has no estimate yet"
+            except (UnknownRobot, ServiceTimeout):
+                if time.monotonic() >= end:
+                    raise ServiceTimeout(
+                        f"the service did not take the configuration of robot {robot_id!r} "
+                        f"within {within} s"
+                    ) from None
+                time.sleep(0.05)
+
     # ----------------------------------------------------------------- subscriptions
     def _subscribe(
-        self,
-        key_expr: str,
-        model: type[M],
-        callback: Callable[[M], None] | None,
-        accept: Callable[[M], bool] | None = None,
+        self, key_expr: str, model: type[M], callback: Callable[[M], None] | None
     ) -> Stream[M] | Any:
         if callback is None:
-            stream = Stream(self.session, key_expr, model, accept)
+            stream = Stream(self.session, key_expr, model)
             self._streams.append(stream)
             return stream
 
@@ -496,8 +529,47 @@ class ShapelocClient:
                 msg = decode(model, sample.payload.to_bytes(), _encoding_of(sample))
             except InvalidMessage:
                 return
-            if accept is None or accept(msg):
-                callback(msg)
+            callback(msg)
+
+        sub = self.session.declare_subscriber(key_expr, on_sample)
+        self._subs.append(sub)
+        return sub
+
+    def _watch_robots(
+        self,
+        leaf: str,
+        model: type[M],
+        robot_ids: str | Iterable[str],
+        callback: Callable[[M], None] | None,
+        id_of: Callable[[str], str],
+    ) -> Stream[M] | Any:
+        accept = None
+        if robot_ids == "*":
+            key_expr = keys.robots_wildcard(self.prefix, leaf)
+        elif isinstance(robot_ids, str):
+            key_expr = keys.robot_key(self.prefix, robot_ids, leaf)
+        else:
+            wanted = frozenset(robot_ids)
+            if not wanted:
+                raise ValueError("robot_ids is empty")
+            key_expr = keys.robots_wildcard(self.prefix, leaf)
+            accept = wanted
+        if callback is None:
+            stream = Stream(
+                self.session, key_expr, model, None, None if accept is None else _KeyFilter(accept)
+            )
+            self._streams.append(stream)
+            return stream
+
+        def on_sample(sample: Any) -> None:
+            key = str(sample.key_expr)
+            if accept is not None and id_of(key) not in accept:
+                return
+            try:
+                msg = decode(model, sample.payload.to_bytes(), _encoding_of(sample))
+            except InvalidMessage:
+                return
+            callback(msg)
 
         sub = self.session.declare_subscriber(key_expr, on_sample)
         self._subs.append(sub)
@@ -514,21 +586,16 @@ class ShapelocClient:
         Zenoh subscriber (the callback runs on Zenoh's thread; keep it short). Either is
         undeclared by :meth:`close`.
         """
-        accept = None
-        if robot_ids == "*":
-            key_expr = keys.robots_wildcard(self.prefix, "pose")
-        elif isinstance(robot_ids, str):
-            key_expr = keys.robot_key(self.prefix, robot_ids, "pose")
-        else:
-            wanted = frozenset(robot_ids)
-            if not wanted:
-                raise ValueError("robot_ids is empty")
-            key_expr = keys.robots_wildcard(self.prefix, "pose")
+        return self._watch_robots("pose", PoseMsg, robot_ids, callback, _robot_of_key)
 
-            def accept(m: PoseMsg) -> bool:
-                return m.robot_id in wanted
-
-        return self._subscribe(key_expr, PoseMsg, callback, accept)
+    def watch_truth(
+        self,
+        robot_ids: str | Iterable[str] = "*",
+        callback: Callable[[Truth], None] | None = None,
+    ) -> Stream[Truth] | Any:
+        """Subscribe to simulator ground truth (``<prefix>/robots/<id>/truth``), as
+        :meth:`watch_poses`; the robot id is the key's second-to-last chunk."""
+        return self._watch_robots("truth", Truth, robot_ids, callback, _robot_of_key)
 
     def watch_errors(
         self, callback: Callable[[ErrorNotice], None] | None = None

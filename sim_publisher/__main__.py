@@ -97,7 +97,12 @@ def main(
                 for r in fleet.robots:
                     client.configure(r.robot_id, r.map_id, r.method, r.config().initial_pose)
                     log.info("robot %s: map %s, method %s", r.robot_id, r.map_id, r.method)
-                time.sleep(0.2)  # let configurations reach the service before the first scan
+                if options.wait_service > 0:
+                    for r in fleet.robots:
+                        try:
+                            client.wait_configured(r.robot_id, options.wait_service)
+                        except ServiceTimeout as exc:
+                            log.warning("%s; publishing anyway", exc)
             return _publish_loop(session, fleet, options, stop)
         finally:
             client.close()

@@ -4,8 +4,8 @@ Network-free: :class:`SimRobot` walks one robot along the office tour of a
 :func:`sim_publisher.scenario.make_setup` setup and returns :class:`~schemas.messages.Scan` and
 :class:`~schemas.messages.Truth` messages; :class:`SimFleet` holds several robots and the maps
 they use. ``sim_publisher.__main__`` puts these on Zenoh. Poses are map-frame ``[x, y, theta]``
-(metres, radians); scans are in the robot frame (REP 103), with ``range_max`` standing for the
-laser's maximum range and NaN beams ("no return") sent as NaN.
+(metres, radians); scans are in the robot frame (REP 103) with the laser's angle and range
+limits; "no return" beams are NaN.
 """
 
 from __future__ import annotations
@@ -85,7 +85,7 @@ class SimRobot:
         self.angle_min = float(laser.angle_min)
         self.angle_increment = float(laser.angle_increment)
         self.range_max = float(laser.config.max_range)
-        self.range_min = 0.0
+        self.range_min = float(laser.config.range_min)
 
     @property
     def index(self) -> int:
