@@ -1,0 +1,121 @@
+"""Exact ray casting: hand-computed ranges, circles, no-hit NaN, agreement with brute force."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from schemas.errors import LocalizationError
+from service.core.raycast import RayCaster
+
+
+def _square(x0: float, y0: float, x1: float, y1: float) -> np.ndarray:
+    c = np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1], [x0, y0]])
+    return np.hstack([c[:-1], c[1:]])
+
+
+def _brute(seg: np.ndarray, pose: np.ndarray, angles: np.ndarray, max_range: float) -> np.ndarray:
+    out = np.full(len(angles), np.nan)
+    for i, a in enumerate(angles):
+        d = np.array([np.cos(a + pose[2]), np.sin(a + pose[2])])
+        best = np.inf
+        for s in seg:
+            e = s[2:] - s[:2]
+            w = s[:2] - pose[:2]
+            den = d[0] * e[1] - d[1] * e[0]
+            if den == 0:
+                continue
+            t = (w[0] * e[1] - w[1] * e[0]) / den
+            u = (w[0] * d[1] - w[1] * d[0]) / den
+            if 0 <= t <= max_range and 0 <= u <= 1:
+                best = min(best, t)
+        if np.isfinite(best):
+            out[i] = best
+    return out
+
+
+def test_square_room_hand_computed_ranges() -> None:
+    rc = RayCaster(_square(0, 0, 4, 4))
+    pose = np.array([1.0, 1.5, 0.0])
+    ang = np.deg2rad([0, 45, 90, 135, 180, -90, -45])
+    r = rc.cast(pose, ang, 10.0)
+    s2 = np.sqrt(2.0)
+    expected = [3.0, 2.5 * s2, 2.5, 1.0 * s2, 1.0, 1.5, 1.5 * s2]
+    np.testing.assert_allclose(r, expected, rtol=0, atol=1e-12)
+
+
+def test_rotated_pose_rotates_beams() -> None:
+    rc = RayCaster(_square(0, 0, 4, 4))
+    # Facing +y: the forward beam hits the top wall (2.5 m), left beam (+90) the west wall.
+    r = rc.cast(np.array([1.0, 1.5, np.pi / 2]), np.deg2rad([0, 90, -90, 180]), 10.0)
+    np.testing.assert_allclose(r, [2.5, 1.0, 3.0, 1.5], atol=1e-12)
+
+
+def test_circle_range_within_polygonisation_error() -> None:
+    n, rad, c = 64, 0.4, np.array([3.0, 2.0])
+    a = np.linspace(0, 2 * np.pi, n + 1)
+    ring = c + rad * np.c_[np.cos(a), np.sin(a)]
+    rc = RayCaster(np.hstack([ring[:-1], ring[1:]]))
+    pose = np.array([0.5, 2.0, 0.0])
+    beams = np.deg2rad(np.linspace(-5, 5, 21))
+    r = rc.cast(pose, beams, 10.0)
+    # True circle: distance along beam b to a circle at distance D straight ahead.
+    D = 2.5
+    disc = rad**2 - (D * np.sin(beams)) ** 2
+    true = D * np.cos(beams) - np.sqrt(np.where(disc > 0, disc, np.nan))
+    hit = np.isfinite(true)
+    assert hit.sum() >= 9
+    tol = rad * (1 - np.cos(np.pi / n)) / np.cos(np.deg2rad(5)) + 1e-9
+    np.testing.assert_array_less(np.abs(r[hit] - true[hit]), tol * 3)
+    assert abs(r[10] - (D - rad)) <= rad * (1 - np.cos(np.pi / n)) + 1e-12
+
+
+def test_no_hit_and_max_range_give_nan() -> None:
+    rc = RayCaster(np.array([[2.0, -1.0, 2.0, 1.0]]))
+    r = rc.cast(np.zeros(3), np.array([0.0, np.pi, np.pi / 2]), 10.0)
+    assert r[0] == pytest.approx(2.0)
+    assert np.isnan(r[1]) and np.isnan(r[2])
+    assert np.all(np.isnan(rc.cast(np.zeros(3), np.array([0.0]), 1.5)))
+    assert rc.cast(np.zeros(3), np.array([0.0]), 2.0)[0] == pytest.approx(2.0)
+
+
+def test_nearest_of_several_segments_and_wrapped_unsorted_angles() -> None:
+    seg = np.array([[3.0, -1.0, 3.0, 1.0], [1.0, -1.0, 1.0, 1.0], [-2.0, -1.0, -2.0, 1.0]])
+    rc = RayCaster(seg)
+    ang = np.array([np.pi, 0.0, 2 * np.pi, -np.pi, 4 * np.pi + 0.1])
+    r = rc.cast(np.zeros(3), ang, 10.0)
+    np.testing.assert_allclose(r[:4], [2.0, 1.0, 1.0, 2.0], atol=1e-12)
+    assert r[4] == pytest.approx(1.0 / np.cos(0.1))
+
+
+@pytest.mark.parametrize("seed", range(12))
+def test_matches_brute_force_on_random_segments(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    seg = rng.uniform(-5, 5, (40, 4))
+    pose = np.array([*rng.uniform(-3, 3, 2), rng.uniform(-np.pi, np.pi)])
+    ang = rng.uniform(-4, 4, 90) if seed % 2 else np.linspace(-np.pi, np.pi, 181)
+    max_range = float(rng.uniform(1, 8))
+    got = RayCaster(seg).cast(pose, ang, max_range)
+    want = _brute(seg, pose, ang, max_range)
+    np.testing.assert_array_equal(np.isnan(got), np.isnan(want))
+    np.testing.assert_allclose(got[~np.isnan(got)], want[~np.isnan(want)], atol=1e-9)
+
+
+def test_shared_vertex_is_hit() -> None:
+    rc = RayCaster(_square(-1, -1, 1, 1))
+    r = rc.cast(np.zeros(3), np.deg2rad([45.0, 135.0, -135.0, -45.0]), 5.0)
+    np.testing.assert_allclose(r, np.sqrt(2.0), atol=1e-12)
+
+
+def test_rejects_bad_input() -> None:
+    with pytest.raises(LocalizationError, match=r"shape \(s, 4\)"):
+        RayCaster(np.zeros((3, 3)))
+    with pytest.raises(LocalizationError, match="non-finite"):
+        RayCaster(np.array([[0.0, 0.0, np.nan, 1.0]]))
+    rc = RayCaster(_square(0, 0, 1, 1))
+    with pytest.raises(LocalizationError, match="pose"):
+        rc.cast(np.zeros(2), np.zeros(3), 1.0)
+    with pytest.raises(LocalizationError, match="max_range"):
+        rc.cast(np.zeros(3), np.zeros(3), -1.0)
+    with pytest.raises(LocalizationError, match="non-finite"):
+        rc.cast(np.zeros(3), np.array([np.inf]), 1.0)
