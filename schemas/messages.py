@@ -56,6 +56,7 @@ __all__ = [
     "Truth",
     "WireModel",
     "format_validation_error",
+    "wire_type_name",
     "wrap_pi",
 ]
 
@@ -118,8 +119,27 @@ def format_validation_error(err: ValidationError) -> str:
 _FAST_NUM = (float, int)
 
 
-def _type_name(v: object) -> str:
-    return type(v).__name__
+_WIRE_NAMES: dict[type, str] = {
+    list: "array",
+    tuple: "array",
+    dict: "map",
+    str: "string",
+    bytes: "bytes",
+    bytearray: "bytes",
+    memoryview: "bytes",
+    type(None): "null",
+    bool: "bool",
+    int: "int",
+    float: "float",
+}
+
+
+def wire_type_name(v: object) -> str:
+    """Name of a decoded value's type in wire terms (array, map, string, null, ...)."""
+    return _WIRE_NAMES.get(type(v), type(v).__name__)
+
+
+_type_name = wire_type_name
 
 
 def _is_number(v: object) -> bool:

@@ -67,13 +67,13 @@ def _reject(model: type[WireModel], payload: dict[str, Any] | bytes, reason: str
 @pytest.mark.parametrize(
     ("over", "reason"),
     [
-        ({"stamp": "1.0"}, "stamp: must be a number, got str"),
+        ({"stamp": "1.0"}, "stamp: must be a number, got string"),
         ({"stamp": True}, "stamp: must be a number, got bool"),
         ({"seq": 1.0}, "seq: must be an integer, got float"),
         ({"seq": True}, "seq: must be an integer, got bool"),
         ({"seq": -1}, "seq: must be >= 0, got -1"),
-        ({"seq": "3"}, "seq: must be an integer, got str"),
-        ({"angle_min": None}, "angle_min: must be a number, got NoneType"),
+        ({"seq": "3"}, "seq: must be an integer, got string"),
+        ({"angle_min": None}, "angle_min: must be a number, got null"),
         ({"angle_increment": 0.0}, "angle_increment: must be > 0"),
         ({"angle_increment": -0.1}, "angle_increment: must be > 0"),
         ({"angle_increment": math.nan}, "angle_increment: must be finite"),
@@ -81,12 +81,12 @@ def _reject(model: type[WireModel], payload: dict[str, Any] | bytes, reason: str
         ({"range_min": -0.5}, "range_min: must be >= 0"),
         ({"range_min": 10.0, "range_max": 10.0}, "range_max: must be > range_min"),
         ({"range_max": math.inf}, "range_max: must be finite"),
-        ({"ranges": [1.0, "2.0"]}, "ranges[1]: must be a number or null, got str"),
+        ({"ranges": [1.0, "2.0"]}, "ranges[1]: must be a number or null, got string"),
         ({"ranges": [1.0, False]}, "ranges[1]: must be a number or null, got bool"),
         ({"ranges": []}, "ranges: must hold at least 1 value"),
         ({"ranges": b""}, "ranges: must hold at least 1 value"),
-        ({"ranges": "1,2,3"}, "ranges: must be a list of numbers or float32 bytes, got str"),
-        ({"ranges": [[1.0]]}, "ranges[0]: must be a number or null, got list"),
+        ({"ranges": "1,2,3"}, "ranges: must be a list of numbers or float32 bytes, got string"),
+        ({"ranges": [[1.0]]}, "ranges[0]: must be a number or null, got array"),
         ({"ranges": b"\x00\x00\x80"}, "ranges: 3 bytes is not a multiple of 4"),
         ({"ranges": [1.0] * 10**6}, "ranges: 1000000 elements exceeds limit 8192"),
         ({"ranges": b"\x00" * 4 * 10**6}, "ranges: 1000000 float32 values exceeds limit 8192"),
@@ -123,10 +123,10 @@ def test_scan_missing_fields(field: str) -> None:
         ([0.0, 0.0, 2**1100], "pose[2]: must be finite"),
         ([0.0, 0.0], "pose: must be [x, y, theta] (3 numbers), got 2 elements"),
         ([0.0, 0.0, 0.0, 0.0], "got 4 elements"),
-        ([0.0, "1", 0.0], "pose[1]: must be a number, got str"),
+        ([0.0, "1", 0.0], "pose[1]: must be a number, got string"),
         ([0.0, True, 0.0], "pose[1]: must be a number, got bool"),
-        ({"x": 1}, "pose: must be a list [x, y, theta], got dict"),
-        (None, "pose: must be a list [x, y, theta], got NoneType"),
+        ({"x": 1}, "pose: must be a list [x, y, theta], got map"),
+        (None, "pose: must be a list [x, y, theta], got null"),
     ],
 )
 def test_pose_rejections(pose: Any, reason: str) -> None:
@@ -151,7 +151,7 @@ def test_nan_and_inf_in_json_tokens_are_rejected_in_poses() -> None:
     [
         ({"status": "happy"}, "status: must be 'tracking', 'lost' or 'initializing'"),
         ({"score": math.nan}, "score: must be finite"),
-        ({"latency_ms": "3"}, "latency_ms: must be a number, got str"),
+        ({"latency_ms": "3"}, "latency_ms: must be a number, got string"),
         ({"covariance": [0.0] * 8}, "covariance: must be 9 numbers"),
         ({"covariance": [0.0] * 8 + [math.inf]}, "covariance[8]: must be finite"),
         ({"explained": 1.5}, "explained: must be in [0, 1], got 1.5"),
@@ -199,12 +199,12 @@ def test_good_identifiers_are_accepted() -> None:
         ({"polylines": [[[0, 0], [1, 1]], []]}, "polylines[1]: 0 point(s)"),
         ({"polylines": []}, "polylines: must hold at least 1 polyline"),
         ({"polylines": [[[0, 0], [1, 1, 2]]]}, "polylines[0][1]: must be [x, y], got 3 elements"),
-        ({"polylines": [[[0, 0], [1, "1"]]]}, "polylines[0][1][1]: must be a number, got str"),
+        ({"polylines": [[[0, 0], [1, "1"]]]}, "polylines[0][1][1]: must be a number, got string"),
         ({"polylines": [[[0, 0], [True, 1]]]}, "polylines[0][1][0]: must be a number, got bool"),
         ({"polylines": [[[0, 0], [1, math.nan]]]}, "polylines[0][1][1]: must be finite"),
         ({"polylines": [[[0, 0], 5]]}, "polylines[0][1]: must be [x, y], got int"),
         ({"polylines": [[0, 0]]}, "polylines[0][0]: must be [x, y], got int"),
-        ({"polylines": "x"}, "polylines: must be a list of polylines, got str"),
+        ({"polylines": "x"}, "polylines: must be a list of polylines, got string"),
         ({"kind": "sketch"}, "kind: must be 'metric' or 'schematic'"),
         ({"name": 3}, "name: must be a string, got int"),
     ],
@@ -243,7 +243,7 @@ def test_health_counters_and_extras() -> None:
     _reject(Health, {**base, "robots": -1}, "robots: must be >= 0, got -1")
     _reject(Health, {**base, "maps": 1.5}, "maps: must be an integer, got float")
     _reject(Health, {**base, "errors": {"X": -2}}, "errors['X']: must be >= 0, got -2")
-    _reject(Health, {**base, "errors": [1]}, "errors: must be a map, got list")
+    _reject(Health, {**base, "errors": [1]}, "errors: must be a map, got array")
     _reject(Health, {**base, "uptime_s": math.inf}, "uptime_s: must be finite")
     _reject(Health, {**base, "status": ""}, "status: must not be empty")
     assert decode(Health, msgpack.packb(base)).errors is None
@@ -257,7 +257,7 @@ def test_health_counters_and_extras() -> None:
         (msgpack.packb({"seq": 1}) + b"\x00", "msgpack: trailing data after the message"),
         (msgpack.packb([1, 2, 3]), "message: must be a map, got array"),
         (msgpack.packb(5), "message: must be a map, got int"),
-        (msgpack.packb(None), "message: must be a map, got nil"),
+        (msgpack.packb(None), "message: must be a map, got null"),
         (msgpack.packb("x"), "message: must be a map, got string"),
         (msgpack.packb({1: 2}, strict_types=False), "message: map keys must be strings"),
         (msgpack.packb({b"seq": 2}, use_bin_type=True), "message: map keys must be strings"),
@@ -282,7 +282,7 @@ def test_malformed_msgpack(payload: bytes, reason: str) -> None:
         (b"\xff\xfe", "json: not UTF-8"),
         (b"[" * 100000 + b"]" * 100000, "nesting deeper than 16 levels"),
         (b'{"seq": true, "stamp": 0, "pose": [0, 0, 0]}', "seq: must be an integer, got bool"),
-        (b'{"seq": 1, "stamp": "0", "pose": [0, 0, 0]}', "stamp: must be a number, got str"),
+        (b'{"seq": 1, "stamp": "0", "pose": [0, 0, 0]}', "stamp: must be a number, got string"),
     ],
 )
 def test_malformed_json(text: bytes, reason: str) -> None:
