@@ -101,6 +101,10 @@ def format_validation_error(err: ValidationError) -> str:
     errors = err.errors(include_url=False, include_input=False)
     for e in errors[:_MAX_REPORTED]:
         ctx = e.get("ctx") or {}
+        if e["type"] == "value_error" and isinstance(ctx.get("error"), InvalidMessage):
+            # raised by our own __init__ when pydantic calls it from model_validate
+            parts.append(str(ctx["error"]))
+            continue
         if e["type"] == "shapeloc":
             path, reason = _join(tuple(e["loc"]), str(ctx.get("sub", ""))), str(ctx["reason"])
         else:
@@ -438,6 +442,14 @@ class WireModel(BaseModel):
         # Going through __init__ (not model_validate) keeps the error text free of pydantic's
         # "Value error" wrapping: a custom __init__ is what model_validate calls anyway.
         return cls(**obj)
+
+    @classmethod
+    def model_validate(cls, obj: Any, *args: Any, **kwargs: Any) -> Self:
+        """As pydantic's, but failures raise ``InvalidMessage`` (prefer :meth:`parse`)."""
+        try:
+            return super().model_validate(obj, *args, **kwargs)
+        except ValidationError as e:
+            raise InvalidMessage(format_validation_error(e)) from None
 
     def __eq__(self, other: object) -> bool:
         if type(other) is not type(self):

@@ -323,3 +323,12 @@ def test_encode_refuses_bytes_ranges_in_json_or_non_scans() -> None:
         encode(Scan(**_scan_dict()), json=True, ranges_as_bytes=True)
     with pytest.raises(InvalidMessage, match="needs a Scan"):
         encode(t, ranges_as_bytes=True)
+
+
+def test_model_validate_raises_invalid_message_with_the_plain_reason() -> None:
+    with pytest.raises(InvalidMessage) as exc:
+        Truth.model_validate({"seq": 1, "stamp": 0.0, "pose": [0, 0, math.inf]})
+    assert str(exc.value) == "pose[2]: must be finite"
+    with pytest.raises(InvalidMessage, match="message: must be a map, got array"):
+        Truth.parse([1, 2])
+    assert Truth.model_validate({"seq": 1, "stamp": 0, "pose": [0, 0, 0]}).seq == 1
