@@ -1,0 +1,328 @@
+"""Configurations of shape features (paper §4.2) and the map's abstract sensor reading (§2.1).
+
+A *configuration* is the cyclically (angularly) ordered vector of polylines seen from one
+viewpoint, each polyline carrying its metric position. Two kinds are built here, by exactly
+the same code (grouping §4.1 + first-stage DCE eq. 2):
+
+* :func:`scan_configuration` — from a laser scan; coordinates in the **robot frame** of the
+  scan (metres, x forward, y left), viewpoint = the robot origin.
+* :func:`map_view` — the map's *abstract sensor reading* from a pose: the map's segments are
+  ray cast from that pose with a (by default 360-degree) virtual scan, and the virtual ranges
+  go through the same grouping and DCE. Coordinates in the **map frame**; every polyline also
+  remembers which map segments its rays hit, so that the pose step can use the exact map
+  geometry (:mod:`service.core.pose`).
+
+:class:`MapViewCache` keeps one :class:`~service.core.raycast.RayCaster` per map and reuses the
+last view while the viewpoint has moved less than a threshold (a 360-degree view does not
+depend on the heading).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from functools import cached_property
+
+import numpy as np
+
+from schemas.errors import LocalizationError
+from service.core.dce import dce
+from service.core.polylines import Polyline, group_polylines
+from service.core.pose import transform_points
+from service.core.raycast import RayCaster
+from service.core.types import MapData, wrap_angle
+
+
+@dataclass(frozen=True)
+class ExtractionParams:
+    """How polylines are extracted from (virtual or real) range readings.
+
+    ``min_object_distance`` (m) and ``range_factor`` control grouping (§4.1, see
+    :func:`service.core.polylines.group_polylines`); ``min_points`` drops smaller groups;
+    ``dce_threshold`` (m) is the first-stage DCE stop relevance (eq. 2); ``min_length`` (m)
+    drops polylines shorter than that after grouping; ``piece_length`` (m, 0 = off) cuts a
+    simplified polyline at its vertices into pieces of about that length (see
+    :func:`split_pieces`).
+    """
+
+    min_object_distance: float = 0.10
+    range_factor: float = 4.0
+    min_points: int = 3
+    dce_threshold: float = 0.02
+    min_length: float = 0.05
+    piece_length: float = 1.5
+
+
+@dataclass(eq=False)
+class Feature:
+    """One polyline of a configuration.
+
+    ``vertices`` ``(v, 2)`` the DCE-simplified polyline and ``points`` ``(k, 2)`` the grouped
+    raw returns, both in the configuration's frame (metres). ``bearing_start``/``bearing_end``
+    (rad) bearings of the first/last point seen from the viewpoint, relative to the
+    viewpoint's heading; ``angular_size`` (rad) the angle it subtends. ``segments`` ``(s, 4)``
+    map-frame map segments its rays hit (map views only, else ``None``).
+    """
+
+    vertices: np.ndarray
+    points: np.ndarray
+    bearing_start: float
+    bearing_end: float
+    angular_size: float
+    segments: np.ndarray | None = None
+    cache: dict = field(default_factory=dict, repr=False)
+
+    @cached_property
+    def length(self) -> float:
+        """Length of the simplified polyline (m)."""
+        d = np.diff(self.vertices, axis=0)
+        return float(np.sum(np.hypot(d[:, 0], d[:, 1])))
+
+    @cached_property
+    def centroid(self) -> np.ndarray:
+        """Mean of the raw points (m, configuration frame)."""
+        return self.points.mean(axis=0)
+
+    @cached_property
+    def bearing_mid(self) -> float:
+        """Bearing (rad, relative to the viewpoint heading) of the middle of the polyline's
+        angular extent."""
+        return float(wrap_angle(self.bearing_start + 0.5 * self.angular_size))
+
+
+@dataclass(eq=False)
+class Configuration:
+    """Angularly ordered polylines seen from ``viewpoint`` (paper §4.2).
+
+    ``frame`` is ``"robot"`` (a scan: coordinates in the robot frame, viewpoint ``[0, 0, 0]``)
+    or ``"map"`` (a map view: coordinates in the map frame, viewpoint = the pose the map was
+    viewed from). ``cyclic`` is ``True`` for a 360-degree reading. ``fov`` ``(lo, hi)`` (rad,
+    relative to the viewpoint heading) is the angular range covered by the beams.
+    """
+
+    features: list[Feature]
+    frame: str
+    viewpoint: np.ndarray
+    cyclic: bool
+    fov: tuple[float, float]
+
+    def __len__(self) -> int:
+        return len(self.features)
+
+    def __getitem__(self, i: int) -> Feature:
+        return self.features[i]
+
+
+def split_pieces(keep: np.ndarray, points: np.ndarray, piece_length: float) -> list[np.ndarray]:
+    """Cut a DCE-simplified polyline at its vertices into pieces of about ``piece_length`` m.
+
+    ``keep`` are the DCE vertex indices into ``points`` (raw, ``(k, 2)`` m). Walking along the
+    vertices, a cut is made at the first vertex where the piece has reached ``piece_length``
+    metres, unless the rest would be shorter than half of it. Returns, per piece, the vertex
+    indices (into ``points``) it spans; consecutive pieces share the cut vertex. A whole room
+    seen in one sweep thus becomes a sequence of wall-sized features in the same cyclic order,
+    which the n:m correspondences of eq. 5 can re-join.
+    """
+    if piece_length <= 0 or len(keep) <= 2:
+        return [keep]
+    v = points[keep]
+    seg = np.hypot(*np.diff(v, axis=0).T)
+    cum = np.concatenate(([0.0], np.cumsum(seg)))
+    total = cum[-1]
+    out = []
+    start = 0
+    for k in range(1, len(keep) - 1):
+        if cum[k] - cum[start] >= piece_length and total - cum[k] >= 0.5 * piece_length:
+            out.append(keep[start : k + 1])
+            start = k
+    out.append(keep[start:])
+    return out
+
+
+def _features_from_ranges(
+    ranges: np.ndarray, angles: np.ndarray, params: ExtractionParams, wrap: bool
+) -> list[tuple[Polyline, np.ndarray]]:
+    """Grouping (§4.1), first-stage DCE (eq. 2) and cutting into pieces, in the sensor frame.
+
+    Returns ``(raw polyline piece, simplified vertices)`` per feature, in angular order."""
+    groups = group_polylines(
+        ranges,
+        angles,
+        min_object_distance=params.min_object_distance,
+        range_factor=params.range_factor,
+        min_points=params.min_points,
+        wrap=wrap,
+    )
+    out = []
+    for g in groups:
+        if g.length < params.min_length:
+            continue
+        keep = dce(g.points, params.dce_threshold)
+        pieces = split_pieces(keep, g.points, params.piece_length)
+        if len(pieces) == 1:
+            out.append((g, g.points[keep]))
+            continue
+        for pk in pieces:
+            out.append((_piece(g, int(pk[0]), int(pk[-1])), g.points[pk]))
+    return out
+
+
+def _piece(g: Polyline, k0: int, k1: int) -> Polyline:
+    """Points ``k0..k1`` (inclusive) of ``g`` as a polyline of their own."""
+    pts = g.points[k0 : k1 + 1]
+    ids = g.idx[k0 : k1 + 1]
+    return Polyline(
+        points=pts,
+        idx=ids,
+        first_beam=int(ids[0]),
+        last_beam=int(ids[-1]),
+        bearing_start=float(np.arctan2(pts[0, 1], pts[0, 0])),
+        bearing_end=float(np.arctan2(pts[-1, 1], pts[-1, 0])),
+    )
+
+
+def scan_configuration(
+    ranges: np.ndarray, angles: np.ndarray, params: ExtractionParams | None = None
+) -> Configuration:
+    """The scan's configuration (§4.2): polylines in angular order, robot frame (metres).
+
+    ``ranges`` metres with NaN for no return, ``angles`` radians in the robot frame. Raises
+    :class:`LocalizationError` on mismatched or malformed arrays.
+    """
+    params = params or ExtractionParams()
+    r = np.asarray(ranges, dtype=np.float64)
+    a = np.asarray(angles, dtype=np.float64)
+    if r.ndim != 1 or a.ndim != 1 or r.shape != a.shape:
+        raise LocalizationError(
+            f"ranges and angles must be 1-D of equal length, got {r.shape} and {a.shape}"
+        )
+    if r.size == 0:
+        raise LocalizationError("empty scan")
+    span = float(np.max(a) - np.min(a)) if a.size > 1 else 0.0
+    feats = [
+        Feature(
+            vertices=v,
+            points=g.points,
+            bearing_start=g.bearing_start,
+            bearing_end=g.bearing_end,
+            angular_size=g.angular_size,
+        )
+        for g, v in _features_from_ranges(r, a, params, wrap=False)
+    ]
+    return Configuration(
+        features=feats,
+        frame="robot",
+        viewpoint=np.zeros(3),
+        cyclic=span >= 2.0 * np.pi - 1e-6,
+        fov=(float(np.min(a)), float(np.max(a))),
+    )
+
+
+def _hit_segments(points: np.ndarray, segments: np.ndarray, chunk: int = 256) -> np.ndarray:
+    """Index of the segment nearest to each point (the segment a ray hit), ``(k,)``."""
+    a = segments[:, 0:2]
+    e = segments[:, 2:4] - a
+    ee = np.maximum(np.einsum("ij,ij->i", e, e), 1e-18)
+    out = np.empty(points.shape[0], dtype=np.intp)
+    for s in range(0, points.shape[0], chunk):
+        p = points[s : s + chunk]
+        dx = p[:, None, 0] - a[None, :, 0]
+        dy = p[:, None, 1] - a[None, :, 1]
+        u = np.clip((dx * e[None, :, 0] + dy * e[None, :, 1]) / ee[None, :], 0.0, 1.0)
+        rx = dx - u * e[None, :, 0]
+        ry = dy - u * e[None, :, 1]
+        out[s : s + chunk] = np.argmin(rx * rx + ry * ry, axis=1)
+    return out
+
+
+def map_view(
+    source: MapData | RayCaster,
+    pose: np.ndarray,
+    fov: float = 2.0 * np.pi,
+    beams: int = 720,
+    max_range: float = 15.0,
+    params: ExtractionParams | None = None,
+) -> Configuration:
+    """The map's abstract sensor reading from ``pose`` (§2.1, §5.2): a configuration.
+
+    ``pose`` ``[x, y, theta]`` map frame (metres, rad). ``beams`` virtual beams evenly cover
+    ``fov`` radians centred on the heading (``fov = 2 pi``: a full circle starting behind the
+    robot, so the configuration is cyclic); ranges beyond ``max_range`` metres are "no
+    return". The virtual ranges are grouped and simplified exactly like a scan
+    (:func:`scan_configuration`); the result is in the map frame, and every feature knows the
+    map segments its rays hit (``Feature.segments``).
+    """
+    params = params or ExtractionParams()
+    caster = source if isinstance(source, RayCaster) else RayCaster(source.segments())
+    pose = np.asarray(pose, dtype=np.float64)
+    if pose.shape != (3,) or not np.all(np.isfinite(pose)):
+        raise LocalizationError(f"pose: expected 3 finite values, got {pose.shape}")
+    if beams < 8:
+        raise LocalizationError(f"map view needs >= 8 beams, got {beams}")
+    full = fov >= 2.0 * np.pi - 1e-9
+    if full:
+        angles = -np.pi + (np.arange(beams) + 0.5) * (2.0 * np.pi / beams)
+    else:
+        angles = np.linspace(-0.5 * fov, 0.5 * fov, beams)
+    ranges = caster.cast(pose, angles, max_range)
+    raw = _features_from_ranges(ranges, angles, params, wrap=full)
+    segs_all = caster.segments
+    feats: list[Feature] = []
+    for g, v in raw:
+        pts = transform_points(pose, g.points)
+        ids = np.unique(_hit_segments(pts, segs_all))
+        feats.append(
+            Feature(
+                vertices=transform_points(pose, v),
+                points=pts,
+                bearing_start=g.bearing_start,
+                bearing_end=g.bearing_end,
+                angular_size=g.angular_size,
+                segments=segs_all[ids],
+            )
+        )
+    lo, hi = (-np.pi, np.pi) if full else (float(angles[0]), float(angles[-1]))
+    return Configuration(
+        features=feats, frame="map", viewpoint=pose.copy(), cyclic=full, fov=(lo, hi)
+    )
+
+
+class MapViewCache:
+    """Map views of one map with a cached :class:`RayCaster` and view reuse.
+
+    :meth:`view` returns the last view again while the requested pose is within
+    ``reuse_distance`` metres of that view's viewpoint (a 360-degree view is heading
+    independent); otherwise it ray casts a new one.
+    """
+
+    def __init__(
+        self,
+        map_data: MapData,
+        beams: int = 720,
+        max_range: float = 15.0,
+        reuse_distance: float = 0.1,
+        params: ExtractionParams | None = None,
+    ) -> None:
+        self.map_data = map_data
+        self.caster = RayCaster(map_data.segments())
+        self.beams = beams
+        self.max_range = max_range
+        self.reuse_distance = reuse_distance
+        self.params = params or ExtractionParams()
+        self._last: Configuration | None = None
+        #: Number of views actually ray cast (for tests and benchmarks).
+        self.casts = 0
+
+    def view(self, pose: np.ndarray) -> Configuration:
+        """Map view from ``pose`` (map frame), reused when the pose barely moved."""
+        last = self._last
+        if last is not None and np.hypot(*(last.viewpoint[:2] - pose[:2])) < self.reuse_distance:
+            return last
+        self._last = map_view(
+            self.caster, pose, 2.0 * np.pi, self.beams, self.max_range, self.params
+        )
+        self.casts += 1
+        return self._last
+
+    def clear(self) -> None:
+        """Forget the cached view."""
+        self._last = None

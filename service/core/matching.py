@@ -1,0 +1,553 @@
+"""Matching of ordered shape configurations (paper §5.2 and §5.3).
+
+Frames: the scan configuration ``P`` is in the robot frame, the map view ``Q`` in the map frame
+(see :mod:`service.core.configuration`). A pose / rigid transform is ``[tx, ty, phi]``
+(metres, radians). Every corresponding pair ``(P_ij, Q_i'j')`` *induces an alignment*: the
+robot pose that would lay the scan polylines onto the map polylines (robot frame -> map frame).
+The difference ``ΔA`` of that induced alignment to the estimated pose is measured by eq. 4,
+with ``dt`` the displacement of the scan polylines' centroid and ``dPhi`` the rotation.
+
+Functions, with their place in the paper:
+
+* :func:`penalty_R` — penalty ``R`` for a polyline without counterpart (§5.2), linear in its
+  angular size in the field of view.
+* :func:`pose_consistency` — eq. 4, ``D(dt, dPhi) = ||dt|| + 10 |dPhi|``.
+* :func:`induced_alignment` — ``A(P, Q)`` from the shape correspondence of S* (§5.1/§5.2).
+* :func:`order_preserving_dp` — the extended dynamic programme of §5.2 solving eq. 5.
+* :func:`match_configurations` — eq. 5 for two configurations given an estimate.
+* :func:`two_step_match` — the shape-complexity-based two-step matching of §5.3.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from service.core.configuration import Configuration, Feature
+from service.core.pose import fit_pairs, transform_points
+from service.core.similarity import prepare, shape_alignment, shape_complexity, shape_distance
+from service.core.types import Match, wrap_angle
+
+if TYPE_CHECKING:
+    from service.core.localizer import ShapeConfig
+
+#: A shape distance S*: ``(p (k, 2), q (l, 2)) -> metres >= 0``.
+ShapeCost = Callable[[Any, Any], float]
+
+_TWO_PI = 2.0 * math.pi
+
+
+# --------------------------------------------------------------------------------------------
+# Cost terms of eq. 5
+# --------------------------------------------------------------------------------------------
+
+
+def _angular_interval(points: np.ndarray, viewpoint: np.ndarray) -> tuple[float, float]:
+    """``(start, span)`` (rad) of the bearings of ``points`` seen from ``viewpoint`` (pose),
+    relative to its heading; ``start`` in (-pi, pi], span >= 0, following the point order."""
+    d = points - viewpoint[:2]
+    b = np.arctan2(d[:, 1], d[:, 0]) - viewpoint[2]
+    steps = np.mod(np.diff(b) + math.pi, _TWO_PI) - math.pi
+    cum = np.concatenate(([0.0], np.cumsum(steps)))
+    lo, hi = float(cum.min()), float(cum.max())
+    return float(wrap_angle(b[0] + lo)), hi - lo
+
+
+def _overlap(start: float, span: float, lo: float, hi: float) -> float:
+    """Length (rad) of the intersection of the circular interval ``[start, start + span]``
+    with ``[lo, hi]`` (``hi - lo <= 2 pi``)."""
+    if hi - lo >= _TWO_PI - 1e-9:
+        return min(span, _TWO_PI)
+    total = 0.0
+    for shift in (-_TWO_PI, 0.0, _TWO_PI):
+        a = start + shift
+        total += max(0.0, min(a + span, hi) - max(a, lo))
+    return total
+
+
+def penalty_R(  # noqa: N802 (the paper names it R)
+    points: np.ndarray,
+    weight: float = 1.0,
+    viewpoint: np.ndarray | None = None,
+    fov: tuple[float, float] | None = None,
+) -> float:
+    """Penalty ``R`` for a polyline left without counterpart (paper §5.2, eq. 5's last term).
+
+    ``R = weight * (angular size of the polyline inside the field of view)``: linear in the
+    angle (radians) the polyline subtends seen from ``viewpoint`` (pose ``[x, y, theta]``,
+    default the origin of the polyline's frame), clipped to ``fov = (lo, hi)`` radians relative
+    to the viewpoint heading (default: no clipping). ``points`` ``(k, 2)`` metres, in angular
+    order; ``weight`` in cost units (metres-like, as S* and eq. 4) per radian.
+    """
+    vp = np.zeros(3) if viewpoint is None else np.asarray(viewpoint, dtype=np.float64)
+    pts = np.asarray(points, dtype=np.float64)
+    start, span = _angular_interval(pts, vp)
+    if fov is not None:
+        span = _overlap(start, span, fov[0], fov[1])
+    return weight * span
+
+
+def pose_consistency(
+    dt: np.ndarray | Sequence[float], dphi: float, rot_weight: float = 10.0
+) -> float:
+    """Eq. 4: ``D(dt, dPhi) = ||dt|| + 10 |dPhi|`` (``rot_weight`` = 10 in the paper).
+
+    ``dt`` ``(2,)`` metres (displacement of the aligned shapes), ``dphi`` radians (wrapped to
+    (-pi, pi] before taking the absolute value). Result in metres.
+    """
+    d = np.asarray(dt, dtype=np.float64)
+    return float(math.hypot(d[0], d[1]) + rot_weight * abs(wrap_angle(float(dphi))))
+
+
+def induced_alignment(p: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """``A(P, Q)`` (§5.2): the rigid transform ``[tx, ty, phi]`` that lays polyline ``p`` onto
+    its corresponding polyline ``q`` (``x_q ~ R(phi) x_p + t``), from the optimal arc
+    correspondence of S* (:func:`service.core.similarity.shape_alignment`).
+
+    With ``p`` a scan polyline in the robot frame and ``q`` a map polyline in the map frame the
+    result is the robot pose this pair alone implies.
+    """
+    ang, t = shape_alignment(p, q)
+    return np.array([float(t[0]), float(t[1]), float(wrap_angle(ang))])
+
+
+def alignment_difference(
+    induced: np.ndarray, estimate: np.ndarray, at: np.ndarray
+) -> tuple[np.ndarray, float]:
+    """``ΔA``: how far the induced pose moves the shape at robot-frame point ``at`` (m)
+    compared with the estimated pose, and the rotation difference (rad)."""
+    a = transform_points(induced, np.asarray(at, dtype=np.float64).reshape(1, 2))[0]
+    b = transform_points(estimate, np.asarray(at, dtype=np.float64).reshape(1, 2))[0]
+    return a - b, float(wrap_angle(induced[2] - estimate[2]))
+
+
+# --------------------------------------------------------------------------------------------
+# The extended dynamic programme (§5.2)
+# --------------------------------------------------------------------------------------------
+
+#: Candidate correspondences for the DP: ``{(i_end, j_end): [(i_start, j_start, cost), ...]}``
+#: meaning ``P[i_start..i_end] ~ Q[j_start..j_end]`` (inclusive, concatenated) at ``cost``.
+Blocks = dict[tuple[int, int], list[tuple[int, int, float]]]
+
+
+def order_preserving_dp(
+    skip_p: Sequence[float], skip_q: Sequence[float], blocks: Blocks
+) -> tuple[float, list[tuple[int, int, int, int]]]:
+    """Solve eq. 5 over two linearly ordered vectors of polylines (§5.2's extended DP).
+
+    ``skip_p[i]`` / ``skip_q[j]`` are the penalties ``R`` of leaving ``p_i`` / ``q_j``
+    unmatched; ``blocks`` the admissible correspondences with their cost ``S + ΔA``. Cell
+    ``C[i][j]`` is the optimal cost of the prefixes ``p_1..p_i`` and ``q_1..q_j``:
+
+        C[i][j] = min( C[i-1][j] + R(p_i),  C[i][j-1] + R(q_j),
+                       min over blocks ending at (i, j):  C[i_s - 1][j_s - 1] + cost )
+
+    A block ``P[i_s..i] ~ Q[j_s..j]`` with more than one polyline on a side is the paper's
+    *update step*: when ``q_j`` is considered, the correspondence of the previous polyline
+    ``q_{j-1}`` with ``p_i`` is reconsidered and may be replaced by ``p_i ~ (q_{j-1}, q_j)``
+    concatenated (1:n, n:1 and n:m), so a split object is still matched. Order is a hard
+    constraint by construction. Returns ``(total cost, [(i_s, i_e, j_s, j_e), ...])`` in order.
+    """
+    n, m = len(skip_p), len(skip_q)
+    C = np.empty((n + 1, m + 1))
+    back: list[list[tuple[int, int, int, int] | None]] = [[None] * (m + 1) for _ in range(n + 1)]
+    C[0, 0] = 0.0
+    for i in range(1, n + 1):
+        C[i, 0] = C[i - 1, 0] + skip_p[i - 1]
+        back[i][0] = (i - 1, 0, -1, -1)
+    for j in range(1, m + 1):
+        C[0, j] = C[0, j - 1] + skip_q[j - 1]
+        back[0][j] = (0, j - 1, -1, -1)
+    for i in range(1, n + 1):
+        sp = skip_p[i - 1]
+        for j in range(1, m + 1):
+            best = C[i - 1, j] + sp
+            arg = (i - 1, j, -1, -1)
+            c = C[i, j - 1] + skip_q[j - 1]
+            if c < best:
+                best, arg = c, (i, j - 1, -1, -1)
+            for i_s, j_s, cost in blocks.get((i - 1, j - 1), ()):
+                c = C[i_s, j_s] + cost
+                if c < best:
+                    best, arg = c, (i_s, j_s, 1, 1)
+            C[i, j] = best
+            back[i][j] = arg
+    out: list[tuple[int, int, int, int]] = []
+    i, j = n, m
+    while i > 0 or j > 0:
+        pi, pj, flag, _ = back[i][j]  # type: ignore[misc]
+        if flag == 1:
+            out.append((pi, i - 1, pj, j - 1))
+        i, j = pi, pj
+    out.reverse()
+    return float(C[n, m]), out
+
+
+# --------------------------------------------------------------------------------------------
+# Configuration matching (eq. 5)
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass
+class ConfigurationMatch:
+    """Result of :func:`match_with_cost`: ``matches`` (indices into the configurations'
+    feature lists), the eq. 5 ``cost``, and per match the pose its pair induced."""
+
+    matches: list[Match]
+    cost: float
+    induced: list[np.ndarray] = field(default_factory=list)
+
+
+def _concat(feats: Sequence[Feature], attr: str) -> np.ndarray:
+    return np.vstack([getattr(f, attr) for f in feats])
+
+
+def _subsample(points: np.ndarray, k: int) -> np.ndarray:
+    if len(points) <= k:
+        return points
+    idx = np.linspace(0, len(points) - 1, k).round().astype(int)
+    return points[idx]
+
+
+def _shape_arcs(f: Feature | tuple, verts: np.ndarray, cache: dict) -> Any:
+    key = id(f) if isinstance(f, Feature) else f
+    arcs = cache.get(key)
+    if arcs is None:
+        arcs = prepare(verts)
+        cache[key] = arcs
+    return arcs
+
+
+def map_order(
+    Q: Configuration, estimate: np.ndarray
+) -> tuple[list[int], list[tuple[float, float]]]:
+    """Cut the cyclic map view into a linear order for the DP (§5.2's cyclic order).
+
+    Features are ordered by the bearing of their middle seen from ``estimate`` (relative to
+    its heading) in (-pi, pi], i.e. the cycle is cut right behind the robot, where a forward
+    facing scan has no polylines. Returns the order and each feature's ``(start, span)``
+    angular interval (rad) seen from the estimate.
+    """
+    ivs = [_angular_interval(f.points, estimate) for f in Q.features]
+    mids = [wrap_angle(s + 0.5 * w) for s, w in ivs]
+    order = sorted(range(len(Q.features)), key=lambda j: mids[j])
+    return order, ivs
+
+
+def match_with_cost(
+    P: Configuration,
+    Q: Configuration,
+    estimate: np.ndarray,
+    config: ShapeConfig,
+    shape_cost: ShapeCost | None = None,
+    cache: dict | None = None,
+) -> ConfigurationMatch:
+    """Eq. 5 for the scan configuration ``P`` (robot frame) and map view ``Q`` (map frame) given
+    the estimated pose ``estimate`` ``[x, y, theta]``; see :func:`match_configurations`."""
+    est = np.asarray(estimate, dtype=np.float64)
+    cache = {} if cache is None else cache
+    sd = shape_cost or shape_distance
+    n = len(P)
+    q_order, q_iv = map_order(Q, est)
+    m = len(q_order)
+    Qf = [Q.features[j] for j in q_order]
+    Qiv = [q_iv[j] for j in q_order]
+    fov = P.fov
+    # Penalties R (angular size inside the scan's field of view, seen from the estimate).
+    skip_p = [config.penalty_weight * f.angular_size for f in P.features]
+    skip_q = [
+        config.penalty_weight * config.map_penalty_factor * _overlap(s, w, fov[0], fov[1])
+        for s, w in Qiv
+    ]
+    Piv = [(f.bearing_start, f.angular_size) for f in P.features]
+    tol = config.bearing_gate
+
+    def interval_of(ivs: Sequence[tuple[float, float]]) -> tuple[float, float]:
+        s0 = ivs[0][0]
+        end = s0
+        for s, w in ivs:
+            end = max(end, s0 + (wrap_angle(s - s0)) + w)
+        return s0, end - s0
+
+    def overlaps(a: tuple[float, float], b: tuple[float, float]) -> bool:
+        return _overlap(a[0] - tol, a[1] + 2 * tol, b[0], b[0] + b[1]) > 0.0
+
+    single = np.zeros((n, m), dtype=bool)
+    for i in range(n):
+        for j in range(m):
+            single[i, j] = overlaps(Piv[i], Qiv[j])
+    K = config.max_join
+    cand: list[tuple[int, int, int, int]] = []
+    for i_e in range(n):
+        for j_e in range(m):
+            for a in range(1, K + 1):
+                i_s = i_e - a + 1
+                if i_s < 0:
+                    break
+                for b in range(1, K + 1):
+                    j_s = j_e - b + 1
+                    if j_s < 0:
+                        break
+                    sub = single[i_s : i_e + 1, j_s : j_e + 1]
+                    # every member must see some member of the other side
+                    if sub.any(axis=1).all() and sub.any(axis=0).all():
+                        cand.append((i_s, i_e, j_s, j_e))
+    if not cand:
+        cost, _ = order_preserving_dp(skip_p, skip_q, {})
+        return ConfigurationMatch(matches=[], cost=cost)
+    # Shape distance S* per candidate block, gated.
+    kept: list[tuple[int, int, int, int]] = []
+    sdist: list[float] = []
+    for i_s, i_e, j_s, j_e in cand:
+        pf = P.features[i_s : i_e + 1]
+        qf = Qf[j_s : j_e + 1]
+        if len(pf) == 1:
+            pa = _shape_arcs(pf[0], pf[0].vertices, cache)
+        else:
+            pa = _shape_arcs(("P", i_s, i_e), _concat(pf, "vertices"), cache)
+        if len(qf) == 1:
+            qa = _shape_arcs(qf[0], qf[0].vertices, cache)
+        else:
+            key = ("Q", tuple(id(f) for f in qf))
+            qa = _shape_arcs(key, _concat(qf, "vertices"), cache)
+        skey = ("S", id(pa), id(qa))
+        s = cache.get(skey)
+        if s is None:
+            s = float(sd(pa, qa))
+            cache[skey] = s
+        if s <= config.max_shape_distance:
+            kept.append((i_s, i_e, j_s, j_e))
+            sdist.append(s)
+    if not kept:
+        cost, _ = order_preserving_dp(skip_p, skip_q, {})
+        return ConfigurationMatch(matches=[], cost=cost)
+    # Induced alignment of every kept block (vectorised point-to-line fit from the estimate).
+    pts = [
+        _subsample(_concat(P.features[i_s : i_e + 1], "points"), config.align_points)
+        for i_s, i_e, _, _ in kept
+    ]
+    segs = [
+        np.vstack([f.segments for f in Qf[j_s : j_e + 1] if f.segments is not None])
+        for _, _, j_s, j_e in kept
+    ]
+    poses, _rms = fit_pairs(
+        pts,
+        segs,
+        est,
+        iterations=config.align_iterations,
+        robust_scale=config.align_robust_scale,
+    )
+    blocks: Blocks = {}
+    info: dict[tuple[int, int, int, int], tuple[float, float, np.ndarray]] = {}
+    for k, (i_s, i_e, j_s, j_e) in enumerate(kept):
+        c = pts[k].mean(axis=0)
+        dt, dphi = alignment_difference(poses[k], est, c)
+        dA = pose_consistency(dt, dphi, config.rotation_weight)
+        if dA > config.max_consistency:
+            continue
+        cost = sdist[k] + config.consistency_weight * dA
+        blocks.setdefault((i_e, j_e), []).append((i_s, j_s, cost))
+        info[(i_s, i_e, j_s, j_e)] = (sdist[k], dA, poses[k])
+    total, path = order_preserving_dp(skip_p, skip_q, blocks)
+    matches = []
+    induced = []
+    for i_s, i_e, j_s, j_e in path:
+        s, dA, pose = info[(i_s, i_e, j_s, j_e)]
+        matches.append(
+            Match(
+                scan=tuple(range(i_s, i_e + 1)),
+                map=tuple(q_order[j] for j in range(j_s, j_e + 1)),
+                shape_distance=s,
+                pose_consistency=dA,
+            )
+        )
+        induced.append(pose)
+    return ConfigurationMatch(matches=matches, cost=total, induced=induced)
+
+
+def match_configurations(
+    P: Configuration,
+    Q: Configuration,
+    estimate: np.ndarray,
+    config: ShapeConfig,
+    shape_cost: ShapeCost | None = None,
+) -> list[Match]:
+    """Optimal correspondence of eq. 5 between scan configuration ``P`` and map view ``Q``.
+
+    Minimises ``sum over pairs (S(P_ij, Q_i'j') + w * ΔA(P_ij, Q_i'j')) + sum of R over
+    unmatched polylines`` by :func:`order_preserving_dp`, where
+
+    * ``P_ij`` / ``Q_i'j'`` are concatenations of up to ``config.max_join`` consecutive
+      polylines (1:1, 1:n, n:1, n:m);
+    * only pairs whose angular intervals (seen from ``estimate``) overlap within
+      ``config.bearing_gate`` radians are considered, and only similar shapes may correspond
+      (``S* <= config.max_shape_distance``);
+    * ``ΔA`` is eq. 4 (:func:`pose_consistency`) between the pose the pair induces and the
+      estimate, gated by ``config.max_consistency``; ``w = config.consistency_weight``;
+    * the cyclic map view is cut behind the robot (:func:`map_order`); order is a hard
+      constraint.
+
+    ``estimate`` ``[x, y, theta]`` map frame. ``shape_cost`` replaces S* (for tests). Returns
+    the matches with indices into ``P.features`` and ``Q.features``.
+    """
+    return match_with_cost(P, Q, estimate, config, shape_cost).matches
+
+
+# --------------------------------------------------------------------------------------------
+# Two-step matching (§5.3)
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass
+class TwoStepResult:
+    """Result of :func:`two_step_match`.
+
+    ``estimate`` the displacement estimate of step 1 (a robot pose, map frame) that step 2
+    used; ``match`` step 2's correspondence; ``support`` the fraction of scan points the
+    estimate explains; ``ambiguity`` best-vs-second-best eq. 5 cost ratio in [0, 1] over the
+    hypotheses tried (1 = tie, 0 = only one hypothesis); ``hypotheses`` how many were tried.
+    """
+
+    estimate: np.ndarray
+    match: ConfigurationMatch
+    support: float
+    ambiguity: float
+    hypotheses: int
+
+
+def _view_tree(Q: Configuration) -> cKDTree | None:
+    tree = Q.__dict__.get("_tree")
+    if tree is None and Q.features:
+        tree = cKDTree(np.vstack([f.points for f in Q.features]))
+        Q.__dict__["_tree"] = tree
+    return tree
+
+
+def support(Q: Configuration, scan_points: np.ndarray, pose: np.ndarray, tol: float) -> float:
+    """Fraction of ``scan_points`` (robot frame) that lie within ``tol`` metres of the map
+    view's points when placed at ``pose`` — how much of the scan a hypothesis explains."""
+    tree = _view_tree(Q)
+    if tree is None or len(scan_points) == 0:
+        return 0.0
+    d, _ = tree.query(transform_points(pose, scan_points), k=1, distance_upper_bound=tol)
+    return float(np.mean(np.isfinite(d)))
+
+
+def step1_hypotheses(
+    P: Configuration, Q: Configuration, prior: np.ndarray, config: ShapeConfig, cache: dict
+) -> list[tuple[np.ndarray, float]]:
+    """Step 1 of §5.3: pose hypotheses from the most complex and most similar pairs.
+
+    Scan features are ranked by shape complexity; the ``config.step1_features`` most complex
+    ones (complexity >= ``config.step1_min_complexity``) are compared by S* with every map
+    feature whose distance from the prior position differs by at most
+    ``config.step1_range_gate`` metres from the scan feature's range (a test that does not
+    depend on the unknown rotation). The ``config.step1_pairs_per_feature`` most similar map
+    features (S* <= ``config.step1_max_shape_distance``) each induce an alignment
+    (:func:`induced_alignment`), i.e. a pose hypothesis. Returns ``[(pose, S*), ...]``.
+    """
+    if not P.features or not Q.features:
+        return []
+    comp = []
+    for i, f in enumerate(P.features):
+        c = f.cache.get("complexity")
+        if c is None:
+            c = shape_complexity(f.vertices)
+            f.cache["complexity"] = c
+        comp.append((c, i))
+    comp.sort(reverse=True)
+    chosen = [i for c, i in comp[: config.step1_features] if c >= config.step1_min_complexity]
+    if not chosen:
+        return []
+    q_rng = np.array([np.hypot(*(f.centroid - prior[:2])) for f in Q.features])
+    out: list[tuple[np.ndarray, float]] = []
+    for i in chosen:
+        pf = P.features[i]
+        r = float(np.hypot(*pf.centroid))
+        js = np.nonzero(np.abs(q_rng - r) <= config.step1_range_gate)[0]
+        pa = _shape_arcs(pf, pf.vertices, cache)
+        scored = []
+        for j in js:
+            qf = Q.features[j]
+            qa = _shape_arcs(qf, qf.vertices, cache)
+            skey = ("S", id(pa), id(qa))
+            s = cache.get(skey)
+            if s is None:
+                s = float(shape_distance(pa, qa))
+                cache[skey] = s
+            if s <= config.step1_max_shape_distance:
+                scored.append((s, j))
+        scored.sort()
+        for s, j in scored[: config.step1_pairs_per_feature]:
+            qf = Q.features[j]
+            pose = induced_alignment(pf.vertices, qf.vertices)
+            out.append((pose, s))
+    return out
+
+
+def two_step_match(
+    P: Configuration,
+    Q: Configuration,
+    prior: np.ndarray,
+    config: ShapeConfig,
+    scan_points: np.ndarray | None = None,
+    shape_cost: ShapeCost | None = None,
+) -> TwoStepResult:
+    """Shape-complexity-based two-step matching (§5.3).
+
+    Step 1 (:func:`step1_hypotheses`) estimates the displacement from the most complex, most
+    similar pairs alone. Their hypotheses and the ``prior`` (last pose) form a robust
+    consensus: each is scored by the fraction of all scan points it explains against the map
+    view (:func:`support`, tolerance ``config.support_tolerance`` metres), and the
+    ``config.step2_hypotheses`` best go to step 2 — the full eq. 5 matching
+    (:func:`match_with_cost`) with ``ΔA`` measured against that estimate. The hypothesis with
+    the lowest eq. 5 cost wins.
+
+    ``prior`` ``[x, y, theta]`` map frame; ``scan_points`` robot-frame points used for the
+    support (default: all feature points).
+    """
+    prior = np.asarray(prior, dtype=np.float64)
+    cache: dict = {}
+    if scan_points is None:
+        scan_points = np.vstack([f.points for f in P.features]) if P.features else np.zeros((0, 2))
+    sp = _subsample(scan_points, config.support_points)
+    hyps = [(prior, 0.0)]
+    if config.two_step:
+        hyps += step1_hypotheses(P, Q, prior, config, cache)
+    scored = []
+    for k, (pose, _s) in enumerate(hyps):
+        sup = support(Q, sp, pose, config.support_tolerance)
+        scored.append((sup, -k, pose))
+    scored.sort(key=lambda t: (t[0], t[1]), reverse=True)
+    # keep the best distinct hypotheses (and always the prior if it is competitive)
+    picked: list[tuple[float, np.ndarray]] = []
+    for sup, _k, pose in scored:
+        if len(picked) >= config.step2_hypotheses:
+            break
+        if any(
+            np.hypot(*(pose[:2] - p[:2])) < 0.05 and abs(wrap_angle(pose[2] - p[2])) < 0.02
+            for _s, p in picked
+        ):
+            continue
+        picked.append((sup, pose))
+    results = []
+    for sup, pose in picked:
+        res = match_with_cost(P, Q, pose, config, shape_cost, cache)
+        results.append((res.cost, sup, pose, res))
+    results.sort(key=lambda t: t[0])
+    best_cost, best_sup, best_pose, best_res = results[0]
+    ambiguity = 0.0
+    if len(results) > 1 and results[1][0] > 0:
+        ambiguity = float(min(1.0, best_cost / results[1][0]))
+    return TwoStepResult(
+        estimate=best_pose,
+        match=best_res,
+        support=best_sup,
+        ambiguity=ambiguity,
+        hypotheses=len(hyps),
+    )

@@ -1,0 +1,319 @@
+"""Pose estimation from matched shape features (paper §5: the metric step after matching).
+
+Conventions: a *pose* or a *rigid transform* is ``np.array([tx, ty, phi])`` (metres, radians);
+applied to points ``p`` (robot frame or any source frame) it gives ``R(phi) @ p + t``. A robot
+pose ``[x, y, theta]`` in the map frame is exactly the transform from the robot frame to the map
+frame (REP 103).
+
+The shape matching (:mod:`service.core.matching`) decides *which* scan polyline corresponds to
+*which* map polyline. This module turns those correspondences into a precise pose: points along
+every matched scan polyline are paired with the nearest point of the map geometry of *its own*
+matched partner only (never of another map polyline), and the rigid transform is solved by
+weighted least squares, re-pairing a few times (:func:`pose_from_matches`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from schemas.errors import LocalizationError
+from service.core.types import wrap_angle
+
+
+def rot(phi: float) -> np.ndarray:
+    """2x2 rotation matrix for ``phi`` radians (counter-clockwise)."""
+    c, s = np.cos(phi), np.sin(phi)
+    return np.array([[c, -s], [s, c]])
+
+
+def transform_points(pose: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Apply the rigid transform ``pose = [tx, ty, phi]`` to ``(k, 2)`` points (metres)."""
+    c, s = np.cos(pose[2]), np.sin(pose[2])
+    pts = np.asarray(points, dtype=np.float64)
+    out = np.empty_like(pts)
+    out[:, 0] = c * pts[:, 0] - s * pts[:, 1] + pose[0]
+    out[:, 1] = s * pts[:, 0] + c * pts[:, 1] + pose[1]
+    return out
+
+
+def compose(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Transform ``a ∘ b`` (apply ``b`` first, then ``a``); theta normalised to (-pi, pi]."""
+    c, s = np.cos(a[2]), np.sin(a[2])
+    return np.array(
+        [
+            a[0] + c * b[0] - s * b[1],
+            a[1] + s * b[0] + c * b[1],
+            wrap_angle(a[2] + b[2]),
+        ]
+    )
+
+
+def invert(a: np.ndarray) -> np.ndarray:
+    """Inverse rigid transform of ``a = [tx, ty, phi]``."""
+    c, s = np.cos(a[2]), np.sin(a[2])
+    return np.array([-(c * a[0] + s * a[1]), s * a[0] - c * a[1], wrap_angle(-a[2])])
+
+
+def rigid_transform_2d(
+    src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None
+) -> np.ndarray:
+    """Least-squares rigid transform (rotation + translation, no reflection, no scale) taking
+    ``src`` onto ``dst``: minimises ``sum_i w_i ||R(phi) src_i + t - dst_i||^2`` in closed form
+    (2-D Kabsch/Umeyama: the optimal angle is ``atan2`` of the weighted cross/dot sums of the
+    centred point sets).
+
+    ``src``/``dst`` are ``(k, 2)`` metres in any frames; ``weights`` ``(k,)`` >= 0 (default 1).
+    Returns ``[tx, ty, phi]`` (metres, radians in (-pi, pi]). Raises :class:`LocalizationError`
+    on mismatched shapes, fewer than one point with positive weight, or non-finite input.
+    """
+    a = np.asarray(src, dtype=np.float64)
+    b = np.asarray(dst, dtype=np.float64)
+    if a.ndim != 2 or a.shape[1] != 2 or a.shape != b.shape:
+        raise LocalizationError(f"rigid_transform_2d: shapes {a.shape} and {b.shape} differ")
+    if a.shape[0] == 0:
+        raise LocalizationError("rigid_transform_2d: no points")
+    w = np.ones(a.shape[0]) if weights is None else np.asarray(weights, dtype=np.float64)
+    if w.shape != (a.shape[0],) or np.any(w < 0) or not np.all(np.isfinite(w)):
+        raise LocalizationError("rigid_transform_2d: weights must be finite, >= 0, one per point")
+    if not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))):
+        raise LocalizationError("rigid_transform_2d: non-finite point")
+    wsum = w.sum()
+    if wsum <= 0.0:
+        raise LocalizationError("rigid_transform_2d: all weights are zero")
+    ca = (w @ a) / wsum
+    cb = (w @ b) / wsum
+    a0 = a - ca
+    b0 = b - cb
+    dot = np.sum(w * (a0[:, 0] * b0[:, 0] + a0[:, 1] * b0[:, 1]))
+    cross = np.sum(w * (a0[:, 0] * b0[:, 1] - a0[:, 1] * b0[:, 0]))
+    phi = float(np.arctan2(cross, dot)) if (dot != 0.0 or cross != 0.0) else 0.0
+    t = cb - rot(phi) @ ca
+    return np.array([t[0], t[1], wrap_angle(phi)])
+
+
+def nearest_on_segments(
+    points: np.ndarray, segments: np.ndarray, owner_pt: np.ndarray, owner_seg: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For every point, the nearest point on the segments that have the same owner id.
+
+    ``points`` ``(k, 2)``, ``segments`` ``(s, 4)`` ``[x0, y0, x1, y1]`` (same frame, metres),
+    ``owner_pt`` ``(k,)`` / ``owner_seg`` ``(s,)`` integer pair ids. Returns ``(foot (k, 2),
+    normal (k, 2), dist (k,))``: the foot point, the unit normal of the segment it lies on (for a
+    foot clamped to a segment end, the unit vector from foot to point) and the distance; points
+    without any segment of their owner get ``dist = inf``.
+    """
+    a = segments[:, 0:2]
+    e = segments[:, 2:4] - a
+    ee = np.maximum(np.einsum("ij,ij->i", e, e), 1e-18)
+    # (k, s) problem restricted by owner mask.
+    dx = points[:, None, 0] - a[None, :, 0]
+    dy = points[:, None, 1] - a[None, :, 1]
+    u = (dx * e[None, :, 0] + dy * e[None, :, 1]) / ee[None, :]
+    uc = np.clip(u, 0.0, 1.0)
+    rx = dx - uc * e[None, :, 0]
+    ry = dy - uc * e[None, :, 1]
+    d2 = rx * rx + ry * ry
+    d2 = np.where(owner_pt[:, None] == owner_seg[None, :], d2, np.inf)
+    j = np.argmin(d2, axis=1)
+    rows = np.arange(points.shape[0])
+    dist = np.sqrt(d2[rows, j])
+    ucj = uc[rows, j]
+    foot = a[j] + ucj[:, None] * e[j]
+    en = e[j] / np.sqrt(ee[j])[:, None]
+    normal = np.stack([-en[:, 1], en[:, 0]], axis=1)
+    clamped = (ucj <= 0.0) | (ucj >= 1.0)
+    rvec = points - foot
+    rn = np.hypot(rvec[:, 0], rvec[:, 1])
+    use_r = clamped & (rn > 1e-12)
+    normal[use_r] = rvec[use_r] / rn[use_r, None]
+    return foot, normal, dist
+
+
+@dataclass(frozen=True)
+class PoseFit:
+    """Result of :func:`pose_from_matches`.
+
+    ``pose`` ``[x, y, theta]`` map frame; ``rms`` inlier point-to-map RMS distance (m);
+    ``inliers`` number of scan points used in the last iteration; ``inlier_fraction`` of all
+    offered points; ``covariance`` 3x3 (m², rad²) from the Gauss-Newton normal matrix (``None``
+    when singular); ``iterations`` performed.
+    """
+
+    pose: np.ndarray
+    rms: float
+    inliers: int
+    inlier_fraction: float
+    covariance: np.ndarray | None
+    iterations: int
+
+
+def pose_from_matches(
+    pairs: Sequence[tuple[np.ndarray, np.ndarray]],
+    initial_pose: np.ndarray,
+    *,
+    iterations: int = 12,
+    inlier_distance: float = 0.3,
+    robust_scale: float = 0.05,
+    damping: float = 1e-3,
+    tol: float = 1e-6,
+) -> PoseFit:
+    """Robot pose from matched polyline pairs by least squares over points of the pairs.
+
+    ``pairs``: one ``(scan_points (k, 2) robot frame, map_segments (s, 4) map frame)`` per
+    matched pair of the configuration matching. ``initial_pose`` ``[x, y, theta]`` map frame
+    (e.g. the two-step matching's estimate). Each iteration transforms the scan points with the
+    current pose, takes for each point the nearest point on the segments of its own pair (points
+    farther than ``inlier_distance`` metres are dropped, the rest get Cauchy weights with scale
+    ``robust_scale`` metres) and solves the weighted point-to-line least squares for a pose
+    increment (Gauss-Newton with a small Levenberg ``damping`` so that degenerate geometry —
+    a single straight wall — keeps the estimate along the free direction). Stops when the
+    increment is below ``tol`` (m and rad) or after ``iterations``.
+
+    Raises :class:`LocalizationError` when no pair has points and segments.
+    """
+    pts_list, seg_list, own_p, own_s = [], [], [], []
+    for k, (pts, segs) in enumerate(pairs):
+        pts = np.asarray(pts, dtype=np.float64).reshape(-1, 2)
+        segs = np.asarray(segs, dtype=np.float64).reshape(-1, 4)
+        if pts.shape[0] == 0 or segs.shape[0] == 0:
+            continue
+        pts_list.append(pts)
+        seg_list.append(segs)
+        own_p.append(np.full(pts.shape[0], k))
+        own_s.append(np.full(segs.shape[0], k))
+    if not pts_list:
+        raise LocalizationError("pose_from_matches: no matched pair with points and segments")
+    P = np.vstack(pts_list)
+    S = np.vstack(seg_list)
+    op = np.concatenate(own_p)
+    os_ = np.concatenate(own_s)
+    pose = np.asarray(initial_pose, dtype=np.float64).copy()
+    total = P.shape[0]
+    H = None
+    rms = float("inf")
+    n_in = 0
+    it = 0
+    for it in range(1, iterations + 1):  # noqa: B007
+        Q = transform_points(pose, P)
+        _foot, normal, dist = nearest_on_segments(Q, S, op, os_)
+        inl = dist <= inlier_distance
+        n_in = int(inl.sum())
+        if n_in < 3:
+            break
+        q = Q[inl]
+        n = normal[inl]
+        r = np.einsum("ij,ij->i", q - _foot[inl], n)  # signed point-to-line residual
+        w = 1.0 / (1.0 + (r / robust_scale) ** 2)
+        lever = q - pose[:2]
+        J = np.column_stack([n[:, 0], n[:, 1], n[:, 1] * lever[:, 0] - n[:, 0] * lever[:, 1]])
+        H = (J * w[:, None]).T @ J
+        g = (J * w[:, None]).T @ r
+        scale = max(float(np.trace(H)) / 3.0, 1e-12)
+        delta = -np.linalg.solve(H + damping * scale * np.eye(3), g)
+        # Increment of the pose parameters themselves (q = R(theta) p + t, derivatives at fixed t).
+        pose = np.array([pose[0] + delta[0], pose[1] + delta[1], wrap_angle(pose[2] + delta[2])])
+        rms = float(np.sqrt(np.sum(w * r * r) / max(np.sum(w), 1e-12)))
+        if np.hypot(delta[0], delta[1]) < tol and abs(delta[2]) < tol:
+            break
+    cov = None
+    if H is not None and n_in > 3:
+        sigma2 = max(rms, 1e-3) ** 2
+        try:
+            cov = sigma2 * np.linalg.inv(H)
+        except np.linalg.LinAlgError:
+            cov = None
+    return PoseFit(
+        pose=pose,
+        rms=rms,
+        inliers=n_in,
+        inlier_fraction=n_in / total,
+        covariance=cov,
+        iterations=it,
+    )
+
+
+def fit_pairs(
+    points: Sequence[np.ndarray],
+    segments: Sequence[np.ndarray],
+    initial_pose: np.ndarray,
+    *,
+    iterations: int = 3,
+    robust_scale: float = 0.1,
+    damping: float = 0.05,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Independent point-to-line fit of each pair, all pairs at once (vectorised).
+
+    Pair ``k`` is ``(points[k] (n_k, 2) robot frame, segments[k] (s_k, 4) map frame)``; each
+    pair's pose is refined from ``initial_pose`` ``[x, y, theta]`` by ``iterations``
+    Gauss-Newton steps of the point-to-line distance, with Cauchy weights (scale
+    ``robust_scale`` metres) and Levenberg ``damping`` (relative to the normal matrix trace) so
+    that a direction the pair cannot observe (along a straight wall) stays at the initial value.
+    Used for the alignment a corresponding pair induces (eq. 4/5's ``A(P, Q)``).
+
+    Returns ``(poses (K, 3), rms (K,))``: the pose each pair induces and its weighted RMS
+    point-to-line residual (m).
+    """
+    K = len(points)
+    if K == 0:
+        return np.zeros((0, 3)), np.zeros(0)
+    counts = np.array([len(p) for p in points])
+    P = np.vstack([np.asarray(p, dtype=np.float64).reshape(-1, 2) for p in points])
+    own = np.repeat(np.arange(K), counts)
+    smax = max(len(s) for s in segments)
+    Sg = np.zeros((K, smax, 4))
+    valid = np.zeros((K, smax), dtype=bool)
+    for k, s in enumerate(segments):
+        s = np.asarray(s, dtype=np.float64).reshape(-1, 4)
+        Sg[k, : len(s)] = s
+        valid[k, : len(s)] = True
+    a = Sg[:, :, 0:2]
+    e = Sg[:, :, 2:4] - a
+    ee = np.maximum(np.einsum("ksi,ksi->ks", e, e), 1e-18)
+    poses = np.tile(np.asarray(initial_pose, dtype=np.float64), (K, 1))
+    rms = np.zeros(K)
+    eye = np.eye(3)
+    for _ in range(iterations):
+        c = np.cos(poses[own, 2])
+        s_ = np.sin(poses[own, 2])
+        qx = c * P[:, 0] - s_ * P[:, 1] + poses[own, 0]
+        qy = s_ * P[:, 0] + c * P[:, 1] + poses[own, 1]
+        ao = a[own]  # (N, smax, 2)
+        eo = e[own]
+        dx = qx[:, None] - ao[:, :, 0]
+        dy = qy[:, None] - ao[:, :, 1]
+        u = np.clip((dx * eo[:, :, 0] + dy * eo[:, :, 1]) / ee[own], 0.0, 1.0)
+        rx = dx - u * eo[:, :, 0]
+        ry = dy - u * eo[:, :, 1]
+        d2 = np.where(valid[own], rx * rx + ry * ry, np.inf)
+        j = np.argmin(d2, axis=1)
+        rows = np.arange(P.shape[0])
+        uj = u[rows, j]
+        ej = eo[rows, j]
+        en = ej / np.sqrt(ee[own, j])[:, None]
+        nx, ny = -en[:, 1], en[:, 0]
+        rvx, rvy = rx[rows, j], ry[rows, j]
+        clamped = (uj <= 0.0) | (uj >= 1.0)
+        rn = np.hypot(rvx, rvy)
+        use = clamped & (rn > 1e-12)
+        nx = np.where(use, rvx / np.where(use, rn, 1.0), nx)
+        ny = np.where(use, rvy / np.where(use, rn, 1.0), ny)
+        r = rvx * nx + rvy * ny
+        w = 1.0 / (1.0 + (r / robust_scale) ** 2)
+        lx = qx - poses[own, 0]
+        ly = qy - poses[own, 1]
+        J = np.column_stack([nx, ny, ny * lx - nx * ly])
+        Jw = J * w[:, None]
+        H = np.zeros((K, 3, 3))
+        np.add.at(H, own, Jw[:, :, None] * J[:, None, :])
+        g = np.zeros((K, 3))
+        np.add.at(g, own, Jw * r[:, None])
+        tr = np.maximum(np.trace(H, axis1=1, axis2=2) / 3.0, 1e-12)
+        delta = -np.linalg.solve(H + damping * tr[:, None, None] * eye, g[:, :, None])[:, :, 0]
+        poses = poses + delta
+        wsum = np.bincount(own, weights=w, minlength=K)
+        rms = np.sqrt(np.bincount(own, weights=w * r * r, minlength=K) / np.maximum(wsum, 1e-12))
+    poses[:, 2] = wrap_angle(poses[:, 2])
+    return poses, rms
