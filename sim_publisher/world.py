@@ -50,6 +50,7 @@ class World:
 
     obstacles: list[Obstacle]
     _union: Any = field(default=None, init=False, repr=False)
+    _free: Any = field(default=None, init=False, repr=False)
 
     def __post_init__(self) -> None:
         if not self.obstacles:
@@ -135,8 +136,11 @@ class World:
 
     @property
     def free_space(self) -> Any:
-        """Bounding box of the obstacles minus the obstacles (shapely geometry, metres)."""
-        return box(*self.bounds).difference(self.union)
+        """Bounding box of the obstacles minus the obstacles (shapely geometry, metres;
+        cached)."""
+        if self._free is None:
+            self._free = box(*self.bounds).difference(self.union)
+        return self._free
 
     def rings(self) -> list[np.ndarray]:
         """Every obstacle ring (exteriors and interiors) as a closed ``(k, 2)`` array."""

@@ -85,12 +85,14 @@ class RayCaster:
             return out
 
         p = pose[:2]
-        keep = self._distances(p) <= max_range
+        dist = self._distances(p)
+        keep = dist <= max_range
         if not np.any(keep):
             return out
         a = self._a[keep]
         e = self._e[keep]
         b = a + e
+        touching = dist[keep] <= 1e-12
 
         # Beam angles relative to the first beam, folded into [0, 2pi), sorted.
         base = ang[0]
@@ -108,7 +110,7 @@ class RayCaster:
         lo = np.mod(lo, _TWO_PI)
         # A segment passing (nearly) through the sensor subtends ~pi or is degenerate in
         # bearing; give it every beam and let the exact test decide.
-        through = span >= np.pi - 1e-9
+        through = (span >= np.pi - 1e-9) | touching
         lo = np.where(through, 0.0, lo)
         hi = np.where(through, _TWO_PI, lo + span)
 

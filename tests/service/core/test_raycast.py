@@ -119,3 +119,15 @@ def test_rejects_bad_input() -> None:
         rc.cast(np.zeros(3), np.zeros(3), -1.0)
     with pytest.raises(LocalizationError, match="non-finite"):
         rc.cast(np.zeros(3), np.array([np.inf]), 1.0)
+
+
+def test_sensor_on_a_segment_or_at_its_end_point() -> None:
+    # Sensor on the segment's interior: every non-collinear beam hits it at range 0.
+    rc = RayCaster(np.array([[-1.0, 0.0, 1.0, 0.0], [-1.0, 2.0, 1.0, 2.0]]))
+    r = rc.cast(np.zeros(3), np.deg2rad([90.0, -90.0, 45.0]), 5.0)
+    np.testing.assert_allclose(r, [0.0, 0.0, 0.0])
+    # Sensor at a segment's end point: beams that leave the segment see the other one.
+    rc = RayCaster(np.array([[0.0, 0.0, 1.0, 1.0], [-1.0, 2.0, 1.0, 2.0]]))
+    r = rc.cast(np.zeros(3), np.deg2rad([90.0, 135.0]), 5.0)
+    assert r[0] == pytest.approx(0.0)  # the end point itself is on every ray
+    assert r[1] == pytest.approx(0.0)
