@@ -344,3 +344,12 @@ def test_equality_distinguishes_arrays() -> None:
     assert a != Truth(seq=1, stamp=0.0, pose=[0, 0, 1e-9])
     assert a != Truth(seq=2, stamp=0.0, pose=[0, 0, 0])
     assert a == Truth(seq=1, stamp=0.0, pose=[0.0, 0.0, 0.0])
+
+
+@pytest.mark.parametrize(
+    "extra", ["self", "model_config", "__class__", "__dict__", "schema_name", "model_fields", ""]
+)
+def test_hostile_unknown_keys_are_ignored(extra: str) -> None:
+    t = decode(Truth, msgpack.packb({"seq": 1, "stamp": 0.0, "pose": [0, 0, 0], extra: [1]}))
+    assert t == Truth(seq=1, stamp=0.0, pose=[0, 0, 0])
+    assert Truth.schema_name == "truth"
