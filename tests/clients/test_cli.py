@@ -1,0 +1,178 @@
+"""The ``shapeloc`` command line: argument handling, exit codes and one-line error messages.
+
+Network cases use an in-process loopback router (with a tiny fake service where needed);
+the real service is exercised in tests/integration/test_sim_and_cli.py. Runs in about 2 s.
+"""
+
+from __future__ import annotations
+
+import socket
+import sys
+import time
+import types
+from collections.abc import Iterator
+
+import pytest
+import zenoh
+
+from clients.__main__ import _command_index, build_parser, cli
+from clients.client import zenoh_config
+from schemas.codec import encode
+from schemas.messages import Health, PoseMsg
+
+pytestmark = pytest.mark.timeout(60)
+
+
+def free_endpoint() -> str:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return f"tcp/127.0.0.1:{s.getsockname()[1]}"
+
+
+@pytest.fixture
+def router() -> Iterator[tuple[zenoh.Session, str]]:
+    ep = free_endpoint()
+    with zenoh.open(zenoh_config("router", listen=[ep])) as session:
+        yield session, ep
+
+
+@pytest.fixture
+def fake_service(router) -> Iterator[str]:
+    session, ep = router
+
+    def health(q: zenoh.Query) -> None:
+        h = Health(
+            status="ok", version="1.2.3", robots=1, maps=0, scans_processed=42, scans_rejected=3
+        )
+        q.reply(q.key_expr, encode(h))
+
+    def pose(q: zenoh.Query) -> None:
+        rid = str(q.key_expr).split("/")[-2]
+        if rid != "r1":
+            q.reply_err(f"unknown robot {rid!r}".encode())
+            return
+        p = PoseMsg(
+            robot_id="r1",
+            seq=9,
+            stamp=3.0,
+            pose=[1.5, -2.25, 1.0],
+            status="tracking",
+            score=0.75,
+            method="shape",
+            map_id="office",
+            latency_ms=4.5,
+        )
+        q.reply(q.key_expr, encode(p))
+
+    ents = [
+        session.declare_queryable("shapeloc/service/health", health),
+        session.declare_queryable("shapeloc/robots/*/pose", pose),
+    ]
+    try:
+        yield ep
+    finally:
+        for e in ents:
+            e.undeclare()
+
+
+def test_parser_requires_a_command_and_valid_arguments(capsys) -> None:
+    p = build_parser()
+    for bad in (
+        [],
+        ["configure", "r1", "--map", "m"],
+        ["configure", "r1", "--pose", "1", "2"],
+        ["configure", "r1", "--map", "m", "--pose", "1", "2", "3", "--global"],
+        ["configure", "r1", "--map", "m", "--global", "--method", "sift"],
+        ["--timeout", "0", "health"],
+        ["map", "put"],
+        ["frobnicate"],
+    ):
+        with pytest.raises(SystemExit) as ei:
+            p.parse_args(bad)
+        assert ei.value.code == 2, bad
+    a = p.parse_args(
+        [
+            "--connect",
+            "tcp/h:1",
+            "--timeout",
+            "0.5",
+            "configure",
+            "r1",
+            "--map",
+            "office",
+            "--pose",
+            "1",
+            "2",
+            "-0.5",
+            "--method",
+            "icp",
+        ]
+    )
+    assert a.connect == ["tcp/h:1"] and a.timeout == 0.5 and a.pose == [1.0, 2.0, -0.5]
+    assert a.method == "icp" and not a.global_localization
+    w = p.parse_args(["watch"])
+    assert w.robot_id == "*" and w.count is None
+
+
+def test_command_index_skips_global_options() -> None:
+    assert _command_index(["--connect", "x", "--prefix", "p", "pose", "experiment"]) == 4
+    assert _command_index(["--timeout", "1", "experiment", "--quick"]) == 2
+    assert _command_index(["--connect", "x"]) is None
+
+
+def test_unreachable_service_exits_1_fast_with_one_line(capsys) -> None:
+    ep = free_endpoint()
+    t0 = time.monotonic()
+    assert cli(["--connect", ep, "health"]) == 1
+    assert time.monotonic() - t0 < 3.0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("shapeloc: error: cannot reach") and ep in err[0]
+
+
+def test_router_without_service_exits_1_with_timeout_message(router, capsys) -> None:
+    assert cli(["--connect", router[1], "--timeout", "0.5", "pose", "r1"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err == (
+        "shapeloc: error: no shapeloc service answered on shapeloc/robots/r1/pose within 0.5 s"
+    )
+
+
+def test_health_pose_and_unknown_robot_against_a_fake_service(fake_service, capsys) -> None:
+    assert cli(["--connect", fake_service, "health"]) == 0
+    out = capsys.readouterr().out
+    assert "ok: shapeloc 1.2.3" in out and "42 scans processed" in out and "3 rejected" in out
+    assert cli(["--connect", fake_service, "pose", "r1"]) == 0
+    out = capsys.readouterr().out
+    assert "r1: x=1.500 m y=-2.250 m theta=57.3 deg" in out and "tracking" in out
+    assert cli(["--connect", fake_service, "pose", "nobody"]) == 1
+    cap = capsys.readouterr()
+    assert cap.err.strip() == "shapeloc: error: unknown robot 'nobody'" and cap.out == ""
+    assert cli(["--connect", fake_service, "maps"]) == 0
+    assert capsys.readouterr().out.strip() == "no maps stored"
+
+
+def test_invalid_robot_id_is_a_clean_error(fake_service, capsys) -> None:
+    assert cli(["--connect", fake_service, "pose", "bad/id"]) == 1
+    assert "robot_id" in capsys.readouterr().err
+
+
+def test_experiment_delegates_remaining_arguments(monkeypatch) -> None:
+    seen = {}
+    fake = types.ModuleType("clients.experiment")
+
+    def add_arguments(parser) -> None:
+        parser.add_argument("--setup", type=int, default=1)
+        parser.add_argument("--connect")
+
+    def run(args) -> int:
+        seen.update(vars(args))
+        return 3
+
+    fake.add_arguments = add_arguments
+    fake.run = run
+    monkeypatch.setitem(sys.modules, "clients.experiment", fake)
+    import clients
+
+    monkeypatch.setattr(clients, "experiment", fake, raising=False)
+    assert cli(["--timeout", "1", "experiment", "--setup", "2", "--connect", "tcp/x:1"]) == 3
+    assert seen == {"setup": 2, "connect": "tcp/x:1"}
