@@ -232,7 +232,7 @@ class ServiceNode:
         self.scans_processed = 0
         self.scans_rejected = 0
         self.errors: Counter[str] = Counter()
-        self._control_q: queue.Queue[Inbound] = queue.Queue(settings.control_queue_size)
+        self._control_q: queue.Queue[Inbound | None] = queue.Queue(settings.control_queue_size)
         self._query_q: queue.Queue[Any] = queue.Queue(settings.query_queue_size)
         self._control_overflow = 0
         self._entities: list[Any] = []
@@ -303,6 +303,9 @@ class ServiceNode:
         self._entities.clear()
         for link in self.links:
             link.slots.kick()
+        for q in (self._control_q, self._query_q):
+            with contextlib.suppress(queue.Full):
+                q.put_nowait(None)  # wake the thread so it sees the stop flag
         for t in [*self._threads, *(lk.thread for lk in self.links)]:
             if t.is_alive():
                 t.join(timeout=self.settings.worker_timeout_s + 5)
@@ -420,24 +423,29 @@ class ServiceNode:
                 self.scans_rejected += 1
                 self.errors["scan.Overloaded"] += 1
 
-    def _on_control(self, sample: Any) -> None:
-        """Zenoh callback: queue a map/config put or delete for the control thread."""
+    def control_item(self, sample: Any) -> Inbound | None:
+        """Copy a map/config sample into an :class:`Inbound` (``None``: another shard's robot)."""
         t = time.monotonic()
         key = str(sample.key_expr)
         if "/robots/" in key:
             parts = key.rsplit("/", 2)
             if len(parts) == 3 and not self.serves(parts[-2]):
-                return
+                return None
         delete = sample.kind == self._zenoh.SampleKind.DELETE
         size = len(sample.payload)
         if size > MAX_PAYLOAD_BYTES:
-            item = Inbound(
+            return Inbound(
                 key, None, None, t, reject=f"payload of {size} bytes exceeds {MAX_PAYLOAD_BYTES}"
             )
-        else:
-            item = Inbound(
-                key, sample.payload.to_bytes(), encoding_name(sample.encoding), t, delete=delete
-            )
+        return Inbound(
+            key, sample.payload.to_bytes(), encoding_name(sample.encoding), t, delete=delete
+        )
+
+    def _on_control(self, sample: Any) -> None:
+        """Zenoh callback: queue a map/config put or delete for the control thread."""
+        item = self.control_item(sample)
+        if item is None:
+            return
         try:
             self._control_q.put_nowait(item)
         except queue.Full:
@@ -680,6 +688,8 @@ class ServiceNode:
             try:
                 query = self._query_q.get(timeout=0.5)
             except queue.Empty:
+                continue
+            if query is None:
                 continue
             try:
                 self.answer(query)

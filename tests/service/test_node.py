@@ -1,0 +1,474 @@
+"""Node logic without a network: a fake Zenoh session records what the node publishes.
+
+Covers the latest-wins slots, validation -> error notice mapping for maps, configs and scans,
+map delete / re-put, queries, health counters, shard filtering and restore from the state
+directory. Uses ``--workers 0`` (in-process) and the ICP method on a small room so that it
+runs in about 10 s.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import msgpack
+import numpy as np
+import pytest
+import zenoh
+
+from schemas.codec import decode, encode
+from schemas.limits import MAX_PAYLOAD_BYTES
+from schemas.messages import ErrorNotice, Health, Map, PoseMsg, RobotConfig
+from service.core.raycast import RayCaster
+from service.node import LatestSlots, ServiceNode
+from service.settings import ServiceSettings
+
+ROOM = [[[0.0, 0.0], [6.0, 0.0], [6.0, 4.0], [0.0, 4.0], [0.0, 0.0]], [[2.0, 1.0], [3.0, 1.0]]]
+ANGLES = np.linspace(-np.pi / 2, np.pi / 2, 181)
+START = np.array([1.0, 1.5, 0.2])
+
+
+# --------------------------------------------------------------------------- slots
+
+
+def test_slots_latest_wins_and_counts_skips() -> None:
+    s = LatestSlots(capacity=10)
+    for i in range(5):
+        assert s.offer("r1", i)
+    assert len(s) == 1
+    assert s.take(0.0) == ("r1", 4)
+    assert s.skipped == 4
+    assert s.take(0.0) is None
+
+
+def test_slots_round_robin_keeps_place() -> None:
+    s = LatestSlots(capacity=10)
+    s.offer("a", 1)
+    s.offer("b", 1)
+    s.offer("a", 2)  # a floods but keeps its (first) place, b is not pushed back
+    s.offer("c", 1)
+    assert [s.take(0.0) for _ in range(3)] == [("a", 2), ("b", 1), ("c", 1)]
+
+
+def test_slots_capacity_refuses_new_robots_only() -> None:
+    s = LatestSlots(capacity=2)
+    assert s.offer("a", 1) and s.offer("b", 1)
+    assert not s.offer("c", 1)
+    assert s.offer("a", 2)  # an already pending robot may still update
+    assert s.refused == 1
+    s.discard("a")
+    assert s.take(0.0) == ("b", 1)
+
+
+def test_slots_take_wakes_on_offer_and_kick() -> None:
+    s = LatestSlots(capacity=2)
+    threading.Timer(0.05, s.offer, args=("r", 7)).start()
+    assert s.take(5.0) == ("r", 7)
+    threading.Timer(0.05, s.kick).start()
+    t = time.monotonic()
+    assert s.take(5.0) is None
+    assert time.monotonic() - t < 2.0
+
+
+# --------------------------------------------------------------------------- fake zenoh
+
+
+class FakePublisher:
+    def __init__(self, sink: list[tuple[str, bytes]], key: str) -> None:
+        self.sink, self.key = sink, key
+
+    def put(self, payload: bytes, encoding: Any = None) -> None:
+        self.sink.append((self.key, bytes(payload)))
+
+    def undeclare(self) -> None:
+        pass
+
+
+class FakeEntity:
+    def undeclare(self) -> None:
+        pass
+
+
+class FakeSession:
+    """Records puts; keeps the callbacks the node declares."""
+
+    def __init__(self) -> None:
+        self.puts: list[tuple[str, bytes]] = []
+        self.subs: dict[str, Callable[[Any], None]] = {}
+        self.tokens: list[str] = []
+
+    def declare_publisher(self, key: str) -> FakePublisher:
+        return FakePublisher(self.puts, key)
+
+    def declare_subscriber(self, key: str, cb: Callable[[Any], None]) -> FakeEntity:
+        self.subs[key] = cb
+        return FakeEntity()
+
+    def declare_queryable(self, key: str, cb: Callable[[Any], None]) -> FakeEntity:
+        return FakeEntity()
+
+    def liveliness(self) -> FakeSession:
+        return self
+
+    def declare_token(self, key: str) -> FakeEntity:
+        self.tokens.append(key)
+        return FakeEntity()
+
+    def put(self, key: str, payload: bytes, encoding: Any = None) -> None:
+        self.puts.append((key, bytes(payload)))
+
+    def on(self, key: str) -> list[bytes]:
+        return [p for k, p in self.puts if k == key]
+
+    def notices(self) -> list[ErrorNotice]:
+        return [decode(ErrorNotice, p) for p in self.on("shapeloc/errors")]
+
+
+class FakeSample:
+    def __init__(self, key: str, payload: bytes, delete: bool = False, json: bool = False):
+        self.key_expr = zenoh.KeyExpr(key)
+        self.payload = zenoh.ZBytes(payload)
+        self.encoding = zenoh.Encoding("application/json" if json else "application/msgpack")
+        self.kind = zenoh.SampleKind.DELETE if delete else zenoh.SampleKind.PUT
+
+
+class FakeQuery:
+    def __init__(self, key: str) -> None:
+        self.key_expr = zenoh.KeyExpr(key)
+        self.replies: list[tuple[str, bytes]] = []
+        self.errors: list[bytes] = []
+
+    def reply(self, key: str, payload: bytes, encoding: Any = None) -> None:
+        self.replies.append((str(key), bytes(payload)))
+
+    def reply_err(self, payload: bytes) -> None:
+        self.errors.append(bytes(payload))
+
+    def drop(self) -> None:
+        pass
+
+
+def wait_for(pred: Callable[[], bool], timeout_s: float = 10.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not pred():
+        if time.monotonic() > deadline:
+            raise AssertionError("condition not met in time")
+        time.sleep(0.005)
+
+
+# --------------------------------------------------------------------------- node fixture
+
+
+class Harness:
+    def __init__(self, tmp: Path, **kw: Any) -> None:
+        self.tmp = tmp
+        self.kw = kw
+        self.session = FakeSession()
+        settings = ServiceSettings(
+            state_dir=tmp / "state", workers=0, instance_id="test-node", **kw
+        )
+        self.node = ServiceNode(settings, self.session)
+        self.node.start()
+        self.caster = RayCaster(_segments(ROOM))
+
+    def put(self, key: str, payload: bytes, delete: bool = False, json: bool = False) -> None:
+        """Deliver a sample as Zenoh would (scans via callback, control synchronously)."""
+        sample = FakeSample(key, payload, delete, json)
+        if key.endswith("/scan"):
+            self.node._on_scan(sample)
+        else:
+            item = self.node.control_item(sample)
+            if item is not None:  # None: another shard's robot, ignored
+                self.node.handle_control(item)
+
+    def put_map(self, map_id: str = "room", polylines: list = ROOM) -> None:
+        self.put(
+            f"shapeloc/maps/{map_id}",
+            encode(Map(map_id=map_id, kind="metric", polylines=polylines)),
+        )
+
+    def put_config(self, robot: str = "r1", map_id: str = "room", pose: Any = START) -> None:
+        cfg = RobotConfig(map_id=map_id, method="icp", initial_pose=list(pose))
+        self.put(f"shapeloc/robots/{robot}/config", encode(cfg))
+
+    def scan_msg(self, seq: int, pose: np.ndarray, **over: Any) -> dict[str, Any]:
+        r = self.caster.cast(pose, ANGLES, 15.0)
+        wire = {
+            "seq": seq,
+            "stamp": float(seq) * 0.1,
+            "angle_min": float(ANGLES[0]),
+            "angle_increment": float(ANGLES[1] - ANGLES[0]),
+            "range_min": 0.0,
+            "range_max": 15.0,
+            "ranges": [float(v) for v in r],
+        }
+        wire.update(over)
+        return wire
+
+    def put_scan(self, robot: str, seq: int, pose: np.ndarray, **over: Any) -> None:
+        self.put(f"shapeloc/robots/{robot}/scan", msgpack.packb(self.scan_msg(seq, pose, **over)))
+
+    def poses(self, robot: str = "r1") -> list[PoseMsg]:
+        return [decode(PoseMsg, p) for p in self.session.on(f"shapeloc/robots/{robot}/pose")]
+
+    def health(self) -> Health:
+        return self.node.health()
+
+    def query(self, key: str) -> FakeQuery:
+        q = FakeQuery(key)
+        self.node.answer(q)
+        return q
+
+
+def _segments(polylines: list) -> np.ndarray:
+    return np.vstack([np.hstack([np.array(p)[:-1], np.array(p)[1:]]) for p in polylines])
+
+
+@pytest.fixture
+def harness(tmp_path: Path) -> Iterator[Harness]:
+    h = Harness(tmp_path)
+    yield h
+    h.node.stop()
+
+
+def _wait_notices(h: Harness, n: int) -> list[ErrorNotice]:
+    wait_for(lambda: len(h.session.notices()) >= n)
+    return h.session.notices()
+
+
+# --------------------------------------------------------------------------- tests
+
+
+def test_declares_token_and_tracks_robot(harness: Harness) -> None:
+    h = harness
+    assert h.session.tokens == ["shapeloc/service/alive/test-node"]
+    h.put_map()
+    h.put_config()
+    truth = [START + np.array([0.02 * i, 0.01 * i, 0.0]) for i in range(5)]
+    for i, p in enumerate(truth):
+        h.put_scan("r1", i, p)
+        wait_for(lambda i=i: len(h.poses()) == i + 1)
+    poses = h.poses()
+    assert [p.seq for p in poses] == [0, 1, 2, 3, 4]
+    assert poses[-1].stamp == pytest.approx(0.4)
+    assert np.linalg.norm(poses[-1].pose[:2] - truth[-1][:2]) < 0.05
+    assert poses[-1].method == "icp" and poses[-1].map_id == "room"
+    assert all(0.0 <= p.latency_ms < 5000.0 for p in poses)
+    hl = h.health()
+    assert (hl.robots, hl.maps, hl.scans_processed, hl.scans_rejected) == (1, 1, 5, 0)
+    assert h.session.notices() == []
+
+
+@pytest.mark.parametrize(
+    ("key", "payload", "needle"),
+    [
+        ("shapeloc/maps/room", b"\xc1garbage", "InvalidMessage"),
+        ("shapeloc/maps/other", None, "does not match"),
+        ("shapeloc/maps/room", msgpack.packb({"map_id": "room", "kind": "metric"}), "polylines"),
+        (
+            "shapeloc/maps/room",
+            msgpack.packb({"map_id": "room", "kind": "metric", "polylines": [[[0, 0]]]}),
+            "polylines[0]",
+        ),
+        ("shapeloc/robots/r1/config", msgpack.packb({"map_id": "nomap"}), "UnknownMap"),
+        ("shapeloc/robots/r1/config", msgpack.packb({"map_id": 5}), "map_id"),
+        (
+            "shapeloc/robots/r1/config",
+            msgpack.packb({"map_id": "room", "method": "icp", "initial_pose": None}),
+            "LocalizationError",
+        ),
+        ("shapeloc/robots/r1/config", b"[1, 2", "InvalidMessage"),
+    ],
+)
+def test_bad_control_messages_get_notices(
+    harness: Harness, key: str, payload: bytes | None, needle: str
+) -> None:
+    h = harness
+    if "config" in key and b"nomap" not in (payload or b""):
+        h.put_map()
+    if payload is None:
+        payload = encode(Map(map_id="room", kind="metric", polylines=ROOM))
+    h.put(key, payload)
+    notes = _wait_notices(h, 1)
+    assert notes[-1].key == key
+    assert needle in notes[-1].error
+    assert h.health().robots == 0  # nothing half-applied
+
+
+def test_config_refused_keeps_previous(harness: Harness) -> None:
+    h = harness
+    h.put_map()
+    h.put_config()
+    h.put(
+        "shapeloc/robots/r1/config",
+        msgpack.packb({"map_id": "room", "method": "icp", "initial_pose": None}),
+    )
+    _wait_notices(h, 1)
+    assert h.node.configs["r1"].initial_pose is not None
+    h.put_scan("r1", 0, START)
+    wait_for(lambda: len(h.poses()) == 1)
+
+
+def test_bad_scans_get_notices_and_good_robot_continues(harness: Harness) -> None:
+    h = harness
+    h.put_map()
+    h.put_config("r1")
+    h.put_config("r2")
+    bad: list[tuple[str, bytes, str]] = [
+        ("shapeloc/robots/r9/scan", msgpack.packb(h.scan_msg(0, START)), "UnknownRobot"),
+        ("shapeloc/robots/r2/scan", b"\xc1\xc1", "InvalidMessage"),
+        (
+            "shapeloc/robots/r2/scan",
+            msgpack.packb(h.scan_msg(0, START, stamp=float("nan"))),
+            "stamp",
+        ),
+        ("shapeloc/robots/r2/scan", msgpack.packb({**h.scan_msg(0, START), "seq": "7"}), "seq"),
+        (
+            "shapeloc/robots/r2/scan",
+            msgpack.packb(h.scan_msg(0, START, ranges=[1.0] * 1_000_000)),
+            "ranges",
+        ),
+        ("shapeloc/robots/r2/scan", b"\x00" * (MAX_PAYLOAD_BYTES + 1), "exceeds"),
+        (
+            "shapeloc/robots/r2/scan",
+            msgpack.packb(h.scan_msg(0, START, angle_increment=-0.1)),
+            "angle_increment",
+        ),
+    ]
+    for i, (key, payload, needle) in enumerate(bad):
+        h.put(key, payload)
+        notes = _wait_notices(h, i + 1)
+        assert notes[-1].key == key
+        assert needle in notes[-1].error, notes[-1].error
+        h.put_scan("r1", i, START)  # the well-behaved robot keeps getting poses
+        wait_for(lambda i=i: len(h.poses("r1")) == i + 1)
+    hl = h.health()
+    assert hl.scans_rejected == len(bad)
+    assert hl.scans_processed == len(bad)
+    assert hl.errors is not None
+    assert hl.errors["scan.UnknownRobot"] == 1
+    assert hl.errors["scan.InvalidMessage"] == len(bad) - 1
+
+
+def test_json_scan_accepted(harness: Harness) -> None:
+    import json
+
+    h = harness
+    h.put_map()
+    h.put_config()
+    wire = h.scan_msg(3, START)
+    h.put("shapeloc/robots/r1/scan", json.dumps(wire).encode(), json=True)
+    wait_for(lambda: len(h.poses()) == 1)
+    assert h.poses()[0].seq == 3
+
+
+def test_map_delete_then_reput(harness: Harness) -> None:
+    h = harness
+    h.put_map()
+    h.put_config()
+    h.put_scan("r1", 0, START)
+    wait_for(lambda: len(h.poses()) == 1)
+    h.put("shapeloc/maps/room", b"", delete=True)
+    assert h.node.maps == {}
+    h.put_scan("r1", 1, START)
+    notes = _wait_notices(h, 1)
+    assert "UnknownMap" in notes[-1].error and "waits" in notes[-1].error
+    assert h.health().robots == 1  # kept, waiting
+    h.put("shapeloc/maps/room", b"", delete=True)
+    assert "not stored" in _wait_notices(h, 2)[-1].error
+    h.put_map()
+    h.put_scan("r1", 2, START)
+    wait_for(lambda: len(h.poses()) == 2)
+    assert np.linalg.norm(h.poses()[-1].pose[:2] - START[:2]) < 0.05
+
+
+def test_map_replaced_robot_relocalises_on_new_map(harness: Harness) -> None:
+    h = harness
+    h.put_map()
+    h.put_config()
+    h.put_scan("r1", 0, START)
+    wait_for(lambda: len(h.poses()) == 1)
+    shifted = [(np.array(p) + np.array([0.3, 0.0])).tolist() for p in ROOM]
+    h.put_map(polylines=shifted)  # the same world, 0.3 m further along x in the map frame
+    h.caster = RayCaster(_segments(shifted))
+    for i in range(1, 6):
+        h.put_scan("r1", i, START + np.array([0.3, 0.0, 0.0]))
+        wait_for(lambda i=i: len(h.poses()) == i + 1)
+    worker = h.node.links[0].worker
+    loc = worker.core.robots["r1"].localizer  # type: ignore[union-attr]
+    assert loc is not None
+    np.testing.assert_allclose(loc.map_data.polylines[0], np.array(shifted[0]))
+    # ICP restarts from the last pose on the new map and converges to the shifted truth
+    assert abs(h.poses()[-1].pose[0] - (START[0] + 0.3)) < 0.05
+
+
+def test_queries(harness: Harness) -> None:
+    h = harness
+    h.put_map()
+    h.put_config()
+    q = h.query("shapeloc/robots/r1/pose")
+    assert q.replies == [] and b"no estimate yet" in q.errors[0]
+    h.put_scan("r1", 0, START)
+    wait_for(lambda: len(h.poses()) == 1)
+    q = h.query("shapeloc/robots/r1/pose")
+    assert q.replies[0][0] == "shapeloc/robots/r1/pose"
+    assert decode(PoseMsg, q.replies[0][1]).seq == 0
+    q = h.query("shapeloc/robots/*/pose")
+    assert [k for k, _ in q.replies] == ["shapeloc/robots/r1/pose"] and q.errors == []
+    q = h.query("shapeloc/robots/ghost/pose")
+    assert q.replies == [] and b"unknown robot 'ghost'" in q.errors[0]
+    q = h.query("shapeloc/maps/*")
+    assert decode(Map, q.replies[0][1]).map_id == "room"
+    q = h.query("shapeloc/maps/nope")
+    assert q.replies == [] and b"unknown map" in q.errors[0]
+    q = h.query("shapeloc/service/health")
+    hl = decode(Health, q.replies[0][1])
+    assert (hl.status, hl.robots, hl.maps, hl.instance_id) == ("ok", 1, 1, "test-node")
+
+
+def test_restore_from_state(tmp_path: Path) -> None:
+    h = Harness(tmp_path)
+    h.put_map()
+    h.put_config()
+    p_end = START + np.array([0.1, 0.05, 0.02])
+    for i, f in enumerate(np.linspace(0.0, 1.0, 4)):
+        h.put_scan("r1", i, START + f * (p_end - START))
+        wait_for(lambda i=i: len(h.poses()) == i + 1)
+    last = h.poses()[-1]
+    h.node.stop()
+    h2 = Harness(tmp_path)
+    try:
+        assert set(h2.node.maps) == {"room"}
+        assert set(h2.node.configs) == {"r1"}
+        q = h2.query("shapeloc/robots/r1/pose")
+        restored = decode(PoseMsg, q.replies[0][1])
+        assert restored.seq == last.seq
+        np.testing.assert_allclose(restored.pose, last.pose, atol=1e-9)
+        # tracking resumes from the saved pose, not the configured initial pose
+        loc = h2.node.links[0].worker.core.robots["r1"].localizer  # type: ignore[union-attr]
+        assert loc is not None and loc.pose is not None
+        np.testing.assert_allclose(loc.pose, last.pose, atol=1e-9)
+        h2.put_scan("r1", 10, p_end)
+        wait_for(lambda: len(h2.poses()) == 1)
+        assert np.linalg.norm(h2.poses()[0].pose[:2] - p_end[:2]) < 0.1
+    finally:
+        h2.node.stop()
+
+
+def test_shard_filter_ignores_other_robots(tmp_path: Path) -> None:
+    h = Harness(tmp_path, robots="a$*")
+    try:
+        h.put_map()
+        h.put_config("b1")  # not ours: ignored silently
+        h.put_scan("b1", 0, START)
+        h.put_config("a1")
+        h.put_scan("a1", 0, START)
+        wait_for(lambda: len(h.poses("a1")) == 1)
+        assert h.session.notices() == []
+        assert set(h.node.configs) == {"a1"}
+        assert h.query("shapeloc/robots/b1/pose").errors == []  # the other shard answers
+    finally:
+        h.node.stop()
