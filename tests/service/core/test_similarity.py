@@ -138,9 +138,8 @@ def test_different_shapes_are_far() -> None:
     d_l_line = shape_distance(L_SHAPE, LINE_2M)
     assert d_l_line == pytest.approx(0.6)  # skip one 1 m leg (0.5) + end misfit 1 m (0.1)
     assert shape_distance(LINE_2M, L_SHAPE) == pytest.approx(d_l_line)
-    arc = np.column_stack(
-        (np.cos(np.linspace(0, math.pi / 2, 9)), np.sin(np.linspace(0, 1.5708, 9)))
-    )
+    phi = np.linspace(0.0, math.pi / 2, 9)
+    arc = np.column_stack((np.cos(phi), np.sin(phi)))  # quarter circle, radius 1 m
     square_corner = np.array([[1, 0], [1, 1], [0, 1.0]])
     assert shape_distance(square_corner, arc) > 0.5  # measured 0.63
     # noisy corner observations against a straight wall of the same extent: measured >= 0.83
