@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pytest
 import shapely
 from shapely.geometry import LineString, Point
 
@@ -89,3 +90,20 @@ def test_map_message_is_plain_json() -> None:
         assert all(type(v) is float for p in msg["polylines"] for xy in p for v in xy)
         np.testing.assert_array_equal(np.asarray(msg["polylines"][0]), md.polylines[0])
     assert map_message(office_metric_map("o2"), name="Office")["name"] == "Office"
+
+
+def test_plot_helpers_draw_every_polyline(tmp_path) -> None:
+    pytest.importorskip("matplotlib")
+    from sim_publisher.plot import figure_axes, plot_map, plot_path, plot_world
+
+    fig, ax = figure_axes()
+    md = office_schematic_map()
+    plot_map(ax, md, color="r")
+    assert len(ax.lines) == len(md.polylines)
+    plot_path(ax, np.array([[1.0, 1.0, 0.0], [2.0, 2.0, 0.0]]))
+    assert len(ax.lines) == len(md.polylines) + 1
+    plot_world(ax, office_world())
+    assert len(ax.patches) >= len(office_world().obstacles)
+    out = tmp_path / "f.png"
+    fig.savefig(out)
+    assert out.stat().st_size > 1000

@@ -141,3 +141,13 @@ def test_file_level_rejections(tmp_path: Path) -> None:
     binary.write_bytes(b"\xff\xfe\x00garbage")
     with pytest.raises(InvalidWorld, match="unreadable"):
         load_world(binary)
+
+
+def test_bundled_wkt_example_world() -> None:
+    path = Path(__file__).resolve().parents[2] / "sim_publisher" / "worlds" / "two_rooms.wkt"
+    w = load_world(path)
+    assert len(w.obstacles) == 3
+    # two 3.9 m square rooms + the door opening, minus a 1.4 x 0.7 desk and a 0.4 m pillar
+    assert w.free_space.area == pytest.approx(2 * 3.9**2 + 0.09 - 0.98 - 0.16)
+    assert len(w.to_map_data("two-rooms").polylines) == 4
+    assert w.is_free(np.array([[4.05, 1.95]]), 0.3)[0]  # door centre
