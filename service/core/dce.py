@@ -91,21 +91,11 @@ class CurveEvolution:
         self.removed: list[int] = []
         rel = [math.inf] * k
         if k >= 3:
-            rel[1:-1] = relevance_array(p).tolist()
+            rel[1:-1] = relevance_array(p).tolist()  # numpy: cheaper than Python beyond ~5
         self._rel = rel
         self.evaluations = max(k - 2, 0)
         self._heap = [(rel[i], i) for i in range(1, k - 1)]
         heapq.heapify(self._heap)
-
-    def _relevance(self, i: int) -> float:
-        u, w = self._prev[i], self._next[i]
-        x, y = self._x, self._y
-        self.evaluations += 1
-        return (
-            math.hypot(x[i] - x[u], y[i] - y[u])
-            + math.hypot(x[w] - x[i], y[w] - y[i])
-            - math.hypot(x[w] - x[u], y[w] - y[u])
-        )
 
     def _top(self) -> tuple[float, int] | None:
         heap = self._heap
@@ -121,40 +111,56 @@ class CurveEvolution:
         top = self._top()
         return math.inf if top is None else top[0]
 
-    def _remove(self, i: int) -> None:
-        heapq.heappop(self._heap)
-        self._alive[i] = False
-        self.removed.append(i)
-        u, w = self._prev[i], self._next[i]
-        self._next[u] = w
-        self._prev[w] = u
-        last = len(self._x) - 1
-        for j in (u, w):
-            if 0 < j < last:
-                r = self._relevance(j)
-                self._rel[j] = r
-                heapq.heappush(self._heap, (r, j))
+    def _run(self, threshold: float, limit: int) -> int:
+        """Remove up to ``limit`` least-relevant vertices while their relevance < threshold."""
+        heap, alive, rel = self._heap, self._alive, self._rel
+        prev, nxt, x, y = self._prev, self._next, self._x, self._y
+        removed = self.removed
+        last = len(x) - 1
+        hypot, pop, push = math.hypot, heapq.heappop, heapq.heappush
+        count = 0
+        evals = 0
+        while heap and count < limit:
+            r, i = heap[0]
+            if not alive[i] or r != rel[i]:
+                pop(heap)  # stale entry
+                continue
+            if r >= threshold:
+                break
+            pop(heap)
+            alive[i] = False
+            removed.append(i)
+            u, w = prev[i], nxt[i]
+            nxt[u] = w
+            prev[w] = u
+            xu, yu, xw, yw = x[u], y[u], x[w], y[w]
+            duw = hypot(xw - xu, yw - yu)
+            if u > 0:  # u's right neighbour is now w
+                uu = prev[u]
+                r2 = hypot(xu - x[uu], yu - y[uu]) + duw - hypot(xw - x[uu], yw - y[uu])
+                rel[u] = r2
+                push(heap, (r2, u))
+                evals += 1
+            if w < last:  # w's left neighbour is now u
+                ww = nxt[w]
+                r2 = duw + hypot(x[ww] - xw, y[ww] - yw) - hypot(x[ww] - xu, y[ww] - yu)
+                rel[w] = r2
+                push(heap, (r2, w))
+                evals += 1
+            count += 1
+        self.evaluations += evals
+        return count
 
     def step(self) -> bool:
         """Remove the single least relevant interior vertex; ``False`` if none is left."""
-        top = self._top()
-        if top is None:
-            return False
-        self._remove(top[1])
-        return True
+        return self._run(math.inf, 1) == 1
 
     def evolve_to(self, threshold: float) -> int:
         """Remove vertices while the least relevance is below ``threshold`` (metres).
 
         Returns the number of vertices removed by this call.
         """
-        count = 0
-        while True:
-            top = self._top()
-            if top is None or top[0] >= threshold:
-                return count
-            self._remove(top[1])
-            count += 1
+        return self._run(threshold, len(self._x))
 
     def kept_indices(self) -> np.ndarray:
         """Original indices of the vertices still present, sorted (always includes both ends)."""

@@ -181,14 +181,12 @@ def group_polylines(
         link = joined(i, i + 1)
     else:
         link = np.zeros(0, dtype=bool)
-    # Group starts: valid points not linked to their predecessor.
-    starts = [k for k in range(n) if valid[k] and (k == 0 or not link[k - 1])]
-    groups: list[tuple[int, int]] = []  # inclusive [start, end]
-    for s in starts:
-        e = s
-        while e < n - 1 and link[e]:
-            e += 1
-        groups.append((s, e))
+    # Group starts: valid points not linked to their predecessor; ends: not linked onwards.
+    linked_prev = np.concatenate(([False], link))
+    linked_next = np.concatenate((link, [False]))
+    starts = np.flatnonzero(valid & ~linked_prev).tolist()
+    ends = np.flatnonzero(valid & ~linked_next).tolist()
+    groups: list[tuple[int, int]] = list(zip(starts, ends, strict=True))  # inclusive
 
     wrapped: tuple[np.ndarray, np.ndarray] | None = None
     if (

@@ -65,21 +65,25 @@ class ShapeArcs:
         p = np.asarray(points, dtype=np.float64)
         if p.ndim != 2 or p.shape[1] != 2 or p.shape[0] < 2:
             raise LocalizationError(f"expected (k >= 2, 2) points, got {p.shape}")
-        if not np.all(np.isfinite(p)):
-            raise LocalizationError("polyline has non-finite coordinates")
         if max_merge < 1:
             raise LocalizationError(f"max_merge must be >= 1, got {max_merge}")
-        d = np.diff(p, axis=0)
-        keep = np.concatenate(([True], np.hypot(d[:, 0], d[:, 1]) > 1e-12))
-        if keep.sum() < 2:
-            raise LocalizationError("polyline has zero length")
-        p = p[keep]
-        x: list[float] = p[:, 0].tolist()
-        y: list[float] = p[:, 1].tolist()
+        # Plain Python from here: polylines have a handful of vertices, where numpy's per-call
+        # overhead dominates.
+        xs: list[float] = p[:, 0].tolist()
+        ys: list[float] = p[:, 1].tolist()
+        hypot = math.hypot
+        x, y, cum = [xs[0]], [ys[0]], [0.0]
+        for xi, yi in zip(xs, ys, strict=True):
+            if not (math.isfinite(xi) and math.isfinite(yi)):
+                raise LocalizationError("polyline has non-finite coordinates")
+            d = hypot(xi - x[-1], yi - y[-1])
+            if d > 1e-12:  # drop repeated vertices
+                x.append(xi)
+                y.append(yi)
+                cum.append(cum[-1] + d)
         k = len(x)
-        cum = [0.0] * k
-        for i in range(1, k):
-            cum[i] = cum[i - 1] + math.hypot(x[i] - x[i - 1], y[i] - y[i - 1])
+        if k < 2:
+            raise LocalizationError("polyline has zero length")
         self.x, self.y, self.k, self.cum = x, y, k, cum
         self.max_merge = max_merge
         # chord tables indexed [a][i]: chord from vertex i over a arcs (a = 1..max_merge).
