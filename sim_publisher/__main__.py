@@ -18,10 +18,11 @@ from dataclasses import dataclass, field
 
 import zenoh
 
-from clients.client import DEFAULT_PREFIX, ShapelocClient, open_session, zenoh_config
+from clients.client import DEFAULT_PREFIX, ShapelocClient, Stream, open_session, zenoh_config
 from schemas import keys
 from schemas.codec import MSGPACK_ENCODING, encode
 from schemas.errors import ServiceTimeout, ShapelocError
+from schemas.messages import PoseMsg
 from service.core.types import METHODS
 from sim_publisher.publisher import SimFleet, fleet_specs
 
@@ -50,6 +51,8 @@ class SimOptions:
     wait_service: float = 30.0
     configure: bool = True
     put_maps: bool = True
+    lockstep: bool = False
+    lockstep_timeout: float = 30.0
 
 
 def main(
@@ -103,13 +106,38 @@ def main(
                             client.wait_configured(r.robot_id, options.wait_service)
                         except ServiceTimeout as exc:
                             log.warning("%s; publishing anyway", exc)
-            return _publish_loop(session, fleet, options, stop)
+            poses = None
+            if options.lockstep:
+                poses = client.watch_poses([r.robot_id for r in fleet.robots])
+            return _publish_loop(session, fleet, options, stop, poses)
         finally:
             client.close()
 
 
+def _wait_answers(poses: Stream[PoseMsg], seq: int, ids: set[str], within: float) -> None:
+    """Lockstep: block until every robot in ``ids`` has a pose for scan ``seq`` (or later)."""
+    end = time.monotonic() + within
+    missing = set(ids)
+    while missing:
+        item = poses.get(timeout=max(0.0, end - time.monotonic()))
+        if item is None:
+            log.warning(
+                "lockstep: no pose for scan %d of %s within %.1f s; going on",
+                seq,
+                ", ".join(sorted(missing)),
+                within,
+            )
+            return
+        if item[1].seq >= seq:
+            missing.discard(item[1].robot_id)
+
+
 def _publish_loop(
-    session: zenoh.Session, fleet: SimFleet, options: SimOptions, stop: threading.Event
+    session: zenoh.Session,
+    fleet: SimFleet,
+    options: SimOptions,
+    stop: threading.Event,
+    poses: Stream[PoseMsg] | None = None,
 ) -> int:
     enc = zenoh.Encoding(MSGPACK_ENCODING)
     pubs = []
@@ -138,6 +166,9 @@ def _publish_loop(
                 scan, truth = r.step(stamp)
                 truth_pub.put(encode(truth))
                 scan_pub.put(encode(scan, ranges_as_bytes=True))
+            if poses is not None:
+                ids = {r.robot_id for r in fleet.robots}
+                _wait_answers(poses, sent, ids, options.lockstep_timeout)
             sent += 1
             if now - last_report >= 5.0:
                 log.info("%d scans per robot published (%.1f Hz)", sent, sent / (now - t0))
@@ -201,6 +232,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-odom", dest="odom", action="store_false", help="omit odometry")
     p.add_argument("--rate", type=float, default=10.0, help="scans per second per robot")
     p.add_argument("--max-rate", action="store_true", help="publish as fast as possible")
+    p.add_argument(
+        "--lockstep",
+        action="store_true",
+        help="send the next scan only once every robot's pose for the last one arrived "
+        "(no scan is skipped; results match an in-process run)",
+    )
     p.add_argument("--scans", type=int, help="stop after this many scans per robot")
     p.add_argument("--duration", type=float, help="stop after this many seconds")
     p.add_argument(
@@ -261,6 +298,7 @@ def options_from_args(args: argparse.Namespace) -> SimOptions:
         wait_service=args.wait_service,
         configure=args.configure,
         put_maps=args.put_maps,
+        lockstep=args.lockstep,
     )
 
 
