@@ -196,3 +196,11 @@ def open_session() -> Iterator[Callable[[str], zenoh.Session]]:
     for s in reversed(sessions):
         with contextlib.suppress(Exception):
             s.close()
+
+
+@pytest.fixture
+def service_health() -> Callable[..., Any]:
+    """``service_health(session, prefix="shapeloc", timeout_s=2.0)`` -> Health or ``None``.
+
+    (Test modules cannot import this conftest under ``--import-mode=importlib``.)"""
+    return get_health
