@@ -47,7 +47,11 @@ class ICPConfig(BaseModel):
     gate_final: float = Field(0.2, gt=0.0, description="smallest pair distance gate")
     gate_decay: float = Field(0.75, gt=0.0, le=1.0, description="gate factor per iteration")
     trim_fraction: float = Field(
-        0.9, gt=0.0, le=1.0, description="fraction of gated pairs kept (closest first)"
+        1.0,
+        gt=0.0,
+        le=1.0,
+        description="fraction of gated pairs kept, closest first (1: gate only; trimming lost "
+        "tracking on the office tour, see docs/experiment)",
     )
     tol_translation: float = Field(1e-4, gt=0.0, description="convergence: step below (m)")
     tol_rotation: float = Field(1e-4, gt=0.0, description="convergence: step below (rad)")
