@@ -23,13 +23,24 @@ is represented by its chord. The cost accumulated along the correspondence is, i
 * skipped ends: whole arcs at the start or end of one polyline left without counterpart (an
   occluded corner) cost ``skip_weight`` times their length.
 
-Scale: S* is 0 for identical shapes and is measured in metres. For two noisy observations of
-the same object it grows roughly linearly with the object's size (more arcs and corners, each
-contributing a few times the range noise; ~1-3 cm per vertex for 1 cm noise), which is the
-paper's reason for a penalty R linear in angular size. Truly different shapes cost on the order
-of their size (an L of two 1 m legs vs a 2 m straight line costs ~0.6). The matcher can add S*
-directly to eq. 4's ``||dt|| + 10 dPhi`` (both metres-like); a weight of order 1 keeps both
-terms comparable.
+The DP runs over matched vertex pairs ``(i, j)``; since the turn term needs the incoming
+chords, each state keeps the incoming chords of its cheapest path only, so the length, merge
+and skip terms are optimised exactly and the turn term greedily along the best path (a cost
+within the same correspondence space, never below the true optimum of that space).
+
+Scale: S* is 0 for identical shapes and is measured in metres. Measured for noisy
+observations of the same object (361 beams over 180 deg, 1 cm range noise, first-stage DCE,
+20-30 seeds; tests/service/core/test_similarity.py) it does NOT grow with the object's metric
+size but with its number of corners, each costing about the error with which DCE localises it:
+a straight wall 0.001-0.005, a right-angle corner 0.02, a wall with a 45-degree-chamfered
+protrusion (6 vertices) 0.22 (max 0.6), the same whether the object is scaled 1x, 2x or 4x.
+With :func:`service.core.dce.refine_vertices` those drop to 0.006 and 0.045 (max 0.08).
+Different shapes cost on the order of their size: an L with 1 m legs vs a 2 m line 0.6, a
+right-angle corner vs a quarter circle (r = 1 m) 0.63, a 2.8 m corner vs a straight wall of
+the same extent >= 0.83. Occlusion: cutting 30 % off an end within the end arc costs 0.1 x
+the cut length; hiding a whole end corner costs 0.5 per metre skipped. The matcher can add S*
+directly to eq. 4's ``||dt|| + 10 dPhi`` (both metres-like) with a weight of order 1; pass its
+acceptance gate as ``upper_bound`` to prune the search.
 """
 
 from __future__ import annotations
