@@ -6,11 +6,13 @@ the real service is exercised in tests/integration/test_sim_and_cli.py. Runs in 
 
 from __future__ import annotations
 
+import json
 import socket
 import sys
 import time
 import types
 from collections.abc import Iterator
+from pathlib import Path
 
 import pytest
 import zenoh
@@ -176,3 +178,51 @@ def test_experiment_delegates_remaining_arguments(monkeypatch) -> None:
     monkeypatch.setattr(clients, "experiment", fake, raising=False)
     assert cli(["--timeout", "1", "experiment", "--setup", "2", "--connect", "tcp/x:1"]) == 3
     assert seen == {"setup": 2, "connect": "tcp/x:1"}
+
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def _compose_commands(text: str) -> dict[str, list[str]]:
+    """``command:`` lists of each compose service (block style ``- item`` lists only)."""
+    out: dict[str, list[str]] = {}
+    current = None
+    in_cmd = False
+    for raw in text.splitlines():
+        line = raw.split(" #", 1)[0].rstrip()
+        if not line.strip() or line.lstrip().startswith("#"):
+            continue
+        indent = len(line) - len(line.lstrip())
+        if indent == 2 and line.endswith(":"):
+            current, in_cmd = line.strip()[:-1], False
+        elif indent == 4:
+            in_cmd = line.strip() == "command:"
+            if in_cmd and current is not None:
+                out[current] = []
+        elif in_cmd and current is not None and line.strip().startswith("- "):
+            out[current].append(line.strip()[2:].strip().strip('"'))
+    return out
+
+
+def test_docker_commands_parse_with_the_real_command_lines() -> None:
+    from service.settings import build_parser as service_parser
+    from sim_publisher.__main__ import build_parser as sim_parser
+    from sim_publisher.__main__ import options_from_args
+
+    text = (REPO / "docker" / "compose.yaml").read_text()
+    assert "image: eclipse/zenoh:" in text and '"7447:7447/tcp"' in text
+    cmds = _compose_commands(text)
+    assert cmds["service"][0] == "shapeloc-service" and cmds["simulator"][0] == "shapeloc-sim"
+    svc = service_parser().parse_args(cmds["service"][1:])
+    assert svc.mode == "client" and svc.connect == ["tcp/router:7447"]
+    sim = options_from_args(sim_parser().parse_args(cmds["simulator"][1:]))
+    assert sim.robots == 2 and sim.maps == ["metric", "schematic"]
+    sim_args = sim_parser().parse_args(cmds["simulator"][1:])
+    assert sim_args.mode == "client" and sim_args.connect == ["tcp/router:7447"]
+
+    docker = (REPO / "docker" / "Dockerfile").read_text()
+    assert docker.startswith("#") and "FROM python:3.11-slim" in docker
+    cmd_text = docker.split("\nCMD ", 1)[1].replace("\\\n", " ")
+    cmd = json.loads(cmd_text[: cmd_text.index("]") + 1])
+    assert cmd[0] == "shapeloc-service"
+    assert service_parser().parse_args(cmd[1:]).state_dir == "/var/lib/shapeloc"
