@@ -28,9 +28,7 @@ from service.core.baselines import (
     check_pose,
     compose,
     relative,
-    rigid_fit,
     scan_points,
-    transform_points,
 )
 from service.core.types import Estimate, MapData, wrap_angle
 
@@ -131,8 +129,10 @@ class DistanceGrid:
         self.occupied = rasterize_segments(map_data.segments(), self.origin, cell_size, self.shape)
         _, idx = ndimage.distance_transform_edt(~self.occupied, return_indices=True)
         # idx[0] = row (iy), idx[1] = column (ix) of the nearest occupied cell.
-        self.nearest_x = (self.origin[0] + (idx[1] + 0.5) * cell_size).astype(np.float32)
-        self.nearest_y = (self.origin[1] + (idx[0] + 0.5) * cell_size).astype(np.float32)
+        self.nearest_x = self.origin[0] + (idx[1] + 0.5) * cell_size
+        self.nearest_y = self.origin[1] + (idx[0] + 0.5) * cell_size
+        self._flat_x = self.nearest_x.ravel()
+        self._flat_y = self.nearest_y.ravel()
 
     def nearest(self, pts: np.ndarray) -> np.ndarray:
         """Nearest occupied cell centres ``(n, 2)`` for map-frame points ``(n, 2)``.
@@ -140,12 +140,19 @@ class DistanceGrid:
         Points outside the grid are looked up at the closest border cell; their true distance
         to the returned centre is still computed honestly by the caller.
         """
+        nx, ny = self.nearest_xy(pts[:, 0], pts[:, 1])
+        return np.column_stack([nx, ny])
+
+    def nearest_xy(self, qx: np.ndarray, qy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`nearest` on separate coordinate arrays; returns ``(x, y)`` arrays."""
         ny, nx = self.shape
-        ix = np.clip(np.floor((pts[:, 0] - self.origin[0]) / self.cell_size), 0, nx - 1)
-        iy = np.clip(np.floor((pts[:, 1] - self.origin[1]) / self.cell_size), 0, ny - 1)
-        ix = ix.astype(np.intp)
-        iy = iy.astype(np.intp)
-        return np.column_stack([self.nearest_x[iy, ix], self.nearest_y[iy, ix]]).astype(np.float64)
+        inv = 1.0 / self.cell_size
+        ix = np.floor((qx - self.origin[0]) * inv)
+        iy = np.floor((qy - self.origin[1]) * inv)
+        np.clip(ix, 0, nx - 1, out=ix)
+        np.clip(iy, 0, ny - 1, out=iy)
+        flat = (iy * nx + ix).astype(np.intp)
+        return self._flat_x[flat], self._flat_y[flat]
 
 
 class ICPLocalizer:
@@ -209,33 +216,48 @@ class ICPLocalizer:
                 score=0.0,
                 extras={"points": float(len(pts)), "iterations": 0.0},
             )
+        px = np.ascontiguousarray(pts[:, 0])
+        py = np.ascontiguousarray(pts[:, 1])
+        x, y, th = (float(v) for v in pose)
         gate = cfg.gate_initial
         iterations = 0
         for it in range(cfg.max_iterations):
             iterations = it + 1
-            q = transform_points(pts, pose)
-            near = self.grid.nearest(q)
-            d = np.hypot(q[:, 0] - near[:, 0], q[:, 1] - near[:, 1])
-            keep = d < gate
-            n_keep = int(keep.sum())
+            c, s = math.cos(th), math.sin(th)
+            qx = c * px - s * py + x
+            qy = s * px + c * py + y
+            mx, my = self.grid.nearest_xy(qx, qy)
+            d2 = (qx - mx) ** 2 + (qy - my) ** 2
+            keep = d2 < gate * gate
+            n_keep = int(np.count_nonzero(keep))
             if n_keep < cfg.min_points:
                 break
             if cfg.trim_fraction < 1.0:
                 n_trim = max(cfg.min_points, math.ceil(cfg.trim_fraction * n_keep))
                 if n_trim < n_keep:
-                    cut = np.partition(d[keep], n_trim - 1)[n_trim - 1]
-                    keep &= d <= cut
-            new = rigid_fit(pts[keep], near[keep])
-            dt = float(np.hypot(new[0] - pose[0], new[1] - pose[1]))
-            dr = abs(float(wrap_angle(new[2] - pose[2])))
-            pose = new
+                    cut = np.partition(d2[keep], n_trim - 1)[n_trim - 1]
+                    keep &= d2 <= cut
+            # Closed-form rigid least squares (same as baselines.rigid_fit, inlined for speed).
+            sx, sy, tx_, ty_ = px[keep], py[keep], mx[keep], my[keep]
+            csx, csy, ctx, cty = sx.mean(), sy.mean(), tx_.mean(), ty_.mean()
+            ax, ay, bx, by = sx - csx, sy - csy, tx_ - ctx, ty_ - cty
+            new_th = math.atan2(float(ax @ by - ay @ bx), float(ax @ bx + ay @ by))
+            c, s = math.cos(new_th), math.sin(new_th)
+            new_x = float(ctx - (c * csx - s * csy))
+            new_y = float(cty - (s * csx + c * csy))
+            dt = math.hypot(new_x - x, new_y - y)
+            dr = abs(math.remainder(new_th - th, 2.0 * math.pi))
+            x, y, th = new_x, new_y, new_th
             at_final_gate = gate <= cfg.gate_final
             gate = max(cfg.gate_final, gate * cfg.gate_decay)
             if at_final_gate and dt < cfg.tol_translation and dr < cfg.tol_rotation:
                 break
-        q = transform_points(pts, pose)
-        near = self.grid.nearest(q)
-        d = np.hypot(q[:, 0] - near[:, 0], q[:, 1] - near[:, 1])
+        pose = np.array([x, y, wrap_angle(th)], dtype=np.float64)
+        c, s = math.cos(th), math.sin(th)
+        qx = c * px - s * py + x
+        qy = s * px + c * py + y
+        mx, my = self.grid.nearest_xy(qx, qy)
+        d = np.hypot(qx - mx, qy - my)
         inl = d < cfg.gate_final
         inlier_fraction = float(inl.mean())
         rms = float(np.sqrt(np.mean(d[inl] ** 2))) if inl.any() else math.inf

@@ -109,12 +109,13 @@ def fit_line(points: np.ndarray) -> tuple[float, float, np.ndarray]:
     Returns ``(alpha, r, residuals)``: normal angle, distance from the origin (``>= 0``) and
     the signed point-to-line distances.
     """
-    c = points.mean(axis=0)
-    d = points - c
-    cov = d.T @ d
-    _, v = np.linalg.eigh(cov)
-    n = v[:, 0]  # smallest eigenvalue: the normal
-    r = float(n @ c)
+    cx, cy = points[:, 0].mean(), points[:, 1].mean()
+    dx, dy = points[:, 0] - cx, points[:, 1] - cy
+    sxx, syy, sxy = float(dx @ dx), float(dy @ dy), float(dx @ dy)
+    # Direction of largest spread (closed-form 2x2 eigenvector); the normal is perpendicular.
+    alpha = 0.5 * math.atan2(2.0 * sxy, sxx - syy) + 0.5 * math.pi
+    n = np.array([math.cos(alpha), math.sin(alpha)])
+    r = float(n[0] * cx + n[1] * cy)
     if r < 0.0:
         n, r = -n, -r
     return float(np.arctan2(n[1], n[0])), r, points @ n - r
@@ -346,6 +347,7 @@ class LineLocalizer:
             pose = new
             if at_final and dt < cfg.tol_translation and dr < cfg.tol_rotation:
                 break
+        pose[2] = wrap_angle(pose[2])
         assoc = self._associate(lines, pose, cfg.angle_gate_final, cfg.dist_gate_final)
         matched = assoc >= 0
         extras["matched"] = float(matched.sum())
@@ -406,12 +408,12 @@ class LineLocalizer:
             e = n[:, 0] * (rx + x[0]) + n[:, 1] * (ry + x[1]) - off
             J = np.column_stack([n[:, 0], n[:, 1], -n[:, 0] * ry + n[:, 1] * rx])
             prior = x - start
-            prior[2] = wrap_angle(prior[2])
+            prior[2] = math.remainder(prior[2], 2.0 * math.pi)
             A = J.T @ J + damp
             g = J.T @ e + damp @ prior
             step = np.linalg.solve(A, -g)
             x = x + step
-            x[2] = wrap_angle(x[2])
+            x[2] = math.remainder(x[2], 2.0 * math.pi)
             if np.hypot(step[0], step[1]) < 1e-6 and abs(step[2]) < 1e-7:
                 break
         return x
