@@ -22,7 +22,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from service.core.dce import DCE_NOISE_THRESHOLD, dce
+from service.core.dce import DCE_NOISE_THRESHOLD, dce, refine_vertices
 from service.core.polylines import group_polylines
 from service.core.similarity import (
     partial_optimal_similarity,
@@ -64,6 +64,8 @@ def main() -> None:
 
     t_group: list[float] = []
     t_dce: list[float] = []
+    t_refine: list[float] = []
+    t_bounded: list[float] = []
     t_extract: list[float] = []
     t_prep: list[float] = []
     t_cplx: list[float] = []
@@ -86,7 +88,15 @@ def main() -> None:
             pls = group_polylines(r, a)
             t_dce.append(timed(lambda pls=pls: [dce(p.points) for p in pls]))
             t_extract.append(timed(lambda r=r, a=a: [dce(p.points) for p in group_polylines(r, a)]))
-            simplified.append([p.points[dce(p.points)] for p in pls])
+            keeps = [dce(p.points) for p in pls]
+            t_refine.append(
+                timed(
+                    lambda pls=pls, keeps=keeps: [
+                        refine_vertices(p.points, k) for p, k in zip(pls, keeps, strict=True)
+                    ]
+                )
+            )
+            simplified.append([p.points[k] for p, k in zip(pls, keeps, strict=True)])
             raws.append([p.points for p in pls])
         n_polys.append(len(simplified[0]))
         n_verts.extend(len(v) for v in simplified[0])
@@ -99,6 +109,7 @@ def main() -> None:
         for p, pv in zip(P, simplified[0], strict=True):
             for q, qv in zip(Q, simplified[1], strict=True):
                 buckets[bucket(max(p.k, q.k))].append(timed(lambda p=p, q=q: shape_distance(p, q)))
+                t_bounded.append(timed(lambda p=p, q=q: shape_distance(p, q, upper_bound=0.5)))
                 if len(raw_pairs) < 2000:
                     raw_pairs.append(timed(lambda pv=pv, qv=qv: shape_distance(pv, qv)))
         # partial optimal similarity: each raw scan polyline vs its most similar next-scan one
@@ -124,12 +135,14 @@ def main() -> None:
     print(row("group_polylines (per scan)", t_group))
     print(row("dce, all polylines (per scan)", t_dce))
     print(row("group + dce (per scan)", t_extract))
+    print(row("refine_vertices, all (per scan)", t_refine))
     print(row("prepare (per polyline)", t_prep))
     print(row("shape_complexity (per polyline)", t_cplx))
     for name, samples in buckets.items():
         print(row(f"shape_distance prepared, k<={name}", samples, "max vertices of the pair"))
     allp = [x for s in buckets.values() for x in s]
     print(row("shape_distance prepared, all", allp))
+    print(row("shape_distance, upper_bound=0.5", t_bounded, "pruned search"))
     print(row("shape_distance from arrays", raw_pairs, "incl. prepare of both"))
     print(row("S* all pairs of 2 scans (per scan)", t_pairs_scan, "n_p x n_q calls"))
     print(row("partial_optimal_similarity", t_po, "raw grouped points vs DCE'd q"))

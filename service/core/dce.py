@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import heapq
 import math
+from itertools import accumulate
 
 import numpy as np
 
@@ -197,19 +198,6 @@ def dce(points: np.ndarray, threshold: float = DCE_NOISE_THRESHOLD) -> np.ndarra
     return ce.kept_indices()
 
 
-def _fit_lines(p: np.ndarray, c1: np.ndarray, c2: np.ndarray, k: np.ndarray):
-    """Total-least-squares line (mean, unit direction) of every inclusive range k[j]..k[j+1]."""
-    s, e = k[:-1], k[1:]
-    n = (e - s + 1).astype(np.float64)[:, None]
-    mean = (c1[e + 1] - c1[s]) / n
-    m2 = (c2[e + 1] - c2[s]) / n
-    sxx = m2[:, 0] - mean[:, 0] ** 2
-    sxy = m2[:, 1] - mean[:, 0] * mean[:, 1]
-    syy = m2[:, 2] - mean[:, 1] ** 2
-    phi = 0.5 * np.arctan2(2.0 * sxy, sxx - syy)
-    return mean, np.column_stack((np.cos(phi), np.sin(phi)))
-
-
 def refine_vertices(
     points: np.ndarray,
     keep: np.ndarray,
@@ -243,37 +231,61 @@ def refine_vertices(
         raise LocalizationError("refine_vertices needs (n, 2) points and >= 2 kept indices")
     if k[0] != 0 or k[-1] != p.shape[0] - 1 or np.any(np.diff(k) <= 0):
         raise LocalizationError("kept indices must be sorted and include both end points")
-    c1 = np.vstack((np.zeros((1, 2)), np.cumsum(p, axis=0)))
-    sq = np.column_stack((p[:, 0] ** 2, p[:, 0] * p[:, 1], p[:, 1] ** 2))
-    c2 = np.vstack((np.zeros((1, 3)), np.cumsum(sq, axis=0)))
-    orig = p[k]
-    split = k.copy()
-    out = orig.copy()
+    # Plain Python over prefix sums: a polyline has a handful of DCE edges.
+    xs: list[float] = p[:, 0].tolist()
+    ys: list[float] = p[:, 1].tolist()
+    cx = [0.0, *accumulate(xs)]
+    cy = [0.0, *accumulate(ys)]
+    cxx = [0.0, *accumulate(x * x for x in xs)]
+    cxy = [0.0, *accumulate(x * y for x, y in zip(xs, ys, strict=True))]
+    cyy = [0.0, *accumulate(y * y for y in ys)]
+
+    def fit(s: int, e: int) -> tuple[float, float, float, float]:
+        """TLS line (mean x, mean y, cos, sin) of points s..e inclusive."""
+        n = e - s + 1
+        mx = (cx[e + 1] - cx[s]) / n
+        my = (cy[e + 1] - cy[s]) / n
+        sxx = (cxx[e + 1] - cxx[s]) / n - mx * mx
+        sxy = (cxy[e + 1] - cxy[s]) / n - mx * my
+        syy = (cyy[e + 1] - cyy[s]) / n - my * my
+        phi = 0.5 * math.atan2(2.0 * sxy, sxx - syy)
+        return mx, my, math.cos(phi), math.sin(phi)
+
+    orig: list[int] = k.tolist()
+    split = list(orig)
+    m = len(split)
+    sin_min = math.sin(min_turn)
+    ox = [xs[i] for i in orig]
+    oy = [ys[i] for i in orig]
     for it in range(max(iterations, 1)):
-        mean, d = _fit_lines(p, c1, c2, split)
-        out = orig.copy()
-        a, u = mean[:-1], d[:-1]
-        b, v = mean[1:], d[1:]
-        cross = u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0]
-        ok = np.abs(cross) >= math.sin(min_turn)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            tt = ((b[:, 0] - a[:, 0]) * v[:, 1] - (b[:, 1] - a[:, 1]) * v[:, 0]) / cross
-        inter = a + tt[:, None] * u
-        ok &= np.hypot(*(inter - orig[1:-1]).T) <= max_shift
-        out[1:-1][ok] = inter[ok]
-        for idx in (0, -1):  # end vertices: project onto their own line
-            w = out[idx] - mean[idx]
-            out[idx] = mean[idx] + (w @ d[idx]) * d[idx]
-        if it + 1 >= iterations:
+        lines = [fit(split[j], split[j + 1]) for j in range(m - 1)]
+        out_x, out_y = list(ox), list(oy)
+        moved = []
+        for j in range(1, m - 1):  # interior vertex j between lines j-1 and j
+            ax, ay, ux, uy = lines[j - 1]
+            bx, by, vx, vy = lines[j]
+            cross = ux * vy - uy * vx
+            if abs(cross) < sin_min:
+                continue
+            t = ((bx - ax) * vy - (by - ay) * vx) / cross
+            ix, iy = ax + t * ux, ay + t * uy
+            if math.hypot(ix - ox[j], iy - oy[j]) <= max_shift:
+                out_x[j], out_y[j] = ix, iy
+                moved.append(j)
+        for j, ln in ((0, lines[0]), (m - 1, lines[-1])):  # ends: project onto their line
+            mx, my, ux, uy = ln
+            w = (out_x[j] - mx) * ux + (out_y[j] - my) * uy
+            out_x[j], out_y[j] = mx + w * ux, my + w * uy
+        if it + 1 >= iterations or not moved:
             break
-        new = split.copy()
-        for j in np.flatnonzero(ok):  # interior vertex j + 1: re-split at the nearest sample
-            lo, hi = new[j] + 1, split[j + 2] - 1
+        new = list(split)
+        for j in moved:  # re-split at the sample nearest the new vertex
+            lo, hi = new[j - 1] + 1, split[j + 1] - 1
             if lo > hi:
                 continue
-            seg = p[lo : hi + 1]
-            new[j + 1] = lo + int(np.argmin(np.hypot(*(seg - out[j + 1]).T)))
-        if np.array_equal(new, split):
+            vx_, vy_ = out_x[j], out_y[j]
+            new[j] = min(range(lo, hi + 1), key=lambda i: (xs[i] - vx_) ** 2 + (ys[i] - vy_) ** 2)
+        if new == split:
             break
         split = new
-    return out
+    return np.column_stack((out_x, out_y))
