@@ -403,7 +403,7 @@ def shape_alignment(
 
 def partial_optimal_similarity(
     p_points: np.ndarray,
-    q_points: np.ndarray,
+    q_points: np.ndarray | ShapeArcs,
     stop_threshold: float = DCE_NOISE_THRESHOLD,
     *,
     simplify_q: bool = True,
@@ -418,22 +418,25 @@ def partial_optimal_similarity(
     ``stop_threshold`` (metres, the fixed first stage). Then DCE continues one vertex at a
     time (least relevance first) for as long as the simplified p' gets strictly more similar to
     ``q_points`` (the map polyline, the reference; DCE'd at ``stop_threshold`` first when
-    ``simplify_q``); it stops when a removal does not reduce S*(p', q). With
-    ``patience = 1`` that is the first such removal (the paper's rule); the default 2 looks one
-    removal further before stopping, which gets over plateaus where one noise vertex alone
-    does not change S* (measured on noisy 6-vertex objects with a 1 cm first stage: mean S*
-    0.65 with patience 1, 0.22 with 2, no further gain with 3-5). Returns the best
-    simplification seen.
+    ``simplify_q``; a prepared :class:`ShapeArcs` is used as is); it stops when a removal
+    does not reduce S*(p', q). With ``patience = 1`` that is the first such removal (the
+    paper's rule); the default 2 looks one removal further before stopping, which gets over
+    plateaus where one noise vertex alone does not change S* (measured on noisy 6-vertex
+    objects with a 1 cm first stage: mean S* 0.65 with patience 1, 0.22 with 2, no further
+    gain with 3-5). Returns the best simplification seen.
 
     Returns ``(S*(p', q), kept)`` where ``kept`` are the indices into ``p_points`` of p's
     vertices (sorted, including both ends).
     """
     ce = CurveEvolution(p_points)
     ce.evolve_to(stop_threshold)
-    q = np.asarray(q_points, dtype=np.float64)
-    if simplify_q and q.ndim == 2 and q.shape[0] > 2:
-        q = q[dce(q, stop_threshold)]
-    Q = prepare(q, max_merge)
+    if isinstance(q_points, ShapeArcs):
+        Q = prepare(q_points, max_merge)
+    else:
+        q = np.asarray(q_points, dtype=np.float64)
+        if simplify_q and q.ndim == 2 and q.shape[0] > 2:
+            q = q[dce(q, stop_threshold)]
+        Q = prepare(q, max_merge)
     p_all = np.asarray(p_points, dtype=np.float64)
     kept = ce.kept_indices()
     d, _ = _dp(prepare(p_all[kept], max_merge), Q, max_merge, end_weight, skip_weight, False)
@@ -468,8 +471,17 @@ def shape_complexity(points: np.ndarray, simplify: float | None = None) -> float
         p = p[dce(p, simplify)]
     if p.shape[0] < 3:
         return 0.0
-    d = np.diff(p, axis=0)
-    ln = np.hypot(d[:, 0], d[:, 1])
-    th = np.arctan2(d[:, 1], d[:, 0])
-    turn = np.abs((np.diff(th) + np.pi) % (2.0 * np.pi) - np.pi)
-    return float(np.sum(turn * np.minimum(ln[:-1], ln[1:])))
+    # Plain Python: a handful of vertices, where numpy's per-call overhead dominates.
+    xs: list[float] = p[:, 0].tolist()
+    ys: list[float] = p[:, 1].tolist()
+    total = 0.0
+    pl = math.hypot(xs[1] - xs[0], ys[1] - ys[0])
+    pd = math.atan2(ys[1] - ys[0], xs[1] - xs[0])
+    for i in range(1, len(xs) - 1):
+        dx, dy = xs[i + 1] - xs[i], ys[i + 1] - ys[i]
+        ln = math.hypot(dx, dy)
+        d = math.atan2(dy, dx)
+        turn = abs((d - pd + math.pi) % _TWO_PI - math.pi)
+        total += turn * (ln if ln < pl else pl)
+        pl, pd = ln, d
+    return total

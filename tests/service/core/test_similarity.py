@@ -228,6 +228,9 @@ def test_partial_optimal_similarity_removes_a_spurious_vertex() -> None:
     assert kept.tolist() == [0, 4]
     assert d == pytest.approx(0.0)
     assert shape_distance(p, q) > 0.0
+    # a prepared q is used as is and gives the same answer
+    d2, kept2 = partial_optimal_similarity(p, prepare(q), stop_threshold=0.001)
+    assert d2 == d and kept2.tolist() == kept.tolist()
 
 
 def test_shape_complexity_orders_wall_corner_zigzag() -> None:
