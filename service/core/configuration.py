@@ -19,6 +19,7 @@ depend on the heading).
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass, field
 from functools import cached_property
 
@@ -113,28 +114,43 @@ class Configuration:
 
 
 def split_pieces(keep: np.ndarray, points: np.ndarray, piece_length: float) -> list[np.ndarray]:
-    """Cut a DCE-simplified polyline at its vertices into pieces of about ``piece_length`` m.
+    """Cut a DCE-simplified polyline into pieces of about ``piece_length`` metres.
 
-    ``keep`` are the DCE vertex indices into ``points`` (raw, ``(k, 2)`` m). Walking along the
-    vertices, a cut is made at the first vertex where the piece has reached ``piece_length``
-    metres, unless the rest would be shorter than half of it. Returns, per piece, the vertex
-    indices (into ``points``) it spans; consecutive pieces share the cut vertex. A whole room
-    seen in one sweep thus becomes a sequence of wall-sized features in the same cyclic order,
-    which the n:m correspondences of eq. 5 can re-join.
+    ``keep`` are the DCE vertex indices into ``points`` (raw, ``(k, 2)`` m). Edges longer than
+    ``2 * piece_length`` first get extra vertices at raw points about every ``piece_length``
+    (they are collinear, so the shape is unchanged). Walking along the vertices, a cut is made
+    at the first vertex where the piece has reached ``piece_length``, unless the rest would be
+    shorter than half of it. Returns per piece its vertex indices (into ``points``);
+    consecutive pieces share the cut vertex. A wall seen in one sweep thus becomes a sequence of
+    wall-sized features in the same angular order, which the n:m correspondences of eq. 5 can
+    re-join, and a wall that furniture cuts into several pieces in the scan can still find one
+    counterpart per piece.
     """
-    if piece_length <= 0 or len(keep) <= 2:
+    if piece_length <= 0 or len(points) < 3:
         return [keep]
-    v = points[keep]
-    seg = np.hypot(*np.diff(v, axis=0).T)
-    cum = np.concatenate(([0.0], np.cumsum(seg)))
+    d = np.hypot(*np.diff(points, axis=0).T)
+    cum_raw = np.concatenate(([0.0], np.cumsum(d)))
+    verts = [int(keep[0])]
+    for a, b in itertools.pairwise(keep):
+        span = cum_raw[b] - cum_raw[a]
+        nsub = int(span // piece_length)
+        if nsub >= 2 and b - a > nsub:
+            targets = cum_raw[a] + span * np.arange(1, nsub) / nsub
+            extra = np.searchsorted(cum_raw[a : b + 1], targets) + a
+            verts.extend(int(x) for x in np.unique(np.clip(extra, a + 1, b - 1)))
+        verts.append(int(b))
+    v = np.asarray(verts, dtype=np.intp)
+    if len(v) <= 2 and cum_raw[-1] < 2.0 * piece_length:
+        return [keep]
+    cum = cum_raw[v]
     total = cum[-1]
     out = []
     start = 0
-    for k in range(1, len(keep) - 1):
+    for k in range(1, len(v) - 1):
         if cum[k] - cum[start] >= piece_length and total - cum[k] >= 0.5 * piece_length:
-            out.append(keep[start : k + 1])
+            out.append(v[start : k + 1])
             start = k
-    out.append(keep[start:])
+    out.append(v[start:])
     return out
 
 

@@ -25,6 +25,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from schemas.errors import LocalizationError
 from service.core.configuration import ExtractionParams, MapViewCache, scan_configuration
+from service.core.dce import DCE_NOISE_THRESHOLD
 from service.core.matching import support, two_step_match
 from service.core.pose import compose, invert, pose_from_matches
 from service.core.types import Estimate, MapData, Match, Status, wrap_angle
@@ -47,7 +48,7 @@ class ShapeConfig(BaseModel):
     min_points: int = Field(3, ge=2, description="Smallest group kept (points).")
     min_length: float = Field(0.05, ge=0, description="Shortest polyline kept (m).")
     dce_threshold: float = Field(
-        0.02, gt=0, description="First-stage DCE stop relevance, eq. 2 (m)."
+        DCE_NOISE_THRESHOLD, gt=0, description="First-stage DCE stop relevance, eq. 2 (m)."
     )
     piece_length: float = Field(
         1.5,
@@ -81,11 +82,30 @@ class ShapeConfig(BaseModel):
     bearing_gate: float = Field(
         0.35, ge=0, description="Angular slack (rad) for candidate pairs in step 2."
     )
+    shape_end_weight: float = Field(
+        0.1,
+        ge=0,
+        description="S*: weight of the end arcs' length misfit (occlusion cuts). "
+        "Schematic: 0.02 (map walls are long, the scan sees parts of them).",
+    )
+    shape_skip_weight: float = Field(
+        0.5,
+        ge=0,
+        description="S*: cost per metre of whole end arcs without counterpart. Schematic: 0.1.",
+    )
     max_join: int = Field(3, ge=1, description="Max polylines concatenated per side (n:m).")
+    join_total: bool = Field(
+        True,
+        description="Limit blocks to max_join polylines on both sides together "
+        "(1:1, 1:2, 2:1, ...) instead of max_join on each side.",
+    )
     align_points: int = Field(24, ge=3, description="Scan points per pair for A(P, Q).")
     align_iterations: int = Field(3, ge=1, description="Gauss-Newton steps for A(P, Q).")
     align_robust_scale: float = Field(
         0.1, gt=0, description="Cauchy scale of A(P, Q)'s fit (m). Schematic: 0.2."
+    )
+    align_damping: float = Field(
+        0.05, ge=0, description="Levenberg damping of A(P, Q)'s fit (relative to the trace)."
     )
     # --- two-step matching (§5.3) ----------------------------------------------------------
     two_step: bool = Field(True, description="Run step 1 (complex pairs) before step 2.")
@@ -100,6 +120,9 @@ class ShapeConfig(BaseModel):
         0.8, gt=0, description="Step 1: S* gate for the most similar pairs (m)."
     )
     step1_pairs_per_feature: int = Field(3, ge=1, description="Step 1: pairs kept per feature.")
+    step1_refine_iterations: int = Field(
+        5, ge=0, description="Step 1: point-to-line refinement steps of each pair's alignment."
+    )
     step2_hypotheses: int = Field(3, ge=1, description="Hypotheses run through step 2.")
     support_points: int = Field(120, ge=10, description="Scan points used to score support.")
     support_tolerance: float = Field(
@@ -127,7 +150,10 @@ class ShapeConfig(BaseModel):
         0.3, ge=0, le=1, description="Minimum fraction of scan points explained at the pose."
     )
     max_step: float = Field(
-        1.0, gt=0, description="Largest accepted jump from the prior position per scan (m)."
+        0.5,
+        gt=0,
+        description="Largest travel between two scans (m): farther step-1 hypotheses and "
+        "pose jumps are rejected.",
     )
     lost_after: int = Field(3, ge=1, description="Consecutive rejected scans before 'lost'.")
     use_odometry: bool = Field(False, description="Seed the prior with the odometry delta.")
@@ -141,6 +167,8 @@ class ShapeConfig(BaseModel):
             return cls(
                 kind="schematic",
                 max_consistency=1.0,
+                shape_end_weight=0.02,
+                shape_skip_weight=0.1,
                 align_robust_scale=0.2,
                 support_tolerance=0.25,
                 pose_inlier_distance=0.4,
@@ -289,7 +317,10 @@ class ShapeLocalizer:
             "eq5_cost": two.match.cost,
         }
         if explained < cfg.min_explained or sup < cfg.min_support or step > cfg.max_step:
-            return self._reject(prior, score, matches, explained, two.ambiguity, reason=3.0)
+            extras["step"] = step
+            return self._reject(
+                prior, score, matches, explained, two.ambiguity, reason=3.0, extras=extras
+            )
         self._pose = fit.pose.copy()
         self._rejected = 0
         return Estimate(
@@ -311,6 +342,7 @@ class ShapeLocalizer:
         explained: float,
         ambiguity: float | None,
         reason: float,
+        extras: dict[str, float] | None = None,
     ) -> Estimate:
         """The scan could not be matched well: keep the prior, count towards 'lost'."""
         self._rejected += 1
@@ -323,5 +355,5 @@ class ShapeLocalizer:
             matches=matches,
             explained=float(explained),
             ambiguity=ambiguity,
-            extras={"rejected": reason},
+            extras={**(extras or {}), "rejected": reason},
         )

@@ -203,6 +203,17 @@ class ConfigurationMatch:
     induced: list[np.ndarray] = field(default_factory=list)
 
 
+def shape_cost_for(config: ShapeConfig) -> ShapeCost:
+    """S* with the partial-matching weights of ``config`` (``shape_end_weight``,
+    ``shape_skip_weight``; see :func:`service.core.similarity.shape_distance`)."""
+    ew, sw = config.shape_end_weight, config.shape_skip_weight
+
+    def cost(p: Any, q: Any) -> float:
+        return shape_distance(p, q, end_weight=ew, skip_weight=sw)
+
+    return cost
+
+
 def _concat(feats: Sequence[Feature], attr: str) -> np.ndarray:
     return np.vstack([getattr(f, attr) for f in feats])
 
@@ -239,6 +250,27 @@ def map_order(
     return order, ivs
 
 
+def _feature_sample(f: Feature, k: int) -> np.ndarray:
+    pts = f.cache.get(("sample", k))
+    if pts is None:
+        pts = _subsample(f.points, k)
+        f.cache[("sample", k)] = pts
+    return pts
+
+
+def _single_overlaps(piv: np.ndarray, qiv: np.ndarray, tol: float) -> np.ndarray:
+    """``(n, m)`` bool: scan interval i and map interval j (``(start, span)`` rows, rad)
+    overlap within ``tol`` radians (map intervals tested at 0 and +-2 pi)."""
+    ps = piv[:, 0:1] - tol
+    pe = piv[:, 0:1] + piv[:, 1:2] + tol
+    out = np.zeros((len(piv), len(qiv)), dtype=bool)
+    for shift in (-_TWO_PI, 0.0, _TWO_PI):
+        qs = qiv[None, :, 0] + shift
+        qe = qs + qiv[None, :, 1]
+        out |= (ps < qe) & (qs < pe)
+    return out
+
+
 def match_with_cost(
     P: Configuration,
     Q: Configuration,
@@ -251,70 +283,50 @@ def match_with_cost(
     the estimated pose ``estimate`` ``[x, y, theta]``; see :func:`match_configurations`."""
     est = np.asarray(estimate, dtype=np.float64)
     cache = {} if cache is None else cache
-    sd = shape_cost or shape_distance
+    sd = shape_cost or shape_cost_for(config)
     n = len(P)
     q_order, q_iv = map_order(Q, est)
     m = len(q_order)
     Qf = [Q.features[j] for j in q_order]
-    Qiv = [q_iv[j] for j in q_order]
+    Qiv = np.array([q_iv[j] for j in q_order]).reshape(-1, 2)
     fov = P.fov
     # Penalties R (angular size inside the scan's field of view, seen from the estimate).
-    skip_p = [config.penalty_weight * f.angular_size for f in P.features]
-    skip_q = [
-        config.penalty_weight * config.map_penalty_factor * _overlap(s, w, fov[0], fov[1])
-        for s, w in Qiv
-    ]
-    Piv = [(f.bearing_start, f.angular_size) for f in P.features]
-    tol = config.bearing_gate
-
-    def interval_of(ivs: Sequence[tuple[float, float]]) -> tuple[float, float]:
-        s0 = ivs[0][0]
-        end = s0
-        for s, w in ivs:
-            end = max(end, s0 + (wrap_angle(s - s0)) + w)
-        return s0, end - s0
-
-    def overlaps(a: tuple[float, float], b: tuple[float, float]) -> bool:
-        return _overlap(a[0] - tol, a[1] + 2 * tol, b[0], b[0] + b[1]) > 0.0
-
-    single = np.zeros((n, m), dtype=bool)
-    for i in range(n):
-        for j in range(m):
-            single[i, j] = overlaps(Piv[i], Qiv[j])
-    K = config.max_join
-    cand: list[tuple[int, int, int, int]] = []
-    for i_e in range(n):
-        for j_e in range(m):
-            for a in range(1, K + 1):
-                i_s = i_e - a + 1
-                if i_s < 0:
-                    break
-                for b in range(1, K + 1):
-                    j_s = j_e - b + 1
-                    if j_s < 0:
-                        break
-                    sub = single[i_s : i_e + 1, j_s : j_e + 1]
-                    # every member must see some member of the other side
-                    if sub.any(axis=1).all() and sub.any(axis=0).all():
-                        cand.append((i_s, i_e, j_s, j_e))
-    if not cand:
+    w_r = config.penalty_weight
+    skip_p = [w_r * f.angular_size for f in P.features]
+    skip_q = [w_r * config.map_penalty_factor * _overlap(a, b, fov[0], fov[1]) for a, b in Qiv]
+    if n == 0 or m == 0:
         cost, _ = order_preserving_dp(skip_p, skip_q, {})
         return ConfigurationMatch(matches=[], cost=cost)
+    Piv = np.array([(f.bearing_start, f.angular_size) for f in P.features])
+    single = _single_overlaps(Piv, Qiv, config.bearing_gate)
+    K = config.max_join
+    cand: list[tuple[int, int, int, int]] = []
+    for i_s, j_s in zip(*np.nonzero(single), strict=True):
+        for a in range(K):
+            i_e = i_s + a
+            if i_e >= n:
+                break
+            for b in range(K - a if config.join_total else K):
+                j_e = j_s + b
+                if j_e >= m:
+                    break
+                if single[i_e, j_e]:
+                    cand.append((int(i_s), int(i_e), int(j_s), int(j_e)))
     # Shape distance S* per candidate block, gated.
     kept: list[tuple[int, int, int, int]] = []
     sdist: list[float] = []
     for i_s, i_e, j_s, j_e in cand:
-        pf = P.features[i_s : i_e + 1]
-        qf = Qf[j_s : j_e + 1]
-        if len(pf) == 1:
-            pa = _shape_arcs(pf[0], pf[0].vertices, cache)
+        if i_s == i_e:
+            pa = _shape_arcs(P.features[i_s], P.features[i_s].vertices, cache)
         else:
-            pa = _shape_arcs(("P", i_s, i_e), _concat(pf, "vertices"), cache)
-        if len(qf) == 1:
-            qa = _shape_arcs(qf[0], qf[0].vertices, cache)
+            pa = _shape_arcs(
+                ("P", id(P), i_s, i_e), _concat(P.features[i_s : i_e + 1], "vertices"), cache
+            )
+        if j_s == j_e:
+            qa = _shape_arcs(Qf[j_s], Qf[j_s].vertices, cache)
         else:
-            key = ("Q", tuple(id(f) for f in qf))
-            qa = _shape_arcs(key, _concat(qf, "vertices"), cache)
+            qf = Qf[j_s : j_e + 1]
+            qa = _shape_arcs(("Q", *tuple(id(f) for f in qf)), _concat(qf, "vertices"), cache)
         skey = ("S", id(pa), id(qa))
         s = cache.get(skey)
         if s is None:
@@ -327,43 +339,56 @@ def match_with_cost(
         cost, _ = order_preserving_dp(skip_p, skip_q, {})
         return ConfigurationMatch(matches=[], cost=cost)
     # Induced alignment of every kept block (vectorised point-to-line fit from the estimate).
-    pts = [
-        _subsample(_concat(P.features[i_s : i_e + 1], "points"), config.align_points)
-        for i_s, i_e, _, _ in kept
-    ]
-    segs = [
-        np.vstack([f.segments for f in Qf[j_s : j_e + 1] if f.segments is not None])
-        for _, _, j_s, j_e in kept
-    ]
+    k_pts = max(3, config.align_points // 2)
+    pts = []
+    segs = []
+    for i_s, i_e, j_s, j_e in kept:
+        if i_s == i_e:
+            pts.append(_feature_sample(P.features[i_s], k_pts))
+        else:
+            pts.append(np.vstack([_feature_sample(f, k_pts) for f in P.features[i_s : i_e + 1]]))
+        segs.append(np.vstack([f.segments for f in Qf[j_s : j_e + 1] if f.segments is not None]))
     poses, _rms = fit_pairs(
         pts,
         segs,
         est,
         iterations=config.align_iterations,
         robust_scale=config.align_robust_scale,
+        damping=config.align_damping,
     )
+    # ΔA (eq. 4) at each block's centroid, vectorised.
+    cen = np.array([p.mean(axis=0) for p in pts])
+    c_h, s_h = np.cos(poses[:, 2]), np.sin(poses[:, 2])
+    c_e, s_e = np.cos(est[2]), np.sin(est[2])
+    dx = (c_h * cen[:, 0] - s_h * cen[:, 1] + poses[:, 0]) - (
+        c_e * cen[:, 0] - s_e * cen[:, 1] + est[0]
+    )
+    dy = (s_h * cen[:, 0] + c_h * cen[:, 1] + poses[:, 1]) - (
+        s_e * cen[:, 0] + c_e * cen[:, 1] + est[1]
+    )
+    dphi = np.abs(np.mod(poses[:, 2] - est[2] + math.pi, _TWO_PI) - math.pi)
+    dA = np.hypot(dx, dy) + config.rotation_weight * dphi
     blocks: Blocks = {}
     info: dict[tuple[int, int, int, int], tuple[float, float, np.ndarray]] = {}
-    for k, (i_s, i_e, j_s, j_e) in enumerate(kept):
-        c = pts[k].mean(axis=0)
-        dt, dphi = alignment_difference(poses[k], est, c)
-        dA = pose_consistency(dt, dphi, config.rotation_weight)
-        if dA > config.max_consistency:
+    for k, key in enumerate(kept):
+        if dA[k] > config.max_consistency:
             continue
-        cost = sdist[k] + config.consistency_weight * dA
+        i_s, i_e, j_s, j_e = key
+        cost = sdist[k] + config.consistency_weight * float(dA[k])
         blocks.setdefault((i_e, j_e), []).append((i_s, j_s, cost))
-        info[(i_s, i_e, j_s, j_e)] = (sdist[k], dA, poses[k])
+        info[key] = (sdist[k], float(dA[k]), poses[k])
     total, path = order_preserving_dp(skip_p, skip_q, blocks)
     matches = []
     induced = []
-    for i_s, i_e, j_s, j_e in path:
-        s, dA, pose = info[(i_s, i_e, j_s, j_e)]
+    for key in path:
+        s, d, pose = info[key]
+        i_s, i_e, j_s, j_e = key
         matches.append(
             Match(
                 scan=tuple(range(i_s, i_e + 1)),
                 map=tuple(q_order[j] for j in range(j_s, j_e + 1)),
                 shape_distance=s,
-                pose_consistency=dA,
+                pose_consistency=d,
             )
         )
         induced.append(pose)
@@ -438,55 +463,113 @@ def support(Q: Configuration, scan_points: np.ndarray, pose: np.ndarray, tol: fl
     return float(np.mean(np.isfinite(d)))
 
 
+@dataclass(eq=False)
+class _Unit:
+    """A feature or two consecutive features joined, as used by step 1."""
+
+    vertices: np.ndarray
+    points: np.ndarray
+    segments: np.ndarray | None
+    key: tuple
+
+
+def _units(C: Configuration, cyclic: bool) -> list[_Unit]:
+    out = [_Unit(f.vertices, f.points, f.segments, ("u", id(f))) for f in C.features]
+    n = len(C.features)
+    last = n if (cyclic and n > 2) else n - 1
+    for i in range(max(last, 0)):
+        a, b = C.features[i], C.features[(i + 1) % n]
+        segs = None
+        if a.segments is not None and b.segments is not None:
+            segs = np.vstack([a.segments, b.segments])
+        out.append(
+            _Unit(
+                np.vstack([a.vertices, b.vertices]),
+                np.vstack([a.points, b.points]),
+                segs,
+                ("u", id(a), id(b)),
+            )
+        )
+    return out
+
+
 def step1_hypotheses(
     P: Configuration, Q: Configuration, prior: np.ndarray, config: ShapeConfig, cache: dict
 ) -> list[tuple[np.ndarray, float]]:
     """Step 1 of §5.3: pose hypotheses from the most complex and most similar pairs.
 
-    Scan features are ranked by shape complexity; the ``config.step1_features`` most complex
-    ones (complexity >= ``config.step1_min_complexity``) are compared by S* with every map
-    feature whose distance from the prior position differs by at most
-    ``config.step1_range_gate`` metres from the scan feature's range (a test that does not
-    depend on the unknown rotation). The ``config.step1_pairs_per_feature`` most similar map
-    features (S* <= ``config.step1_max_shape_distance``) each induce an alignment
-    (:func:`induced_alignment`), i.e. a pose hypothesis. Returns ``[(pose, S*), ...]``.
+    Units are single features and pairs of consecutive features (a corner is often cut in
+    two). Scan units are ranked by shape complexity; the ``config.step1_features`` most complex
+    ones (complexity >= ``config.step1_min_complexity``) are compared by S* with every map unit
+    whose distance from the prior position differs by at most ``config.step1_range_gate``
+    metres from the scan unit's range (a test that does not depend on the unknown rotation).
+    The ``config.step1_pairs_per_feature`` most similar map units (S* <=
+    ``config.step1_max_shape_distance``) each induce an alignment (:func:`induced_alignment`),
+    i.e. a pose hypothesis, refined on that pair alone by a few point-to-line steps.
+    Returns ``[(pose, S*), ...]``.
     """
     if not P.features or not Q.features:
         return []
+    p_units = _units(P, False)
     comp = []
-    for i, f in enumerate(P.features):
-        c = f.cache.get("complexity")
+    for k, u in enumerate(p_units):
+        c = cache.get(("C", *u.key))
         if c is None:
-            c = shape_complexity(f.vertices)
-            f.cache["complexity"] = c
-        comp.append((c, i))
-    comp.sort(reverse=True)
-    chosen = [i for c, i in comp[: config.step1_features] if c >= config.step1_min_complexity]
+            c = shape_complexity(u.vertices)
+            cache[("C", *u.key)] = c
+        comp.append((c, k))
+    comp.sort(key=lambda t: (-t[0], t[1]))
+    chosen = [k for c, k in comp[: config.step1_features] if c >= config.step1_min_complexity]
     if not chosen:
         return []
-    q_rng = np.array([np.hypot(*(f.centroid - prior[:2])) for f in Q.features])
+    q_units = [u for u in _units(Q, Q.cyclic) if u.segments is not None]
+    q_rng = np.array([np.hypot(*(u.points.mean(axis=0) - prior[:2])) for u in q_units])
+    sd = shape_cost_for(config)
     out: list[tuple[np.ndarray, float]] = []
-    for i in chosen:
-        pf = P.features[i]
-        r = float(np.hypot(*pf.centroid))
+    pair_pts: list[np.ndarray] = []
+    pair_segs: list[np.ndarray] = []
+    for k in chosen:
+        pu = p_units[k]
+        r = float(np.hypot(*pu.points.mean(axis=0)))
         js = np.nonzero(np.abs(q_rng - r) <= config.step1_range_gate)[0]
-        pa = _shape_arcs(pf, pf.vertices, cache)
+        pa = _shape_arcs(pu.key, pu.vertices, cache)
         scored = []
         for j in js:
-            qf = Q.features[j]
-            qa = _shape_arcs(qf, qf.vertices, cache)
+            qu = q_units[j]
+            qa = _shape_arcs(qu.key, qu.vertices, cache)
             skey = ("S", id(pa), id(qa))
             s = cache.get(skey)
             if s is None:
-                s = float(shape_distance(pa, qa))
+                s = float(sd(pa, qa))
                 cache[skey] = s
             if s <= config.step1_max_shape_distance:
-                scored.append((s, j))
+                scored.append((s, int(j)))
         scored.sort()
         for s, j in scored[: config.step1_pairs_per_feature]:
-            qf = Q.features[j]
-            pose = induced_alignment(pf.vertices, qf.vertices)
-            out.append((pose, s))
+            qu = q_units[j]
+            out.append((induced_alignment(pu.vertices, qu.vertices), s))
+            pair_pts.append(_subsample(pu.points, config.align_points))
+            pair_segs.append(qu.segments)  # type: ignore[arg-type]
+    if out and config.step1_refine_iterations > 0:
+        # Refine each induced alignment on its own pair (point-to-line, from the S* alignment).
+        # A pair that only fixes the rotation and one offset (a straight wall) leaves the shift
+        # along it to S*'s guess; so each pair also yields the variant that keeps the prior's
+        # position and only takes the rotation, refined with damping (the along-wall shift
+        # then stays at the prior's).
+        init = np.array([p for p, _ in out])
+        rot_only = np.column_stack([np.tile(prior[:2], (len(out), 1)), init[:, 2]])
+        poses, _ = fit_pairs(
+            pair_pts + pair_pts,
+            pair_segs + pair_segs,
+            np.vstack([init, rot_only]),
+            iterations=config.step1_refine_iterations,
+            robust_scale=config.align_robust_scale,
+            damping=config.align_damping,
+        )
+        n = len(out)
+        out = [(poses[k], s) for k, (_, s) in enumerate(out)] + [
+            (poses[n + k], s) for k, (_, s) in enumerate(out)
+        ]
     return out
 
 
@@ -518,7 +601,13 @@ def two_step_match(
     sp = _subsample(scan_points, config.support_points)
     hyps = [(prior, 0.0)]
     if config.two_step:
-        hyps += step1_hypotheses(P, Q, prior, config, cache)
+        # The robot cannot have moved farther than max_step since the prior (§5.2: views
+        # differ little if the robot has not travelled too far); the rotation is free.
+        hyps += [
+            (h, s)
+            for h, s in step1_hypotheses(P, Q, prior, config, cache)
+            if np.hypot(*(h[:2] - prior[:2])) <= config.max_step
+        ]
     scored = []
     for k, (pose, _s) in enumerate(hyps):
         sup = support(Q, sp, pose, config.support_tolerance)

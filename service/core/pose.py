@@ -247,7 +247,8 @@ def fit_pairs(
     """Independent point-to-line fit of each pair, all pairs at once (vectorised).
 
     Pair ``k`` is ``(points[k] (n_k, 2) robot frame, segments[k] (s_k, 4) map frame)``; each
-    pair's pose is refined from ``initial_pose`` ``[x, y, theta]`` by ``iterations``
+    pair's pose is refined from ``initial_pose`` ``[x, y, theta]`` (or one per pair, ``(K, 3)``)
+    by ``iterations``
     Gauss-Newton steps of the point-to-line distance, with Cauchy weights (scale
     ``robust_scale`` metres) and Levenberg ``damping`` (relative to the normal matrix trace) so
     that a direction the pair cannot observe (along a straight wall) stays at the initial value.
@@ -272,7 +273,8 @@ def fit_pairs(
     a = Sg[:, :, 0:2]
     e = Sg[:, :, 2:4] - a
     ee = np.maximum(np.einsum("ksi,ksi->ks", e, e), 1e-18)
-    poses = np.tile(np.asarray(initial_pose, dtype=np.float64), (K, 1))
+    init = np.asarray(initial_pose, dtype=np.float64)
+    poses = init.copy() if init.ndim == 2 else np.tile(init, (K, 1))
     rms = np.zeros(K)
     eye = np.eye(3)
     for _ in range(iterations):
@@ -306,10 +308,13 @@ def fit_pairs(
         ly = qy - poses[own, 1]
         J = np.column_stack([nx, ny, ny * lx - nx * ly])
         Jw = J * w[:, None]
-        H = np.zeros((K, 3, 3))
-        np.add.at(H, own, Jw[:, :, None] * J[:, None, :])
-        g = np.zeros((K, 3))
-        np.add.at(g, own, Jw * r[:, None])
+        H = np.empty((K, 3, 3))
+        g = np.empty((K, 3))
+        for u in range(3):
+            g[:, u] = np.bincount(own, weights=Jw[:, u] * r, minlength=K)
+            for v in range(u, 3):
+                H[:, u, v] = np.bincount(own, weights=Jw[:, u] * J[:, v], minlength=K)
+                H[:, v, u] = H[:, u, v]
         tr = np.maximum(np.trace(H, axis1=1, axis2=2) / 3.0, 1e-12)
         delta = -np.linalg.solve(H + damping * tr[:, None, None] * eye, g[:, :, None])[:, :, 0]
         poses = poses + delta
