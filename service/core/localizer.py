@@ -26,7 +26,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from schemas.errors import LocalizationError
 from service.core.configuration import ExtractionParams, MapViewCache, scan_configuration
 from service.core.dce import DCE_NOISE_THRESHOLD
-from service.core.matching import support, two_step_match
+from service.core.matching import matched_pairs, support, two_step_match
 from service.core.pose import compose, invert, pose_from_matches
 from service.core.types import Estimate, MapData, Match, Status, wrap_angle
 
@@ -124,6 +124,16 @@ class ShapeConfig(BaseModel):
         5, ge=0, description="Step 1: point-to-line refinement steps of each pair's alignment."
     )
     step2_hypotheses: int = Field(3, ge=1, description="Hypotheses run through step 2.")
+    heading_sweep: float = Field(
+        1.2,
+        ge=0,
+        description="Cut-point hypotheses: headings within this of the prior (rad, 0 = off).",
+    )
+    heading_step: float = Field(0.06, gt=0, description="Heading sweep step (rad).")
+    heading_hypotheses: int = Field(2, ge=1, description="Best heading peaks kept.")
+    step2_refinements: int = Field(
+        1, ge=0, description="Step 2 re-runs with the estimate re-fitted on its own matches."
+    )
     support_points: int = Field(120, ge=10, description="Scan points used to score support.")
     support_tolerance: float = Field(
         0.1,
@@ -289,11 +299,7 @@ class ShapeLocalizer:
         explained = matched_len / total_len if total_len > 0 else 0.0
         if len(matches) < cfg.min_matches:
             return self._reject(prior, 0.0, matches, explained, two.ambiguity, reason=2.0)
-        pairs = []
-        for m in matches:
-            pts = np.vstack([P.features[i].points for i in m.scan])
-            segs = [Q.features[j].segments for j in m.map]
-            pairs.append((pts, np.vstack([s for s in segs if s is not None])))
+        pairs = matched_pairs(P, Q, matches)
         fit = pose_from_matches(
             pairs,
             two.estimate,

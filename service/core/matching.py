@@ -29,7 +29,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from service.core.configuration import Configuration, Feature
-from service.core.pose import fit_pairs, transform_points
+from service.core.pose import fit_pairs, pose_from_matches, transform_points
 from service.core.similarity import prepare, shape_alignment, shape_complexity, shape_distance
 from service.core.types import Match, wrap_angle
 
@@ -428,6 +428,21 @@ def match_configurations(
 # --------------------------------------------------------------------------------------------
 
 
+def matched_pairs(
+    P: Configuration, Q: Configuration, matches: Sequence[Match]
+) -> list[tuple[np.ndarray, np.ndarray]]:
+    """For :func:`service.core.pose.pose_from_matches`: per match, the scan points (robot
+    frame) of its scan polylines and the map segments (map frame) of its map polylines."""
+    out = []
+    for m in matches:
+        pts = np.vstack([P.features[i].points for i in m.scan])
+        segs = [Q.features[j].segments for j in m.map]
+        segs = [x for x in segs if x is not None]
+        if segs:
+            out.append((pts, np.vstack(segs)))
+    return out
+
+
 @dataclass
 class TwoStepResult:
     """Result of :func:`two_step_match`.
@@ -573,6 +588,38 @@ def step1_hypotheses(
     return out
 
 
+def heading_hypotheses(
+    Q: Configuration, scan_points: np.ndarray, prior: np.ndarray, config: ShapeConfig
+) -> list[tuple[float, np.ndarray]]:
+    """Plausible cut points of the cyclic order (§5.2): headings at the prior position.
+
+    Turning the robot only rotates the cyclic map view, i.e. moves the point where the cyclic
+    configuration is cut to line up with the scan. Headings within ``config.heading_sweep``
+    radians of the prior, every ``config.heading_step`` radians, are scored by
+    :func:`support`; the ``config.heading_hypotheses`` best local maxima are returned as
+    ``[(support, pose), ...]``.
+    """
+    tree = _view_tree(Q)
+    if tree is None or len(scan_points) == 0:
+        return []
+    offs = np.arange(-config.heading_sweep, config.heading_sweep + 1e-9, config.heading_step)
+    th = prior[2] + offs
+    c, s_ = np.cos(th), np.sin(th)
+    x = c[:, None] * scan_points[None, :, 0] - s_[:, None] * scan_points[None, :, 1] + prior[0]
+    y = s_[:, None] * scan_points[None, :, 0] + c[:, None] * scan_points[None, :, 1] + prior[1]
+    d, _ = tree.query(
+        np.column_stack([x.ravel(), y.ravel()]), k=1, distance_upper_bound=config.support_tolerance
+    )
+    sup = np.isfinite(d).reshape(len(th), -1).mean(axis=1)
+    left = np.concatenate(([-1.0], sup[:-1]))
+    right = np.concatenate((sup[1:], [-1.0]))
+    peaks = np.nonzero((sup >= left) & (sup >= right))[0]
+    peaks = sorted(peaks, key=lambda k: -sup[k])[: config.heading_hypotheses]
+    return [
+        (float(sup[k]), np.array([prior[0], prior[1], float(wrap_angle(th[k]))])) for k in peaks
+    ]
+
+
 def two_step_match(
     P: Configuration,
     Q: Configuration,
@@ -612,6 +659,9 @@ def two_step_match(
     for k, (pose, _s) in enumerate(hyps):
         sup = support(Q, sp, pose, config.support_tolerance)
         scored.append((sup, -k, pose))
+    if config.heading_sweep > 0:
+        for sup, pose in heading_hypotheses(Q, sp, prior, config):
+            scored.append((sup, -len(scored), pose))
     scored.sort(key=lambda t: (t[0], t[1]), reverse=True)
     # keep the best distinct hypotheses (and always the prior if it is competitive)
     picked: list[tuple[float, np.ndarray]] = []
@@ -627,6 +677,19 @@ def two_step_match(
     results = []
     for sup, pose in picked:
         res = match_with_cost(P, Q, pose, config, shape_cost, cache)
+        for _ in range(config.step2_refinements):
+            # Re-estimate the displacement from step 2's own correspondences and match again
+            # against it (ΔA is then measured against a better estimate).
+            if not res.matches:
+                break
+            pose = pose_from_matches(
+                matched_pairs(P, Q, res.matches),
+                pose,
+                iterations=config.pose_iterations,
+                inlier_distance=config.pose_inlier_distance,
+                robust_scale=config.pose_robust_scale,
+            ).pose
+            res = match_with_cost(P, Q, pose, config, shape_cost, cache)
         results.append((res.cost, sup, pose, res))
     results.sort(key=lambda t: t[0])
     best_cost, best_sup, best_pose, best_res = results[0]
