@@ -137,7 +137,7 @@ def plot_tracks(tracks: Sequence[Track], path: Path) -> Path:
         c = colors[k % len(colors)]
         if t.truth:
             seqs = sorted(t.truth)
-            plot_path(ax, np.array([t.truth[s] for s in seqs]), color="k", linewidth=1.0)
+            plot_path(ax, np.array([t.truth[s] for s in seqs]), color=c, linewidth=1.0, alpha=0.6)
         if t.poses:
             est = np.array([p.pose for p in t.poses])
             ax.plot(
@@ -148,7 +148,7 @@ def plot_tracks(tracks: Sequence[Track], path: Path) -> Path:
                 markersize=2.5,
                 label=f"{t.robot_id} ({t.map_spec})",
             )
-    ax.set_title("shapeloc demo: estimates (dots) vs truth (black)")
+    ax.set_title("shapeloc demo: estimates (dots) vs truth (lines)")
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
     ax.legend(loc="upper right", fontsize=8)
@@ -197,8 +197,16 @@ def run_demo(
     workdir: Path,
     method: str = "shape",
     drain_s: float = 15.0,
+    lockstep: bool = True,
+    max_seconds: float = 90.0,
 ) -> tuple[int, list[Track]]:
-    """Run service + simulator, collect poses and truth; returns (exit code, tracks)."""
+    """Run service + simulator, collect poses and truth; returns (exit code, tracks).
+
+    With ``lockstep`` the simulator sends the next scans only when every robot's pose for the
+    previous ones has arrived (nothing is skipped; slower than ``rate`` if the service is);
+    otherwise it publishes at ``rate`` and the service may skip scans (latest wins). The
+    simulator stops after ``scans`` scans or ``max_seconds``, whichever comes first.
+    """
     port = free_port()
     ep = f"tcp/127.0.0.1:{port}"
     env = dict(os.environ, PYTHONUNBUFFERED="1")
@@ -251,14 +259,18 @@ def run_demo(
                     str(rate),
                     "--seed",
                     "7",
+                    "--duration",
+                    str(max_seconds),
+                    *(["--lockstep"] if lockstep else []),
                 ],
                 stdout=sim_log,
                 stderr=subprocess.STDOUT,
                 env=env,
             )
+            pace = "lockstep: every scan localised" if lockstep else "real time: may skip"
             print(
                 f"demo: simulator pid {sim.pid}: {len(ROBOTS)} robots, {scans} scans each "
-                f"at {rate:g} Hz (log {sim_log.name})"
+                f"at <= {rate:g} Hz ({pace}; at most {max_seconds:g} s; log {sim_log.name})"
             )
             last_print = 0.0
             printed = 0
@@ -331,9 +343,18 @@ def run_demo(
 def cli(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``python -m clients.demo``."""
     p = argparse.ArgumentParser(prog="python -m clients.demo", description=__doc__.split("\n")[0])
-    p.add_argument("--scans", type=int, default=240, help="scans per robot (default 240)")
+    p.add_argument("--scans", type=int, default=120, help="scans per robot (default 120)")
     p.add_argument("--rate", type=float, default=4.0, help="scans per second per robot")
     p.add_argument("--method", choices=("shape", "icp", "lines"), default="shape")
+    p.add_argument(
+        "--realtime",
+        action="store_true",
+        help="publish at --rate regardless of the service (it may skip scans); default: "
+        "lockstep, every scan is localised",
+    )
+    p.add_argument(
+        "--max-seconds", type=float, default=90.0, help="stop the simulator after this long"
+    )
     p.add_argument("--out", type=Path, default=Path("out/demo.png"), help="figure path")
     p.add_argument("--keep", action="store_true", help="keep the work directory (logs, state)")
     args = p.parse_args(argv)
@@ -343,7 +364,15 @@ def cli(argv: Sequence[str] | None = None) -> int:
     with tempfile.TemporaryDirectory(prefix="shapeloc-demo-") as tmp:
         workdir = Path(tmp)
         try:
-            code, tracks = run_demo(args.scans, args.rate, args.out, workdir, args.method)
+            code, tracks = run_demo(
+                args.scans,
+                args.rate,
+                args.out,
+                workdir,
+                args.method,
+                lockstep=not args.realtime,
+                max_seconds=args.max_seconds,
+            )
         except ShapelocError as exc:
             print(f"demo: error: {exc}", file=sys.stderr)
             _dump_logs(workdir)
