@@ -391,7 +391,10 @@ def run_experiment(
         for s, m in tasks:
             result.runs[(s, m)] = run_method(setup_objs[s], s, m, tick)
     else:
-        ctx = mp.get_context("spawn")
+        # fork where the platform has it (workers only run numpy code, and a script calling
+        # run_experiment needs no __main__ guard); spawn elsewhere.
+        method = "fork" if "fork" in mp.get_all_start_methods() else "spawn"
+        ctx = mp.get_context(method)
         counter = ctx.Value("q", 0)
         with ProcessPoolExecutor(
             max_workers=min(jobs, len(tasks)),
