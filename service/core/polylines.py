@@ -35,9 +35,9 @@ MIN_OBJECT_DISTANCE = 0.10
 RANGE_FACTOR = 4.0
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Polyline:
-    """One group of consecutive returns, in angular order.
+    """One group of consecutive returns, in angular order (compared and hashed by identity).
 
     ``points`` ``(k, 2)`` float64 metres in the sensor frame; ``idx`` ``(k,)`` int beam indices
     of the points (strictly increasing, except for a polyline joined across the wrap-around of a

@@ -143,3 +143,10 @@ def test_angular_size_across_the_seam() -> None:
     r[-10:] = 2.0  # bearings 170 .. 179 deg
     (pl,) = group_polylines(r, a, wrap=True)
     assert pl.angular_size == pytest.approx(math.radians(20), abs=1e-9)
+
+
+def test_polylines_are_hashable_by_identity() -> None:
+    pls = group_polylines(np.full(361, 2.0), ANGLES)
+    assert len({pls[0], pls[0]}) == 1
+    assert pls[0] == pls[0]
+    assert pls[0] != group_polylines(np.full(361, 2.0), ANGLES)[0]
