@@ -83,35 +83,49 @@ def main(
     with open_session(conf, endpoints) as session:
         client = ShapelocClient(session=session, prefix=options.prefix, timeout=2.0)
         try:
-            if options.wait_service > 0:
-                try:
-                    h = client.wait_for_service(options.wait_service)
-                    log.info("service %s up: %d maps, %d robots", h.version, h.maps, h.robots)
-                except ServiceTimeout as exc:
-                    log.warning("%s; publishing anyway", exc)
-            if options.put_maps:
+            up = options.wait_service > 0 and _wait_service(client, options.wait_service, stop)
+            if options.put_maps and not stop.is_set():
                 for m in fleet.map_messages():
                     try:
-                        client.put_map(m, confirm=options.wait_service > 0)
+                        client.put_map(m, confirm=up)
                     except ServiceTimeout:
-                        log.warning("map %s was put but not confirmed by a service", m.map_id)
+                        log.warning("map %s was put but not confirmed by the service", m.map_id)
                     log.info("map %s (%s, %d polylines)", m.map_id, m.kind, len(m.polylines))
-            if options.configure:
+            if options.configure and not stop.is_set():
                 for r in fleet.robots:
                     client.configure(r.robot_id, r.map_id, r.method, r.config().initial_pose)
                     log.info("robot %s: map %s, method %s", r.robot_id, r.map_id, r.method)
-                if options.wait_service > 0:
-                    for r in fleet.robots:
-                        try:
-                            client.wait_configured(r.robot_id, options.wait_service)
-                        except ServiceTimeout as exc:
-                            log.warning("%s; publishing anyway", exc)
+                for r in fleet.robots if up else []:
+                    if stop.is_set():
+                        break
+                    try:
+                        client.wait_configured(r.robot_id, options.wait_service)
+                    except ServiceTimeout as exc:
+                        log.warning("%s; publishing anyway", exc)
             poses = None
-            if options.lockstep:
+            if options.lockstep and up:
                 poses = client.watch_poses([r.robot_id for r in fleet.robots])
+            elif options.lockstep:
+                log.warning("lockstep needs a service that answers (see --wait-service); off")
             return _publish_loop(session, fleet, options, stop, poses)
         finally:
             client.close()
+
+
+def _wait_service(client: ShapelocClient, within: float, stop: threading.Event) -> bool:
+    """Poll the service's health for up to ``within`` s (or until ``stop``); True if it is up."""
+    end = time.monotonic() + within
+    while not stop.is_set():
+        try:
+            h = client.health()
+            log.info("service %s up: %d maps, %d robots", h.version, h.maps, h.robots)
+            return True
+        except ServiceTimeout:
+            if time.monotonic() >= end:
+                log.warning("no shapeloc service answered within %.1f s; publishing anyway", within)
+                return False
+            stop.wait(0.1)
+    return False
 
 
 def _wait_answers(poses: Stream[PoseMsg], seq: int, ids: set[str], within: float) -> None:
