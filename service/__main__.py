@@ -7,6 +7,7 @@ SIGINT/SIGTERM, then saves the state and closes everything; it returns the exit 
 
 from __future__ import annotations
 
+import faulthandler
 import json
 import logging
 import signal
@@ -46,6 +47,7 @@ def main(settings: ServiceSettings) -> int:
         stop.set()
 
     old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    faulthandler.register(signal.SIGUSR1, all_threads=True)  # kill -USR1: dump thread stacks
     try:
         conf = zenoh_config(settings)
         try:

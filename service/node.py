@@ -18,6 +18,7 @@ Every rejected message produces an :class:`~schemas.messages.ErrorNotice` on
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
 import queue
 import threading
@@ -59,7 +60,9 @@ class Inbound:
     """One received sample, as copied out of a Zenoh callback.
 
     ``payload`` is ``None`` when the callback already rejected it (``reject`` says why);
-    ``t_recv`` is ``time.monotonic()`` seconds at reception.
+    ``t_recv`` is ``time.monotonic()`` seconds at reception. ``ctl`` is the number of control
+    messages (maps, configs) received before it (for a control message: its own number), so a
+    scan is only processed once every map/config received before it has been applied.
     """
 
     key: str
@@ -68,6 +71,7 @@ class Inbound:
     t_recv: float
     delete: bool = False
     reject: str | None = None
+    ctl: int = 0
 
 
 def encoding_name(enc: object) -> str | None:
@@ -178,19 +182,35 @@ class _Link:
             self.node._restart_worker(self)
             return ("err", str(e))
 
+    def _drain_control(self) -> None:
+        while True:
+            try:
+                req, fut = self.control.get_nowait()
+            except queue.Empty:
+                return
+            fut.set_result(self.call(req))
+
+    def _await_control(self, ctl: int, timeout_s: float = 5.0) -> None:
+        """Wait until control message ``ctl`` (and all before it) is applied, serving this
+        worker's control requests meanwhile (the control thread may be waiting on them)."""
+        node = self.node
+        deadline = time.monotonic() + timeout_s
+        while not node._stopping.is_set() and time.monotonic() < deadline:
+            self._drain_control()
+            with node._ctl_cond:
+                if node._ctl_applied >= ctl:
+                    return
+                node._ctl_cond.wait(0.005)
+
     def _run(self) -> None:
         node = self.node
         while not node._stopping.is_set():
-            while True:
-                try:
-                    req, fut = self.control.get_nowait()
-                except queue.Empty:
-                    break
-                fut.set_result(self.call(req))
+            self._drain_control()
             got = self.slots.take(timeout_s=0.5)
             if got is None:
                 continue
             robot_id, inbound = got
+            self._await_control(inbound.ctl)
             try:
                 node._process_scan(self, robot_id, inbound)
             except Exception:  # never let the link die
@@ -235,6 +255,9 @@ class ServiceNode:
         self._control_q: queue.Queue[Inbound | None] = queue.Queue(settings.control_queue_size)
         self._query_q: queue.Queue[Any] = queue.Queue(settings.query_queue_size)
         self._control_overflow = 0
+        self._ctl_received = 0
+        self._ctl_applied = 0
+        self._ctl_cond = threading.Condition()
         self._entities: list[Any] = []
         self._threads: list[threading.Thread] = []
         self.state: StateStore | None = None
@@ -277,11 +300,9 @@ class ServiceNode:
         p = self.prefix
         self._errors_pub = s.declare_publisher(keys.errors_key(p))
         self._entities.append(self._errors_pub)
-        self._entities.append(s.declare_subscriber(keys.maps_wildcard(p), self._on_control))
-        self._entities.append(
-            s.declare_subscriber(keys.robots_wildcard(p, "config"), self._on_control)
-        )
-        self._entities.append(s.declare_subscriber(keys.robots_wildcard(p, "scan"), self._on_scan))
+        # One subscriber for maps, configs and scans: its callback sees them in arrival order,
+        # which keeps "put map, put config, put scan" from one client causal.
+        self._entities.append(s.declare_subscriber(f"{p}/**", self._on_sample))
         for ke in (
             keys.maps_wildcard(p),
             keys.robots_wildcard(p, "pose"),
@@ -400,12 +421,34 @@ class ServiceNode:
             )
 
     # ------------------------------------------------------------------ callbacks
-    def _on_scan(self, sample: Any) -> None:
-        """Zenoh callback: copy the scan into its robot's latest-wins slot (no compute)."""
+    def classify(self, key: str) -> tuple[str, str]:
+        """``("scan" | "control" | "other", robot_id)`` of a key below the prefix."""
+        head = self.prefix + "/"
+        if not key.startswith(head):
+            return ("other", "")
+        parts = key[len(head) :].split("/")
+        if parts[0] == "maps" and len(parts) == 2:
+            return ("control", "")
+        if parts[0] == "robots" and len(parts) == 3:
+            if parts[2] == "scan":
+                return ("scan", parts[1])
+            if parts[2] == "config":
+                return ("control", parts[1])
+        return ("other", "")
+
+    def _on_sample(self, sample: Any) -> None:
+        """Zenoh callback of ``<prefix>/**``: route scans to slots, maps/configs to the control
+        queue, ignore the rest (poses, errors, truth). No decoding, no compute."""
+        kind, robot_id = self.classify(str(sample.key_expr))
+        if kind == "scan":
+            self._on_scan(sample, robot_id)
+        elif kind == "control":
+            self._on_control(sample)
+
+    def _on_scan(self, sample: Any, robot_id: str) -> None:
+        """Copy the scan into its robot's latest-wins slot (no compute)."""
         t = time.monotonic()
         key = str(sample.key_expr)
-        parts = key.rsplit("/", 2)
-        robot_id = parts[-2] if len(parts) == 3 else ""
         if not self.serves(robot_id):
             return
         delete = sample.kind == self._zenoh.SampleKind.DELETE
@@ -418,6 +461,7 @@ class ServiceNode:
             )
         else:
             item = Inbound(key, sample.payload.to_bytes(), encoding_name(sample.encoding), t)
+        item = dataclasses.replace(item, ctl=self._ctl_received)
         if not self._link_of(robot_id).slots.offer(robot_id, item):
             with self._lock:
                 self.scans_rejected += 1
@@ -447,7 +491,8 @@ class ServiceNode:
         if item is None:
             return
         try:
-            self._control_q.put_nowait(item)
+            self._control_q.put_nowait(dataclasses.replace(item, ctl=self._ctl_received + 1))
+            self._ctl_received += 1  # only this callback thread writes it
         except queue.Full:
             with self._lock:
                 self._control_overflow += 1
@@ -550,6 +595,10 @@ class ServiceNode:
                     self.handle_control(item)
                 except Exception:
                     log.exception("unexpected error on %s", item.key)
+                finally:
+                    with self._ctl_cond:
+                        self._ctl_applied = max(self._ctl_applied, item.ctl)
+                        self._ctl_cond.notify_all()
             with self._lock:
                 overflow, self._control_overflow = self._control_overflow, 0
             if overflow:

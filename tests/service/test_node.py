@@ -178,7 +178,7 @@ class Harness:
         """Deliver a sample as Zenoh would (scans via callback, control synchronously)."""
         sample = FakeSample(key, payload, delete, json)
         if key.endswith("/scan"):
-            self.node._on_scan(sample)
+            self.node._on_sample(sample)
         else:
             item = self.node.control_item(sample)
             if item is not None:  # None: another shard's robot, ignored
@@ -472,3 +472,27 @@ def test_shard_filter_ignores_other_robots(tmp_path: Path) -> None:
         assert h.query("shapeloc/robots/b1/pose").errors == []  # the other shard answers
     finally:
         h.node.stop()
+
+
+def test_map_config_scan_in_one_burst_are_causal(harness: Harness) -> None:
+    """Map, config and scan delivered back to back through the real callback: the scan waits
+    until the map and config received before it are applied (no 'unknown robot/map')."""
+    h = harness
+    room = encode(Map(map_id="room", kind="metric", polylines=ROOM))
+    cfg = encode(RobotConfig(map_id="room", method="icp", initial_pose=list(START)))
+    scan = msgpack.packb(h.scan_msg(0, START))
+    for robot in ("c1", "c2", "c3"):
+        h.node._on_sample(FakeSample("shapeloc/maps/room", room))
+        h.node._on_sample(FakeSample(f"shapeloc/robots/{robot}/config", cfg))
+        h.node._on_sample(FakeSample(f"shapeloc/robots/{robot}/scan", scan))
+    wait_for(lambda: all(len(h.poses(r)) == 1 for r in ("c1", "c2", "c3")))
+    assert h.session.notices() == []
+    # keys that are not ours to process are ignored without a notice
+    h.node._on_sample(FakeSample("shapeloc/robots/c1/pose", b"x"))
+    h.node._on_sample(FakeSample("shapeloc/robots/c1/scan/extra", b"x"))
+    h.node._on_sample(FakeSample("shapeloc/service/health", b"x"))
+    time.sleep(0.1)
+    assert h.session.notices() == []
+    assert h.node.classify("shapeloc/maps/m") == ("control", "")
+    assert h.node.classify("shapeloc/robots/r/scan") == ("scan", "r")
+    assert h.node.classify("other/robots/r/scan") == ("other", "")
