@@ -28,7 +28,7 @@ from schemas.errors import (
     UnknownRobot,
     Unreachable,
 )
-from schemas.messages import Health, Map, PoseMsg, RobotConfig, Scan
+from schemas.messages import ErrorNotice, Health, Map, PoseMsg, RobotConfig, Scan, Truth
 from service.core.types import MapData
 
 pytestmark = pytest.mark.timeout(60)
@@ -308,3 +308,39 @@ def test_load_map_file_formats(tmp_path: Path) -> None:
         load_map_file(bad)
     with pytest.raises(InvalidMessage, match="cannot read map file"):
         load_map_file(tmp_path / "missing.json")
+
+
+def test_callbacks_errors_watcher_and_wrapped_session(router) -> None:
+    session, ep = router
+    got_poses: list[str] = []
+    got_truth: list[int] = []
+    with ShapelocClient(session=session) as wrapped:
+        wrapped.watch_poses("r2", callback=lambda m: got_poses.append(m.robot_id))
+        wrapped.watch_truth(["r2"], callback=lambda t: got_truth.append(t.seq))
+        errors = wrapped.errors()
+        time.sleep(0.2)
+        with ShapelocClient(ep) as c:
+            for rid in ("r1", "r2"):
+                msg = PoseMsg(
+                    robot_id=rid,
+                    seq=1,
+                    stamp=0.0,
+                    pose=[0, 0, 0],
+                    status="tracking",
+                    score=1.0,
+                    method="shape",
+                    map_id="m",
+                    latency_ms=1.0,
+                )
+                c.session.put(f"shapeloc/robots/{rid}/pose", encode(msg))
+                c.session.put(
+                    f"shapeloc/robots/{rid}/truth",
+                    encode(Truth(seq=4, stamp=0.0, pose=[1.0, 2.0, 3.0])),
+                )
+            c.session.put(
+                "shapeloc/errors", encode(ErrorNotice(key="shapeloc/robots/x/scan", error="bad"))
+            )
+            assert wait_until(lambda: got_poses == ["r2"] and got_truth == [4])
+            item = errors.get(timeout=2.0)
+        assert item is not None and item[1].error == "bad"
+    assert not session.is_closed()  # a wrapped session belongs to its owner
