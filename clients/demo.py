@@ -38,7 +38,7 @@ ROBOTS: tuple[tuple[str, str, float], ...] = (
     ("sim-2", "metric", 100.0),
 )
 #: Start of each robot as a fraction of the tour (a fixed, reproducible stretch).
-STARTS = (0.05, 0.0, 0.55)
+STARTS = (0.3, 0.0, 0.6)
 PROXIMITY_DEG = 45.0
 
 
