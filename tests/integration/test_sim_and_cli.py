@@ -308,3 +308,26 @@ def test_cli_against_the_real_service(spawn_service, tmp_path: Path, capsys) -> 
     assert r.returncode == 1 and time.monotonic() - t0 < 10.0
     assert r.stderr.startswith("shapeloc: error: cannot reach") and ep in r.stderr
     assert "Traceback" not in r.stderr
+
+
+def test_demo_runs_end_to_end(tmp_path: Path) -> None:
+    png = tmp_path / "demo.png"
+    r = subprocess.run(
+        [sys.executable, "-m", "clients.demo", "--scans", "6", "--out", str(png)],
+        cwd=REPO,
+        env=_env(),
+        capture_output=True,
+        text=True,
+        timeout=180,
+    )
+    assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
+    lines = r.stdout.splitlines()
+    head = lines.index(next(ln for ln in lines if ln.startswith("robot ")))
+    rows = [ln.split() for ln in lines[head + 2 : head + 5]]
+    assert [row[:4] for row in rows] == [
+        ["sim-0", "metric", "6", "6"],
+        ["sim-1", "schematic", "6", "6"],
+        ["sim-2", "metric", "6", "6"],
+    ]
+    assert png.stat().st_size > 10_000
+    assert "demo: ok" in r.stdout
