@@ -13,6 +13,7 @@ import math
 import signal
 import sys
 import threading
+import time
 from collections.abc import Sequence
 
 import zenoh
@@ -165,24 +166,27 @@ def run(args: argparse.Namespace, out: object = None) -> int:
 def _watch(c: ShapelocClient, args: argparse.Namespace, out: object) -> int:
     c.health()
     stop = threading.Event()
+    old = {}
     if threading.current_thread() is threading.main_thread():
-        signal.signal(signal.SIGINT, lambda *_: stop.set())
-        signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    import time
-
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            old[sig] = signal.signal(sig, lambda *_: stop.set())
     end = None if args.seconds is None else time.monotonic() + args.seconds
     n = 0
-    with c.watch_poses(args.robot_id) as stream:
-        while not stop.is_set():
-            if args.count is not None and n >= args.count:
-                break
-            if end is not None and time.monotonic() >= end:
-                break
-            item = stream.get(timeout=0.2)
-            if item is None:
-                continue
-            print(_fmt_pose(item[1]), file=out, flush=True)
-            n += 1
+    try:
+        with c.watch_poses(args.robot_id) as stream:
+            while not stop.is_set():
+                if args.count is not None and n >= args.count:
+                    break
+                if end is not None and time.monotonic() >= end:
+                    break
+                item = stream.get(timeout=0.2)
+                if item is None:
+                    continue
+                print(_fmt_pose(item[1]), file=out, flush=True)
+                n += 1
+    finally:
+        for sig, handler in old.items():
+            signal.signal(sig, handler)
     return 0
 
 

@@ -341,13 +341,15 @@ def cli(argv: Sequence[str] | None = None) -> int:
         log.info("signal %d: stopping", signum)
         stop.set()
 
-    signal.signal(signal.SIGINT, on_signal)
-    signal.signal(signal.SIGTERM, on_signal)
+    old = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
         return main(conf, options, stop, endpoints)
     except (ShapelocError, ValueError) as exc:
         print(f"shapeloc-sim: error: {exc}", file=sys.stderr)
         return 1
+    finally:
+        for sig, handler in old.items():
+            signal.signal(sig, handler)
 
 
 if __name__ == "__main__":

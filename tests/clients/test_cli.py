@@ -263,3 +263,39 @@ def test_demo_accuracy_numbers_from_known_poses() -> None:
     assert "sim-9" in table.splitlines()[2] and "66.7" in table
     empty = Track("sim-8", "schematic", 500.0).row()
     assert empty["poses"] == 0 and np.isnan(empty["pos_mm"])
+
+
+def test_watch_prints_count_poses_then_exits(router, fake_service, capsys) -> None:
+    import threading
+
+    session, ep = router
+    done = threading.Event()
+
+    def publish() -> None:
+        seq = 0
+        while not done.is_set() and seq < 200:
+            for rid in ("r1", "r2"):
+                p = PoseMsg(
+                    robot_id=rid,
+                    seq=seq,
+                    stamp=0.0,
+                    pose=[0.5, 0.25, 0.0],
+                    status="tracking",
+                    score=0.5,
+                    method="icp",
+                    map_id="m",
+                    latency_ms=1.0,
+                )
+                session.put(f"shapeloc/robots/{rid}/pose", encode(p))
+            seq += 1
+            done.wait(0.05)
+
+    th = threading.Thread(target=publish)
+    th.start()
+    try:
+        assert cli(["--connect", ep, "watch", "r2", "--count", "3", "--seconds", "10"]) == 0
+    finally:
+        done.set()
+        th.join()
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert len(lines) == 3 and all(ln.startswith("r2: x=0.500 m y=0.250 m") for ln in lines)

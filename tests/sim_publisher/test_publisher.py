@@ -203,3 +203,22 @@ def test_main_publishes_maps_configs_scans_and_truth_over_zenoh() -> None:
     # the map is put before any configuration, and truth before its scan
     assert keys.index("shapeloc/maps/office") < keys.index("shapeloc/robots/sim-0/config")
     assert keys.index("shapeloc/robots/sim-0/truth") < keys.index("shapeloc/robots/sim-0/scan")
+
+
+def test_map_file_spec_is_loaded_for_the_fleet(tmp_path) -> None:
+    import json
+
+    f = tmp_path / "plan.json"
+    f.write_text(
+        json.dumps(
+            {
+                "map_id": "plan",
+                "kind": "schematic",
+                "polylines": [[[0, 0], [14, 0], [14, 23], [0, 23], [0, 0]]],
+            }
+        )
+    )
+    fleet = SimFleet.from_specs(fleet_specs(1, [str(f)]))
+    assert list(fleet.maps) == ["plan"] and fleet.maps["plan"].kind == "schematic"
+    assert fleet.robots[0].map_id == "plan"
+    assert fleet.map_messages()[0].polylines[0].shape == (5, 2)
