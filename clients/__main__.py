@@ -151,7 +151,7 @@ def run(args: argparse.Namespace, out: object = None) -> int:
                     f"the service holds no map {args.map_id!r} (store it with shapeloc map put)"
                 ) from None
             pose = None if args.global_localization else args.pose
-            c.configure(args.robot_id, args.map_id, args.method, pose)
+            c.configure(args.robot_id, args.map_id, args.method, pose, confirm=True)
             where = "global localisation" if pose is None else f"initial pose {pose}"
             print(
                 f"configured {args.robot_id}: map {args.map_id}, {args.method}, {where}", file=out

@@ -442,7 +442,11 @@ class ShapelocClient:
             got = self.get_map(msg.map_id)
         except (ServiceTimeout, UnknownMap, RemoteError):
             return False
-        return got.kind == msg.kind and len(got.polylines) == len(msg.polylines)
+        return (
+            got.kind == msg.kind
+            and len(got.polylines) == len(msg.polylines)
+            and all(np.array_equal(a, b) for a, b in zip(got.polylines, msg.polylines, strict=True))
+        )
 
     def _confirm(self, check: Callable[[], bool]) -> None:
         end = time.monotonic() + self.timeout
@@ -478,12 +482,52 @@ class ShapelocClient:
         map_id: str,
         method: str = "shape",
         initial_pose: Sequence[float] | np.ndarray | None = None,
+        *,
+        confirm: bool = False,
+        grace: float = 0.5,
     ) -> RobotConfig:
-        """Configure (and reset) a robot: its map, method and initial pose (``None``: global)."""
+        """Configure (and reset) a robot: its map, method and initial pose (``None``: global;
+        map frame, metres and radians).
+
+        With ``confirm``, wait (up to ``timeout``) until the service knows the robot, and raise
+        :class:`RemoteError` if the service publishes an error notice for this configuration
+        meanwhile or within ``grace`` seconds after (best effort for re-configurations: a
+        rejection reported later than that is not seen).
+        """
         pose = None if initial_pose is None else [float(v) for v in np.asarray(initial_pose)]
         msg = RobotConfig(map_id=map_id, method=method, initial_pose=pose)
-        self._put(keys.robot_key(self.prefix, robot_id, "config"), msg)
-        return msg
+        key = keys.robot_key(self.prefix, robot_id, "config")
+        if not confirm:
+            self._put(key, msg)
+            return msg
+        with Stream(
+            self.session, keys.errors_key(self.prefix), ErrorNotice, lambda e: e.key == key
+        ) as notices:
+            self._put(key, msg)
+            end = time.monotonic() + self.timeout
+            known_at = None
+            while True:
+                item = notices.get(timeout=0.05)
+                if item is not None:
+                    raise RemoteError(
+                        f"the service rejected the configuration of {robot_id!r}: {item[1].error}"
+                    )
+                now = time.monotonic()
+                if known_at is None:
+                    try:
+                        self.get_pose(robot_id)
+                        known_at = now
+                    except RemoteError:
+                        known_at = now  # known, e.g. "has no estimate yet"
+                    except UnknownRobot:
+                        pass
+                if known_at is not None and now - known_at >= grace:
+                    return msg
+                if known_at is None and now >= end:
+                    raise ServiceTimeout(
+                        f"the service did not take the configuration of {robot_id!r} within "
+                        f"{self.timeout} s"
+                    )
 
     def send_scan(self, robot_id: str, scan: Scan) -> None:
         """Publish one scan of ``robot_id`` (``put <prefix>/robots/<id>/scan``)."""

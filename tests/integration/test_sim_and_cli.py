@@ -208,6 +208,13 @@ def test_cli_against_the_real_service(spawn_service, tmp_path: Path, capsys) -> 
         == 0
     )
     assert "configured r1: map rooms, icp" in capsys.readouterr().out
+    assert (
+        cli(["--connect", ep, "configure", "r2", "--map", "rooms", "--method", "icp", "--global"])
+        == 1
+    )
+    err = capsys.readouterr().err
+    assert err.startswith("shapeloc: error: the service rejected the configuration of 'r2': ")
+    assert "initial pose" in err and len(err.strip().splitlines()) == 1
 
     # one scan of the 6 m x 4 m room from (1, 2) facing +x, then the pose must be there
     angles = np.linspace(-np.pi / 2, np.pi / 2, 181)
