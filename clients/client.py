@@ -363,8 +363,10 @@ class ShapelocClient:
                     oks.append((str(s.key_expr), s.payload.to_bytes(), _encoding_of(s)))
                 elif reply.err is not None and err is None:
                     payload = reply.err.payload.to_bytes()
-                    if reply.replier_id is None and payload == b"Timeout":
-                        continue  # zenoh's own notice that the query timed out
+                    if payload == b"Timeout":
+                        # zenoh's own notice that the query timed out, from this session or
+                        # from a router on the way (then it carries the router's id)
+                        continue
                     err = _remote_error(key, payload)
         except zenoh.ZError as exc:
             raise Unreachable(f"zenoh request on {key} failed: {exc}") from exc
