@@ -52,6 +52,10 @@ log = logging.getLogger("shapeloc.service")
 
 _MSGPACK = codec.MSGPACK_ENCODING
 
+#: Largest scan payload kept for decoding (bytes): 8192 beams as JSON text fit in ~200 KiB, so
+#: anything bigger is rejected in the callback without copying it.
+MAX_SCAN_BYTES = 512 * 1024
+
 # --------------------------------------------------------------------------- pure helpers
 
 
@@ -255,6 +259,7 @@ class ServiceNode:
         self._control_q: queue.Queue[Inbound | None] = queue.Queue(settings.control_queue_size)
         self._query_q: queue.Queue[Any] = queue.Queue(settings.query_queue_size)
         self._control_overflow = 0
+        self._control_bytes = 0
         self._ctl_received = 0
         self._ctl_applied = 0
         self._ctl_cond = threading.Condition()
@@ -453,19 +458,32 @@ class ServiceNode:
             return
         delete = sample.kind == self._zenoh.SampleKind.DELETE
         size = len(sample.payload)
+        ctl = self._ctl_received
         if delete:
             item = Inbound(key, None, None, t, delete=True, reject="a scan cannot be deleted")
-        elif size > MAX_PAYLOAD_BYTES:
+        elif size > MAX_SCAN_BYTES:
             item = Inbound(
-                key, None, None, t, reject=f"payload of {size} bytes exceeds {MAX_PAYLOAD_BYTES}"
+                key, None, None, t, reject=f"payload of {size} bytes exceeds {MAX_SCAN_BYTES}"
             )
+        elif robot_id not in self.configs and self._ctl_applied >= ctl:
+            # no configuration and none pending: rejected later as UnknownRobot, so the
+            # payload is not kept (bounds the memory unknown robot ids can take)
+            item = Inbound(key, None, None, t)
         else:
             item = Inbound(key, sample.payload.to_bytes(), encoding_name(sample.encoding), t)
-        item = dataclasses.replace(item, ctl=self._ctl_received)
+        item = dataclasses.replace(item, ctl=ctl)
         if not self._link_of(robot_id).slots.offer(robot_id, item):
+            reason = f"service overloaded: more than {self.settings.max_robots} robots pending"
+            self._queue_notice(Inbound(key, None, None, t, reject=reason))
+
+    def _queue_notice(self, item: Inbound) -> None:
+        """Have the control thread publish a rejection decided in a callback."""
+        try:
+            self._control_q.put_nowait(item)
+        except queue.Full:
             with self._lock:
-                self.scans_rejected += 1
-                self.errors["scan.Overloaded"] += 1
+                self._control_overflow += 1
+                self.errors["control.Overloaded"] += 1
 
     def control_item(self, sample: Any) -> Inbound | None:
         """Copy a map/config sample into an :class:`Inbound` (``None``: another shard's robot)."""
@@ -490,7 +508,12 @@ class ServiceNode:
         item = self.control_item(sample)
         if item is None:
             return
+        size = 0 if item.payload is None else len(item.payload)
         try:
+            with self._lock:
+                if self._control_bytes + size > self.settings.control_queue_bytes:
+                    raise queue.Full
+                self._control_bytes += size
             self._control_q.put_nowait(dataclasses.replace(item, ctl=self._ctl_received + 1))
             self._ctl_received += 1  # only this callback thread writes it
         except queue.Full:
@@ -536,6 +559,11 @@ class ServiceNode:
             if cfg is None:
                 raise UnknownRobot(
                     f"robot {robot_id!r} has no configuration; put "
+                    f"{self.prefix}/robots/{robot_id}/config first"
+                )
+            if inbound.payload is None:
+                raise UnknownRobot(
+                    f"scan of robot {robot_id!r} arrived before its configuration; put "
                     f"{self.prefix}/robots/{robot_id}/config first"
                 )
             if not have_map:
@@ -591,6 +619,8 @@ class ServiceNode:
             except queue.Empty:
                 item = None
             if item is not None:
+                with self._lock:
+                    self._control_bytes -= 0 if item.payload is None else len(item.payload)
                 try:
                     self.handle_control(item)
                 except Exception:
@@ -614,10 +644,13 @@ class ServiceNode:
 
     def handle_control(self, item: Inbound) -> None:
         """Apply one map or config put/delete (rejecting it with a notice if invalid)."""
-        what = "map" if "/maps/" in item.key else "config"
+        kind, _rid = self.classify(item.key)
+        what = "scan" if kind == "scan" else "map" if "/maps/" in item.key else "config"
         try:
             if item.reject is not None:
                 raise InvalidMessage(item.reject)
+            if what == "scan":
+                raise InvalidMessage("scan without a reason to reject")  # not reached
             if what == "map":
                 self._handle_map(item)
             else:

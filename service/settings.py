@@ -57,6 +57,7 @@ class ServiceSettings(BaseModel):
     workers: int = Field(default_factory=_default_workers, ge=0, le=64)
     pose_save_interval_s: float = Field(default=5.0, gt=0.0)
     control_queue_size: int = Field(default=1024, ge=1)
+    control_queue_bytes: int = Field(default=64 * 1024 * 1024, ge=1024)
     query_queue_size: int = Field(default=256, ge=1)
     max_robots: int = Field(default=1000, ge=1)
     worker_timeout_s: float = Field(default=30.0, gt=0.0)

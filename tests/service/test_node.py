@@ -23,7 +23,7 @@ from schemas.codec import decode, encode
 from schemas.limits import MAX_PAYLOAD_BYTES
 from schemas.messages import ErrorNotice, Health, Map, PoseMsg, RobotConfig
 from service.core.raycast import RayCaster
-from service.node import LatestSlots, ServiceNode
+from service.node import MAX_SCAN_BYTES, LatestSlots, ServiceNode
 from service.settings import ServiceSettings
 
 ROOM = [[[0.0, 0.0], [6.0, 0.0], [6.0, 4.0], [0.0, 4.0], [0.0, 0.0]], [[2.0, 1.0], [3.0, 1.0]]]
@@ -329,9 +329,15 @@ def test_bad_scans_get_notices_and_good_robot_continues(harness: Harness) -> Non
         (
             "shapeloc/robots/r2/scan",
             msgpack.packb(h.scan_msg(0, START, ranges=[1.0] * 1_000_000)),
-            "ranges",
+            str(MAX_SCAN_BYTES),
+        ),
+        (
+            "shapeloc/robots/r2/scan",
+            msgpack.packb(h.scan_msg(0, START, ranges=[1.0] * 10_000)),
+            "ranges: 10000 elements exceeds",
         ),
         ("shapeloc/robots/r2/scan", b"\x00" * (MAX_PAYLOAD_BYTES + 1), "exceeds"),
+        ("shapeloc/robots/r2/scan", b"\x00" * (MAX_SCAN_BYTES + 1), str(MAX_SCAN_BYTES)),
         (
             "shapeloc/robots/r2/scan",
             msgpack.packb(h.scan_msg(0, START, angle_increment=-0.1)),
