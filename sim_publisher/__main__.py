@@ -128,13 +128,16 @@ def _wait_service(client: ShapelocClient, within: float, stop: threading.Event) 
     return False
 
 
-def _wait_answers(poses: Stream[PoseMsg], seq: int, ids: set[str], within: float) -> None:
-    """Lockstep: block until every robot in ``ids`` has a pose for scan ``seq`` (or later)."""
+def _wait_answers(
+    poses: Stream[PoseMsg], seq: int, ids: set[str], within: float, stop: threading.Event
+) -> None:
+    """Lockstep: block until every robot in ``ids`` has a pose for scan ``seq`` (or later),
+    ``within`` seconds pass, or ``stop`` is set."""
     end = time.monotonic() + within
     missing = set(ids)
-    while missing:
-        item = poses.get(timeout=max(0.0, end - time.monotonic()))
-        if item is None:
+    while missing and not stop.is_set():
+        left = end - time.monotonic()
+        if left <= 0:
             log.warning(
                 "lockstep: no pose for scan %d of %s within %.1f s; going on",
                 seq,
@@ -142,7 +145,8 @@ def _wait_answers(poses: Stream[PoseMsg], seq: int, ids: set[str], within: float
                 within,
             )
             return
-        if item[1].seq >= seq:
+        item = poses.get(timeout=min(left, 0.2))
+        if item is not None and item[1].seq >= seq:
             missing.discard(item[1].robot_id)
 
 
@@ -154,13 +158,21 @@ def _publish_loop(
     poses: Stream[PoseMsg] | None = None,
 ) -> int:
     enc = zenoh.Encoding(MSGPACK_ENCODING)
+    block = zenoh.CongestionControl.BLOCK
+    # Scans may be dropped under congestion like a real sensor's, except in lockstep (a lost
+    # scan would stall it); ground truth is never dropped (it is what results are scored on).
+    scan_cc = block if poses is not None else zenoh.CongestionControl.DROP
     pubs = []
     for r in fleet.robots:
         scan_pub = session.declare_publisher(
-            keys.robot_key(options.prefix, r.robot_id, "scan"), encoding=enc
+            keys.robot_key(options.prefix, r.robot_id, "scan"),
+            encoding=enc,
+            congestion_control=scan_cc,
         )
         truth_pub = session.declare_publisher(
-            keys.robot_key(options.prefix, r.robot_id, "truth"), encoding=enc
+            keys.robot_key(options.prefix, r.robot_id, "truth"),
+            encoding=enc,
+            congestion_control=block,
         )
         pubs.append((r, scan_pub, truth_pub))
     period = 0.0 if options.max_rate else 1.0 / options.rate
@@ -182,7 +194,7 @@ def _publish_loop(
                 scan_pub.put(encode(scan, ranges_as_bytes=True))
             if poses is not None:
                 ids = {r.robot_id for r in fleet.robots}
-                _wait_answers(poses, sent, ids, options.lockstep_timeout)
+                _wait_answers(poses, sent, ids, options.lockstep_timeout, stop)
             sent += 1
             if now - last_report >= 5.0:
                 log.info("%d scans per robot published (%.1f Hz)", sent, sent / (now - t0))
