@@ -215,7 +215,14 @@ def test_kill9_restart_keeps_state(
     s2.put(f"{P}/robots/r1/scan", encode(scan_msg(setup, 55, 6)))
     wait_for(lambda: rec2.count("r1") == 1, 20.0, "pose after restart", svc2)
     assert np.hypot(*(rec2.last("r1").pose[:2] - setup.truth[55][:2])) < 0.2
+    # SIGTERM: clean exit, and the last pose is saved on shutdown (the periodic save is 5 s)
     assert svc2.terminate() == 0
+    s2.close()
+    svc3 = spawn_service(state, endpoint=svc.endpoint)
+    s3 = open_session(svc3.endpoint)
+    replies = list(s3.get(f"{P}/robots/r1/pose", timeout=2.0))
+    assert len(replies) == 1 and replies[0].ok is not None
+    assert decode(PoseMsg, replies[0].ok.payload.to_bytes()).seq == 6
 
 
 def test_corrupt_state_exits_with_message(

@@ -168,7 +168,7 @@ class Harness:
         self.kw = kw
         self.session = FakeSession()
         settings = ServiceSettings(
-            state_dir=tmp / "state", workers=0, instance_id="test-node", **kw
+            **{"state_dir": tmp / "state", "workers": 0, "instance_id": "test-node", **kw}
         )
         self.node = ServiceNode(settings, self.session)
         self.node.start()
@@ -502,3 +502,32 @@ def test_map_config_scan_in_one_burst_are_causal(harness: Harness) -> None:
     assert h.node.classify("shapeloc/maps/m") == ("control", "")
     assert h.node.classify("shapeloc/robots/r/scan") == ("scan", "r")
     assert h.node.classify("other/robots/r/scan") == ("other", "")
+
+
+def test_worker_process_crash_is_survived(tmp_path: Path) -> None:
+    """A killed worker process costs one scan (with a notice); it is restarted with the maps
+    and configs replayed, and the robot keeps tracking from its last pose. ~2 s (spawn)."""
+    import os
+    import signal
+
+    h = Harness(tmp_path, workers=1)
+    try:
+        h.put_map()
+        h.put_config()
+        h.put_scan("r1", 0, START)
+        wait_for(lambda: len(h.poses()) == 1)
+        link = h.node.links[0]
+        old_pid = link.worker.pid  # type: ignore[union-attr]
+        assert old_pid is not None and old_pid != os.getpid()
+        os.kill(old_pid, signal.SIGKILL)
+        h.put_scan("r1", 1, START)
+        notes = _wait_notices(h, 1)
+        assert "died" in notes[-1].error
+        assert link.worker.pid != old_pid  # type: ignore[union-attr]
+        p = START + np.array([0.02, 0.0, 0.0])
+        h.put_scan("r1", 2, p)
+        wait_for(lambda: len(h.poses()) == 2)
+        assert h.poses()[-1].seq == 2
+        assert np.linalg.norm(h.poses()[-1].pose[:2] - p[:2]) < 0.05
+    finally:
+        h.node.stop()
