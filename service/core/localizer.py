@@ -151,6 +151,18 @@ class ShapeConfig(BaseModel):
     pose_robust_scale: float = Field(
         0.03, gt=0, description="Cauchy scale of the pose fit (m). Schematic: 0.08."
     )
+    pose_prior_weight: float = Field(
+        0.0,
+        ge=0,
+        description="Pull of the position towards the prior in the pose fit "
+        "(equivalent pinned points); matters only along unobservable directions.",
+    )
+    prior_distance_weight: float = Field(
+        1.0,
+        ge=0,
+        description="Cost per metre between a step-2 hypothesis and the prior "
+        "position, added when ranking hypotheses.",
+    )
     # --- quality / status ------------------------------------------------------------------
     min_matches: int = Field(2, ge=1, description="Fewer matched pairs: the scan is rejected.")
     min_explained: float = Field(
@@ -167,6 +179,15 @@ class ShapeConfig(BaseModel):
     )
     lost_after: int = Field(3, ge=1, description="Consecutive rejected scans before 'lost'.")
     use_odometry: bool = Field(False, description="Seed the prior with the odometry delta.")
+    extrapolate: bool = Field(
+        True,
+        description="Seed the prior position with the localiser's own recent translation per "
+        "scan (no odometry): where a corridor leaves the position along it unobservable the "
+        "estimate keeps moving instead of lagging behind.",
+    )
+    velocity_smoothing: float = Field(
+        0.5, ge=0, le=1, description="Weight of the newest translation in the velocity average."
+    )
 
     @classmethod
     def for_kind(cls, kind: str) -> ShapeConfig:
@@ -249,11 +270,14 @@ class ShapeLocalizer:
         self._pose = None if initial_pose is None else _check_pose(initial_pose, "initial_pose")
         self._last_odom = None
         self._rejected = 0
+        self._velocity = np.zeros(2)
         self._views.clear()
 
     def _prior(self, odom: np.ndarray | None) -> np.ndarray:
         assert self._pose is not None
         prior = self._pose
+        if self.config.extrapolate:
+            prior = np.array([prior[0] + self._velocity[0], prior[1] + self._velocity[1], prior[2]])
         if odom is not None:
             o = _check_pose(odom, "odom")
             if self.config.use_odometry and self._last_odom is not None:
@@ -306,6 +330,8 @@ class ShapeLocalizer:
             iterations=cfg.pose_iterations,
             inlier_distance=cfg.pose_inlier_distance,
             robust_scale=cfg.pose_robust_scale,
+            prior=prior,
+            prior_weight=cfg.pose_prior_weight,
         )
         sup = support(
             Q,
@@ -327,6 +353,12 @@ class ShapeLocalizer:
             return self._reject(
                 prior, score, matches, explained, two.ambiguity, reason=3.0, extras=extras
             )
+        v = fit.pose[:2] - self._pose[:2]
+        a = cfg.velocity_smoothing
+        self._velocity = (1.0 - a) * self._velocity + a * v
+        vn = float(np.hypot(*self._velocity))
+        if vn > 0.5 * cfg.max_step:
+            self._velocity *= 0.5 * cfg.max_step / vn
         self._pose = fit.pose.copy()
         self._rejected = 0
         return Estimate(
@@ -353,6 +385,7 @@ class ShapeLocalizer:
         """The scan could not be matched well: keep the prior, count towards 'lost'."""
         self._rejected += 1
         self._pose = prior.copy()
+        self._velocity *= 0.5  # do not coast on while nothing confirms the motion
         status: Status = "lost" if self._rejected >= self.config.lost_after else "tracking"
         return Estimate(
             pose=prior.copy(),

@@ -688,9 +688,14 @@ def two_step_match(
                 iterations=config.pose_iterations,
                 inlier_distance=config.pose_inlier_distance,
                 robust_scale=config.pose_robust_scale,
+                prior=prior,
+                prior_weight=config.pose_prior_weight,
             ).pose
             res = match_with_cost(P, Q, pose, config, shape_cost, cache)
-        results.append((res.cost, sup, pose, res))
+        # Motion continuity: a hypothesis far from the prior position pays for the distance
+        # (weighted like eq. 4's ||dt||); decides between poses a corridor cannot tell apart.
+        rank = res.cost + config.prior_distance_weight * float(np.hypot(*(pose[:2] - prior[:2])))
+        results.append((rank, sup, pose, res))
     results.sort(key=lambda t: t[0])
     best_cost, best_sup, best_pose, best_res = results[0]
     ambiguity = 0.0

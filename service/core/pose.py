@@ -159,6 +159,8 @@ def pose_from_matches(
     robust_scale: float = 0.05,
     damping: float = 1e-3,
     tol: float = 1e-6,
+    prior: np.ndarray | None = None,
+    prior_weight: float = 0.0,
 ) -> PoseFit:
     """Robot pose from matched polyline pairs by least squares over points of the pairs.
 
@@ -171,6 +173,10 @@ def pose_from_matches(
     increment (Gauss-Newton with a small Levenberg ``damping`` so that degenerate geometry —
     a single straight wall — keeps the estimate along the free direction). Stops when the
     increment is below ``tol`` (m and rad) or after ``iterations``.
+
+    ``prior`` ``[x, y, theta]`` with ``prior_weight`` > 0 adds a weak pull of the position
+    towards the prior's (as if ``prior_weight`` fully weighted points pinned it): it only
+    matters where the matched geometry leaves a direction unobservable (a corridor).
 
     Raises :class:`LocalizationError` when no pair has points and segments.
     """
@@ -211,6 +217,11 @@ def pose_from_matches(
         J = np.column_stack([n[:, 0], n[:, 1], n[:, 1] * lever[:, 0] - n[:, 0] * lever[:, 1]])
         H = (J * w[:, None]).T @ J
         g = (J * w[:, None]).T @ r
+        if prior is not None and prior_weight > 0.0:
+            H[0, 0] += prior_weight
+            H[1, 1] += prior_weight
+            g[0] += prior_weight * (pose[0] - prior[0])
+            g[1] += prior_weight * (pose[1] - prior[1])
         scale = max(float(np.trace(H)) / 3.0, 1e-12)
         delta = -np.linalg.solve(H + damping * scale * np.eye(3), g)
         # Increment of the pose parameters themselves (q = R(theta) p + t, derivatives at fixed t).
