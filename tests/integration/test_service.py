@@ -18,7 +18,7 @@ import pytest
 import zenoh
 
 from schemas.codec import decode, encode
-from schemas.messages import ErrorNotice, Map, PoseMsg, RobotConfig, Scan
+from schemas.messages import ErrorNotice, Health, Map, PoseMsg, RobotConfig, Scan
 from service.core.factory import create_localizer
 from sim_publisher.office import map_message, office_metric_map, office_schematic_map
 from sim_publisher.scenario import make_setup
@@ -327,3 +327,59 @@ def test_garbage_flood_does_not_stop_good_robot(
     last = rec.last("good")
     assert np.hypot(*(last.pose[:2] - setup.truth[last.seq][:2])) < 0.2
     assert svc.proc.poll() is None
+
+
+def test_two_shards_split_the_robots(
+    tmp_path: Path,
+    spawn_service: Callable[..., Any],
+    open_session: Any,
+) -> None:
+    """``--robots a$*`` and ``--robots b$*`` on two peered services: each robot is served by
+    exactly one of them; a robot of neither shard gets no answer and no notice."""
+    sa = spawn_service(tmp_path / "a", "--robots", "a$*", "--instance-id", "A", workers=0)
+    sb = spawn_service(
+        tmp_path / "b",
+        "--robots",
+        "b$*",
+        "--instance-id",
+        "B",
+        "--connect",
+        sa.endpoint,
+        workers=0,
+    )
+    s = open_session(sa.endpoint)
+    rec = Recorder(s)
+    none = zenoh.QueryConsolidation(zenoh.ConsolidationMode.NONE)
+
+    def healths() -> dict[str, Any]:
+        out = {}
+        for r in s.get(f"{P}/service/health", timeout=2.0, consolidation=none):
+            if r.ok is not None:
+                h = decode(Health, r.ok.payload.to_bytes())
+                out[h.instance_id] = h
+        return out
+
+    setup = make_setup(1, seed=4, max_scans=5)
+
+    def both_have_map() -> bool:  # routes between peers take a moment to converge
+        put_map(s, office_metric_map(), "office")
+        time.sleep(0.2)
+        hs = healths()
+        return set(hs) == {"A", "B"} and all(h.maps == 1 for h in hs.values())
+
+    wait_for(both_have_map, 20.0, "both shards to store the map", sb)
+    for rid in ("a1", "b1", "b2"):
+        put_config(s, rid, "office", "icp", setup.truth[0])
+    wait_for(
+        lambda: healths().get("B") is not None and healths()["B"].robots == 2, 20.0, "configs", sb
+    )
+    for rid in ("a1", "b1", "b2", "c1"):
+        s.put(f"{P}/robots/{rid}/scan", encode(scan_msg(setup, 0, 0)))
+    wait_for(lambda: all(rec.count(r) == 1 for r in ("a1", "b1", "b2")), 20.0, "poses", sb)
+    time.sleep(0.5)
+    hs = healths()
+    assert (hs["A"].robots, hs["A"].scans_processed) == (1, 1)
+    assert (hs["B"].robots, hs["B"].scans_processed) == (2, 2)
+    assert all(rec.count(r) == 1 for r in ("a1", "b1", "b2"))  # exactly one answer each
+    assert rec.count("c1") == 0 and rec.notices == []  # c1 is nobody's: silently ignored
+    assert [r.ok is not None for r in s.get(f"{P}/robots/b1/pose", timeout=2.0)] == [True]

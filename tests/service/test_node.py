@@ -531,3 +531,19 @@ def test_worker_process_crash_is_survived(tmp_path: Path) -> None:
         assert np.linalg.norm(h.poses()[-1].pose[:2] - p[:2]) < 0.05
     finally:
         h.node.stop()
+
+
+def test_config_delete_forgets_robot(harness: Harness) -> None:
+    h = harness
+    h.put_map()
+    h.put_config()
+    h.put_scan("r1", 0, START)
+    wait_for(lambda: len(h.poses()) == 1)
+    h.put("shapeloc/robots/r1/config", b"", delete=True)
+    assert h.node.configs == {} and h.health().robots == 0
+    assert h.node.state is not None and h.node.state.robots() == {}
+    assert b"unknown robot" in h.query("shapeloc/robots/r1/pose").errors[0]
+    h.put_scan("r1", 1, START)
+    assert "UnknownRobot" in _wait_notices(h, 1)[-1].error
+    h.put("shapeloc/robots/r1/config", b"", delete=True)
+    assert "unknown robot" in _wait_notices(h, 2)[-1].error
