@@ -179,6 +179,12 @@ def test_icp_errors_and_lost_status() -> None:
         loc.update(np.ones(3), np.array([0.0, np.nan, 1.0]))
     with pytest.raises(LocalizationError, match="ICPConfig"):
         ICPLocalizer(m, np.zeros(3), config={"cell_size": 0.1})  # type: ignore[arg-type]
+    with pytest.raises(LocalizationError, match="gate_final"):
+        ICPLocalizer(m, np.zeros(3), ICPConfig(gate_initial=0.1, gate_final=0.2))
+    with pytest.raises(LocalizationError, match=r"\[x, y, theta\]"):
+        ICPLocalizer(m, np.zeros(2))
+    with pytest.raises(LocalizationError, match="odom"):
+        loc.update(np.ones(3), np.zeros(3), odom=np.array([0.0, np.inf, 0.0]))
     est = loc.update(np.full(50, np.nan), np.linspace(-1, 1, 50))
     assert est.status == "lost"
     assert est.score == 0.0
