@@ -46,7 +46,7 @@ from service import __version__
 from service.core.types import MapData
 from service.settings import ServiceSettings
 from service.state import SavedPose, StateStore
-from service.workers import InlineWorker, ProcessWorker, WorkerDiedError, shard_of
+from service.workers import Assignment, InlineWorker, ProcessWorker, WorkerDiedError
 
 log = logging.getLogger("shapeloc.service")
 
@@ -267,6 +267,7 @@ class ServiceNode:
         self._threads: list[threading.Thread] = []
         self.state: StateStore | None = None
         self.links: list[_Link] = []
+        self.assignment = Assignment(1)
 
     # ------------------------------------------------------------------ lifecycle
     def _new_worker(self, index: int) -> ProcessWorker | InlineWorker:
@@ -279,6 +280,7 @@ class ServiceNode:
         self.state = StateStore(self.settings.state_dir)
         n = max(1, self.settings.workers)
         self.links = [_Link(self, i) for i in range(n)]
+        self.assignment = Assignment(n)
         self._restore()
         for link in self.links:
             link.thread.start()
@@ -381,7 +383,7 @@ class ServiceNode:
                     latency_ms=0.0,
                 )
             self.configs[robot_id] = cfg
-            link = self._link_of(robot_id)
+            link = self.links[self.assignment.assign(robot_id)]
             st, why = link.worker.call(
                 ("config", robot_id, cfg.method, cfg.map_id, _lst(cfg.initial_pose), start),
                 self.settings.worker_timeout_s,
@@ -403,7 +405,7 @@ class ServiceNode:
         return hit
 
     def _link_of(self, robot_id: str) -> _Link:
-        return self.links[shard_of(robot_id, len(self.links))]
+        return self.links[self.assignment.index_of(robot_id)]
 
     def _restart_worker(self, link: _Link) -> None:
         with contextlib.suppress(Exception):
@@ -548,6 +550,10 @@ class ServiceNode:
     # ------------------------------------------------------------------ scans
     def _process_scan(self, link: _Link, robot_id: str, inbound: Inbound) -> None:
         key = inbound.key
+        owner = self._link_of(robot_id)
+        if owner is not link:  # assigned to another worker after the scan was queued here
+            owner.slots.offer(robot_id, inbound)
+            return
         if inbound.reject is not None:
             self.reject(key, "scan", InvalidMessage(inbound.reject))
             return
@@ -696,7 +702,6 @@ class ServiceNode:
     def _handle_config(self, item: Inbound) -> None:
         assert self.state is not None
         robot_id, _leaf = keys.parse_robot_key(self.prefix, item.key)
-        link = self._link_of(robot_id)
         if item.delete:
             with self._lock:
                 known = robot_id in self.configs
@@ -708,8 +713,10 @@ class ServiceNode:
                 self.configs.pop(robot_id, None)
                 self.poses.pop(robot_id, None)
                 self._dirty.discard(robot_id)
+            link = self._link_of(robot_id)
             link.slots.discard(robot_id)
             link.submit(("forget", robot_id)).result()
+            self.assignment.release(robot_id)
             return
         assert item.payload is not None
         cfg = codec.decode(RobotConfig, item.payload, item.encoding)
@@ -723,10 +730,14 @@ class ServiceNode:
                 raise InvalidMessage(
                     f"robot limit reached ({self.settings.max_robots}); {robot_id!r} refused"
                 )
+        new = robot_id not in self.configs
+        link = self.links[self.assignment.assign(robot_id)]
         status, why = link.submit(
             ("config", robot_id, cfg.method, cfg.map_id, _lst(cfg.initial_pose), None)
         ).result(timeout=self.settings.worker_timeout_s * 2 + 5)
         if status != "ok":
+            if new:
+                self.assignment.release(robot_id)
             raise LocalizationError(f"robot {robot_id!r}: {why}")
         self.state.put_robot(robot_id, cfg.to_wire())
         log.info(

@@ -25,6 +25,7 @@ from schemas.messages import ErrorNotice, Health, Map, PoseMsg, RobotConfig
 from service.core.raycast import RayCaster
 from service.node import MAX_SCAN_BYTES, LatestSlots, ServiceNode
 from service.settings import ServiceSettings
+from service.workers import Assignment, shard_of
 
 ROOM = [[[0.0, 0.0], [6.0, 0.0], [6.0, 4.0], [0.0, 4.0], [0.0, 0.0]], [[2.0, 1.0], [3.0, 1.0]]]
 ANGLES = np.linspace(-np.pi / 2, np.pi / 2, 181)
@@ -71,6 +72,19 @@ def test_slots_take_wakes_on_offer_and_kick() -> None:
     t = time.monotonic()
     assert s.take(5.0) is None
     assert time.monotonic() - t < 2.0
+
+
+def test_assignment_balances_and_sticks() -> None:
+    a = Assignment(2)
+    assert [a.assign(f"b2-{i}") for i in range(2)] == [0, 1]  # hashing put both on 1
+    assert [a.assign(r) for r in ("x", "y", "z")] == [0, 1, 0]
+    assert a.assign("b2-1") == 1 and a.load() == [3, 2]  # sticky
+    a.release("x")
+    a.release("x")
+    assert a.load() == [2, 2]
+    assert a.assign("w") == 0
+    assert a.index_of("never-configured") == shard_of("never-configured", 2)
+    assert shard_of("r", 3) == shard_of("r", 3) and 0 <= shard_of("r", 3) < 3
 
 
 # --------------------------------------------------------------------------- fake zenoh
