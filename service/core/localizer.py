@@ -125,7 +125,7 @@ class ShapeConfig(BaseModel):
     )
     step2_hypotheses: int = Field(3, ge=1, description="Hypotheses run through step 2.")
     heading_sweep: float = Field(
-        1.2,
+        1.3,
         ge=0,
         description="Cut-point hypotheses: headings within this of the prior (rad, 0 = off).",
     )
@@ -176,6 +176,12 @@ class ShapeConfig(BaseModel):
         gt=0,
         description="Largest travel between two scans (m): farther step-1 hypotheses and "
         "pose jumps are rejected.",
+    )
+    max_turn: float = Field(
+        1.3,
+        gt=0,
+        description="Largest turn between two scans (rad): farther-turned hypotheses and "
+        "poses are rejected.",
     )
     lost_after: int = Field(3, ge=1, description="Consecutive rejected scans before 'lost'.")
     use_odometry: bool = Field(False, description="Seed the prior with the odometry delta.")
@@ -348,7 +354,13 @@ class ShapeLocalizer:
             "step1_hypotheses": float(two.hypotheses),
             "eq5_cost": two.match.cost,
         }
-        if explained < cfg.min_explained or sup < cfg.min_support or step > cfg.max_step:
+        turn = abs(float(wrap_angle(fit.pose[2] - prior[2])))
+        if (
+            explained < cfg.min_explained
+            or sup < cfg.min_support
+            or step > cfg.max_step
+            or turn > cfg.max_turn
+        ):
             extras["step"] = step
             return self._reject(
                 prior, score, matches, explained, two.ambiguity, reason=3.0, extras=extras

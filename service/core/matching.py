@@ -602,7 +602,8 @@ def heading_hypotheses(
     tree = _view_tree(Q)
     if tree is None or len(scan_points) == 0:
         return []
-    offs = np.arange(-config.heading_sweep, config.heading_sweep + 1e-9, config.heading_step)
+    sweep = min(config.heading_sweep, config.max_turn)
+    offs = np.arange(-sweep, sweep + 1e-9, config.heading_step)
     th = prior[2] + offs
     c, s_ = np.cos(th), np.sin(th)
     x = c[:, None] * scan_points[None, :, 0] - s_[:, None] * scan_points[None, :, 1] + prior[0]
@@ -648,12 +649,13 @@ def two_step_match(
     sp = _subsample(scan_points, config.support_points)
     hyps = [(prior, 0.0)]
     if config.two_step:
-        # The robot cannot have moved farther than max_step since the prior (§5.2: views
-        # differ little if the robot has not travelled too far); the rotation is free.
+        # The robot cannot have moved farther than max_step nor turned more than max_turn
+        # since the prior (§5.2: views differ little if the robot has not travelled far).
         hyps += [
             (h, s)
             for h, s in step1_hypotheses(P, Q, prior, config, cache)
             if np.hypot(*(h[:2] - prior[:2])) <= config.max_step
+            and abs(wrap_angle(h[2] - prior[2])) <= config.max_turn
         ]
     scored = []
     for k, (pose, _s) in enumerate(hyps):
