@@ -53,9 +53,11 @@ def main(settings: ServiceSettings) -> int:
         try:
             session = zenoh.open(conf)
         except Exception as e:
+            where = f"connect {settings.connect}"
+            if settings.mode != "client":
+                where = f"listen {settings.listen}, {where}"
             raise Unreachable(
-                f"cannot open Zenoh session (mode {settings.mode}, listen {settings.listen}, "
-                f"connect {settings.connect}): {e}"
+                f"cannot open Zenoh session (mode {settings.mode}, {where}): {e}"
             ) from e
         with session:
             node = ServiceNode(settings, session)

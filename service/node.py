@@ -371,17 +371,20 @@ class ServiceNode:
             start = None
             if sp is not None and sp.map_id == cfg.map_id:
                 start = list(sp.pose)
-                self.poses[robot_id] = PoseMsg(
-                    robot_id=robot_id,
-                    seq=sp.seq,
-                    stamp=sp.stamp,
-                    pose=start,
-                    status=sp.status,
-                    score=0.0,
-                    method=cfg.method,
-                    map_id=cfg.map_id,
-                    latency_ms=0.0,
-                )
+                try:
+                    self.poses[robot_id] = PoseMsg(
+                        robot_id=robot_id,
+                        seq=sp.seq,
+                        stamp=sp.stamp,
+                        pose=start,
+                        status=sp.status,
+                        score=0.0,
+                        method=cfg.method,
+                        map_id=cfg.map_id,
+                        latency_ms=0.0,
+                    )
+                except ShapelocError as e:
+                    raise StateError(f"stored pose of robot {robot_id!r} is invalid: {e}") from e
             self.configs[robot_id] = cfg
             link = self.links[self.assignment.assign(robot_id)]
             st, why = link.worker.call(

@@ -561,3 +561,22 @@ def test_config_delete_forgets_robot(harness: Harness) -> None:
     assert "UnknownRobot" in _wait_notices(h, 1)[-1].error
     h.put("shapeloc/robots/r1/config", b"", delete=True)
     assert "unknown robot" in _wait_notices(h, 2)[-1].error
+
+
+def test_invalid_stored_pose_is_a_state_error(tmp_path: Path) -> None:
+    import sqlite3
+
+    from schemas.errors import StateError
+
+    h = Harness(tmp_path)
+    h.put_map()
+    h.put_config()
+    h.put_scan("r1", 0, START)
+    wait_for(lambda: len(h.poses()) == 1)
+    h.node.stop()
+    db = sqlite3.connect(tmp_path / "state" / "shapeloc.sqlite3")
+    db.execute("UPDATE poses SET status='teleported'")
+    db.commit()
+    db.close()
+    with pytest.raises(StateError, match="stored pose of robot 'r1'"):
+        Harness(tmp_path)
