@@ -123,6 +123,17 @@ class ShapeConfig(BaseModel):
     step1_refine_iterations: int = Field(
         5, ge=0, description="Step 1: point-to-line refinement steps of each pair's alignment."
     )
+    fast_support: float = Field(
+        0.9,
+        ge=0,
+        le=1.01,
+        description="If the prior explains this fraction of the scan, skip step 1 and the "
+        "heading sweep (small motion). Schematic: 1.01 (never; furniture is missing).",
+    )
+    fast_sweep: float = Field(
+        0.2, ge=0, description="Fast path: heading sweep half-width around the prior (rad)."
+    )
+    fast_step: float = Field(0.005, gt=0, description="Fast path: heading sweep step (rad).")
     step2_hypotheses: int = Field(3, ge=1, description="Hypotheses run through step 2.")
     heading_sweep: float = Field(
         1.3,
@@ -208,6 +219,7 @@ class ShapeConfig(BaseModel):
                 shape_skip_weight=0.1,
                 align_robust_scale=0.2,
                 support_tolerance=0.25,
+                fast_support=1.01,
                 pose_inlier_distance=0.4,
                 pose_robust_scale=0.08,
             )
@@ -322,7 +334,9 @@ class ShapeLocalizer:
         if len(P) == 0 or len(Q) == 0:
             return self._reject(prior, 0.0, (), 0.0, None, reason=1.0)
         scan_pts = np.vstack([f.points for f in P.features])
-        two = two_step_match(P, Q, prior, cfg, scan_pts)
+        # While scans are rejected the robot keeps moving: widen the admissible step.
+        max_step = cfg.max_step * (1 + self._rejected)
+        two = two_step_match(P, Q, prior, cfg, scan_pts, max_step=max_step)
         matches = tuple(two.match.matches)
         total_len = sum(f.length for f in P.features)
         matched_len = sum(P.features[i].length for m in matches for i in m.scan)
@@ -358,7 +372,7 @@ class ShapeLocalizer:
         if (
             explained < cfg.min_explained
             or sup < cfg.min_support
-            or step > cfg.max_step
+            or step > max_step
             or turn > cfg.max_turn
         ):
             extras["step"] = step

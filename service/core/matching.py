@@ -312,42 +312,26 @@ def match_with_cost(
                     break
                 if single[i_e, j_e]:
                     cand.append((int(i_s), int(i_e), int(j_s), int(j_e)))
-    # Shape distance S* per candidate block, gated.
-    kept: list[tuple[int, int, int, int]] = []
-    sdist: list[float] = []
-    for i_s, i_e, j_s, j_e in cand:
-        if i_s == i_e:
-            pa = _shape_arcs(P.features[i_s], P.features[i_s].vertices, cache)
-        else:
-            pa = _shape_arcs(
-                ("P", id(P), i_s, i_e), _concat(P.features[i_s : i_e + 1], "vertices"), cache
-            )
-        if j_s == j_e:
-            qa = _shape_arcs(Qf[j_s], Qf[j_s].vertices, cache)
-        else:
-            qf = Qf[j_s : j_e + 1]
-            qa = _shape_arcs(("Q", *tuple(id(f) for f in qf)), _concat(qf, "vertices"), cache)
-        skey = ("S", id(pa), id(qa))
-        s = cache.get(skey)
-        if s is None:
-            s = float(sd(pa, qa))
-            cache[skey] = s
-        if s <= config.max_shape_distance:
-            kept.append((i_s, i_e, j_s, j_e))
-            sdist.append(s)
-    if not kept:
+    if not cand:
         cost, _ = order_preserving_dp(skip_p, skip_q, {})
         return ConfigurationMatch(matches=[], cost=cost)
-    # Induced alignment of every kept block (vectorised point-to-line fit from the estimate).
+    # Induced alignment of every candidate block (vectorised point-to-line fit from the
+    # estimate) and its ΔA (eq. 4) at the block's centroid; the ΔA gate comes first because it
+    # is cheap for all blocks at once, S* only for the survivors.
     k_pts = max(3, config.align_points // 2)
     pts = []
     segs = []
-    for i_s, i_e, j_s, j_e in kept:
+    for i_s, i_e, j_s, j_e in cand:
         if i_s == i_e:
             pts.append(_feature_sample(P.features[i_s], k_pts))
         else:
             pts.append(np.vstack([_feature_sample(f, k_pts) for f in P.features[i_s : i_e + 1]]))
-        segs.append(np.vstack([f.segments for f in Qf[j_s : j_e + 1] if f.segments is not None]))
+        if j_s == j_e and Qf[j_s].segments is not None:
+            segs.append(Qf[j_s].segments)
+        else:
+            segs.append(
+                np.vstack([f.segments for f in Qf[j_s : j_e + 1] if f.segments is not None])
+            )
     poses, _rms = fit_pairs(
         pts,
         segs,
@@ -356,7 +340,6 @@ def match_with_cost(
         robust_scale=config.align_robust_scale,
         damping=config.align_damping,
     )
-    # ΔA (eq. 4) at each block's centroid, vectorised.
     cen = np.array([p.mean(axis=0) for p in pts])
     c_h, s_h = np.cos(poses[:, 2]), np.sin(poses[:, 2])
     c_e, s_e = np.cos(est[2]), np.sin(est[2])
@@ -370,13 +353,30 @@ def match_with_cost(
     dA = np.hypot(dx, dy) + config.rotation_weight * dphi
     blocks: Blocks = {}
     info: dict[tuple[int, int, int, int], tuple[float, float, np.ndarray]] = {}
-    for k, key in enumerate(kept):
-        if dA[k] > config.max_consistency:
+    for k in np.nonzero(dA <= config.max_consistency)[0]:
+        i_s, i_e, j_s, j_e = cand[k]
+        # Shape distance S* of the block pair (cached per concatenation), gated.
+        if i_s == i_e:
+            pa = _shape_arcs(P.features[i_s], P.features[i_s].vertices, cache)
+        else:
+            pa = _shape_arcs(
+                ("P", id(P), i_s, i_e), _concat(P.features[i_s : i_e + 1], "vertices"), cache
+            )
+        if j_s == j_e:
+            qa = _shape_arcs(Qf[j_s], Qf[j_s].vertices, cache)
+        else:
+            qf = Qf[j_s : j_e + 1]
+            qa = _shape_arcs(("Q", *(id(f) for f in qf)), _concat(qf, "vertices"), cache)
+        skey = ("S", id(pa), id(qa))
+        sdist = cache.get(skey)
+        if sdist is None:
+            sdist = float(sd(pa, qa))
+            cache[skey] = sdist
+        if sdist > config.max_shape_distance:
             continue
-        i_s, i_e, j_s, j_e = key
-        cost = sdist[k] + config.consistency_weight * float(dA[k])
+        cost = sdist + config.consistency_weight * float(dA[k])
         blocks.setdefault((i_e, j_e), []).append((i_s, j_s, cost))
-        info[key] = (sdist[k], float(dA[k]), poses[k])
+        info[cand[k]] = (sdist, float(dA[k]), poses[k])
     total, path = order_preserving_dp(skip_p, skip_q, blocks)
     matches = []
     induced = []
@@ -589,21 +589,28 @@ def step1_hypotheses(
 
 
 def heading_hypotheses(
-    Q: Configuration, scan_points: np.ndarray, prior: np.ndarray, config: ShapeConfig
+    Q: Configuration,
+    scan_points: np.ndarray,
+    prior: np.ndarray,
+    config: ShapeConfig,
+    sweep: float | None = None,
+    step: float | None = None,
 ) -> list[tuple[float, np.ndarray]]:
     """Plausible cut points of the cyclic order (§5.2): headings at the prior position.
 
     Turning the robot only rotates the cyclic map view, i.e. moves the point where the cyclic
-    configuration is cut to line up with the scan. Headings within ``config.heading_sweep``
-    radians of the prior, every ``config.heading_step`` radians, are scored by
-    :func:`support`; the ``config.heading_hypotheses`` best local maxima are returned as
-    ``[(support, pose), ...]``.
+    configuration is cut to line up with the scan. Headings within ``sweep`` (default
+    ``config.heading_sweep``, at most ``config.max_turn``) radians of the prior, every ``step``
+    (default ``config.heading_step``) radians, are scored by :func:`support`; the
+    ``config.heading_hypotheses`` best local maxima are returned as ``[(support, pose), ...]``,
+    best first.
     """
     tree = _view_tree(Q)
     if tree is None or len(scan_points) == 0:
         return []
-    sweep = min(config.heading_sweep, config.max_turn)
-    offs = np.arange(-sweep, sweep + 1e-9, config.heading_step)
+    sweep = min(config.heading_sweep if sweep is None else sweep, config.max_turn)
+    step = config.heading_step if step is None else step
+    offs = np.arange(-sweep, sweep + 1e-9, step)
     th = prior[2] + offs
     c, s_ = np.cos(th), np.sin(th)
     x = c[:, None] * scan_points[None, :, 0] - s_[:, None] * scan_points[None, :, 1] + prior[0]
@@ -615,7 +622,7 @@ def heading_hypotheses(
     left = np.concatenate(([-1.0], sup[:-1]))
     right = np.concatenate((sup[1:], [-1.0]))
     peaks = np.nonzero((sup >= left) & (sup >= right))[0]
-    peaks = sorted(peaks, key=lambda k: -sup[k])[: config.heading_hypotheses]
+    peaks = sorted(peaks, key=lambda k: (-sup[k], abs(offs[k])))[: config.heading_hypotheses]
     return [
         (float(sup[k]), np.array([prior[0], prior[1], float(wrap_angle(th[k]))])) for k in peaks
     ]
@@ -628,6 +635,7 @@ def two_step_match(
     config: ShapeConfig,
     scan_points: np.ndarray | None = None,
     shape_cost: ShapeCost | None = None,
+    max_step: float | None = None,
 ) -> TwoStepResult:
     """Shape-complexity-based two-step matching (§5.3).
 
@@ -637,31 +645,40 @@ def two_step_match(
     view (:func:`support`, tolerance ``config.support_tolerance`` metres), and the
     ``config.step2_hypotheses`` best go to step 2 — the full eq. 5 matching
     (:func:`match_with_cost`) with ``ΔA`` measured against that estimate. The hypothesis with
-    the lowest eq. 5 cost wins.
+    the lowest eq. 5 cost wins (plus ``config.prior_distance_weight`` per metre from the
+    prior). When the prior alone already explains ``config.fast_support`` of the scan points
+    (tracking with small motion), step 1 is skipped and step 2 runs on the prior only.
 
     ``prior`` ``[x, y, theta]`` map frame; ``scan_points`` robot-frame points used for the
-    support (default: all feature points).
+    support (default: all feature points); ``max_step`` (m) overrides ``config.max_step``.
     """
     prior = np.asarray(prior, dtype=np.float64)
+    max_step = config.max_step if max_step is None else max_step
     cache: dict = {}
     if scan_points is None:
         scan_points = np.vstack([f.points for f in P.features]) if P.features else np.zeros((0, 2))
     sp = _subsample(scan_points, config.support_points)
     hyps = [(prior, 0.0)]
-    if config.two_step:
+    # Fast path: small motion. A fine heading sweep near the prior; if its best heading
+    # already explains config.fast_support of the scan, step 1 is not needed.
+    near = heading_hypotheses(Q, sp, prior, config, config.fast_sweep, config.fast_step)
+    fast = bool(near) and near[0][0] >= config.fast_support
+    if fast:
+        hyps = [(near[0][1], 0.0)]
+    if config.two_step and not fast:
         # The robot cannot have moved farther than max_step nor turned more than max_turn
         # since the prior (§5.2: views differ little if the robot has not travelled far).
         hyps += [
             (h, s)
             for h, s in step1_hypotheses(P, Q, prior, config, cache)
-            if np.hypot(*(h[:2] - prior[:2])) <= config.max_step
+            if np.hypot(*(h[:2] - prior[:2])) <= max_step
             and abs(wrap_angle(h[2] - prior[2])) <= config.max_turn
         ]
     scored = []
     for k, (pose, _s) in enumerate(hyps):
         sup = support(Q, sp, pose, config.support_tolerance)
         scored.append((sup, -k, pose))
-    if config.heading_sweep > 0:
+    if config.heading_sweep > 0 and not fast:
         for sup, pose in heading_hypotheses(Q, sp, prior, config):
             scored.append((sup, -len(scored), pose))
     scored.sort(key=lambda t: (t[0], t[1]), reverse=True)
@@ -679,7 +696,7 @@ def two_step_match(
     results = []
     for sup, pose in picked:
         res = match_with_cost(P, Q, pose, config, shape_cost, cache)
-        for _ in range(config.step2_refinements):
+        for _ in range(0 if fast else config.step2_refinements):
             # Re-estimate the displacement from step 2's own correspondences and match again
             # against it (ΔA is then measured against a better estimate).
             if not res.matches:
