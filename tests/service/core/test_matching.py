@@ -1,0 +1,232 @@
+"""Configuration matching (service/core/matching.py): eq. 4, penalty R, the eq. 5 DP.
+
+Runs in about a second.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+
+import numpy as np
+import pytest
+
+from service.core.configuration import Configuration, Feature
+from service.core.localizer import ShapeConfig
+from service.core.matching import (
+    _angular_interval,
+    induced_alignment,
+    match_configurations,
+    match_with_cost,
+    order_preserving_dp,
+    penalty_R,
+    pose_consistency,
+)
+from service.core.pose import invert, transform_points
+
+# --------------------------------------------------------------------------------------------
+# eq. 4 and R
+# --------------------------------------------------------------------------------------------
+
+
+def test_pose_consistency_is_eq4() -> None:
+    assert pose_consistency([0.3, 0.4], 0.1) == pytest.approx(0.5 + 10 * 0.1)
+    assert pose_consistency([0.0, 0.0], -0.05) == pytest.approx(0.5)
+    # dPhi is wrapped before |.|: a full turn plus 0.1 rad counts as 0.1 rad
+    assert pose_consistency([0.0, 0.0], 2 * math.pi + 0.1) == pytest.approx(1.0)
+    assert pose_consistency([1.0, 0.0], 0.1, rot_weight=2.0) == pytest.approx(1.2)
+
+
+def _arc(radius: float, a0: float, a1: float, n: int = 50) -> np.ndarray:
+    t = np.linspace(a0, a1, n)
+    return np.column_stack([radius * np.cos(t), radius * np.sin(t)])
+
+
+def test_penalty_r_grows_linearly_with_angular_size() -> None:
+    sizes = [0.1, 0.2, 0.4, 0.8]
+    r = [penalty_R(_arc(3.0, -0.2, -0.2 + s), weight=2.0) for s in sizes]
+    assert r == pytest.approx([2.0 * s for s in sizes], rel=1e-9)
+    # independent of range: the same angle at 1 m and at 8 m costs the same
+    assert penalty_R(_arc(1.0, 0, 0.3)) == pytest.approx(penalty_R(_arc(8.0, 0, 0.3)))
+
+
+def test_penalty_r_counts_only_the_part_inside_the_field_of_view() -> None:
+    pts = _arc(2.0, 1.0, 2.0)  # 1 rad wide, from 57 to 115 deg
+    fov = (-math.pi / 2, math.pi / 2)
+    assert penalty_R(pts, fov=fov) == pytest.approx(math.pi / 2 - 1.0)
+    assert penalty_R(_arc(2.0, 2.0, 2.5), fov=fov) == 0.0
+    # seen from a viewpoint turned by pi/2, the same polyline is centred in the view
+    assert penalty_R(pts, viewpoint=np.array([0.0, 0.0, 1.5]), fov=fov) == pytest.approx(1.0)
+
+
+def test_induced_alignment_of_a_corner_is_the_displacement() -> None:
+    corner = np.array([[3.0, -2.0], [3.0, 1.0], [1.0, 1.0]])
+    moved = np.array([0.4, -0.3, 0.35])
+    a = induced_alignment(corner, transform_points(moved, corner))
+    assert np.allclose(a, moved, atol=1e-6)
+
+
+# --------------------------------------------------------------------------------------------
+# The DP (eq. 5)
+# --------------------------------------------------------------------------------------------
+
+
+def _brute_force_1to1(skip_p: list[float], skip_q: list[float], cost: np.ndarray) -> float:
+    """Minimum of eq. 5 over all order-preserving 1:1 matchings (small n, m only)."""
+    n, m = len(skip_p), len(skip_q)
+    best = sum(skip_p) + sum(skip_q)
+    for k in range(1, min(n, m) + 1):
+        for ps in itertools.combinations(range(n), k):
+            for qs in itertools.combinations(range(m), k):
+                c = sum(cost[i, j] for i, j in zip(ps, qs, strict=True))
+                c += sum(skip_p[i] for i in range(n) if i not in ps)
+                c += sum(skip_q[j] for j in range(m) if j not in qs)
+                best = min(best, c)
+    return best
+
+
+def test_dp_is_optimal_and_order_preserving_on_random_instances() -> None:
+    rng = np.random.default_rng(7)
+    for _ in range(60):
+        n, m = int(rng.integers(1, 5)), int(rng.integers(1, 5))
+        skip_p = rng.uniform(0.2, 1.5, n).tolist()
+        skip_q = rng.uniform(0.2, 1.5, m).tolist()
+        cost = rng.uniform(0.0, 2.5, (n, m))
+        blocks = {(i, j): [(i, j, float(cost[i, j]))] for i in range(n) for j in range(m)}
+        total, path = order_preserving_dp(skip_p, skip_q, blocks)
+        assert total == pytest.approx(_brute_force_1to1(skip_p, skip_q, cost))
+        # the reported path reproduces the cost and respects the order
+        matched_p = {i for i_s, i_e, _, _ in path for i in range(i_s, i_e + 1)}
+        matched_q = {j for _, _, j_s, j_e in path for j in range(j_s, j_e + 1)}
+        c = sum(cost[i_s, j_s] for i_s, _, j_s, _ in path)
+        c += sum(skip_p[i] for i in range(n) if i not in matched_p)
+        c += sum(skip_q[j] for j in range(m) if j not in matched_q)
+        assert c == pytest.approx(total)
+        for a, b in itertools.pairwise(path):
+            assert a[1] < b[0] and a[3] < b[2]
+
+
+def test_dp_never_violates_order_with_random_blocks() -> None:
+    rng = np.random.default_rng(8)
+    for _ in range(100):
+        n, m = int(rng.integers(2, 12)), int(rng.integers(2, 12))
+        blocks: dict = {}
+        for _k in range(int(rng.integers(1, 40))):
+            i_s = int(rng.integers(0, n))
+            j_s = int(rng.integers(0, m))
+            i_e = min(n - 1, i_s + int(rng.integers(0, 3)))
+            j_e = min(m - 1, j_s + int(rng.integers(0, 3)))
+            blocks.setdefault((i_e, j_e), []).append((i_s, j_s, float(rng.uniform(0, 1))))
+        _, path = order_preserving_dp([1.0] * n, [1.0] * m, blocks)
+        for a, b in itertools.pairwise(path):
+            assert a[1] < b[0], path
+            assert a[3] < b[2], path
+
+
+def test_dp_reconsiders_previous_correspondence_for_a_split() -> None:
+    """p ~ q1 alone is poor, p ~ (q1, q2) is good: the DP must find the 1:2 block."""
+    blocks = {
+        (0, 0): [(0, 0, 1.9)],  # p ~ q1: dissimilar
+        (0, 1): [(0, 1, 1.9), (0, 0, 0.1)],  # p ~ q2 poor, p ~ q1+q2 good
+    }
+    total, path = order_preserving_dp([1.0], [1.0, 1.0], blocks)
+    assert path == [(0, 0, 0, 1)]
+    assert total == pytest.approx(0.1)
+
+
+# --------------------------------------------------------------------------------------------
+# match_configurations on synthetic configurations (real S*)
+# --------------------------------------------------------------------------------------------
+
+
+def _dense(vertices: np.ndarray, step: float = 0.02) -> np.ndarray:
+    out = [vertices[0]]
+    for a, b in itertools.pairwise(vertices):
+        k = max(1, int(np.ceil(np.hypot(*(b - a)) / step)))
+        t = np.linspace(0, 1, k + 1)[1:]
+        out.extend(a + t[:, None] * (b - a))
+    return np.array(out)
+
+
+def _feature(vertices: list[list[float]], segments: bool) -> Feature:
+    v = np.array(vertices, dtype=float)
+    pts = _dense(v)
+    start, span = _angular_interval(pts, np.zeros(3))
+    segs = np.hstack([v[:-1], v[1:]]) if segments else None
+    return Feature(
+        vertices=v,
+        points=pts,
+        bearing_start=start,
+        bearing_end=float(np.arctan2(pts[-1, 1], pts[-1, 0])),
+        angular_size=span,
+        segments=segs,
+    )
+
+
+# A scene in front of a robot at the origin (map frame = robot frame, estimate = identity):
+CORNER = [[3.0, -2.0], [3.0, 1.0], [1.0, 1.0]]  # right wall, corner, front-left wall
+CORNER_A = [[3.0, -2.0], [3.0, 1.0]]
+CORNER_B = [[3.0, 1.0], [1.0, 1.0]]
+SHELF = [[0.9, 2.5], [0.2, 2.5], [0.2, 3.2]]  # a small corner further left
+BOX = [[1.0, 1.6], [0.75, 1.8], [0.65, 1.6]]  # furniture between the two (scan only)
+
+
+def _config(features: list[Feature], frame: str) -> Configuration:
+    return Configuration(
+        features=features,
+        frame=frame,
+        viewpoint=np.zeros(3),
+        cyclic=frame == "map",
+        fov=(-math.pi / 2, math.pi / 2) if frame == "robot" else (-math.pi, math.pi),
+    )
+
+
+CFG = ShapeConfig()
+
+
+def test_match_finds_one_to_two_split_scan_side() -> None:
+    P = _config(
+        [_feature(CORNER_A, False), _feature(CORNER_B, False), _feature(SHELF, False)], "robot"
+    )
+    Q = _config([_feature(CORNER, True), _feature(SHELF, True)], "map")
+    m = match_configurations(P, Q, np.zeros(3), CFG)
+    assert [(x.scan, x.map) for x in m] == [((0, 1), (0,)), ((2,), (1,))]
+    assert all(x.pose_consistency < 0.05 for x in m)
+
+
+def test_match_finds_two_to_one_split_map_side() -> None:
+    P = _config([_feature(CORNER, False), _feature(SHELF, False)], "robot")
+    Q = _config([_feature(CORNER_A, True), _feature(CORNER_B, True), _feature(SHELF, True)], "map")
+    m = match_configurations(P, Q, np.zeros(3), CFG)
+    assert [(x.scan, x.map) for x in m] == [((0,), (0, 1)), ((1,), (2,))]
+
+
+def test_match_leaves_furniture_unmatched() -> None:
+    P = _config([_feature(CORNER, False), _feature(BOX, False), _feature(SHELF, False)], "robot")
+    Q = _config([_feature(CORNER, True), _feature(SHELF, True)], "map")
+    res = match_with_cost(P, Q, np.zeros(3), CFG)
+    assert [(x.scan, x.map) for x in res.matches] == [((0,), (0,)), ((2,), (1,))]
+    # the eq. 5 cost then contains exactly the box's penalty R (plus near-zero pair costs)
+    r_box = CFG.penalty_weight * P.features[1].angular_size
+    assert res.cost == pytest.approx(r_box, abs=0.05)
+
+
+def test_match_under_displacement_still_pairs_the_right_shapes() -> None:
+    """The robot moved 8 cm and turned 3 degrees since the estimate."""
+    moved = np.array([0.08, -0.05, math.radians(3.0)])
+    # scan features are the map features seen from the moved pose (robot frame)
+    inv = invert(moved)
+    scan = []
+    for verts in (CORNER, SHELF):
+        v = transform_points(inv, np.array(verts))
+        scan.append(_feature(v.tolist(), False))
+    P = _config(scan, "robot")
+    Q = _config([_feature(CORNER, True), _feature(SHELF, True)], "map")
+    res = match_with_cost(P, Q, np.zeros(3), CFG)
+    # corner ~ corner and shelf ~ shelf (as two 1:1 pairs or as one joined 2:2 block)
+    assert {i for x in res.matches for i in x.scan} == {0, 1}
+    assert all(x.scan == x.map for x in res.matches)
+    # each pair's induced pose is the true displacement
+    for pose in res.induced:
+        assert np.hypot(*(pose[:2] - moved[:2])) < 0.02
+        assert abs(pose[2] - moved[2]) < math.radians(0.5)
