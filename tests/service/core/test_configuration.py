@@ -1,0 +1,122 @@
+"""Configurations and the map's abstract sensor reading (service/core/configuration.py).
+
+Runs in well under a second.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+
+import numpy as np
+import pytest
+
+from schemas.errors import LocalizationError
+from service.core.configuration import (
+    ExtractionParams,
+    MapViewCache,
+    map_view,
+    scan_configuration,
+    split_pieces,
+)
+from service.core.pose import transform_points
+from service.core.raycast import RayCaster
+from service.core.types import MapData
+
+# A 8 x 5 m room with a 1 x 1 m pillar.
+ROOM = MapData.from_lists(
+    "room",
+    "metric",
+    [
+        [[0, 0], [8, 0], [8, 5], [0, 5], [0, 0]],
+        [[5, 2], [6, 2], [6, 3], [5, 3], [5, 2]],
+    ],
+)
+POSE = np.array([2.0, 2.5, 0.3])
+
+
+def _dist_to_segments(points: np.ndarray, segs: np.ndarray) -> np.ndarray:
+    a = segs[:, :2]
+    e = segs[:, 2:] - a
+    d = points[:, None, :] - a[None]
+    t = np.clip(np.einsum("kij,ij->ki", d, e) / np.einsum("ij,ij->i", e, e), 0, 1)
+    r = d - t[..., None] * e[None]
+    return np.min(np.hypot(r[..., 0], r[..., 1]), axis=1)
+
+
+def test_scan_configuration_is_in_angular_order_and_robot_frame() -> None:
+    angles = np.linspace(-math.pi / 2, math.pi / 2, 361)
+    ranges = RayCaster(ROOM.segments()).cast(POSE, angles, 15.0)
+    P = scan_configuration(ranges, angles)
+    assert P.frame == "robot" and not P.cyclic
+    assert len(P) >= 3
+    starts = [f.bearing_start for f in P.features]
+    assert starts == sorted(starts)
+    # robot-frame points placed with the true pose lie on the map's walls
+    for f in P.features:
+        d = _dist_to_segments(transform_points(POSE, f.points), ROOM.segments())
+        assert np.max(d) < 1e-9
+        assert f.vertices.shape[0] >= 2 and f.vertices.shape[0] <= f.points.shape[0]
+
+
+def test_map_view_equals_scan_of_the_same_rays() -> None:
+    """The abstract sensor reading is built by exactly the same code as a scan."""
+    view = map_view(ROOM, POSE, fov=math.pi, beams=361)
+    angles = np.linspace(-math.pi / 2, math.pi / 2, 361)
+    ranges = RayCaster(ROOM.segments()).cast(POSE, angles, 15.0)
+    scan = scan_configuration(ranges, angles)
+    assert len(view) == len(scan)
+    for fv, fs in zip(view.features, scan.features, strict=True):
+        assert np.allclose(fv.vertices, transform_points(POSE, fs.vertices), atol=1e-9)
+        assert fv.angular_size == pytest.approx(fs.angular_size)
+
+
+def test_full_map_view_is_cyclic_and_knows_its_segments() -> None:
+    view = map_view(ROOM, POSE, beams=720)
+    assert view.frame == "map" and view.cyclic
+    total = sum(f.angular_size for f in view.features)
+    assert total > 1.9 * math.pi  # the room surrounds the robot (minus pillar shadows)
+    for f in view.features:
+        assert f.segments is not None and len(f.segments) >= 1
+        # every point lies on one of the feature's own segments
+        assert np.max(_dist_to_segments(f.points, f.segments)) < 1e-9
+
+
+def test_split_pieces_cuts_long_edges_and_shares_cut_vertices() -> None:
+    pts = np.column_stack([np.linspace(0, 6, 301), np.zeros(301)])  # 6 m straight, 2 cm steps
+    keep = np.array([0, 300])
+    pieces = split_pieces(keep, pts, 1.5)
+    assert len(pieces) == 4
+    for a, b in itertools.pairwise(pieces):
+        assert a[-1] == b[0]
+    lengths = [pts[p[-1], 0] - pts[p[0], 0] for p in pieces]
+    assert lengths == pytest.approx([1.5] * 4, abs=0.03)
+    assert split_pieces(keep, pts, 0.0) == [keep]
+
+
+def test_pieces_respect_piece_length_param() -> None:
+    angles = np.linspace(-math.pi / 2, math.pi / 2, 361)
+    ranges = RayCaster(ROOM.segments()).cast(POSE, angles, 15.0)
+    few = scan_configuration(ranges, angles, ExtractionParams(piece_length=0.0))
+    many = scan_configuration(ranges, angles, ExtractionParams(piece_length=1.0))
+    assert len(many) > len(few)
+    assert max(f.length for f in many.features) < max(f.length for f in few.features)
+
+
+def test_map_view_cache_reuses_view_until_moved() -> None:
+    cache = MapViewCache(ROOM, beams=360, reuse_distance=0.1)
+    v1 = cache.view(POSE)
+    v2 = cache.view(POSE + np.array([0.05, 0.0, 1.0]))  # moved 5 cm, turned: reused
+    assert v2 is v1 and cache.casts == 1
+    v3 = cache.view(POSE + np.array([0.2, 0.0, 0.0]))
+    assert v3 is not v1 and cache.casts == 2
+    assert np.allclose(v3.viewpoint, POSE + np.array([0.2, 0.0, 0.0]))
+
+
+def test_bad_input_raises_localization_error() -> None:
+    with pytest.raises(LocalizationError, match="equal length"):
+        scan_configuration(np.ones(5), np.zeros(4))
+    with pytest.raises(LocalizationError, match="empty"):
+        scan_configuration(np.zeros(0), np.zeros(0))
+    with pytest.raises(LocalizationError, match="pose"):
+        map_view(ROOM, np.array([0.0, np.nan, 0.0]))
