@@ -1,0 +1,137 @@
+"""ShapeLocalizer and ShapeConfig (service/core/localizer.py). Runs in about 2 seconds."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from schemas.errors import LocalizationError
+from service.core.factory import create_localizer
+from service.core.localizer import ShapeConfig, ShapeLocalizer
+from service.core.raycast import RayCaster
+from service.core.types import MapData
+
+# An L-shaped room with a pillar and a cupboard: enough shape for the matcher.
+ROOM = MapData.from_lists(
+    "lroom",
+    "metric",
+    [
+        [[0, 0], [9, 0], [9, 4], [5, 4], [5, 7], [0, 7], [0, 0]],
+        [[6.5, 1.5], [7.2, 1.5], [7.2, 2.2], [6.5, 2.2], [6.5, 1.5]],
+        [[0.0, 5.0], [0.6, 5.0], [0.6, 6.2], [0.0, 6.2]],
+    ],
+)
+ANGLES = np.linspace(-math.pi / 2, math.pi / 2, 361)
+
+
+def _scan(pose: np.ndarray, rng: np.random.Generator, segments: np.ndarray | None = None):
+    rc = RayCaster(ROOM.segments() if segments is None else segments)
+    r = rc.cast(pose, ANGLES, 15.0)
+    return r + rng.normal(0.0, 0.01, r.shape)
+
+
+def _path(n: int) -> np.ndarray:
+    t = np.linspace(0.0, 1.0, n)
+    x = 2.0 + 4.0 * t
+    y = 2.0 + 0.6 * np.sin(3 * t)
+    th = 0.2 * np.sin(5 * t) + 0.1
+    return np.column_stack([x, y, th])
+
+
+def test_tracks_a_short_path_within_2cm() -> None:
+    rng = np.random.default_rng(11)
+    truth = _path(30)  # ~14 cm steps with a few degrees of rotation
+    loc = ShapeLocalizer(ROOM, truth[0])
+    errs = []
+    for p in truth:
+        e = loc.update(_scan(p, rng), ANGLES)
+        assert e.status == "tracking"
+        errs.append(np.hypot(*(e.pose[:2] - p[:2])))
+        assert abs((e.pose[2] - p[2] + math.pi) % (2 * math.pi) - math.pi) < math.radians(0.5)
+        assert 0.0 <= e.score <= 1.0
+        assert e.matches and all(len(m.scan) >= 1 and len(m.map) >= 1 for m in e.matches)
+    assert max(errs) < 0.02
+    assert np.allclose(loc.pose, e.pose)
+
+
+def test_recovers_from_a_20_degree_turn_without_odometry() -> None:
+    rng = np.random.default_rng(12)
+    start = np.array([3.0, 2.0, 0.2])
+    turned = np.array([3.08, 2.05, 0.2 + math.radians(20)])
+    loc = ShapeLocalizer(ROOM, start)
+    loc.update(_scan(start, rng), ANGLES)
+    e = loc.update(_scan(turned, rng), ANGLES)
+    assert e.status == "tracking"
+    assert np.hypot(*(e.pose[:2] - turned[:2])) < 0.02
+    assert abs(e.pose[2] - turned[2]) < math.radians(0.5)
+
+
+def test_status_lost_when_scans_come_from_elsewhere() -> None:
+    """Scans of a different building: quality collapses and after `lost_after` scans the
+    status is 'lost' while the pose is not moved by the garbage."""
+    rng = np.random.default_rng(13)
+    start = np.array([3.0, 2.0, 0.0])
+    other = np.array(  # a long narrow corridor with no relation to the room
+        [[-20, -0.8, 20, -0.8], [-20, 0.8, 20, 0.8], [3.3, 0.8, 3.3, 3.0]], dtype=float
+    )
+    loc = ShapeLocalizer(ROOM, start)
+    statuses = []
+    for _ in range(5):
+        e = loc.update(_scan(np.array([0.0, 0.0, 0.0]), rng, other), ANGLES)
+        statuses.append(e.status)
+    cfg = loc.config
+    assert statuses[: cfg.lost_after - 1] == ["tracking"] * (cfg.lost_after - 1)
+    assert statuses[cfg.lost_after - 1 :] == ["lost"] * (5 - cfg.lost_after + 1)
+    assert np.hypot(*(loc.pose[:2] - start[:2])) < 1.0
+    assert e.score < 0.6
+
+
+def test_unknown_pose_answers_initializing() -> None:
+    loc = ShapeLocalizer(ROOM, None)
+    e = loc.update(_scan(np.array([3.0, 2.0, 0.0]), np.random.default_rng(1)), ANGLES)
+    assert e.status == "initializing"
+    assert e.score == 0.0
+    assert np.array_equal(e.pose, np.zeros(3))
+    assert loc.pose is None
+    loc.reset(np.array([3.0, 2.0, 0.0]))
+    assert np.allclose(loc.pose, [3.0, 2.0, 0.0])
+
+
+def test_bad_input_raises_localization_error() -> None:
+    loc = ShapeLocalizer(ROOM, np.array([3.0, 2.0, 0.0]))
+    with pytest.raises(LocalizationError, match="equal length"):
+        loc.update(np.ones(10), np.zeros(9))
+    with pytest.raises(LocalizationError, match="empty"):
+        loc.update(np.zeros(0), np.zeros(0))
+    with pytest.raises(LocalizationError, match="NaN"):
+        loc.update(np.full(3, np.inf), np.zeros(3))
+    with pytest.raises(LocalizationError, match="finite"):
+        loc.update(np.ones(3), np.array([0.0, np.nan, 1.0]))
+    with pytest.raises(LocalizationError, match="initial_pose"):
+        ShapeLocalizer(ROOM, np.array([1.0, 2.0]))
+    with pytest.raises(LocalizationError, match="ShapeConfig"):
+        ShapeLocalizer(ROOM, None, config={"penalty_weight": 1.0})  # type: ignore[arg-type]
+
+
+def test_deterministic() -> None:
+    truth = _path(8)
+    runs = []
+    for _ in range(2):
+        rng = np.random.default_rng(21)
+        loc = ShapeLocalizer(ROOM, truth[0])
+        runs.append(np.array([loc.update(_scan(p, rng), ANGLES).pose for p in truth]))
+    assert np.array_equal(runs[0], runs[1])
+
+
+def test_config_per_kind_and_factory() -> None:
+    m, s = ShapeConfig.for_kind("metric"), ShapeConfig.for_kind("schematic")
+    assert m.kind == "metric" and s.kind == "schematic"
+    assert s.support_tolerance > m.support_tolerance
+    assert s.shape_end_weight < m.shape_end_weight
+    with pytest.raises(LocalizationError, match="unknown map kind"):
+        ShapeConfig.for_kind("sketch")
+    loc = create_localizer("shape", ROOM, np.array([3.0, 2.0, 0.0]))
+    assert isinstance(loc, ShapeLocalizer) and loc.method == "shape"
+    assert loc.config == m
