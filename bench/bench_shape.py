@@ -1,0 +1,110 @@
+"""Per-scan time of the shape-based localiser, broken down by stage.
+
+Runs a stretch of setup 1 (metric map) and setup 2 (schematic map) on one core (BLAS threads
+pinned to 1) and prints, per setup, p50 / p99 / mean milliseconds per scan of every stage:
+
+* extraction  — grouping + first-stage DCE of the scan (``scan_configuration``)
+* map view    — abstract sensor reading (ray cast + grouping + DCE; cached, so mostly 0)
+* heading     — heading (cut-point) hypotheses and support scoring (KD-tree queries)
+* S*          — shape distances (step 1 and step 2, including S* preparation)
+* ΔA fits     — induced alignments of candidate pairs (vectorised point-to-line fits)
+* DP          — the eq. 5 dynamic programme itself
+* pose        — least squares over matched pairs (``pose_from_matches``)
+* total       — the whole ``ShapeLocalizer.update``; "other" = total minus the stages
+
+Usage: ``python bench/bench_shape.py [--scans1 600] [--scans2 150]``. The stages are timed by
+wrapping the core's functions in this script only; numbers are wall-clock and noisy on a
+shared machine (the header prints the load average).
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+os.environ.setdefault("MKL_NUM_THREADS", "1")
+
+import argparse
+import time
+from collections import defaultdict
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+import service.core.configuration as conf_mod
+import service.core.localizer as loc_mod
+import service.core.matching as match_mod
+from sim_publisher.scenario import make_setup
+
+STAGES = ("extraction", "map view", "heading", "S*", "ΔA fits", "DP", "pose")
+_acc: dict[str, float] = defaultdict(float)
+
+
+def _timed(stage: str, fn: Callable[..., Any]) -> Callable[..., Any]:
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        t0 = time.perf_counter()
+        try:
+            return fn(*args, **kwargs)
+        finally:
+            _acc[stage] += time.perf_counter() - t0
+
+    return wrapper
+
+
+def _install() -> None:
+    loc_mod.scan_configuration = _timed("extraction", loc_mod.scan_configuration)
+    conf_mod.MapViewCache.view = _timed("map view", conf_mod.MapViewCache.view)
+    match_mod.heading_hypotheses = _timed("heading", match_mod.heading_hypotheses)
+    match_mod.support = _timed("heading", match_mod.support)
+    loc_mod.support = _timed("heading", loc_mod.support)
+    match_mod.shape_distance = _timed("S*", match_mod.shape_distance)
+    match_mod.prepare = _timed("S*", match_mod.prepare)
+    match_mod.fit_pairs = _timed("ΔA fits", match_mod.fit_pairs)
+    match_mod.order_preserving_dp = _timed("DP", match_mod.order_preserving_dp)
+    match_mod.pose_from_matches = _timed("pose", match_mod.pose_from_matches)
+    loc_mod.pose_from_matches = _timed("pose", loc_mod.pose_from_matches)
+
+
+def bench(setup_id: int, scans: int) -> dict[str, np.ndarray]:
+    """Per-scan seconds of every stage over the first ``scans`` scans of a setup."""
+    s = make_setup(setup_id, seed=0, max_scans=scans)
+    loc = loc_mod.ShapeLocalizer(s.map_data, s.truth[0])
+    rows: dict[str, list[float]] = defaultdict(list)
+    data = [s.scan(i) for i in range(len(s))]
+    for ranges, angles in data:
+        _acc.clear()
+        t0 = time.perf_counter()
+        loc.update(ranges, angles)
+        total = time.perf_counter() - t0
+        for st in STAGES:
+            rows[st].append(_acc.get(st, 0.0))
+        rows["other"].append(total - sum(_acc.get(st, 0.0) for st in STAGES))
+        rows["total"].append(total)
+    return {k: np.asarray(v) for k, v in rows.items()}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scans1", type=int, default=600, help="scans of setup 1 (default 600)")
+    ap.add_argument("--scans2", type=int, default=150, help="scans of setup 2 (default 150)")
+    args = ap.parse_args()
+    _install()
+    load = os.getloadavg()
+    print(f"shape localiser, 361 beams, 1 BLAS thread; load average {load[0]:.2f} {load[1]:.2f}")
+    for setup_id, n in ((1, args.scans1), (2, args.scans2)):
+        if n <= 0:
+            continue
+        res = bench(setup_id, n)
+        print(f"\nsetup {setup_id}: {n} scans   (ms per scan)")
+        print(f"{'stage':<12} {'p50':>8} {'p99':>8} {'mean':>8}")
+        for st in (*STAGES, "other", "total"):
+            v = 1000.0 * res[st]
+            print(
+                f"{st:<12} {np.percentile(v, 50):8.2f} {np.percentile(v, 99):8.2f} {v.mean():8.2f}"
+            )
+
+
+if __name__ == "__main__":
+    main()
