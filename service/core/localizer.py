@@ -64,7 +64,9 @@ class ShapeConfig(BaseModel):
     )
     # --- eq. 5 and eq. 4 -------------------------------------------------------------------
     penalty_weight: float = Field(
-        1.0, ge=0, description="R per radian of angular size of an unmatched polyline (cost)."
+        1.0,
+        ge=0,
+        description="R per radian of angular size of an unmatched polyline (cost). Schematic: 1.5.",
     )
     map_penalty_factor: float = Field(
         1.0, ge=0, description="Extra factor on R for unmatched map polylines."
@@ -133,7 +135,7 @@ class ShapeConfig(BaseModel):
     fast_sweep: float = Field(
         0.2, ge=0, description="Fast path: heading sweep half-width around the prior (rad)."
     )
-    fast_step: float = Field(0.005, gt=0, description="Fast path: heading sweep step (rad).")
+    fast_step: float = Field(0.01, gt=0, description="Fast path: heading sweep step (rad).")
     step2_hypotheses: int = Field(3, ge=1, description="Hypotheses run through step 2.")
     heading_sweep: float = Field(
         1.3,
@@ -220,6 +222,7 @@ class ShapeConfig(BaseModel):
                 align_robust_scale=0.2,
                 support_tolerance=0.25,
                 fast_support=1.01,
+                penalty_weight=1.5,
                 pose_inlier_distance=0.4,
                 pose_robust_scale=0.08,
             )
