@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -15,17 +16,24 @@ def create_localizer(
     map_data: MapData,
     initial_pose: np.ndarray | None,
     config: Any | None = None,
+    *,
+    cache_dir: Path | None = None,
 ) -> Localizer:
     """Return a fresh localiser for one robot.
 
     ``initial_pose`` ``None`` asks for global localisation (only ``shape`` supports it; the
     baselines need a start pose). ``config`` is the method's own config model, or ``None`` for
     its defaults (which may depend on ``map_data.kind``).
+
+    ``shape`` returns a :class:`service.core.global_localization.GlobalShapeLocalizer`: the
+    shape tracker plus global search when the pose is unknown or lost. ``cache_dir`` is where
+    its per-map view index is cached across restarts (``None``: built in memory on the first
+    global search).
     """
     if method == "shape":
-        from service.core.localizer import ShapeLocalizer
+        from service.core.global_localization import GlobalShapeLocalizer
 
-        return ShapeLocalizer(map_data, initial_pose, config)
+        return GlobalShapeLocalizer(map_data, initial_pose, config, cache_dir=cache_dir)
     if method == "icp":
         from service.core.baselines.icp import ICPLocalizer
 
