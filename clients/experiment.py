@@ -68,7 +68,9 @@ class MethodRun:
     ``estimates`` ``(n, 3)`` map-frame poses, ``position_error`` ``(n,)`` metres,
     ``heading_error`` ``(n,)`` radians (absolute), ``statuses`` the reported status per scan,
     ``seconds`` the summed wall time of the ``update`` calls, ``failures`` the number of scans
-    whose update raised :class:`LocalizationError` (the previous estimate is kept for them).
+    whose update raised :class:`LocalizationError` (the previous estimate is kept for them),
+    ``global_searches`` the scans on which the localiser ran a global search (only ``shape``
+    has one: it re-localises without a prior after declaring itself lost).
     """
 
     setup: int
@@ -79,6 +81,7 @@ class MethodRun:
     statuses: tuple[str, ...]
     seconds: float
     failures: int = 0
+    global_searches: int = 0
 
     @property
     def scans(self) -> int:
@@ -200,6 +203,7 @@ class ExperimentResult:
                     "proximity_pct",
                     "lost_pct",
                     "failures",
+                    "global_searches",
                     "ms_per_scan",
                     "paper_position_mm",
                     "paper_heading_deg",
@@ -221,6 +225,7 @@ class ExperimentResult:
                             f"{r.proximity_pct:.2f}",
                             f"{r.lost_pct:.2f}",
                             r.failures,
+                            r.global_searches,
                             f"{r.ms_per_scan:.3f}",
                             *paper,
                         ]
@@ -245,14 +250,22 @@ class ExperimentResult:
                 f"mean step {i.mean_step_mm:.0f} mm, mean rotation {i.mean_rotation_deg:.1f} deg"
             )
         lines += ["", self.table_text(), *_NOTES]
+        for (s, m), r in sorted(self.runs.items()):
+            lines.append(
+                f"- setup {s}, {METHOD_NAMES.get(m, m)}: reported itself lost on "
+                f"{r.lost_pct:.1f}% of the scans; global searches: {r.global_searches}; "
+                f"failed updates: {r.failures}."
+            )
+        lines.append("")
         return "\n".join(lines)
 
 
 _NOTES = (
     "## How the methods were run",
     "",
-    "- **shape-based**: `service.core.localizer.ShapeLocalizer` with its default configuration "
-    "for the map kind.",
+    "- **shape-based**: what `service.core.factory.create_localizer('shape', ...)` returns "
+    "(the shape tracker with its default configuration for the map kind, wrapped in the "
+    "global search that takes over after the tracker declares itself lost).",
     "- **ICP** (`service.core.baselines.icp`, Besl & McKay on an occupancy grid as in the "
     "paper): 50 mm cells rasterised exactly from the map polylines, nearest occupied cell "
     "centres from a precomputed distance transform, a pair-distance gate shrinking from 1.0 m "
@@ -309,7 +322,10 @@ def run_method(
             progress(i % 20 + 1)
     pos_err = np.hypot(est[:, 0] - truth[:, 0], est[:, 1] - truth[:, 1])
     head_err = np.abs(np.asarray(wrap_angle(est[:, 2] - truth[:, 2]), dtype=np.float64))
-    return MethodRun(setup_id, method, est, pos_err, head_err, tuple(statuses), seconds, failures)
+    searches = int(getattr(loc, "searches", 0) or 0)
+    return MethodRun(
+        setup_id, method, est, pos_err, head_err, tuple(statuses), seconds, failures, searches
+    )
 
 
 def _make_setup(setup_id: int, seed: int, max_scans: int | None) -> Any:
