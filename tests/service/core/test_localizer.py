@@ -132,6 +132,10 @@ def test_config_per_kind_and_factory() -> None:
     assert s.shape_end_weight < m.shape_end_weight
     with pytest.raises(LocalizationError, match="unknown map kind"):
         ShapeConfig.for_kind("sketch")
+    # the factory's "shape" localiser (possibly wrapped for global localisation) tracks
     loc = create_localizer("shape", ROOM, np.array([3.0, 2.0, 0.0]))
-    assert isinstance(loc, ShapeLocalizer) and loc.method == "shape"
-    assert loc.config == m
+    assert loc.method == "shape"
+    rng = np.random.default_rng(5)
+    e = loc.update(_scan(np.array([3.05, 2.0, 0.02]), rng), ANGLES)
+    assert e.status == "tracking"
+    assert np.hypot(e.pose[0] - 3.05, e.pose[1] - 2.0) < 0.02
