@@ -101,7 +101,11 @@ class ShapeConfig(BaseModel):
         description="Limit blocks to max_join polylines on both sides together "
         "(1:1, 1:2, 2:1, ...) instead of max_join on each side.",
     )
-    align_points: int = Field(24, ge=3, description="Scan points per pair for A(P, Q).")
+    align_points: int = Field(
+        24,
+        ge=3,
+        description="Scan points per step-1 pair for A(P, Q); half per polyline in step 2.",
+    )
     align_iterations: int = Field(3, ge=1, description="Gauss-Newton steps for A(P, Q).")
     align_robust_scale: float = Field(
         0.1, gt=0, description="Cauchy scale of A(P, Q)'s fit (m). Schematic: 0.2."
@@ -134,6 +138,9 @@ class ShapeConfig(BaseModel):
     )
     fast_sweep: float = Field(
         0.2, ge=0, description="Fast path: heading sweep half-width around the prior (rad)."
+    )
+    fast_bearing_gate: float = Field(
+        0.12, ge=0, description="Fast path: angular slack (rad) for candidate pairs."
     )
     fast_step: float = Field(0.01, gt=0, description="Fast path: heading sweep step (rad).")
     step2_hypotheses: int = Field(3, ge=1, description="Hypotheses run through step 2.")

@@ -278,9 +278,12 @@ def match_with_cost(
     config: ShapeConfig,
     shape_cost: ShapeCost | None = None,
     cache: dict | None = None,
+    bearing_gate: float | None = None,
 ) -> ConfigurationMatch:
     """Eq. 5 for the scan configuration ``P`` (robot frame) and map view ``Q`` (map frame) given
-    the estimated pose ``estimate`` ``[x, y, theta]``; see :func:`match_configurations`."""
+    the estimated pose ``estimate`` ``[x, y, theta]``; see :func:`match_configurations`.
+    ``bearing_gate`` (rad) overrides ``config.bearing_gate``; ``cache`` memoises S* within one
+    scan."""
     est = np.asarray(estimate, dtype=np.float64)
     cache = {} if cache is None else cache
     sd = shape_cost or shape_cost_for(config)
@@ -298,7 +301,8 @@ def match_with_cost(
         cost, _ = order_preserving_dp(skip_p, skip_q, {})
         return ConfigurationMatch(matches=[], cost=cost)
     Piv = np.array([(f.bearing_start, f.angular_size) for f in P.features])
-    single = _single_overlaps(Piv, Qiv, config.bearing_gate)
+    gate = config.bearing_gate if bearing_gate is None else bearing_gate
+    single = _single_overlaps(Piv, Qiv, gate)
     K = config.max_join
     cand: list[tuple[int, int, int, int]] = []
     for i_s, j_s in zip(*np.nonzero(single), strict=True):
@@ -661,7 +665,9 @@ def two_step_match(
     hyps = [(prior, 0.0)]
     # Fast path: small motion. A fine heading sweep near the prior; if its best heading
     # already explains config.fast_support of the scan, step 1 is not needed.
-    near = heading_hypotheses(Q, sp, prior, config, config.fast_sweep, config.fast_step)
+    near = heading_hypotheses(
+        Q, sp[:: max(1, len(sp) // 60)], prior, config, config.fast_sweep, config.fast_step
+    )
     fast = bool(near) and near[0][0] >= config.fast_support
     if fast:
         hyps = [(near[0][1], 0.0)]
@@ -694,8 +700,9 @@ def two_step_match(
             continue
         picked.append((sup, pose))
     results = []
+    gate = config.fast_bearing_gate if fast else config.bearing_gate
     for sup, pose in picked:
-        res = match_with_cost(P, Q, pose, config, shape_cost, cache)
+        res = match_with_cost(P, Q, pose, config, shape_cost, cache, gate)
         for _ in range(0 if fast else config.step2_refinements):
             # Re-estimate the displacement from step 2's own correspondences and match again
             # against it (ΔA is then measured against a better estimate).
@@ -710,7 +717,7 @@ def two_step_match(
                 prior=prior,
                 prior_weight=config.pose_prior_weight,
             ).pose
-            res = match_with_cost(P, Q, pose, config, shape_cost, cache)
+            res = match_with_cost(P, Q, pose, config, shape_cost, cache, gate)
         # Motion continuity: a hypothesis far from the prior position pays for the distance
         # (weighted like eq. 4's ||dt||); decides between poses a corridor cannot tell apart.
         rank = res.cost + config.prior_distance_weight * float(np.hypot(*(pose[:2] - prior[:2])))
