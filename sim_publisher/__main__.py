@@ -53,6 +53,9 @@ class SimOptions:
     put_maps: bool = True
     lockstep: bool = False
     lockstep_timeout: float = 30.0
+    kidnap_at: int | None = None
+    kidnap_to: float | None = None
+    kidnap_robots: int = 1
 
 
 def main(
@@ -76,6 +79,9 @@ def main(
             seed=options.seed,
             starts=options.starts,
             id_prefix=options.id_prefix,
+            kidnap_at=options.kidnap_at,
+            kidnap_to=options.kidnap_to,
+            kidnap_robots=options.kidnap_robots,
         ),
         global_localization=options.global_localization,
         send_odom=options.odom,
@@ -264,6 +270,23 @@ def build_parser() -> argparse.ArgumentParser:
         help="send the next scan only once every robot's pose for the last one arrived "
         "(no scan is skipped; results match an in-process run)",
     )
+    p.add_argument(
+        "--kidnap-at",
+        type=int,
+        help="kidnapped robot: at this scan seq the truth jumps to --kidnap-to (the localiser "
+        "is not told)",
+    )
+    p.add_argument(
+        "--kidnap-to",
+        type=float,
+        help="where the kidnapped robot is put: a fraction of the tour in [0, 1]",
+    )
+    p.add_argument(
+        "--kidnap-robots",
+        type=int,
+        default=1,
+        help="how many robots (sim-0, sim-1, ...) are kidnapped (default 1: sim-0)",
+    )
     p.add_argument("--scans", type=int, help="stop after this many scans per robot")
     p.add_argument("--duration", type=float, help="stop after this many seconds")
     p.add_argument(
@@ -302,6 +325,14 @@ def options_from_args(args: argparse.Namespace) -> SimOptions:
         raise ValueError("--scans must be >= 0")
     if args.duration is not None and args.duration < 0:
         raise ValueError("--duration must be >= 0")
+    if (args.kidnap_at is None) != (args.kidnap_to is None):
+        raise ValueError("--kidnap-at and --kidnap-to go together")
+    if args.kidnap_at is not None and args.kidnap_at < 0:
+        raise ValueError("--kidnap-at must be >= 0")
+    if args.kidnap_to is not None and not 0.0 <= args.kidnap_to <= 1.0:
+        raise ValueError("--kidnap-to must be in [0, 1]")
+    if args.kidnap_robots < 0:
+        raise ValueError("--kidnap-robots must be >= 0")
     bad = [m for m in args.method if m not in METHODS]
     if bad:
         raise ValueError(f"unknown method {bad[0]!r}; expected one of {', '.join(METHODS)}")
@@ -325,6 +356,9 @@ def options_from_args(args: argparse.Namespace) -> SimOptions:
         configure=args.configure,
         put_maps=args.put_maps,
         lockstep=args.lockstep,
+        kidnap_at=args.kidnap_at,
+        kidnap_to=args.kidnap_to,
+        kidnap_robots=args.kidnap_robots,
     )
 
 

@@ -20,6 +20,7 @@ from schemas.codec import map_to_map_data
 from schemas.messages import Map, RobotConfig, Scan, Truth
 from service.core.types import METHODS, MapData
 from sim_publisher.scenario import Setup, make_setup
+from sim_publisher.world import World
 
 MAP_CHOICES = ("metric", "schematic")
 #: Setup whose sampling a robot uses by default, per map kind (paper sec. 6).
@@ -50,6 +51,10 @@ class SimRobot:
     ``start`` is the first trajectory index, ``stride`` how many setup samples one step
     advances (to coarsen the sampling, e.g. for ``--step-mm``). Every :meth:`step` returns the
     next scan and its ground truth with the same ``seq`` and ``stamp``; seq starts at 0.
+
+    Kidnapping: with ``kidnap_at`` set, the scan with that ``seq`` (and the ones after it) is
+    taken at the tour position ``kidnap_to`` (trajectory index) instead of where the robot
+    was: the robot is carried away without the localiser being told. The truth topic follows.
     """
 
     def __init__(
@@ -63,6 +68,8 @@ class SimRobot:
         stride: int = 1,
         global_localization: bool = False,
         send_odom: bool = True,
+        kidnap_at: int | None = None,
+        kidnap_to: int | None = None,
     ) -> None:
         if method not in METHODS:
             raise ValueError(f"unknown method {method!r}; expected one of {', '.join(METHODS)}")
@@ -77,8 +84,18 @@ class SimRobot:
         self.method = method
         self.global_localization = global_localization
         self.send_odom = send_odom
+        if (kidnap_at is None) != (kidnap_to is None):
+            raise ValueError("kidnap_at and kidnap_to go together")
+        if kidnap_at is not None and kidnap_at < 0:
+            raise ValueError(f"kidnap_at must be >= 0, got {kidnap_at}")
         self.indices = np.arange(0, n, stride)
         self._pos = int(np.clip(start // stride, 0, len(self.indices) - 1))
+        self.kidnap_at = kidnap_at
+        self._kidnap_pos = (
+            None
+            if kidnap_to is None
+            else int(np.clip(kidnap_to // stride, 0, len(self.indices) - 1))
+        )
         self._dir = 1
         self.seq = 0
         laser = setup.laser
@@ -104,7 +121,12 @@ class SimRobot:
         return RobotConfig(map_id=self.map_id, method=self.method, initial_pose=pose)
 
     def step(self, stamp: float) -> tuple[Scan, Truth]:
-        """Scan and ground truth at the current tour position, then advance one step."""
+        """Scan and ground truth at the current tour position, then advance one step (at
+        ``seq == kidnap_at`` the robot first jumps to the kidnap position)."""
+        if self.kidnap_at is not None and self.seq == self.kidnap_at:
+            assert self._kidnap_pos is not None
+            self._pos = self._kidnap_pos
+            self._dir = 1
         i = self.index
         ranges, angles = self.setup.scan(i)
         ranges = np.asarray(ranges, dtype=np.float64)
@@ -149,6 +171,8 @@ class RobotSpec:
     seed: int
     start_fraction: float
     step_mm: float | None = None
+    kidnap_at: int | None = None
+    kidnap_to_fraction: float | None = None
 
 
 def _cycle(values: Sequence[str], n: int) -> list[str]:
@@ -167,10 +191,21 @@ def fleet_specs(
     seed: int = 0,
     starts: Sequence[float] | None = None,
     id_prefix: str = "sim-",
+    kidnap_at: int | None = None,
+    kidnap_to: float | None = None,
+    kidnap_robots: int = 1,
 ) -> list[RobotSpec]:
     """Specs of ``n`` robots ``<id_prefix>0..n-1``: maps and methods cycle over the lists;
     each robot gets seed ``seed + k`` and starts at fraction ``starts[k]`` of the tour
-    (default ``k / n``). ``setup`` defaults per map (metric: 1, schematic: 2)."""
+    (default ``k / n``). ``setup`` defaults per map (metric: 1, schematic: 2). With
+    ``kidnap_at`` (a scan seq) and ``kidnap_to`` (a tour fraction), the first
+    ``kidnap_robots`` robots are carried to that tour position at that scan."""
+    if (kidnap_at is None) != (kidnap_to is None):
+        raise ValueError("kidnap_at and kidnap_to go together")
+    if kidnap_at is not None and kidnap_at < 0:
+        raise ValueError(f"kidnap_at must be >= 0, got {kidnap_at}")
+    if kidnap_to is not None and not 0.0 <= kidnap_to <= 1.0:
+        raise ValueError(f"kidnap fraction must be in [0, 1], got {kidnap_to}")
     if n < 1:
         raise ValueError(f"need at least one robot, got {n}")
     if starts is not None and len(starts) < n:
@@ -194,6 +229,8 @@ def fleet_specs(
                 seed=seed + k,
                 start_fraction=frac,
                 step_mm=step_mm,
+                kidnap_at=kidnap_at if k < kidnap_robots else None,
+                kidnap_to_fraction=kidnap_to if k < kidnap_robots else None,
             )
         )
     return specs
@@ -232,6 +269,9 @@ class SimFleet:
                 mean_mm = _mean_step_mm(setup.truth)
                 stride = max(1, round(sp.step_mm / mean_mm))
             start = round(sp.start_fraction * (n - 1))
+            kidnap_to = None
+            if sp.kidnap_to_fraction is not None:
+                kidnap_to = round(sp.kidnap_to_fraction * (n - 1))
             robots.append(
                 SimRobot(
                     sp.robot_id,
@@ -242,6 +282,8 @@ class SimFleet:
                     stride=stride,
                     global_localization=global_localization,
                     send_odom=send_odom,
+                    kidnap_at=sp.kidnap_at,
+                    kidnap_to=kidnap_to,
                 )
             )
         return SimFleet(robots, maps)
@@ -257,3 +299,20 @@ class SimFleet:
 def _mean_step_mm(truth: np.ndarray) -> float:
     d = np.linalg.norm(np.diff(np.asarray(truth)[:, :2], axis=0), axis=1)
     return float(max(d.mean() * 1000.0, 1e-6))
+
+
+def random_free_poses(world: World, n: int, seed: int, margin: float = 0.3) -> np.ndarray:
+    """``n`` poses ``[x, y, theta]`` (map frame, m, rad) uniformly over the free space of
+    ``world`` with at least ``margin`` metres to every obstacle, headings uniform in
+    (-pi, pi]; deterministic in ``seed`` (``numpy.random.default_rng``)."""
+    if n < 0:
+        raise ValueError(f"n must be >= 0, got {n}")
+    rng = np.random.default_rng(seed)
+    x0, y0, x1, y1 = world.bounds
+    out: list[np.ndarray] = []
+    while len(out) < n:
+        p = rng.uniform([x0, y0], [x1, y1], size=(4 * (n - len(out)) + 8, 2))
+        th = rng.uniform(-np.pi, np.pi, size=len(p))
+        ok = world.is_free(p, margin)
+        out.extend(np.array([q[0], q[1], t]) for q, t in zip(p[ok], th[ok], strict=True))
+    return np.vstack(out[:n]) if n else np.zeros((0, 3))

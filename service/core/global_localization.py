@@ -127,8 +127,19 @@ class GlobalConfig(BaseModel):
     violation_weight: float = Field(
         2.0, ge=0, description="Cost weight of beams that pass through a map wall."
     )
-    cost_floor: float = Field(
-        0.05, gt=0, description="Added to every cost so near-perfect ties count as ties."
+    short_credit: float = Field(
+        0.0,
+        ge=0,
+        le=1,
+        description="Credit for a return short of the predicted wall (an unmapped object in "
+        "front of it). Schematic: 0.5 (a floor plan has no furniture).",
+    )
+    cost_floor: float = Field(0.05, gt=0, description="Added to every hypothesis' cost.")
+    ambiguity_scale: float = Field(
+        0.3,
+        gt=0,
+        description="Cost margin of the best over the best distinct alternative at which the "
+        "ambiguity reaches 0 (ambiguity = 1 - margin / scale, clipped).",
     )
     # --- decision ----------------------------------------------------------------------------
     window: int = Field(3, ge=1, description="Scans over which a hypothesis' cost is averaged.")
@@ -155,7 +166,7 @@ class GlobalConfig(BaseModel):
         if kind == "metric":
             return cls()
         if kind == "schematic":
-            return cls(kind="schematic", max_fix_cost=0.45)
+            return cls(kind="schematic", max_fix_cost=0.45, short_credit=0.5)
         raise LocalizationError(f"unknown map kind {kind!r}; expected metric or schematic")
 
 
@@ -248,7 +259,10 @@ class ViewIndex:
 
     ``viewpoints`` ``(v, 2)`` map frame. Units (a view feature or two consecutive ones) are
     stored flat: ``unit_view`` (viewpoint index), ``unit_rmin``/``unit_rmax`` (nearest and farthest
-    vertex distance from its viewpoint, m), ``unit_complexity`` (m·rad), vertices
+    vertex distance from its viewpoint, m), ``unit_complexity`` (m·rad), ``unit_group`` (units
+    of different viewpoints with the same anchor — the same physical corner — share it),
+    ``unit_anchor`` ``(u, 4)`` the anchor vertex x, y (map frame), the direction of the edge
+    leaving it and its signed turn (rad), vertices
     ``unit_verts[unit_vert_off[u]:unit_vert_off[u+1]]`` (map frame). ``segments`` ``(s, 4)``
     the map's segments. ``dist`` the distance field (m, float32, row = y, column = x) with
     cell ``resolution`` metres and ``origin`` its lower-left corner. ``key`` the cache key,
@@ -263,6 +277,8 @@ class ViewIndex:
     unit_rmin: np.ndarray
     unit_rmax: np.ndarray
     unit_complexity: np.ndarray
+    unit_group: np.ndarray
+    unit_anchor: np.ndarray
     unit_vert_off: np.ndarray
     unit_verts: np.ndarray
     segments: np.ndarray
@@ -324,6 +340,8 @@ class ViewIndex:
             "unit_rmin": self.unit_rmin,
             "unit_rmax": self.unit_rmax,
             "unit_complexity": self.unit_complexity,
+            "unit_group": self.unit_group,
+            "unit_anchor": self.unit_anchor,
             "unit_vert_off": self.unit_vert_off,
             "unit_verts": self.unit_verts,
             "segments": self.segments,
@@ -344,6 +362,8 @@ class ViewIndex:
             rmin = np.asarray(arrays["unit_rmin"], dtype=np.float64)
             rmax = np.asarray(arrays["unit_rmax"], dtype=np.float64)
             uc = np.asarray(arrays["unit_complexity"], dtype=np.float64)
+            ug = np.asarray(arrays["unit_group"], dtype=np.int64)
+            ua = np.asarray(arrays["unit_anchor"], dtype=np.float64)
             off = np.asarray(arrays["unit_vert_off"], dtype=np.int64)
             verts = np.asarray(arrays["unit_verts"], dtype=np.float64)
             segs = np.asarray(arrays["segments"], dtype=np.float64)
@@ -361,6 +381,8 @@ class ViewIndex:
             and rmin.shape == (u,)
             and rmax.shape == (u,)
             and uc.shape == (u,)
+            and ug.shape == (u,)
+            and ua.shape == (u, 4)
             and off.shape == (u + 1,)
             and verts.ndim == 2
             and verts.shape[1] == 2
@@ -372,7 +394,7 @@ class ViewIndex:
         )
         ok = ok and (u == 0 or (uv.min() >= 0 and uv.max() < len(vp)))
         ok = ok and off[0] == 0 and off[-1] == len(verts) and bool(np.all(np.diff(off) >= 2))
-        finite = [vp, rmin, rmax, uc, verts, segs, origin]
+        finite = [vp, rmin, rmax, uc, ua, verts, segs, origin]
         ok = ok and all(bool(np.all(np.isfinite(a))) for a in finite)
         ok = ok and not bool(np.any(np.isnan(dist)))
         if not ok:
@@ -386,6 +408,8 @@ class ViewIndex:
             unit_rmin=rmin,
             unit_rmax=rmax,
             unit_complexity=uc,
+            unit_group=ug,
+            unit_anchor=ua,
             unit_vert_off=off,
             unit_verts=verts,
             segments=segs,
@@ -421,6 +445,22 @@ def index_key(map_data: MapData, config: ShapeConfig, gconfig: GlobalConfig) -> 
     }
     h.update(json.dumps(params, sort_keys=True).encode())
     return h.hexdigest()
+
+
+def _anchor(verts: np.ndarray) -> tuple[np.ndarray, float, float]:
+    """The unit's most salient vertex ``(2,)`` (largest ``|turn| * min(adjacent arm)``, the
+    vertex contributing most to the shape complexity), the direction (rad) of the edge
+    leaving it and its signed turn angle (rad). Many viewpoints see the same corner: the
+    anchor identifies it, and two corresponding anchors fix a pose by themselves."""
+    if len(verts) < 3:
+        d = verts[-1] - verts[0]
+        return verts.mean(axis=0), float(np.arctan2(d[1], d[0])), 0.0
+    d = np.diff(verts, axis=0)
+    ln = np.hypot(d[:, 0], d[:, 1])
+    ang = np.arctan2(d[:, 1], d[:, 0])
+    turn = np.mod(np.diff(ang) + np.pi, 2.0 * np.pi) - np.pi
+    k = int(np.argmax(np.abs(turn) * np.minimum(ln[:-1], ln[1:])))
+    return verts[1 + k], float(ang[1 + k]), float(turn[k])
 
 
 def _joined(a: np.ndarray, b: np.ndarray, threshold: float) -> np.ndarray:
@@ -463,6 +503,16 @@ def _distance_field(
     return dist.astype(np.float32), lo
 
 
+#: Anchor cell (m) and edge direction bucket (rad) that make units "the same corner".
+_GROUP_CELL = 0.25
+_GROUP_ANGLE = np.pi / 6.0
+
+
+def _group_ids(keys: list[tuple[int, int, int]]) -> np.ndarray:
+    ids: dict[tuple[int, int, int], int] = {}
+    return np.asarray([ids.setdefault(k, len(ids)) for k in keys], dtype=np.int64)
+
+
 def build_index(
     map_data: MapData, config: ShapeConfig | None = None, gconfig: GlobalConfig | None = None
 ) -> ViewIndex:
@@ -491,6 +541,8 @@ def build_index(
     rmin: list[float] = []
     rmax: list[float] = []
     ucomp: list[float] = []
+    ukey: list[tuple[int, int, int]] = []
+    uanc: list[tuple[float, float, float, float]] = []
     verts: list[np.ndarray] = []
     for v, p in enumerate(vps):
         Q = map_view(
@@ -509,6 +561,10 @@ def build_index(
             rmin.append(float(d.min()))
             rmax.append(float(d.max()))
             ucomp.append(shape_complexity(uv))
+            anc, direction, turn = _anchor(uv)
+            uanc.append((float(anc[0]), float(anc[1]), direction, turn))
+            cell = np.floor(anc / _GROUP_CELL).astype(int)
+            ukey.append((int(cell[0]), int(cell[1]), int(np.floor(direction / _GROUP_ANGLE))))
             verts.append(uv)
     off = np.zeros(len(verts) + 1, dtype=np.int64)
     if verts:
@@ -523,6 +579,8 @@ def build_index(
         unit_rmin=np.asarray(rmin, dtype=np.float64),
         unit_rmax=np.asarray(rmax, dtype=np.float64),
         unit_complexity=np.asarray(ucomp, dtype=np.float64),
+        unit_group=_group_ids(ukey),
+        unit_anchor=np.asarray(uanc, dtype=np.float64).reshape(-1, 4),
         unit_vert_off=off,
         unit_verts=np.vstack(verts) if verts else np.zeros((0, 2)),
         segments=caster.segments.copy(),
@@ -651,6 +709,7 @@ class Hypothesis:
     hit: float = 0.0
     violation: float = 0.0
     explained: float = 0.0
+    short: float = 0.0
 
 
 @dataclass
@@ -712,7 +771,8 @@ def verify(
     ``gconfig.verify_beams`` valid beams of the scan are compared with the ranges the map
     predicts from ``pose``: a *hit* lies within ``config.support_tolerance`` of the predicted
     range, a *violation* is a return beyond the predicted range plus the tolerance (the beam
-    went through a map wall). ``explained`` is the length fraction of the scan's polylines with
+    went through a map wall), a *short* one ends before the predicted wall (something
+    unmapped in front of it). ``explained`` is the length fraction of the scan's polylines with
     at least half their points within the tolerance of the map. Cost
     ``1 - hit + violation_weight * violation + cost_floor``.
     """
@@ -726,6 +786,7 @@ def verify(
     pred = index.caster.cast(pose, angles[idx], config.view_max_range)
     hit = float(np.mean(np.abs(r - pred) <= tol))  # NaN prediction compares False
     viol = float(np.mean(np.isfinite(pred) & (r > pred + tol)))
+    short = float(np.mean(r < pred - tol))
     total = 0.0
     good = 0.0
     for f in P.features:
@@ -734,8 +795,16 @@ def verify(
         if np.mean(d <= tol) >= 0.5:
             good += f.length
     explained = good / total if total > 0 else 0.0
-    cost = 1.0 - hit + gconfig.violation_weight * viol + gconfig.cost_floor
-    return Hypothesis(pose=pose.copy(), cost=cost, hit=hit, violation=viol, explained=explained)
+    cost = (
+        1.0
+        - hit
+        - gconfig.short_credit * short
+        + gconfig.violation_weight * viol
+        + gconfig.cost_floor
+    )
+    return Hypothesis(
+        pose=pose.copy(), cost=cost, hit=hit, violation=viol, explained=explained, short=short
+    )
 
 
 def global_search(
@@ -762,7 +831,7 @@ def global_search(
     (:func:`service.core.matching.induced_alignment`). All poses and the seeds are ranked by
     support (distance field); the best ``gconfig.refine_top`` distinct ones are refined by a
     point-to-line fit against the map and verified (:func:`verify`). Returns distinct
-    hypotheses, best (lowest cost) first, and the ambiguity ``cost_best / cost_second``.
+    hypotheses, best (lowest cost) first, and their :func:`ambiguity`.
     """
     gconfig = gconfig or GlobalConfig.for_kind(config.kind)
     r = np.asarray(ranges, dtype=np.float64)
@@ -773,6 +842,7 @@ def global_search(
         np.vstack([f.points for f in P.features]) if P.features else np.zeros((0, 2), dtype=float)
     )
     poses: list[np.ndarray] = [np.asarray(s, dtype=np.float64) for s in seeds]
+    anchor_poses: list[np.ndarray] = []
     n_induced = 0
     if P.features and len(index):
         units = _scan_units(P, config.dce_threshold)
@@ -786,6 +856,7 @@ def global_search(
             pa = prepare(pu)
             dp = np.hypot(pu[:, 0], pu[:, 1])
             cp = shape_complexity(pu)
+            p_anc, p_dir, p_turn = _anchor(pu)
             cand = np.nonzero(
                 (index.unit_rmin <= dp.max() + gate)
                 & (index.unit_rmax >= dp.min() - gate)
@@ -803,12 +874,34 @@ def global_search(
                 if s < gconfig.max_shape_distance:
                     scored.append((s, u))
             scored.sort()
-            for _s, u in scored[: gconfig.pairs_budget // len(chosen)]:
+            # the same physical corner is seen from many viewpoints: keep its best view only,
+            # so the budget covers many distinct places
+            seen: set[int] = set()
+            kept = []
+            for s_u in scored:
+                grp = int(index.unit_group[s_u[1]])
+                if grp not in seen:
+                    seen.add(grp)
+                    kept.append(s_u)
+            for _s, u in kept[: gconfig.pairs_budget // len(chosen)]:
                 poses.append(induced_alignment(pu, index.verts(u)))
                 n_induced += 1
-    if not poses:
+            # every similar pair with a compatible corner also fixes a pose by its anchors
+            # (vertex and leaving edge), vectorised: cheap enough for all of them
+            if scored and abs(p_turn) > 0.2:
+                us = np.array([u for _s, u in scored])
+                qa = index.unit_anchor[us]
+                ok = np.abs(np.mod(qa[:, 3] - p_turn + np.pi, 2 * np.pi) - np.pi) < 0.35
+                qa = qa[ok]
+                phi = np.mod(qa[:, 2] - p_dir + np.pi, 2.0 * np.pi) - np.pi
+                c, s_ = np.cos(phi), np.sin(phi)
+                tx = qa[:, 0] - (c * p_anc[0] - s_ * p_anc[1])
+                ty = qa[:, 1] - (s_ * p_anc[0] + c * p_anc[1])
+                anchor_poses.append(np.column_stack([tx, ty, phi]))
+                n_induced += int(ok.sum())
+    if not poses and not anchor_poses:
         return SearchResult(hypotheses=[], ambiguity=1.0, candidates=0)
-    H = np.vstack(poses)
+    H = np.vstack([np.asarray(poses).reshape(-1, 3), *anchor_poses])
     sp = _subsample(pts_all, gconfig.support_points)
     if len(sp) == 0:
         return SearchResult(hypotheses=[], ambiguity=1.0, candidates=n_induced)
@@ -839,14 +932,20 @@ def global_search(
 
 
 def ambiguity(hyps: list[Hypothesis], gconfig: GlobalConfig) -> float:
-    """``cost(best) / cost(best distinct alternative)`` in [0, 1]; 0 with no alternative,
-    1 with no hypothesis at all (nothing is known)."""
+    """Best vs best distinct alternative in [0, 1]: ``1 - (cost_2 - cost_1) / ambiguity_scale``
+    clipped (1 = tie, 0 = the alternative is worse by the scale or more, or there is none);
+    1 with no hypothesis at all (nothing is known).
+
+    A margin rather than a ratio: on a floor plan every hypothesis, the true one included,
+    leaves the furniture unexplained, so costs share a large common part that a ratio would
+    read as ambiguity."""
     if not hyps:
         return 1.0
     best = hyps[0]
     for h in hyps[1:]:
         if _distinct(h.pose, best.pose, gconfig):
-            return float(min(1.0, best.cost / max(h.cost, 1e-9)))
+            margin = h.cost - best.cost
+            return float(np.clip(1.0 - margin / gconfig.ambiguity_scale, 0.0, 1.0))
     return 0.0
 
 
