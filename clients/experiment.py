@@ -44,9 +44,17 @@ PROXIMITY: dict[int, tuple[float, float]] = {
     2: (0.500, math.radians(45.0)),
 }
 BLOCK_TITLES = {1: "map-based SL", 2: "SL using schematized map"}
-METHOD_NAMES = {"icp": "ICP", "lines": "line-based", "shape": "shape-based"}
+#: The service's methods plus ``shape-tracker``: the shape tracker alone (no global search
+#: after a loss), closest to the paper's SBL; not part of the default run.
+EXPERIMENT_METHODS: tuple[str, ...] = (*METHODS, "shape-tracker")
+METHOD_NAMES = {
+    "icp": "ICP",
+    "lines": "line-based",
+    "shape": "shape-based",
+    "shape-tracker": "shape-based, tracker only",
+}
 #: Paper's row order in Table 1.
-METHOD_ORDER = ("icp", "lines", "shape")
+METHOD_ORDER = ("icp", "lines", "shape", "shape-tracker")
 TABLE_COLUMNS = (
     "method",
     "position [mm]",
@@ -58,7 +66,7 @@ TABLE_COLUMNS = (
     "ms/scan",
 )
 #: Relative cost per scan used only to start the slowest runs first.
-_COST = {"shape": 6.0, "icp": 1.0, "lines": 1.0}
+_COST = {"shape": 6.0, "shape-tracker": 6.0, "icp": 1.0, "lines": 1.0}
 
 
 @dataclass
@@ -150,7 +158,7 @@ class ExperimentResult:
         out = []
         for m in self.ordered_methods(setup):
             r = self.runs[(setup, m)]
-            paper = PAPER_TABLE.get(setup, {}).get(m)
+            paper = PAPER_TABLE.get(setup, {}).get(m.split("-")[0])
             out.append(
                 [
                     METHOD_NAMES.get(m, m),
@@ -213,7 +221,7 @@ class ExperimentResult:
             for s in sorted(self.setups):
                 for m in self.ordered_methods(s):
                     r = self.runs[(s, m)]
-                    paper = PAPER_TABLE.get(s, {}).get(m, (math.nan,) * 3)
+                    paper = PAPER_TABLE.get(s, {}).get(m.split("-")[0], (math.nan,) * 3)
                     w.writerow(
                         [
                             s,
@@ -297,7 +305,12 @@ def run_method(
 
     truth = np.asarray(setup_obj.truth, dtype=np.float64)
     n = len(truth)
-    loc = create_localizer(method, setup_obj.map_data, truth[0].copy(), None)
+    if method == "shape-tracker":
+        from service.core.localizer import ShapeLocalizer
+
+        loc: Any = ShapeLocalizer(setup_obj.map_data, truth[0].copy(), None)
+    else:
+        loc = create_localizer(method, setup_obj.map_data, truth[0].copy(), None)
     est = np.empty((n, 3), dtype=np.float64)
     statuses: list[str] = []
     seconds = 0.0
@@ -401,8 +414,10 @@ def run_experiment(
         if s not in PROXIMITY:
             raise LocalizationError(f"unknown setup {s}; expected 1 or 2")
     for m in methods:
-        if m not in METHODS:
-            raise LocalizationError(f"unknown method {m!r}; expected one of {', '.join(METHODS)}")
+        if m not in EXPERIMENT_METHODS:
+            raise LocalizationError(
+                f"unknown method {m!r}; expected one of {', '.join(EXPERIMENT_METHODS)}"
+            )
     if not setups or not methods:
         raise LocalizationError("nothing to run: no setup or no method selected")
     if max_scans is not None and max_scans < 1:
@@ -524,7 +539,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--setup", type=int, choices=(1, 2), action="append", help="setup to run (repeatable)"
     )
     parser.add_argument(
-        "--method", choices=METHODS, action="append", help="method to run (repeatable)"
+        "--method",
+        choices=EXPERIMENT_METHODS,
+        action="append",
+        help="method to run (repeatable; default shape, icp, lines; shape-tracker = the shape "
+        "tracker without global search)",
     )
     parser.add_argument("--seed", type=int, default=0, help="simulation seed (default 0)")
     parser.add_argument(

@@ -146,6 +146,11 @@ def test_cli_arguments_and_errors(tmp_path: Path, capsys: pytest.CaptureFixture[
     assert (tmp_path / "results.csv").exists() and not (tmp_path / "setup1.png").exists()
     with pytest.raises(SystemExit):
         parser.parse_args(["--setup", "3"])
+    tracker = run_experiment(
+        setups=(2,), methods=("shape-tracker",), max_scans=4, out_dir=None, progress=False
+    )
+    assert "shape-based, tracker only" in tracker.table_text()
+    assert tracker.runs[(2, "shape-tracker")].global_searches == 0
     with pytest.raises(LocalizationError, match="unknown method"):
         run_experiment(methods=("magic",), out_dir=None, progress=False)
     with pytest.raises(LocalizationError, match="max_scans"):
