@@ -26,6 +26,7 @@ import time
 from collections import Counter, OrderedDict
 from concurrent.futures import Future
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -55,6 +56,7 @@ _MSGPACK = codec.MSGPACK_ENCODING
 #: Largest scan payload kept for decoding (bytes): 8192 beams as JSON text fit in ~200 KiB, so
 #: anything bigger is rejected in the callback without copying it.
 MAX_SCAN_BYTES = 512 * 1024
+VIEW_CACHE_DIR = "viewcache"  # under the state dir: per-map view index of global localisation
 
 # --------------------------------------------------------------------------- pure helpers
 
@@ -271,9 +273,11 @@ class ServiceNode:
 
     # ------------------------------------------------------------------ lifecycle
     def _new_worker(self, index: int) -> ProcessWorker | InlineWorker:
+        # Global localisation caches each map's view index here (rebuilt when the map changes).
+        cache_dir = Path(self.settings.state_dir) / VIEW_CACHE_DIR
         if self.settings.workers == 0:
-            return InlineWorker(index)
-        return ProcessWorker(index, self.settings.log_level)
+            return InlineWorker(index, cache_dir)
+        return ProcessWorker(index, self.settings.log_level, cache_dir)
 
     def start(self) -> None:
         """Open the state, start workers, restore, then declare the Zenoh entities."""

@@ -33,6 +33,7 @@ import signal
 import traceback
 from dataclasses import dataclass
 from multiprocessing.connection import Connection
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -110,9 +111,10 @@ def _opt_float(v: Any) -> float | None:
 class WorkerCore:
     """Maps and per-robot localisers of one worker. Not thread-safe: one caller at a time."""
 
-    def __init__(self) -> None:
+    def __init__(self, cache_dir: Path | None = None) -> None:
         self.maps: dict[str, MapData] = {}
         self.robots: dict[str, _Robot] = {}
+        self.cache_dir = cache_dir  # per-map view index cache of global localisation
 
     def handle(self, req: tuple[Any, ...]) -> Reply:
         """Execute one request; never raises (errors come back as ``("err", reason)``)."""
@@ -166,8 +168,11 @@ class WorkerCore:
         md = self.maps.get(map_id)
         loc = None
         if md is not None:
-            loc = create_localizer(method, md, start if start is not None else init)
+            loc = self._create(method, md, start if start is not None else init)
         self.robots[robot_id] = _Robot(method, map_id, init, start, loc)
+
+    def _create(self, method: str, md: MapData, start: np.ndarray | None) -> Localizer:
+        return create_localizer(method, md, start, cache_dir=self.cache_dir)
 
     def _scan(
         self,
@@ -187,7 +192,7 @@ class WorkerCore:
             )
         if r.localizer is None:
             start = r.last_pose if r.last_pose is not None else r.initial_pose
-            r.localizer = create_localizer(r.method, md, start)
+            r.localizer = self._create(r.method, md, start)
         est = r.localizer.update(ranges, angles, odom)
         pose = np.asarray(est.pose, dtype=np.float64).reshape(-1)
         if pose.shape != (3,) or not np.all(np.isfinite(pose)):
@@ -217,9 +222,9 @@ class WorkerDiedError(ShapelocError):
 class InlineWorker:
     """A :class:`WorkerCore` called directly in the service process (``--workers 0``)."""
 
-    def __init__(self, index: int = 0) -> None:
+    def __init__(self, index: int = 0, cache_dir: Path | None = None) -> None:
         self.index = index
-        self.core = WorkerCore()
+        self.core = WorkerCore(cache_dir)
 
     def call(self, req: tuple[Any, ...], timeout_s: float | None = None) -> Reply:
         """Run one request synchronously (``timeout_s`` is ignored in-process)."""
@@ -233,14 +238,14 @@ class InlineWorker:
         """Nothing to release."""
 
 
-def _worker_main(conn: Connection, log_level: str) -> None:
+def _worker_main(conn: Connection, log_level: str, cache_dir: Path | None = None) -> None:
     """Entry point of a worker process: serve requests until EOF or ``("stop",)``."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent owns shutdown
     logging.basicConfig(
         level=getattr(logging, log_level.upper(), logging.INFO),
         format="%(asctime)s %(levelname)s %(name)s[%(process)d]: %(message)s",
     )
-    core = WorkerCore()
+    core = WorkerCore(cache_dir)
     while True:
         try:
             req = conn.recv()
@@ -259,14 +264,14 @@ class ProcessWorker:
     kills the child) if a reply takes longer than ``timeout_s`` seconds.
     """
 
-    def __init__(self, index: int, log_level: str = "info") -> None:
+    def __init__(self, index: int, log_level: str = "info", cache_dir: Path | None = None) -> None:
         self.index = index
         self._log_level = log_level
         ctx = mp.get_context("spawn")
         self._conn, child = ctx.Pipe(duplex=True)
         self._proc = ctx.Process(
             target=_worker_main,
-            args=(child, log_level),
+            args=(child, log_level, cache_dir),
             name=f"shapeloc-worker-{index}",
             daemon=True,
         )
