@@ -29,7 +29,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from service.core.configuration import Configuration, Feature
-from service.core.pose import fit_pairs, pose_from_matches, transform_points
+from service.core.pose import fit_pairs, fit_pairs_stacked, pose_from_matches, transform_points
 from service.core.similarity import prepare, shape_alignment, shape_complexity, shape_distance
 from service.core.types import Match, wrap_angle
 
@@ -321,30 +321,46 @@ def match_with_cost(
         return ConfigurationMatch(matches=[], cost=cost)
     # Induced alignment of every candidate block (vectorised point-to-line fit from the
     # estimate) and its ΔA (eq. 4) at the block's centroid; the ΔA gate comes first because it
-    # is cheap for all blocks at once, S* only for the survivors.
+    # is cheap for all blocks at once, S* only for the survivors. Blocks are runs of
+    # consecutive features, so their points / segments are contiguous rows of the stacked
+    # per-feature arrays.
     k_pts = max(3, config.align_points // 2)
-    pts = []
-    segs = []
-    for i_s, i_e, j_s, j_e in cand:
-        if i_s == i_e:
-            pts.append(_feature_sample(P.features[i_s], k_pts))
-        else:
-            pts.append(np.vstack([_feature_sample(f, k_pts) for f in P.features[i_s : i_e + 1]]))
-        if j_s == j_e and Qf[j_s].segments is not None:
-            segs.append(Qf[j_s].segments)
-        else:
-            segs.append(
-                np.vstack([f.segments for f in Qf[j_s : j_e + 1] if f.segments is not None])
-            )
-    poses, _rms = fit_pairs(
-        pts,
-        segs,
+    samples = [_feature_sample(f, k_pts) for f in P.features]
+    p_off = np.concatenate(([0], np.cumsum([len(x) for x in samples])))
+    p_all = np.vstack(samples)
+    q_segs = [f.segments if f.segments is not None else np.zeros((0, 4)) for f in Qf]
+    q_off = np.concatenate(([0], np.cumsum([len(x) for x in q_segs])))
+    q_all = np.vstack(q_segs)
+    ca = np.array(cand, dtype=np.intp)
+    p_start, p_len = p_off[ca[:, 0]], p_off[ca[:, 1] + 1] - p_off[ca[:, 0]]
+    own = np.repeat(np.arange(len(cand)), p_len)
+    rows = np.arange(int(p_len.sum())) - np.repeat(np.cumsum(p_len) - p_len, p_len)
+    pts_all = p_all[np.repeat(p_start, p_len) + rows]
+    s_start, s_len = q_off[ca[:, 2]], q_off[ca[:, 3] + 1] - q_off[ca[:, 2]]
+    smax = int(s_len.max()) if len(s_len) else 0
+    if smax == 0 or len(q_all) == 0:
+        cost, _ = order_preserving_dp(skip_p, skip_q, {})
+        return ConfigurationMatch(matches=[], cost=cost)
+    col = np.arange(smax)
+    valid = col[None, :] < s_len[:, None]
+    seg_idx = np.minimum(s_start[:, None] + col[None, :], len(q_all) - 1)
+    poses, _rms = fit_pairs_stacked(
+        pts_all,
+        own,
+        q_all[seg_idx],
+        valid,
         est,
         iterations=config.align_iterations,
         robust_scale=config.align_robust_scale,
         damping=config.align_damping,
     )
-    cen = np.array([p.mean(axis=0) for p in pts])
+    cnt = np.bincount(own, minlength=len(cand)).astype(float)
+    cen = np.column_stack(
+        [
+            np.bincount(own, weights=pts_all[:, 0], minlength=len(cand)) / cnt,
+            np.bincount(own, weights=pts_all[:, 1], minlength=len(cand)) / cnt,
+        ]
+    )
     c_h, s_h = np.cos(poses[:, 2]), np.sin(poses[:, 2])
     c_e, s_e = np.cos(est[2]), np.sin(est[2])
     dx = (c_h * cen[:, 0] - s_h * cen[:, 1] + poses[:, 0]) - (

@@ -281,6 +281,34 @@ def fit_pairs(
         s = np.asarray(s, dtype=np.float64).reshape(-1, 4)
         Sg[k, : len(s)] = s
         valid[k, : len(s)] = True
+    return fit_pairs_stacked(
+        P,
+        own,
+        Sg,
+        valid,
+        initial_pose,
+        iterations=iterations,
+        robust_scale=robust_scale,
+        damping=damping,
+    )
+
+
+def fit_pairs_stacked(
+    P: np.ndarray,
+    own: np.ndarray,
+    Sg: np.ndarray,
+    valid: np.ndarray,
+    initial_pose: np.ndarray,
+    *,
+    iterations: int = 3,
+    robust_scale: float = 0.1,
+    damping: float = 0.05,
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`fit_pairs` on pre-stacked arrays: ``P`` ``(N, 2)`` all pairs' points (robot
+    frame), ``own`` ``(N,)`` their pair index in ``0..K-1``, ``Sg`` ``(K, smax, 4)`` each pair's
+    map segments padded to a common length and ``valid`` ``(K, smax)`` which of them are real.
+    """
+    K = Sg.shape[0]
     a = Sg[:, :, 0:2]
     e = Sg[:, :, 2:4] - a
     ee = np.maximum(np.einsum("ksi,ksi->ks", e, e), 1e-18)
