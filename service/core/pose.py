@@ -316,44 +316,48 @@ def fit_pairs_stacked(
     poses = init.copy() if init.ndim == 2 else np.tile(init, (K, 1))
     rms = np.zeros(K)
     eye = np.eye(3)
+    # Per-point views of its pair's segments (the same in every iteration).
+    ao = a[own]  # (N, smax, 2)
+    eo = e[own]
+    eeo = ee[own]
+    vo = valid[own]
+    rows = np.arange(P.shape[0])
     for _ in range(iterations):
-        c = np.cos(poses[own, 2])
-        s_ = np.sin(poses[own, 2])
-        qx = c * P[:, 0] - s_ * P[:, 1] + poses[own, 0]
-        qy = s_ * P[:, 0] + c * P[:, 1] + poses[own, 1]
-        ao = a[own]  # (N, smax, 2)
-        eo = e[own]
+        po = poses[own]
+        c = np.cos(po[:, 2])
+        s_ = np.sin(po[:, 2])
+        qx = c * P[:, 0] - s_ * P[:, 1] + po[:, 0]
+        qy = s_ * P[:, 0] + c * P[:, 1] + po[:, 1]
         dx = qx[:, None] - ao[:, :, 0]
         dy = qy[:, None] - ao[:, :, 1]
-        u = np.clip((dx * eo[:, :, 0] + dy * eo[:, :, 1]) / ee[own], 0.0, 1.0)
-        rx = dx - u * eo[:, :, 0]
-        ry = dy - u * eo[:, :, 1]
-        d2 = np.where(valid[own], rx * rx + ry * ry, np.inf)
+        t = np.clip((dx * eo[:, :, 0] + dy * eo[:, :, 1]) / eeo, 0.0, 1.0)
+        rx = dx - t * eo[:, :, 0]
+        ry = dy - t * eo[:, :, 1]
+        d2 = np.where(vo, rx * rx + ry * ry, np.inf)
         j = np.argmin(d2, axis=1)
-        rows = np.arange(P.shape[0])
-        uj = u[rows, j]
+        tj = t[rows, j]
         ej = eo[rows, j]
-        en = ej / np.sqrt(ee[own, j])[:, None]
+        en = ej / np.sqrt(eeo[rows, j])[:, None]
         nx, ny = -en[:, 1], en[:, 0]
         rvx, rvy = rx[rows, j], ry[rows, j]
-        clamped = (uj <= 0.0) | (uj >= 1.0)
+        clamped = (tj <= 0.0) | (tj >= 1.0)
         rn = np.hypot(rvx, rvy)
         use = clamped & (rn > 1e-12)
         nx = np.where(use, rvx / np.where(use, rn, 1.0), nx)
         ny = np.where(use, rvy / np.where(use, rn, 1.0), ny)
         r = rvx * nx + rvy * ny
         w = 1.0 / (1.0 + (r / robust_scale) ** 2)
-        lx = qx - poses[own, 0]
-        ly = qy - poses[own, 1]
+        lx = qx - po[:, 0]
+        ly = qy - po[:, 1]
         J = np.column_stack([nx, ny, ny * lx - nx * ly])
         Jw = J * w[:, None]
         H = np.empty((K, 3, 3))
         g = np.empty((K, 3))
-        for u in range(3):
-            g[:, u] = np.bincount(own, weights=Jw[:, u] * r, minlength=K)
-            for v in range(u, 3):
-                H[:, u, v] = np.bincount(own, weights=Jw[:, u] * J[:, v], minlength=K)
-                H[:, v, u] = H[:, u, v]
+        for k1 in range(3):
+            g[:, k1] = np.bincount(own, weights=Jw[:, k1] * r, minlength=K)
+            for k2 in range(k1, 3):
+                H[:, k1, k2] = np.bincount(own, weights=Jw[:, k1] * J[:, k2], minlength=K)
+                H[:, k2, k1] = H[:, k1, k2]
         tr = np.maximum(np.trace(H, axis1=1, axis2=2) / 3.0, 1e-12)
         delta = -np.linalg.solve(H + damping * tr[:, None, None] * eye, g[:, :, None])[:, :, 0]
         poses = poses + delta
