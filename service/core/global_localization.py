@@ -110,6 +110,9 @@ class GlobalConfig(BaseModel):
         description="View units less complex than this times the scan unit's are skipped.",
     )
     max_shape_distance: float = Field(0.6, gt=0, description="S* gate for a pair (m).")
+    max_turn_difference: float = Field(
+        0.35, gt=0, description="Corresponding anchor corners turn alike within this (rad)."
+    )
     pairs_budget: int = Field(
         360, ge=1, description="Induced poses per scan, shared by the chosen scan units."
     )
@@ -136,15 +139,16 @@ class GlobalConfig(BaseModel):
     )
     cost_floor: float = Field(0.05, gt=0, description="Added to every hypothesis' cost.")
     ambiguity_scale: float = Field(
-        0.3,
+        0.1,
         gt=0,
         description="Cost margin of the best over the best distinct alternative at which the "
-        "ambiguity reaches 0 (ambiguity = 1 - margin / scale, clipped).",
+        "ambiguity reaches 0 (ambiguity = 1 - margin / scale, clipped); on an exact map "
+        "small margins are significant. Schematic: 0.2.",
     )
     # --- decision ----------------------------------------------------------------------------
     window: int = Field(3, ge=1, description="Scans over which a hypothesis' cost is averaged.")
     max_fix_cost: float = Field(
-        0.2, gt=0, description="A winner's mean cost must be below this. Schematic: 0.45."
+        0.2, gt=0, description="A winner's mean cost must be below this. Schematic: 0.3."
     )
     max_fix_ambiguity: float = Field(
         0.5, gt=0, le=1, description="A winner's ambiguity must be below this."
@@ -152,12 +156,21 @@ class GlobalConfig(BaseModel):
     single_scan_ambiguity: float = Field(
         0.35, gt=0, le=1, description="Below this ambiguity one scan suffices; else two."
     )
+    min_information: float = Field(
+        0.0,
+        ge=0,
+        description="No fix from a scan whose most complex units sum to less shape complexity "
+        "(m·rad): facing a bare wall, any wall fits. Schematic: 8.0.",
+    )
     confirm_distance: float = Field(
         0.3, gt=0, description="The tracker's first pose must be this close to the winner (m)."
     )
     # --- integrity ---------------------------------------------------------------------------
     collapse_score: float = Field(
-        0.3, ge=0, le=1, description="A rejected scan scoring below this means 'lost' at once."
+        0.5,
+        ge=0,
+        le=1,
+        description="A rejected scan scoring below this means 'lost' at once. Schematic: 0.45.",
     )
 
     @classmethod
@@ -166,7 +179,14 @@ class GlobalConfig(BaseModel):
         if kind == "metric":
             return cls()
         if kind == "schematic":
-            return cls(kind="schematic", max_fix_cost=0.45, short_credit=0.5)
+            return cls(
+                kind="schematic",
+                max_fix_cost=0.3,
+                short_credit=0.5,
+                ambiguity_scale=0.2,
+                collapse_score=0.45,
+                min_information=8.0,
+            )
         raise LocalizationError(f"unknown map kind {kind!r}; expected metric or schematic")
 
 
@@ -229,6 +249,19 @@ def candidate_viewpoints(
         r = caster.cast(np.array([p[0], p[1], 0.0]), angles, max_range)
         keep[k] = np.mean(np.isfinite(r)) >= min_enclosed
     return pts[keep]
+
+
+def _nearby_segments(segments: np.ndarray, points: np.ndarray, radius: float) -> np.ndarray:
+    """The segments within ``radius`` metres of any of ``points`` (all if none is)."""
+    a = segments[:, 0:2]
+    e = segments[:, 2:4] - a
+    ee = np.maximum(np.einsum("ij,ij->i", e, e), 1e-18)
+    dx = points[:, None, 0] - a[None, :, 0]
+    dy = points[:, None, 1] - a[None, :, 1]
+    u = np.clip((dx * e[None, :, 0] + dy * e[None, :, 1]) / ee[None, :], 0.0, 1.0)
+    d2 = (dx - u * e[None, :, 0]) ** 2 + (dy - u * e[None, :, 1]) ** 2
+    near = np.min(d2, axis=0) <= radius * radius
+    return segments[near] if np.any(near) else segments
 
 
 def _segment_clearance(points: np.ndarray, segments: np.ndarray, chunk: int = 512) -> np.ndarray:
@@ -716,11 +749,13 @@ class Hypothesis:
 class SearchResult:
     """Ranked distinct hypotheses (best first) and the best-vs-second ambiguity in [0, 1]
     (1 = tie, 0 = a single hypothesis). ``candidates`` how many pose hypotheses the shape
-    pairs induced."""
+    pairs induced; ``information`` the summed shape complexity (m·rad) of the scan units
+    used — how much distinctive shape the scan holds at all."""
 
     hypotheses: list[Hypothesis]
     ambiguity: float
     candidates: int
+    information: float = 0.0
 
 
 def _scan_units(P: Configuration, threshold: float) -> list[np.ndarray]:
@@ -844,11 +879,13 @@ def global_search(
     poses: list[np.ndarray] = [np.asarray(s, dtype=np.float64) for s in seeds]
     anchor_poses: list[np.ndarray] = []
     n_induced = 0
+    information = 0.0
     if P.features and len(index):
         units = _scan_units(P, config.dce_threshold)
         comp = [(shape_complexity(u), k) for k, u in enumerate(units)]
         comp.sort(key=lambda t: (-t[0], t[1]))
         chosen = [k for c, k in comp[: gconfig.scan_units] if c >= gconfig.min_unit_complexity]
+        information = float(sum(c for c, _k in comp[: gconfig.scan_units]))
         gate = 0.5 * np.sqrt(2.0) * gconfig.spacing + gconfig.range_slack
         ew, sw = config.shape_end_weight, config.shape_skip_weight
         for k in chosen:
@@ -862,8 +899,18 @@ def global_search(
                 & (index.unit_rmax >= dp.min() - gate)
                 & (index.unit_complexity >= gconfig.view_complexity_ratio * cp)
             )[0]
+            cornered = abs(p_turn) > 0.2
+            if cornered:  # corresponding corners turn alike
+                dturn = np.mod(index.unit_anchor[cand, 3] - p_turn + np.pi, 2.0 * np.pi) - np.pi
+                cand = cand[np.abs(dturn) < gconfig.max_turn_difference]
+            # The same physical corner is seen from many viewpoints (one group): S* is
+            # computed for one view of each group (the first), and a similar group lends its
+            # views' anchors to every view of it; the budget of S*-induced alignments thus
+            # covers many distinct places instead of one corner many times.
+            groups = index.unit_group[cand]
+            _, first = np.unique(groups, return_index=True)
             scored = []
-            for u in cand.tolist():
+            for u in cand[np.sort(first)].tolist():
                 s = shape_distance(
                     pa,
                     index.arcs(u),
@@ -874,37 +921,28 @@ def global_search(
                 if s < gconfig.max_shape_distance:
                     scored.append((s, u))
             scored.sort()
-            # the same physical corner is seen from many viewpoints: keep its best view only,
-            # so the budget covers many distinct places
-            seen: set[int] = set()
-            kept = []
-            for s_u in scored:
-                grp = int(index.unit_group[s_u[1]])
-                if grp not in seen:
-                    seen.add(grp)
-                    kept.append(s_u)
-            for _s, u in kept[: gconfig.pairs_budget // len(chosen)]:
+            for _s, u in scored[: gconfig.pairs_budget // len(chosen)]:
                 poses.append(induced_alignment(pu, index.verts(u)))
                 n_induced += 1
-            # every similar pair with a compatible corner also fixes a pose by its anchors
-            # (vertex and leaving edge), vectorised: cheap enough for all of them
-            if scored and abs(p_turn) > 0.2:
-                us = np.array([u for _s, u in scored])
-                qa = index.unit_anchor[us]
-                ok = np.abs(np.mod(qa[:, 3] - p_turn + np.pi, 2 * np.pi) - np.pi) < 0.35
-                qa = qa[ok]
+            if scored and cornered:
+                # every view of a similar group fixes a pose by the anchors (corner vertex
+                # and leaving edge): vectorised, cheap enough for all of them
+                similar = np.isin(groups, index.unit_group[[u for _s, u in scored]])
+                qa = index.unit_anchor[cand[similar]]
                 phi = np.mod(qa[:, 2] - p_dir + np.pi, 2.0 * np.pi) - np.pi
                 c, s_ = np.cos(phi), np.sin(phi)
                 tx = qa[:, 0] - (c * p_anc[0] - s_ * p_anc[1])
                 ty = qa[:, 1] - (s_ * p_anc[0] + c * p_anc[1])
                 anchor_poses.append(np.column_stack([tx, ty, phi]))
-                n_induced += int(ok.sum())
+                n_induced += len(qa)
     if not poses and not anchor_poses:
-        return SearchResult(hypotheses=[], ambiguity=1.0, candidates=0)
+        return SearchResult(hypotheses=[], ambiguity=1.0, candidates=0, information=information)
     H = np.vstack([np.asarray(poses).reshape(-1, 3), *anchor_poses])
     sp = _subsample(pts_all, gconfig.support_points)
     if len(sp) == 0:
-        return SearchResult(hypotheses=[], ambiguity=1.0, candidates=n_induced)
+        return SearchResult(
+            hypotheses=[], ambiguity=1.0, candidates=n_induced, information=information
+        )
     sup = _support_many(index, H, sp, config.support_tolerance)
     order = np.argsort(-sup, kind="stable")
     picked: list[np.ndarray] = []
@@ -916,7 +954,7 @@ def global_search(
         picked.append(H[i])
     refined, _ = fit_pairs(
         [sp] * len(picked),
-        [index.segments] * len(picked),
+        [_nearby_segments(index.segments, transform_points(p, sp), 0.5) for p in picked],
         np.vstack(picked),
         iterations=gconfig.refine_iterations,
         robust_scale=config.align_robust_scale,
@@ -928,7 +966,12 @@ def global_search(
     for h in hyps:
         if all(not _near(h.pose, o.pose) for o in out):
             out.append(h)
-    return SearchResult(hypotheses=out, ambiguity=ambiguity(out, gconfig), candidates=n_induced)
+    return SearchResult(
+        hypotheses=out,
+        ambiguity=ambiguity(out, gconfig),
+        candidates=n_induced,
+        information=information,
+    )
 
 
 def ambiguity(hyps: list[Hypothesis], gconfig: GlobalConfig) -> float:
@@ -952,6 +995,11 @@ def ambiguity(hyps: list[Hypothesis], gconfig: GlobalConfig) -> float:
 # --------------------------------------------------------------------------------------------
 # The localiser: tracking, global search, integrity
 # --------------------------------------------------------------------------------------------
+
+
+#: A hypothesis of this scan continues a track of the last one within this distance (m) and
+#: heading change (rad): between two scans a robot may move a few decimetres and turn a lot.
+_ASSOCIATE = (0.6, 1.0)
 
 
 @dataclass
@@ -979,6 +1027,8 @@ class GlobalShapeLocalizer:
     published, except that a rejected scan whose score is below ``gconfig.collapse_score``
     (the scan's shapes no longer fit the map at all) or the tracker's own ``lost`` (after
     ``lost_after`` rejections) switches to *searching* at once and publishes ``lost``.
+    The published ``ambiguity`` is the global search's (best vs best distinct hypothesis);
+    while tracking it is ``None`` (the tracker's own value is in ``extras``).
     *searching* — every scan runs :func:`global_search`, seeded with the hypotheses kept from
     the previous scans (and, after a loss, the last tracked pose); each hypothesis' cost is
     averaged over the last ``gconfig.window`` scans. The best one wins when its mean cost is
@@ -1055,10 +1105,17 @@ class GlobalShapeLocalizer:
         if not self._searching:
             est = self.tracker.update(ranges, angles, odom)
             self._remember_odom(odom)
+            # The tracker's own ambiguity compares its step-2 hypotheses, which often converge
+            # to the same pose (a "tie" of one pose with itself): not an integrity signal.
+            # It stays in extras; the published ambiguity is the global one (None here).
+            if est.ambiguity is not None:
+                est.extras["tracker_ambiguity"] = float(est.ambiguity)
+            est.ambiguity = None
             rejected = "rejected" in est.extras
             if est.status == "lost" or (rejected and est.score < self.gconfig.collapse_score):
                 self._start_search(est.pose)
                 est.status = "lost"
+                est.ambiguity = 1.0  # no hypotheses yet: nothing tells the places apart
             return est
         r = np.asarray(ranges, dtype=np.float64)
         a = np.asarray(angles, dtype=np.float64)
@@ -1095,7 +1152,10 @@ class GlobalShapeLocalizer:
         self._tracks = []
         if last_pose is not None:
             p = np.asarray(last_pose, dtype=np.float64).copy()
-            self._tracks = [_Track(p, [], Hypothesis(pose=p, cost=1.0))]
+            # the last tracked pose was verified by the tracker a scan ago: it enters with that
+            # history, so a transient loss (an occlusion) recovers to it first
+            floor = self.gconfig.cost_floor
+            self._tracks = [_Track(p, [floor], Hypothesis(pose=p, cost=floor))]
 
     def _search(self, r: np.ndarray, a: np.ndarray, odom: np.ndarray | None) -> Estimate:
         g = self.gconfig
@@ -1112,10 +1172,10 @@ class GlobalShapeLocalizer:
         # associate this scan's hypotheses with the tracks
         new_tracks: list[_Track] = []
         for h in res.hypotheses[: g.keep]:
-            prev = next((t for t in self._tracks if _near(t.pose, h.pose, 0.5, 0.3)), None)
+            prev = next((t for t in self._tracks if _near(t.pose, h.pose, *_ASSOCIATE)), None)
             costs = (prev.costs if prev is not None else []) + [h.cost]
             wins = prev.wins if prev is not None else 0
-            if any(_near(t.pose, h.pose, 0.5, 0.3) for t in new_tracks):
+            if any(_near(t.pose, h.pose, *_ASSOCIATE) for t in new_tracks):
                 continue
             new_tracks.append(_Track(h.pose.copy(), costs[-g.window :], h, wins))
         # mean cost over the window; a hypothesis seen on fewer of this search's scans pays
@@ -1145,9 +1205,16 @@ class GlobalShapeLocalizer:
             "search_cost": best.hyp.cost,
             "hit": best.hyp.hit,
             "violation": best.hyp.violation,
+            "information": res.information,
         }
         confirmed = best.wins >= 2 or amb <= g.single_scan_ambiguity
-        if best.hyp.cost <= g.max_fix_cost and amb <= g.max_fix_ambiguity and confirmed:
+        informative = res.information >= g.min_information
+        if (
+            best.hyp.cost <= g.max_fix_cost
+            and amb <= g.max_fix_ambiguity
+            and confirmed
+            and informative
+        ):
             self.tracker.reset(best.pose)
             est = self.tracker.update(r, a, None)
             close = np.hypot(*(est.pose[:2] - best.pose[:2])) <= g.confirm_distance

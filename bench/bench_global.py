@@ -1,0 +1,184 @@
+"""Global localisation acceptance measurement (prints tables).
+
+``python bench/bench_global.py [--poses 200] [--seed 1] [--maps metric,schematic]
+[--setup-scans N] [--no-setups]``
+
+1. Precompute per map: the view index built cold (into an empty cache dir) and loaded from
+   that cache (a fresh process' view: the in-memory copy is dropped first).
+2. Random free-space poses (``sim_publisher.publisher.random_free_poses``, >= 0.3 m from any
+   obstacle, heading uniform; seeded) per map, no initial pose, up to 3 scans each. The robot
+   MOVES 3 cm along its heading between the scans (it stays put if that would leave free
+   space). Found = the first ``tracking`` estimate is within 0.5 m and 10 deg of the truth;
+   a ``tracking`` estimate outside that is a confident wrong pose. Time to first fix = wall
+   time of the ``update`` calls up to the fix (one process, one core; the machine's load is
+   printed).
+3. No confident wrong poses: both full setups (``sim_publisher.scenario.make_setup``) run with
+   ``initial_pose`` null; of all estimates with status ``tracking``, the fraction passing the
+   setup's proximity test (setup 1: 100 mm / 45 deg, setup 2: 500 mm / 45 deg).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from service.core import global_localization as gl
+from service.core.factory import create_localizer
+from service.core.types import wrap_angle
+from sim_publisher.office import office_metric_map, office_schematic_map, office_world
+from sim_publisher.publisher import random_free_poses
+from sim_publisher.scenario import make_setup
+
+MAPS = {"metric": (office_metric_map, 1), "schematic": (office_schematic_map, 2)}
+
+
+def _load() -> str:
+    try:
+        return " ".join(f"{v:.2f}" for v in os.getloadavg())
+    except OSError:
+        return "n/a"
+
+
+def precompute(name: str, cache: Path) -> tuple[float, float, int, int]:
+    """(cold build s, cached load s, viewpoints, units) of one map."""
+    md = MAPS[name][0]()
+    gl.clear_memory_cache()
+    t0 = time.perf_counter()
+    idx = gl.load_or_build_index(md, cache_dir=cache)
+    cold = time.perf_counter() - t0
+    gl.clear_memory_cache()
+    t0 = time.perf_counter()
+    gl.load_or_build_index(md, cache_dir=cache)
+    warm = time.perf_counter() - t0
+    return cold, warm, len(idx.viewpoints), len(idx)
+
+
+def random_trials(name: str, n: int, seed: int) -> dict[str, float]:
+    """Found / wrong / unresolved fractions and time-to-first-fix percentiles."""
+    md = MAPS[name][0]()
+    su = make_setup(MAPS[name][1], max_scans=2)
+    world = office_world()
+    found = wrong = 0
+    ttf: list[float] = []
+    scans_needed: list[int] = []
+    for k, start in enumerate(random_free_poses(world, n, seed)):
+        loc = create_localizer("shape", md, None)
+        spent = 0.0
+        for s in range(3):
+            step = np.array([0.03 * s * np.cos(start[2]), 0.03 * s * np.sin(start[2]), 0.0])
+            p = start + step
+            if not world.is_free(p[:2], 0.25)[0]:
+                p = start
+            r, a = su.laser.scan(p, 1000 * k + s)
+            t0 = time.perf_counter()
+            est = loc.update(r, a)
+            spent += time.perf_counter() - t0
+            if est.status == "tracking":
+                ok = np.hypot(*(est.pose[:2] - p[:2])) < 0.5 and abs(
+                    wrap_angle(float(est.pose[2] - p[2]))
+                ) < np.deg2rad(10.0)
+                found += bool(ok)
+                wrong += not ok
+                if ok:
+                    ttf.append(spent)
+                    scans_needed.append(s + 1)
+                break
+    t = np.asarray(ttf) if ttf else np.full(1, np.nan)
+    return {
+        "n": n,
+        "found": found / n,
+        "wrong": wrong / n,
+        "none": (n - found - wrong) / n,
+        "ttf50": float(np.percentile(t, 50)),
+        "ttf95": float(np.percentile(t, 95)),
+        "scans_mean": float(np.mean(scans_needed)) if scans_needed else float("nan"),
+    }
+
+
+def setup_run(setup: int, max_scans: int | None) -> dict[str, float]:
+    """Full setup with initial_pose null: tracking poses passing the proximity test."""
+    su = make_setup(setup, max_scans=max_scans)
+    loc = create_localizer("shape", su.map_data, None)
+    tracking = passed = first_fix = lost = 0
+    first = None
+    t0 = time.perf_counter()
+    for i in range(len(su)):
+        est = loc.update(*su.scan(i))
+        if est.status == "tracking":
+            tracking += 1
+            passed += su.passed(i, est.pose)
+            if first is None:
+                first = i
+        elif est.status == "lost":
+            lost += 1
+    first_fix = -1 if first is None else first
+    return {
+        "scans": len(su),
+        "tracking": tracking,
+        "passed": passed / tracking if tracking else float("nan"),
+        "first_fix_scan": first_fix,
+        "lost": lost,
+        "seconds": time.perf_counter() - t0,
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the measurements and print the tables."""
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--poses", type=int, default=200, help="random poses per map")
+    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--maps", default="metric,schematic")
+    ap.add_argument("--setup-scans", type=int, default=None, help="truncate the setups")
+    ap.add_argument("--no-setups", action="store_true", help="skip the full-setup runs")
+    args = ap.parse_args(argv)
+    maps = [m.strip() for m in args.maps.split(",") if m.strip()]
+    print(f"load average at start: {_load()}")
+    with tempfile.TemporaryDirectory() as tmp:
+        print("\n| map | viewpoints | units | precompute cold s | cached load s |")
+        print("|---|---|---|---|---|")
+        for m in maps:
+            cold, warm, v, u = precompute(m, Path(tmp))
+            print(f"| {m} | {v} | {u} | {cold:.1f} | {warm:.2f} |")
+    print(
+        f"\n{args.poses} random free-space poses per map (seed {args.seed}), no initial pose, "
+        "<= 3 scans, moving 3 cm forward between scans"
+    )
+    print(
+        "| map | found < 0.5 m, < 10 deg | confident wrong | no fix in 3 scans "
+        "| scans to fix (mean) | first fix p50 s | p95 s |"
+    )
+    print("|---|---|---|---|---|---|---|")
+    for m in maps:
+        r = random_trials(m, args.poses, args.seed)
+        print(
+            f"| {m} | {100 * r['found']:.1f} % | {100 * r['wrong']:.1f} % | "
+            f"{100 * r['none']:.1f} % | {r['scans_mean']:.2f} | {r['ttf50']:.2f} | "
+            f"{r['ttf95']:.2f} |"
+        )
+    print(f"load average: {_load()}")
+    if not args.no_setups:
+        print("\nFull setups with initial_pose null (no confident wrong poses)")
+        print(
+            "| setup | scans | tracking | tracking poses passing | first fix at scan | lost | s |"
+        )
+        print("|---|---|---|---|---|---|---|")
+        for st in (1, 2):
+            r = setup_run(st, args.setup_scans)
+            print(
+                f"| {st} | {r['scans']} | {r['tracking']} | {100 * r['passed']:.2f} % | "
+                f"{r['first_fix_scan']} | {r['lost']} | {r['seconds']:.0f} |"
+            )
+        print(f"load average: {_load()}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
