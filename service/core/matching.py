@@ -29,7 +29,12 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from service.core.configuration import Configuration, Feature
-from service.core.pose import fit_pairs, fit_pairs_stacked, pose_from_matches, transform_points
+from service.core.pose import (
+    fit_pairs,
+    fit_pairs_blocks,
+    pose_from_matches,
+    transform_points,
+)
 from service.core.similarity import prepare, shape_alignment, shape_complexity, shape_distance
 from service.core.types import Match, wrap_angle
 
@@ -225,11 +230,15 @@ def _subsample(points: np.ndarray, k: int) -> np.ndarray:
     return points[idx]
 
 
-def _shape_arcs(f: Feature | tuple, verts: np.ndarray, cache: dict) -> Any:
+def _shape_arcs(
+    f: Feature | tuple, verts: np.ndarray | Callable[[], np.ndarray], cache: dict
+) -> Any:
+    """S*-prepared polyline, cached under ``f`` (a feature or a key); ``verts`` may be a
+    callable building the vertices only on a cache miss."""
     key = id(f) if isinstance(f, Feature) else f
     arcs = cache.get(key)
     if arcs is None:
-        arcs = prepare(verts)
+        arcs = prepare(verts() if callable(verts) else verts)
         cache[key] = arcs
     return arcs
 
@@ -341,14 +350,12 @@ def match_with_cost(
     if smax == 0 or len(q_all) == 0:
         cost, _ = order_preserving_dp(skip_p, skip_q, {})
         return ConfigurationMatch(matches=[], cost=cost)
-    col = np.arange(smax)
-    valid = col[None, :] < s_len[:, None]
-    seg_idx = np.minimum(s_start[:, None] + col[None, :], len(q_all) - 1)
-    poses, _rms = fit_pairs_stacked(
+    poses, _rms = fit_pairs_blocks(
         pts_all,
         own,
-        q_all[seg_idx],
-        valid,
+        q_all,
+        s_start,
+        s_len,
         est,
         iterations=config.align_iterations,
         robust_scale=config.align_robust_scale,
@@ -380,13 +387,19 @@ def match_with_cost(
             pa = _shape_arcs(P.features[i_s], P.features[i_s].vertices, cache)
         else:
             pa = _shape_arcs(
-                ("P", id(P), i_s, i_e), _concat(P.features[i_s : i_e + 1], "vertices"), cache
+                ("P", id(P), i_s, i_e),
+                lambda: _concat(P.features[i_s : i_e + 1], "vertices"),  # noqa: B023
+                cache,
             )
         if j_s == j_e:
             qa = _shape_arcs(Qf[j_s], Qf[j_s].vertices, cache)
         else:
             qf = Qf[j_s : j_e + 1]
-            qa = _shape_arcs(("Q", *(id(f) for f in qf)), _concat(qf, "vertices"), cache)
+            qa = _shape_arcs(
+                ("Q", *(id(f) for f in qf)),
+                lambda: _concat(qf, "vertices"),  # noqa: B023
+                cache,
+            )
         skey = ("S", id(pa), id(qa))
         sdist = cache.get(skey)
         if sdist is None:

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from schemas.errors import LocalizationError
+from service.core import _kernels
 from service.core.types import wrap_angle
 
 
@@ -179,7 +180,83 @@ def pose_from_matches(
     matters where the matched geometry leaves a direction unobservable (a corridor).
 
     Raises :class:`LocalizationError` when no pair has points and segments.
+
+    The loop runs in a compiled kernel (:func:`service.core._kernels.pose_iterations`) when
+    numba is available, else in :func:`_pose_from_matches_numpy` (the reference).
     """
+    if not _kernels.HAVE_NUMBA:
+        return _pose_from_matches_numpy(
+            pairs,
+            initial_pose,
+            iterations=iterations,
+            inlier_distance=inlier_distance,
+            robust_scale=robust_scale,
+            damping=damping,
+            tol=tol,
+            prior=prior,
+            prior_weight=prior_weight,
+        )
+    pts_list, seg_list = [], []
+    for pts, segs in pairs:
+        pts = np.asarray(pts, dtype=np.float64).reshape(-1, 2)
+        segs = np.asarray(segs, dtype=np.float64).reshape(-1, 4)
+        if pts.shape[0] == 0 or segs.shape[0] == 0:
+            continue
+        pts_list.append(pts)
+        seg_list.append(segs)
+    if not pts_list:
+        raise LocalizationError("pose_from_matches: no matched pair with points and segments")
+    K = len(pts_list)
+    own = np.repeat(np.arange(K), [len(x) for x in pts_list])
+    seg_len = np.array([len(x) for x in seg_list], dtype=np.intp)
+    seg_start = np.concatenate(([0], np.cumsum(seg_len)[:-1])).astype(np.intp)
+    use_prior = prior is not None and prior_weight > 0.0
+    pose, H, rms, n_in, it, have_h = _kernels.pose_iterations(
+        np.ascontiguousarray(np.vstack(pts_list)),
+        own,
+        np.ascontiguousarray(np.vstack(seg_list)),
+        seg_start,
+        seg_len,
+        np.asarray(initial_pose, dtype=np.float64).copy(),
+        int(iterations),
+        float(inlier_distance),
+        float(robust_scale),
+        float(damping),
+        float(tol),
+        np.asarray(prior if use_prior else np.zeros(3), dtype=np.float64),
+        float(prior_weight) if use_prior else 0.0,
+    )
+    total = len(own)
+    cov = None
+    if have_h and n_in > 3:
+        sigma2 = max(float(rms), 1e-3) ** 2
+        try:
+            cov = sigma2 * np.linalg.inv(H)
+        except np.linalg.LinAlgError:
+            cov = None
+    return PoseFit(
+        pose=pose,
+        rms=float(rms),
+        inliers=int(n_in),
+        inlier_fraction=int(n_in) / total,
+        covariance=cov,
+        iterations=int(it),
+    )
+
+
+def _pose_from_matches_numpy(
+    pairs: Sequence[tuple[np.ndarray, np.ndarray]],
+    initial_pose: np.ndarray,
+    *,
+    iterations: int = 12,
+    inlier_distance: float = 0.3,
+    robust_scale: float = 0.05,
+    damping: float = 1e-3,
+    tol: float = 1e-6,
+    prior: np.ndarray | None = None,
+    prior_weight: float = 0.0,
+) -> PoseFit:
+    """Numpy reference of :func:`pose_from_matches` (same arguments and result)."""
     pts_list, seg_list, own_p, own_s = [], [], [], []
     for k, (pts, segs) in enumerate(pairs):
         pts = np.asarray(pts, dtype=np.float64).reshape(-1, 2)
@@ -274,6 +351,20 @@ def fit_pairs(
     counts = np.array([len(p) for p in points])
     P = np.vstack([np.asarray(p, dtype=np.float64).reshape(-1, 2) for p in points])
     own = np.repeat(np.arange(K), counts)
+    if _kernels.HAVE_NUMBA:
+        segs = [np.asarray(s, dtype=np.float64).reshape(-1, 4) for s in segments]
+        seg_len = np.array([len(s) for s in segs], dtype=np.intp)
+        return fit_pairs_blocks(
+            P,
+            own,
+            np.vstack(segs),
+            np.concatenate(([0], np.cumsum(seg_len)[:-1])).astype(np.intp),
+            seg_len,
+            initial_pose,
+            iterations=iterations,
+            robust_scale=robust_scale,
+            damping=damping,
+        )
     smax = max(len(s) for s in segments)
     Sg = np.zeros((K, smax, 4))
     valid = np.zeros((K, smax), dtype=bool)
@@ -307,7 +398,97 @@ def fit_pairs_stacked(
     """:func:`fit_pairs` on pre-stacked arrays: ``P`` ``(N, 2)`` all pairs' points (robot
     frame), ``own`` ``(N,)`` their pair index in ``0..K-1``, ``Sg`` ``(K, smax, 4)`` each pair's
     map segments padded to a common length and ``valid`` ``(K, smax)`` which of them are real.
+    Runs :func:`fit_pairs_blocks` when numba is available, else the numpy reference.
     """
+    if _kernels.HAVE_NUMBA:
+        seg_len = valid.sum(axis=1).astype(np.intp)
+        return fit_pairs_blocks(
+            P,
+            own,
+            Sg[valid],
+            np.concatenate(([0], np.cumsum(seg_len)[:-1])).astype(np.intp),
+            seg_len,
+            initial_pose,
+            iterations=iterations,
+            robust_scale=robust_scale,
+            damping=damping,
+        )
+    return _fit_pairs_stacked_numpy(
+        P,
+        own,
+        Sg,
+        valid,
+        initial_pose,
+        iterations=iterations,
+        robust_scale=robust_scale,
+        damping=damping,
+    )
+
+
+def fit_pairs_blocks(
+    P: np.ndarray,
+    own: np.ndarray,
+    segs: np.ndarray,
+    seg_start: np.ndarray,
+    seg_len: np.ndarray,
+    initial_pose: np.ndarray,
+    *,
+    iterations: int = 3,
+    robust_scale: float = 0.1,
+    damping: float = 0.05,
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`fit_pairs` with each pair's segments a run of rows of one array: pair ``k``'s
+    map segments are ``segs[seg_start[k] : seg_start[k] + seg_len[k]]`` (``segs`` ``(S, 4)``),
+    its points the rows of ``P`` ``(N, 2)`` with ``own == k``. Compiled kernel
+    (:func:`service.core._kernels.fit_blocks`) when numba is available, else the numpy
+    reference on padded arrays."""
+    init = np.asarray(initial_pose, dtype=np.float64)
+    K = len(seg_len)
+    poses0 = init.copy() if init.ndim == 2 else np.tile(init, (K, 1))
+    if K == 0:
+        return np.zeros((0, 3)), np.zeros(0)
+    if not _kernels.HAVE_NUMBA:
+        smax = int(seg_len.max())
+        col = np.arange(smax)
+        valid = col[None, :] < seg_len[:, None]
+        idx = np.minimum(seg_start[:, None] + col[None, :], max(len(segs) - 1, 0))
+        return _fit_pairs_stacked_numpy(
+            P,
+            own,
+            segs[idx],
+            valid,
+            poses0,
+            iterations=iterations,
+            robust_scale=robust_scale,
+            damping=damping,
+        )
+    poses, rms = _kernels.fit_blocks(
+        np.ascontiguousarray(P, dtype=np.float64),
+        np.ascontiguousarray(own, dtype=np.intp),
+        np.ascontiguousarray(segs, dtype=np.float64),
+        np.ascontiguousarray(seg_start, dtype=np.intp),
+        np.ascontiguousarray(seg_len, dtype=np.intp),
+        np.ascontiguousarray(poses0),
+        int(iterations),
+        float(robust_scale),
+        float(damping),
+    )
+    poses[:, 2] = wrap_angle(poses[:, 2])
+    return poses, rms
+
+
+def _fit_pairs_stacked_numpy(
+    P: np.ndarray,
+    own: np.ndarray,
+    Sg: np.ndarray,
+    valid: np.ndarray,
+    initial_pose: np.ndarray,
+    *,
+    iterations: int = 3,
+    robust_scale: float = 0.1,
+    damping: float = 0.05,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Numpy reference of :func:`fit_pairs_stacked` (padded arrays, same result)."""
     K = Sg.shape[0]
     a = Sg[:, :, 0:2]
     e = Sg[:, :, 2:4] - a

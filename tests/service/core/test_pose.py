@@ -6,6 +6,8 @@ import numpy as np
 import pytest
 
 from schemas.errors import LocalizationError
+from service.core import _kernels
+from service.core import pose as pose_mod
 from service.core.pose import (
     compose,
     fit_pairs,
@@ -141,3 +143,61 @@ def test_fit_pairs_fits_each_pair_independently() -> None:
     assert np.allclose(poses[0], truth, atol=2e-3)
     assert np.allclose(poses[1], truth + np.array([0.5, 0.0, 0.0]), atol=2e-3)
     assert np.all(rms < 5e-3)
+
+
+def _random_pairs(rng: np.random.Generator, k: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Random walls: a few connected segments per pair, noisy points near them (robot frame
+    = map frame shifted a little, so the fits have something to do)."""
+    out = []
+    for _ in range(k):
+        v = np.cumsum(rng.uniform(-1.0, 1.0, size=(int(rng.integers(2, 6)), 2)), axis=0)
+        segs = np.column_stack([v[:-1], v[1:]])
+        u = rng.uniform(0, 1, size=int(rng.integers(3, 20)))
+        s = rng.integers(0, len(segs), size=len(u))
+        pts = segs[s, 0:2] + u[:, None] * (segs[s, 2:4] - segs[s, 0:2])
+        pts += rng.normal(0, 0.02, size=pts.shape) + np.array([0.05, -0.03])
+        out.append((pts, segs))
+    return out
+
+
+@pytest.mark.skipif(not _kernels.HAVE_NUMBA, reason="numba kernels not installed")
+def test_compiled_fit_pairs_agrees_with_the_numpy_reference() -> None:
+    rng = np.random.default_rng(11)
+    for trial in range(20):
+        pairs = _random_pairs(rng, int(rng.integers(1, 12)))
+        pts = [p for p, _ in pairs]
+        segs = [s for _, s in pairs]
+        init = rng.normal(0, 0.05, size=(len(pairs), 3)) if trial % 2 else np.zeros(3)
+        counts = [len(p) for p in pts]
+        own = np.repeat(np.arange(len(pts)), counts)
+        smax = max(len(s) for s in segs)
+        Sg = np.zeros((len(segs), smax, 4))
+        valid = np.zeros((len(segs), smax), dtype=bool)
+        for k, s in enumerate(segs):
+            Sg[k, : len(s)] = s
+            valid[k, : len(s)] = True
+        ref = pose_mod._fit_pairs_stacked_numpy(
+            np.vstack(pts), own, Sg, valid, init, iterations=3, robust_scale=0.1, damping=0.05
+        )
+        got = fit_pairs(pts, segs, init, iterations=3, robust_scale=0.1, damping=0.05)
+        assert np.allclose(got[0], ref[0], rtol=0, atol=1e-9)
+        assert np.allclose(got[1], ref[1], rtol=0, atol=1e-9)
+
+
+@pytest.mark.skipif(not _kernels.HAVE_NUMBA, reason="numba kernels not installed")
+def test_compiled_pose_from_matches_agrees_with_the_numpy_reference() -> None:
+    rng = np.random.default_rng(12)
+    for trial in range(20):
+        pairs = _random_pairs(rng, int(rng.integers(1, 8)))
+        start = rng.normal(0, 0.05, size=3)
+        kw = {"prior": np.zeros(3), "prior_weight": 2.0} if trial % 3 == 0 else {}
+        ref = pose_mod._pose_from_matches_numpy(pairs, start, robust_scale=0.05, **kw)
+        got = pose_from_matches(pairs, start, robust_scale=0.05, **kw)
+        assert np.allclose(got.pose, ref.pose, rtol=0, atol=1e-9)
+        assert got.inliers == ref.inliers and got.iterations == ref.iterations
+        assert abs(got.rms - ref.rms) < 1e-9
+        assert (got.covariance is None) == (ref.covariance is None)
+        if ref.covariance is not None:
+            # (a lone straight wall leaves H near-singular: compare relative to the norm)
+            scale = float(np.abs(ref.covariance).max())
+            assert np.allclose(got.covariance, ref.covariance, rtol=0, atol=1e-6 * scale)

@@ -1,0 +1,321 @@
+"""Compiled inner loops of the shape-based localiser (implementation details, numba).
+
+Each kernel is a plain function over float64 / intp arrays, called by exactly one public
+function that owns the concept and its docstring (:func:`service.core.pose.fit_pairs_stacked`,
+:func:`service.core.pose.pose_from_matches`). The arithmetic follows the numpy reference
+implementations expression by expression (no ``fastmath``), so results agree with them to the
+last bits except where a libm call differs; tests compare both on random inputs.
+
+numba is optional: without it (``HAVE_NUMBA`` is ``False``) the callers run their numpy
+reference code. Kernels are compiled with ``cache=True`` (on-disk cache next to this file, or
+under ``NUMBA_CACHE_DIR``), so a fresh process loads them instead of compiling.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+try:  # pragma: no cover - exercised by whichever environment runs the tests
+    from numba import njit
+
+    HAVE_NUMBA = True
+except ImportError:  # pragma: no cover
+    HAVE_NUMBA = False
+
+    def njit(*_args: Any, **_kwargs: Any) -> Any:  # type: ignore[no-redef]
+        def deco(fn: Any) -> Any:
+            return fn
+
+        return deco
+
+
+_TWO_PI = 2.0 * math.pi
+
+
+@njit(cache=True, nogil=True)
+def _wrap(a: float) -> float:
+    """(-pi, pi] like :func:`service.core.types.wrap_angle`."""
+    return math.pi - ((math.pi - a) % _TWO_PI)
+
+
+@njit(cache=True, nogil=True)
+def _solve3(A: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return np.linalg.solve(A, b)
+
+
+@njit(cache=True, nogil=True)
+def fit_blocks(
+    P: np.ndarray,
+    own: np.ndarray,
+    segs: np.ndarray,
+    seg_start: np.ndarray,
+    seg_len: np.ndarray,
+    init: np.ndarray,
+    iterations: int,
+    robust_scale: float,
+    damping: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Kernel of :func:`service.core.pose.fit_pairs_stacked`.
+
+    ``P`` ``(N, 2)`` points, ``own`` ``(N,)`` pair index; pair ``k``'s segments are rows
+    ``seg_start[k] .. seg_start[k] + seg_len[k] - 1`` of ``segs`` ``(S, 4)``; ``init``
+    ``(K, 3)``. Returns ``(poses (K, 3) unwrapped, rms (K,))``.
+    """
+    K = init.shape[0]
+    N = P.shape[0]
+    poses = init.copy()
+    rms = np.zeros(K)
+    ee_all = np.empty(segs.shape[0])
+    for s in range(segs.shape[0]):
+        ex = segs[s, 2] - segs[s, 0]
+        ey = segs[s, 3] - segs[s, 1]
+        v = ex * ex + ey * ey
+        ee_all[s] = v if v > 1e-18 else 1e-18
+    c = np.empty(K)
+    sn = np.empty(K)
+    H = np.zeros((K, 3, 3))
+    g = np.zeros((K, 3))
+    wsum = np.zeros(K)
+    wrr = np.zeros(K)
+    A = np.empty((3, 3))
+    b = np.empty(3)
+    for _ in range(iterations):
+        for k in range(K):
+            c[k] = math.cos(poses[k, 2])
+            sn[k] = math.sin(poses[k, 2])
+        H[:] = 0.0
+        g[:] = 0.0
+        wsum[:] = 0.0
+        wrr[:] = 0.0
+        for i in range(N):
+            k = own[i]
+            px = P[i, 0]
+            py = P[i, 1]
+            qx = c[k] * px - sn[k] * py + poses[k, 0]
+            qy = sn[k] * px + c[k] * py + poses[k, 1]
+            best = np.inf
+            bj = -1
+            bt = 0.0
+            brx = 0.0
+            bry = 0.0
+            s0 = seg_start[k]
+            for s in range(s0, s0 + seg_len[k]):
+                ax = segs[s, 0]
+                ay = segs[s, 1]
+                ex = segs[s, 2] - ax
+                ey = segs[s, 3] - ay
+                dx = qx - ax
+                dy = qy - ay
+                t = (dx * ex + dy * ey) / ee_all[s]
+                if t < 0.0:
+                    t = 0.0
+                elif t > 1.0:
+                    t = 1.0
+                rx = dx - t * ex
+                ry = dy - t * ey
+                d2 = rx * rx + ry * ry
+                if d2 < best:
+                    best = d2
+                    bj = s
+                    bt = t
+                    brx = rx
+                    bry = ry
+            if bj < 0:
+                continue
+            ex = segs[bj, 2] - segs[bj, 0]
+            ey = segs[bj, 3] - segs[bj, 1]
+            sq = math.sqrt(ee_all[bj])
+            nx = -(ey / sq)
+            ny = ex / sq
+            if bt <= 0.0 or bt >= 1.0:
+                rn = math.hypot(brx, bry)
+                if rn > 1e-12:
+                    nx = brx / rn
+                    ny = bry / rn
+            r = brx * nx + bry * ny
+            w = 1.0 / (1.0 + (r / robust_scale) ** 2)
+            lx = qx - poses[k, 0]
+            ly = qy - poses[k, 1]
+            j0 = nx
+            j1 = ny
+            j2 = ny * lx - nx * ly
+            w0 = j0 * w
+            w1 = j1 * w
+            w2 = j2 * w
+            g[k, 0] += w0 * r
+            g[k, 1] += w1 * r
+            g[k, 2] += w2 * r
+            H[k, 0, 0] += w0 * j0
+            H[k, 0, 1] += w0 * j1
+            H[k, 0, 2] += w0 * j2
+            H[k, 1, 1] += w1 * j1
+            H[k, 1, 2] += w1 * j2
+            H[k, 2, 2] += w2 * j2
+            wsum[k] += w
+            wrr[k] += w * r * r
+        for k in range(K):
+            H[k, 1, 0] = H[k, 0, 1]
+            H[k, 2, 0] = H[k, 0, 2]
+            H[k, 2, 1] = H[k, 1, 2]
+            tr = (H[k, 0, 0] + H[k, 1, 1] + H[k, 2, 2]) / 3.0
+            if tr < 1e-12:
+                tr = 1e-12
+            for r1 in range(3):
+                for r2 in range(3):
+                    A[r1, r2] = H[k, r1, r2] + (damping * tr if r1 == r2 else 0.0)
+                b[r1] = g[k, r1]
+            d = _solve3(A, b)
+            poses[k, 0] = poses[k, 0] - d[0]
+            poses[k, 1] = poses[k, 1] - d[1]
+            poses[k, 2] = poses[k, 2] - d[2]
+            ws = wsum[k] if wsum[k] > 1e-12 else 1e-12
+            rms[k] = math.sqrt(wrr[k] / ws)
+    return poses, rms
+
+
+@njit(cache=True, nogil=True)
+def pose_iterations(
+    P: np.ndarray,
+    own: np.ndarray,
+    segs: np.ndarray,
+    seg_start: np.ndarray,
+    seg_len: np.ndarray,
+    pose0: np.ndarray,
+    iterations: int,
+    inlier_distance: float,
+    robust_scale: float,
+    damping: float,
+    tol: float,
+    prior: np.ndarray,
+    prior_weight: float,
+) -> tuple[np.ndarray, np.ndarray, float, int, int, bool]:
+    """Kernel of :func:`service.core.pose.pose_from_matches`: the re-pairing Gauss-Newton
+    loop. Pair ``own[i]``'s segments are rows ``seg_start[k] .. + seg_len[k] - 1`` of
+    ``segs``; ``prior_weight`` 0 disables the prior. Returns ``(pose, H, rms, inliers,
+    iterations, have_H)``."""
+    N = P.shape[0]
+    pose = pose0.copy()
+    H = np.zeros((3, 3))
+    have_h = False
+    rms = np.inf
+    n_in = 0
+    it = 0
+    A = np.empty((3, 3))
+    gv = np.empty(3)
+    ee_all = np.empty(segs.shape[0])
+    for s in range(segs.shape[0]):
+        ex = segs[s, 2] - segs[s, 0]
+        ey = segs[s, 3] - segs[s, 1]
+        v = ex * ex + ey * ey
+        ee_all[s] = v if v > 1e-18 else 1e-18
+    for it1 in range(iterations):
+        it = it1 + 1
+        c = math.cos(pose[2])
+        sn = math.sin(pose[2])
+        Hn = np.zeros((3, 3))
+        g0 = 0.0
+        g1 = 0.0
+        g2 = 0.0
+        sw = 0.0
+        swrr = 0.0
+        n_in = 0
+        for i in range(N):
+            k = own[i]
+            px = P[i, 0]
+            py = P[i, 1]
+            qx = c * px - sn * py + pose[0]
+            qy = sn * px + c * py + pose[1]
+            best = np.inf
+            bj = -1
+            bt = 0.0
+            for s in range(seg_start[k], seg_start[k] + seg_len[k]):
+                ax = segs[s, 0]
+                ay = segs[s, 1]
+                ex = segs[s, 2] - ax
+                ey = segs[s, 3] - ay
+                dx = qx - ax
+                dy = qy - ay
+                t = (dx * ex + dy * ey) / ee_all[s]
+                if t < 0.0:
+                    t = 0.0
+                elif t > 1.0:
+                    t = 1.0
+                rx = dx - t * ex
+                ry = dy - t * ey
+                d2 = rx * rx + ry * ry
+                if d2 < best:
+                    best = d2
+                    bj = s
+                    bt = t
+            if bj < 0 or not (math.sqrt(best) <= inlier_distance):
+                continue
+            n_in += 1
+            ax = segs[bj, 0]
+            ay = segs[bj, 1]
+            ex = segs[bj, 2] - ax
+            ey = segs[bj, 3] - ay
+            fx = ax + bt * ex
+            fy = ay + bt * ey
+            sq = math.sqrt(ee_all[bj])
+            nx = -(ey / sq)
+            ny = ex / sq
+            if bt <= 0.0 or bt >= 1.0:
+                rvx = qx - fx
+                rvy = qy - fy
+                rn = math.hypot(rvx, rvy)
+                if rn > 1e-12:
+                    nx = rvx / rn
+                    ny = rvy / rn
+            r = (qx - fx) * nx + (qy - fy) * ny
+            w = 1.0 / (1.0 + (r / robust_scale) ** 2)
+            lx = qx - pose[0]
+            ly = qy - pose[1]
+            j0 = nx
+            j1 = ny
+            j2 = ny * lx - nx * ly
+            w0 = j0 * w
+            w1 = j1 * w
+            w2 = j2 * w
+            Hn[0, 0] += w0 * j0
+            Hn[0, 1] += w0 * j1
+            Hn[0, 2] += w0 * j2
+            Hn[1, 1] += w1 * j1
+            Hn[1, 2] += w1 * j2
+            Hn[2, 2] += w2 * j2
+            g0 += w0 * r
+            g1 += w1 * r
+            g2 += w2 * r
+            sw += w
+            swrr += w * r * r
+        if n_in < 3:
+            break
+        Hn[1, 0] = Hn[0, 1]
+        Hn[2, 0] = Hn[0, 2]
+        Hn[2, 1] = Hn[1, 2]
+        if prior_weight > 0.0:
+            Hn[0, 0] += prior_weight
+            Hn[1, 1] += prior_weight
+            g0 += prior_weight * (pose[0] - prior[0])
+            g1 += prior_weight * (pose[1] - prior[1])
+        H = Hn
+        have_h = True
+        scale = (Hn[0, 0] + Hn[1, 1] + Hn[2, 2]) / 3.0
+        if scale < 1e-12:
+            scale = 1e-12
+        for r1 in range(3):
+            for r2 in range(3):
+                A[r1, r2] = Hn[r1, r2] + (damping * scale if r1 == r2 else 0.0)
+        gv[0] = g0
+        gv[1] = g1
+        gv[2] = g2
+        d = _solve3(A, gv)
+        pose[0] = pose[0] - d[0]
+        pose[1] = pose[1] - d[1]
+        pose[2] = _wrap(pose[2] - d[2])
+        rms = math.sqrt(swrr / (sw if sw > 1e-12 else 1e-12))
+        if math.hypot(d[0], d[1]) < tol and abs(d[2]) < tol:
+            break
+    return pose, H, rms, n_in, it, have_h
