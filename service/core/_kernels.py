@@ -319,3 +319,34 @@ def pose_iterations(
         if math.hypot(d[0], d[1]) < tol and abs(d[2]) < tol:
             break
     return pose, H, rms, n_in, it, have_h
+
+
+@njit(cache=True, nogil=True)
+def angular_intervals(points: np.ndarray, offsets: np.ndarray, viewpoint: np.ndarray) -> np.ndarray:
+    """Kernel of :func:`service.core.matching.map_order`: per polyline ``f`` (rows
+    ``offsets[f] .. offsets[f + 1] - 1`` of ``points``) the ``(start, span)`` of its bearings
+    seen from ``viewpoint`` ``[x, y, theta]``, exactly as ``matching._angular_interval``."""
+    F = offsets.shape[0] - 1
+    out = np.empty((F, 2))
+    vx = viewpoint[0]
+    vy = viewpoint[1]
+    th = viewpoint[2]
+    for f in range(F):
+        a = offsets[f]
+        e = offsets[f + 1]
+        b0 = math.atan2(points[a, 1] - vy, points[a, 0] - vx) - th
+        prev = b0
+        cum = 0.0
+        lo = 0.0
+        hi = 0.0
+        for i in range(a + 1, e):
+            b = math.atan2(points[i, 1] - vy, points[i, 0] - vx) - th
+            cum += ((b - prev) + math.pi) % _TWO_PI - math.pi
+            if cum < lo:
+                lo = cum
+            if cum > hi:
+                hi = cum
+            prev = b
+        out[f, 0] = _wrap(b0 + lo)
+        out[f, 1] = hi - lo
+    return out

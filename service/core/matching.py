@@ -28,6 +28,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from scipy.spatial import cKDTree
 
+from service.core import _kernels
 from service.core.configuration import Configuration, Feature
 from service.core.pose import (
     fit_pairs,
@@ -219,6 +220,19 @@ def shape_cost_for(config: ShapeConfig) -> ShapeCost:
     return cost
 
 
+def _gated_shape_cost(config: ShapeConfig, gate: float) -> ShapeCost:
+    """:func:`shape_cost_for` for a caller that drops pairs with S* above ``gate``: the
+    search is pruned at the gate (``upper_bound``), values <= ``gate`` are exact and larger
+    ones come back as ``inf``."""
+    ew, sw = config.shape_end_weight, config.shape_skip_weight
+    bound = math.nextafter(gate, math.inf)
+
+    def cost(p: Any, q: Any) -> float:
+        return shape_distance(p, q, end_weight=ew, skip_weight=sw, upper_bound=bound)
+
+    return cost
+
+
 def _concat(feats: Sequence[Feature], attr: str) -> np.ndarray:
     return np.vstack([getattr(f, attr) for f in feats])
 
@@ -243,6 +257,18 @@ def _shape_arcs(
     return arcs
 
 
+def _stacked_points(C: Configuration) -> tuple[np.ndarray, np.ndarray]:
+    """All feature points of ``C`` stacked ``(N, 2)`` and the row offsets per feature
+    (cached on the configuration)."""
+    got = C.__dict__.get("_stacked")
+    if got is None:
+        pts = np.ascontiguousarray(np.vstack([f.points for f in C.features]), dtype=np.float64)
+        off = np.concatenate(([0], np.cumsum([len(f.points) for f in C.features])))
+        got = (pts, off.astype(np.intp))
+        C.__dict__["_stacked"] = got
+    return got
+
+
 def map_order(
     Q: Configuration, estimate: np.ndarray
 ) -> tuple[list[int], list[tuple[float, float]]]:
@@ -253,7 +279,12 @@ def map_order(
     facing scan has no polylines. Returns the order and each feature's ``(start, span)``
     angular interval (rad) seen from the estimate.
     """
-    ivs = [_angular_interval(f.points, estimate) for f in Q.features]
+    if _kernels.HAVE_NUMBA and Q.features:
+        pts, off = _stacked_points(Q)
+        arr = _kernels.angular_intervals(pts, off, np.asarray(estimate, dtype=np.float64))
+        ivs = [(float(s), float(w)) for s, w in arr]
+    else:
+        ivs = [_angular_interval(f.points, estimate) for f in Q.features]
     mids = [wrap_angle(s + 0.5 * w) for s, w in ivs]
     order = sorted(range(len(Q.features)), key=lambda j: mids[j])
     return order, ivs
@@ -295,7 +326,7 @@ def match_with_cost(
     scan."""
     est = np.asarray(estimate, dtype=np.float64)
     cache = {} if cache is None else cache
-    sd = shape_cost or shape_cost_for(config)
+    sd = shape_cost or _gated_shape_cost(config, config.max_shape_distance)
     n = len(P)
     q_order, q_iv = map_order(Q, est)
     m = len(q_order)
@@ -312,20 +343,23 @@ def match_with_cost(
     Piv = np.array([(f.bearing_start, f.angular_size) for f in P.features])
     gate = config.bearing_gate if bearing_gate is None else bearing_gate
     single = _single_overlaps(Piv, Qiv, gate)
+    # Candidate blocks P[i_s..i_e] ~ Q[j_s..j_e] (runs of up to max_join polylines) whose
+    # first and last singles overlap, in the order (i_s, j_s) row-major, then a, then b.
     K = config.max_join
-    cand: list[tuple[int, int, int, int]] = []
-    for i_s, j_s in zip(*np.nonzero(single), strict=True):
-        for a in range(K):
-            i_e = i_s + a
-            if i_e >= n:
-                break
-            for b in range(K - a if config.join_total else K):
-                j_e = j_s + b
-                if j_e >= m:
-                    break
-                if single[i_e, j_e]:
-                    cand.append((int(i_s), int(i_e), int(j_s), int(j_e)))
-    if not cand:
+    combos = [(a, b) for a in range(K) for b in range(K - a if config.join_total else K)]
+    ii, jj = np.nonzero(single)
+    ok = np.zeros((len(ii), len(combos)), dtype=bool)
+    for c, (a, b) in enumerate(combos):
+        ie, je = ii + a, jj + b
+        v = (ie < n) & (je < m)
+        ok[v, c] = single[ie[v], je[v]]
+    r_idx, c_idx = np.nonzero(ok)
+    comb = np.array(combos, dtype=np.intp).reshape(-1, 2)
+    ca = np.column_stack(
+        [ii[r_idx], ii[r_idx] + comb[c_idx, 0], jj[r_idx], jj[r_idx] + comb[c_idx, 1]]
+    ).astype(np.intp)
+    cand = ca
+    if len(cand) == 0:
         cost, _ = order_preserving_dp(skip_p, skip_q, {})
         return ConfigurationMatch(matches=[], cost=cost)
     # Induced alignment of every candidate block (vectorised point-to-line fit from the
@@ -340,7 +374,6 @@ def match_with_cost(
     q_segs = [f.segments if f.segments is not None else np.zeros((0, 4)) for f in Qf]
     q_off = np.concatenate(([0], np.cumsum([len(x) for x in q_segs])))
     q_all = np.vstack(q_segs)
-    ca = np.array(cand, dtype=np.intp)
     p_start, p_len = p_off[ca[:, 0]], p_off[ca[:, 1] + 1] - p_off[ca[:, 0]]
     own = np.repeat(np.arange(len(cand)), p_len)
     rows = np.arange(int(p_len.sum())) - np.repeat(np.cumsum(p_len) - p_len, p_len)
@@ -380,36 +413,41 @@ def match_with_cost(
     dA = np.hypot(dx, dy) + config.rotation_weight * dphi
     blocks: Blocks = {}
     info: dict[tuple[int, int, int, int], tuple[float, float, np.ndarray]] = {}
-    for k in np.nonzero(dA <= config.max_consistency)[0]:
-        i_s, i_e, j_s, j_e = cand[k]
-        # Shape distance S* of the block pair (cached per concatenation), gated.
-        if i_s == i_e:
-            pa = _shape_arcs(P.features[i_s], P.features[i_s].vertices, cache)
-        else:
-            pa = _shape_arcs(
-                ("P", id(P), i_s, i_e),
-                lambda: _concat(P.features[i_s : i_e + 1], "vertices"),  # noqa: B023
-                cache,
-            )
-        if j_s == j_e:
-            qa = _shape_arcs(Qf[j_s], Qf[j_s].vertices, cache)
-        else:
-            qf = Qf[j_s : j_e + 1]
-            qa = _shape_arcs(
-                ("Q", *(id(f) for f in qf)),
-                lambda: _concat(qf, "vertices"),  # noqa: B023
-                cache,
-            )
-        skey = ("S", id(pa), id(qa))
+    surv = np.nonzero(dA <= config.max_consistency)[0]
+    qid = [id(f) for f in Qf]
+    pid = id(P)
+    smax_gate = config.max_shape_distance
+    w_c = config.consistency_weight
+    for k, (i_s, i_e, j_s, j_e), dak in zip(
+        surv.tolist(), ca[surv].tolist(), dA[surv].tolist(), strict=True
+    ):
+        # Shape distance S* of the block pair (cached per scan block and map features), gated.
+        skey = ("S2", pid, i_s, i_e, *qid[j_s : j_e + 1])
         sdist = cache.get(skey)
         if sdist is None:
+            if i_s == i_e:
+                pa = _shape_arcs(P.features[i_s], P.features[i_s].vertices, cache)
+            else:
+                pa = _shape_arcs(
+                    ("P", pid, i_s, i_e),
+                    lambda: _concat(P.features[i_s : i_e + 1], "vertices"),  # noqa: B023
+                    cache,
+                )
+            if j_s == j_e:
+                qa = _shape_arcs(Qf[j_s], Qf[j_s].vertices, cache)
+            else:
+                qf = Qf[j_s : j_e + 1]
+                qa = _shape_arcs(
+                    ("Q", *qid[j_s : j_e + 1]),
+                    lambda: _concat(qf, "vertices"),  # noqa: B023
+                    cache,
+                )
             sdist = float(sd(pa, qa))
             cache[skey] = sdist
-        if sdist > config.max_shape_distance:
+        if sdist > smax_gate:
             continue
-        cost = sdist + config.consistency_weight * float(dA[k])
-        blocks.setdefault((i_e, j_e), []).append((i_s, j_s, cost))
-        info[cand[k]] = (sdist, float(dA[k]), poses[k])
+        blocks.setdefault((i_e, j_e), []).append((i_s, j_s, sdist + w_c * dak))
+        info[(i_s, i_e, j_s, j_e)] = (sdist, dak, poses[k])
     total, path = order_preserving_dp(skip_p, skip_q, blocks)
     matches = []
     induced = []
@@ -572,7 +610,7 @@ def step1_hypotheses(
         return []
     q_units = [u for u in _units(Q, Q.cyclic) if u.segments is not None]
     q_rng = np.array([np.hypot(*(u.points.mean(axis=0) - prior[:2])) for u in q_units])
-    sd = shape_cost_for(config)
+    sd = _gated_shape_cost(config, config.step1_max_shape_distance)
     out: list[tuple[np.ndarray, float]] = []
     pair_pts: list[np.ndarray] = []
     pair_segs: list[np.ndarray] = []
