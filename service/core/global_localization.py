@@ -117,9 +117,14 @@ class GlobalConfig(BaseModel):
         360, ge=1, description="Induced poses per scan, shared by the chosen scan units."
     )
     support_points: int = Field(80, ge=10, description="Scan points of the support test.")
-    refine_top: int = Field(16, ge=1, description="Hypotheses refined by the point-to-line fit.")
-    refine_iterations: int = Field(6, ge=1, description="Point-to-line fit steps.")
-    verify_beams: int = Field(120, ge=10, description="Beams of the per-hypothesis verification.")
+    refine_top: int = Field(
+        16, ge=1, description="Hypotheses refined and verified. Schematic: 32 (twin rooms)."
+    )
+    refine_iterations: int = Field(6, ge=1, description="Point-to-line fit steps per stage.")
+    fine_scale: float = Field(
+        0.05, gt=0, description="Cauchy scale (m) of the second, tight refinement stage."
+    )
+    verify_beams: int = Field(240, ge=10, description="Beams of the per-hypothesis verification.")
     keep: int = Field(8, ge=1, description="Hypotheses kept from one scan to the next.")
     distinct_distance: float = Field(
         0.8, gt=0, description="Hypotheses farther apart than this (m) are distinct."
@@ -151,10 +156,14 @@ class GlobalConfig(BaseModel):
         0.2, gt=0, description="A winner's mean cost must be below this. Schematic: 0.3."
     )
     max_fix_ambiguity: float = Field(
-        0.5, gt=0, le=1, description="A winner's ambiguity must be below this."
+        0.5, gt=0, le=1, description="A winner's ambiguity must be below this. Schematic: 0.35."
     )
     single_scan_ambiguity: float = Field(
-        0.35, gt=0, le=1, description="Below this ambiguity one scan suffices; else two."
+        0.35,
+        ge=0,
+        le=1,
+        description="Below this ambiguity one scan suffices; else two. Schematic: 0 (always "
+        "two: similar rooms of a floor plan differ by little more than noise).",
     )
     min_information: float = Field(
         0.0,
@@ -186,6 +195,9 @@ class GlobalConfig(BaseModel):
                 ambiguity_scale=0.2,
                 collapse_score=0.45,
                 min_information=8.0,
+                max_fix_ambiguity=0.35,
+                single_scan_ambiguity=0.0,
+                refine_top=32,
             )
         raise LocalizationError(f"unknown map kind {kind!r}; expected metric or schematic")
 
@@ -648,8 +660,9 @@ def save_index(index: ViewIndex, cache_dir: Path) -> Path:
             os.unlink(tmp)
         raise
     stem = cache_path(cache_dir, index.map_id, "").name[: -len(".npz")]
+    stale = re.compile(re.escape(stem) + r"[0-9a-f]{20}\.npz")
     for old in cache_dir.glob(f"{stem}*.npz"):
-        if old != path and len(old.name) == len(path.name):
+        if old != path and stale.fullmatch(old.name):
             with contextlib.suppress(OSError):
                 old.unlink()
     return path
@@ -779,6 +792,28 @@ def _support_many(index: ViewIndex, poses: np.ndarray, pts: np.ndarray, tol: flo
     y = s[:, None] * pts[None, :, 0] + c[:, None] * pts[None, :, 1] + poses[:, 1:2]
     d = index.distance(np.column_stack([x.ravel(), y.ravel()])).reshape(len(poses), -1)
     return np.mean(d <= tol, axis=1)
+
+
+def _polish(index: ViewIndex, poses: np.ndarray, pts: np.ndarray, sigma: float) -> np.ndarray:
+    """Local search around each pose ``(k, 3)`` on the distance field: two 5 x 5 x 5 grids
+    (+-0.1 m / +-0.04 rad, then +-0.03 m / +-0.012 rad) maximising the mean of
+    ``exp(-d² / 2 sigma²)`` over the robot-frame ``pts``. Unlike the least-squares fit it
+    cannot be dragged by points that have no counterpart in the map."""
+    out = np.asarray(poses, dtype=np.float64).copy()
+    for step_xy, step_th in ((0.05, 0.02), (0.015, 0.006)):
+        o = np.arange(-2, 3)
+        dx, dy, dth = np.meshgrid(o * step_xy, o * step_xy, o * step_th, indexing="ij")
+        delta = np.column_stack([dx.ravel(), dy.ravel(), dth.ravel()])
+        cand = (out[:, None, :] + delta[None, :, :]).reshape(-1, 3)
+        c, s = np.cos(cand[:, 2]), np.sin(cand[:, 2])
+        x = c[:, None] * pts[None, :, 0] - s[:, None] * pts[None, :, 1] + cand[:, 0:1]
+        y = s[:, None] * pts[None, :, 0] + c[:, None] * pts[None, :, 1] + cand[:, 1:2]
+        d = index.distance(np.column_stack([x.ravel(), y.ravel()])).reshape(len(cand), -1)
+        score = np.mean(np.exp(-0.5 * (np.minimum(d, 10.0) / sigma) ** 2), axis=1)
+        best = np.argmax(score.reshape(len(out), -1), axis=1)
+        out = cand.reshape(len(out), -1, 3)[np.arange(len(out)), best]
+    out[:, 2] = wrap_angle(out[:, 2])
+    return out
 
 
 def _distinct(a: np.ndarray, b: np.ndarray, gconfig: GlobalConfig) -> bool:
@@ -960,6 +995,32 @@ def global_search(
         robust_scale=config.align_robust_scale,
         damping=config.align_damping,
     )
+    # second, tighter stage: only the segments right under the points and a small robust
+    # scale, so returns from unmapped objects (furniture on a floor plan) stop pulling
+    refined, _ = fit_pairs(
+        [sp] * len(picked),
+        [
+            _nearby_segments(index.segments, transform_points(p, sp), 2.0 * gconfig.fine_scale)
+            for p in refined
+        ],
+        refined,
+        iterations=gconfig.refine_iterations,
+        robust_scale=gconfig.fine_scale,
+        damping=config.align_damping,
+    )
+    refined = _polish(index, refined, sp, gconfig.fine_scale)
+    # and a last continuous fit from there (the distance field is quantised to its cells)
+    refined, _ = fit_pairs(
+        [sp] * len(picked),
+        [
+            _nearby_segments(index.segments, transform_points(p, sp), 2.0 * gconfig.fine_scale)
+            for p in refined
+        ],
+        refined,
+        iterations=gconfig.refine_iterations,
+        robust_scale=gconfig.fine_scale,
+        damping=config.align_damping,
+    )
     hyps = [verify(index, refined[k], r, a, P, config, gconfig) for k in range(len(picked))]
     hyps.sort(key=lambda h: h.cost)
     out: list[Hypothesis] = []
@@ -1034,8 +1095,9 @@ class GlobalShapeLocalizer:
     averaged over the last ``gconfig.window`` scans. The best one wins when its mean cost is
     below ``gconfig.max_fix_cost``, its ambiguity against the best distinct alternative is
     below ``gconfig.max_fix_ambiguity``, it has been best on two consecutive scans (or on one
-    with ambiguity below ``gconfig.single_scan_ambiguity``), and the tracker, reset to it,
-    accepts the same scan within ``gconfig.confirm_distance``. Until then the estimate is the
+    with ambiguity below ``gconfig.single_scan_ambiguity``), the scan holds enough shape
+    (``gconfig.min_information``), and the tracker, reset to it, accepts the same scan within
+    ``gconfig.confirm_distance``. Until then the estimate is the
     best guess with status ``initializing`` (never had a fix) or ``lost`` (lost it) and the
     ambiguity; a confident ``tracking`` is only published after a win.
     """
@@ -1207,7 +1269,7 @@ class GlobalShapeLocalizer:
             "violation": best.hyp.violation,
             "information": res.information,
         }
-        confirmed = best.wins >= 2 or amb <= g.single_scan_ambiguity
+        confirmed = best.wins >= 2 or amb < g.single_scan_ambiguity
         informative = res.information >= g.min_information
         if (
             best.hyp.cost <= g.max_fix_cost
