@@ -51,6 +51,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from schemas.errors import LocalizationError
+from service.core import _kernels
 from service.core.dce import DCE_NOISE_THRESHOLD, CurveEvolution, dce
 
 #: Default weight of the length misfit of the first / last matched arc pair (occlusion cuts).
@@ -70,7 +71,18 @@ class ShapeArcs:
     ``points`` ``(k, 2)`` metres, k >= 2, finite. Zero-length edges are dropped.
     """
 
-    __slots__ = ("chord_dir", "chord_len", "cum", "k", "max_merge", "merge_cost", "x", "y")
+    __slots__ = (
+        "_chord_dir",
+        "_chord_len",
+        "_merge_cost",
+        "cum",
+        "cum_a",
+        "k",
+        "max_merge",
+        "tab",
+        "x",
+        "y",
+    )
 
     def __init__(self, points: np.ndarray, max_merge: int = MAX_MERGE) -> None:
         p = np.asarray(points, dtype=np.float64)
@@ -78,6 +90,22 @@ class ShapeArcs:
             raise LocalizationError(f"expected (k >= 2, 2) points, got {p.shape}")
         if max_merge < 1:
             raise LocalizationError(f"max_merge must be >= 1, got {max_merge}")
+        self.max_merge = max_merge
+        #: numpy tables for the compiled S* kernel (``None`` without numba): ``cum_a`` (k,)
+        #: and ``tab`` (3, max_merge + 1, k) = chord length / direction / merge cost.
+        self.cum_a: np.ndarray | None = None
+        self.tab: np.ndarray | None = None
+        if _kernels.HAVE_NUMBA:
+            status, xa, ya, cum_a, tab = _kernels.arc_tables(np.ascontiguousarray(p), max_merge)
+            if status == 1:
+                raise LocalizationError("polyline has non-finite coordinates")
+            if status == 2:
+                raise LocalizationError("polyline has zero length")
+            self.x, self.y, self.cum = xa.tolist(), ya.tolist(), cum_a.tolist()
+            self.k = len(self.x)
+            self.cum_a, self.tab = cum_a, tab
+            self._chord_len = self._chord_dir = self._merge_cost = None
+            return
         # Plain Python from here: polylines have a handful of vertices, where numpy's per-call
         # overhead dominates.
         xs: list[float] = p[:, 0].tolist()
@@ -96,7 +124,6 @@ class ShapeArcs:
         if k < 2:
             raise LocalizationError("polyline has zero length")
         self.x, self.y, self.k, self.cum = x, y, k, cum
-        self.max_merge = max_merge
         # chord tables indexed [a][i]: chord from vertex i over a arcs (a = 1..max_merge).
         chord_len: list[list[float]] = [[]]
         chord_dir: list[list[float]] = [[]]
@@ -112,7 +139,38 @@ class ShapeArcs:
             chord_len.append(ln)
             chord_dir.append(dr)
             merge_cost.append(mc)
-        self.chord_len, self.chord_dir, self.merge_cost = chord_len, chord_dir, merge_cost
+        self._chord_len, self._chord_dir, self._merge_cost = chord_len, chord_dir, merge_cost
+
+    def _lists(self) -> None:
+        tab = self.tab
+        assert tab is not None
+        k = self.k
+        rows = [
+            [[]] + [tab[t, a, : k - a].tolist() for a in range(1, self.max_merge + 1)]
+            for t in range(3)
+        ]
+        self._chord_len, self._chord_dir, self._merge_cost = rows
+
+    @property
+    def chord_len(self) -> list[list[float]]:
+        """``[a][i]``: length (m) of the chord from vertex ``i`` over ``a`` arcs."""
+        if self._chord_len is None:
+            self._lists()
+        return self._chord_len  # type: ignore[return-value]
+
+    @property
+    def chord_dir(self) -> list[list[float]]:
+        """``[a][i]``: direction (rad) of the chord from vertex ``i`` over ``a`` arcs."""
+        if self._chord_dir is None:
+            self._lists()
+        return self._chord_dir  # type: ignore[return-value]
+
+    @property
+    def merge_cost(self) -> list[list[float]]:
+        """``[a][i]``: length lost (m) by merging ``a`` arcs from vertex ``i`` into a chord."""
+        if self._merge_cost is None:
+            self._lists()
+        return self._merge_cost  # type: ignore[return-value]
 
     @property
     def length(self) -> float:
@@ -179,7 +237,46 @@ def _dp(
     imbalance between the remaining parts costs at least ``min(end_weight, skip_weight, 1)``)
     reaches the best complete cost so far, or ``upper_bound``, are pruned; the result is exact
     whenever it is below ``upper_bound`` (else ``inf``).
+
+    Runs the compiled kernel :func:`service.core._kernels.shape_dp` when both polylines carry
+    numpy tables (numba available), else :func:`_dp_python` (the reference).
     """
+    if P.tab is None or Q.tab is None:
+        return _dp_python(P, Q, max_merge, end_weight, skip_weight, want_path, upper_bound)
+    best, s, s2, back = _kernels.shape_dp(
+        P.cum_a,
+        P.tab,
+        Q.cum_a,
+        Q.tab,
+        min(max_merge, P.max_merge),
+        min(max_merge, Q.max_merge),
+        float(end_weight),
+        float(skip_weight),
+        float(upper_bound),
+    )
+    if s < 0:
+        return math.inf, []
+    path: list[tuple[int, int, int, int]] = []
+    if want_path:
+        kq = Q.k
+        while s >= 0:
+            path.append((s // kq, s2 // kq, s % kq, s2 % kq))
+            s2 = s
+            s = int(back[s])
+        path.reverse()
+    return float(best), path
+
+
+def _dp_python(
+    P: ShapeArcs,
+    Q: ShapeArcs,
+    max_merge: int,
+    end_weight: float,
+    skip_weight: float,
+    want_path: bool,
+    upper_bound: float = math.inf,
+) -> tuple[float, list[tuple[int, int, int, int]]]:
+    """Pure-Python reference of :func:`_dp` (same arguments and result)."""
     kp, kq = P.k, Q.k
     lastp, lastq = kp - 1, kq - 1
     cum_p, cum_q = P.cum, Q.cum

@@ -12,6 +12,8 @@ import numpy as np
 import pytest
 
 from schemas.errors import LocalizationError
+from service.core import _kernels
+from service.core import similarity as sim
 from service.core.dce import dce, refine_vertices
 from service.core.polylines import group_polylines
 from service.core.similarity import (
@@ -253,3 +255,23 @@ def test_invalid_input_raises_project_error() -> None:
         shape_distance(np.zeros((3, 2)), LINE_2M)
     with pytest.raises(LocalizationError, match="non-finite"):
         shape_distance(np.array([[0, 0], [np.inf, 1.0]]), LINE_2M)
+
+
+@pytest.mark.skipif(not _kernels.HAVE_NUMBA, reason="numba kernels not installed")
+def test_compiled_shape_dp_agrees_with_the_python_reference() -> None:
+    """The compiled S* kernel returns the reference DP's distance and path (random
+    polylines, both partial-matching weightings, with and without an upper bound)."""
+    rng = np.random.default_rng(21)
+    for trial in range(200):
+        p = np.cumsum(rng.uniform(-1, 1, size=(int(rng.integers(2, 12)), 2)), axis=0)
+        q = np.cumsum(rng.uniform(-1, 1, size=(int(rng.integers(2, 12)), 2)), axis=0)
+        if trial % 4 == 0:  # a noisy copy of p: small distances, long paths
+            q = p + rng.normal(0, 0.01, size=p.shape)
+        P, Q = prepare(p), prepare(q)
+        assert P.tab is not None
+        ew, sw = (0.1, 0.5) if trial % 2 else (0.02, 0.1)
+        bound = math.inf if trial % 3 else 0.8
+        got = sim._dp(P, Q, 4, ew, sw, True, bound)
+        ref = sim._dp_python(P, Q, 4, ew, sw, True, bound)
+        assert got[0] == pytest.approx(ref[0], rel=1e-12, abs=1e-12) or got[0] == ref[0]
+        assert got[1] == ref[1]
