@@ -43,7 +43,41 @@ def _wrap(a: float) -> float:
 
 @njit(cache=True, nogil=True)
 def _solve3(A: np.ndarray, b: np.ndarray) -> np.ndarray:
-    return np.linalg.solve(A, b)
+    """``A x = b`` for a 3x3 ``A``: LU with partial pivoting in LAPACK's order (dgetf2 +
+    dgetrs), without the per-call overhead of ``np.linalg.solve``. ``A`` is overwritten."""
+    x = b.copy()
+    for j in range(3):
+        p = j
+        big = abs(A[j, j])
+        for i in range(j + 1, 3):
+            if abs(A[i, j]) > big:
+                big = abs(A[i, j])
+                p = i
+        if p != j:
+            for k in range(3):
+                t = A[j, k]
+                A[j, k] = A[p, k]
+                A[p, k] = t
+            t = x[j]
+            x[j] = x[p]
+            x[p] = t
+        if A[j, j] != 0.0:
+            r = 1.0 / A[j, j]
+            for i in range(j + 1, 3):
+                A[i, j] *= r
+        for i in range(j + 1, 3):
+            for k in range(j + 1, 3):
+                A[i, k] -= A[i, j] * A[j, k]
+    for k in range(3):  # L y = b (unit lower)
+        if x[k] != 0.0:
+            for i in range(k + 1, 3):
+                x[i] -= x[k] * A[i, k]
+    for k in range(2, -1, -1):  # U x = y
+        if x[k] != 0.0:
+            x[k] /= A[k, k]
+            for i in range(k):
+                x[i] -= x[k] * A[i, k]
+    return x
 
 
 @njit(cache=True, nogil=True)
@@ -514,3 +548,122 @@ def shape_dp(
                     start[s2] = False
                     back[s2] = s
     return best, best_s, best_t, back
+
+
+@njit(cache=True, nogil=True)
+def _heap_less(hr: np.ndarray, hi: np.ndarray, a: int, b: int) -> bool:
+    return hr[a] < hr[b] or (hr[a] == hr[b] and hi[a] < hi[b])
+
+
+@njit(cache=True, nogil=True)
+def _heap_swap(hr: np.ndarray, hi: np.ndarray, a: int, b: int) -> None:
+    t = hr[a]
+    hr[a] = hr[b]
+    hr[b] = t
+    u = hi[a]
+    hi[a] = hi[b]
+    hi[b] = u
+
+
+@njit(cache=True, nogil=True)
+def _heap_push(hr: np.ndarray, hi: np.ndarray, n: int, r: float, i: int) -> int:
+    hr[n] = r
+    hi[n] = i
+    c = n
+    while c > 0:
+        par = (c - 1) // 2
+        if _heap_less(hr, hi, c, par):
+            _heap_swap(hr, hi, c, par)
+            c = par
+        else:
+            break
+    return n + 1
+
+
+@njit(cache=True, nogil=True)
+def _heap_pop(hr: np.ndarray, hi: np.ndarray, n: int) -> int:
+    n -= 1
+    hr[0] = hr[n]
+    hi[0] = hi[n]
+    c = 0
+    while True:
+        left = 2 * c + 1
+        if left >= n:
+            break
+        m = left
+        if left + 1 < n and _heap_less(hr, hi, left + 1, left):
+            m = left + 1
+        if _heap_less(hr, hi, m, c):
+            _heap_swap(hr, hi, m, c)
+            c = m
+        else:
+            break
+    return n
+
+
+@njit(cache=True, nogil=True)
+def dce_kept(p: np.ndarray, threshold: float) -> np.ndarray:
+    """Kernel of :func:`service.core.dce.dce`: fixed-threshold DCE (eq. 2) of ``p`` ``(k, 2)``
+    with the same removal order as :class:`service.core.dce.CurveEvolution` (least relevance
+    first, ties by lower index). Returns the kept vertex indices, sorted."""
+    k = p.shape[0]
+    x = p[:, 0]
+    y = p[:, 1]
+    prev = np.arange(-1, k - 1)
+    nxt = np.arange(1, k + 1)
+    alive = np.ones(k, dtype=np.bool_)
+    rel = np.full(k, np.inf)
+    cap = 3 * k + 3
+    hr = np.empty(cap)
+    hi = np.empty(cap, dtype=np.intp)
+    n = 0
+    for i in range(1, k - 1):
+        r = (
+            np.hypot(x[i] - x[i - 1], y[i] - y[i - 1])
+            + np.hypot(x[i + 1] - x[i], y[i + 1] - y[i])
+            - np.hypot(x[i + 1] - x[i - 1], y[i + 1] - y[i - 1])
+        )
+        rel[i] = r
+        n = _heap_push(hr, hi, n, r, i)
+    last = k - 1
+    removed = 0
+    while n > 0:
+        r = hr[0]
+        i = hi[0]
+        if not alive[i] or r != rel[i]:
+            n = _heap_pop(hr, hi, n)
+            continue
+        if r >= threshold:
+            break
+        n = _heap_pop(hr, hi, n)
+        alive[i] = False
+        removed += 1
+        u = prev[i]
+        w = nxt[i]
+        nxt[u] = w
+        prev[w] = u
+        xu = x[u]
+        yu = y[u]
+        xw = x[w]
+        yw = y[w]
+        duw = math.hypot(xw - xu, yw - yu)
+        if u > 0:
+            uu = prev[u]
+            r2 = math.hypot(xu - x[uu], yu - y[uu]) + duw - math.hypot(xw - x[uu], yw - y[uu])
+            rel[u] = r2
+            n = _heap_push(hr, hi, n, r2, u)
+        if w < last:
+            ww = nxt[w]
+            r2 = duw + math.hypot(x[ww] - xw, y[ww] - yw) - math.hypot(x[ww] - xu, y[ww] - yu)
+            rel[w] = r2
+            n = _heap_push(hr, hi, n, r2, w)
+    out = np.empty(k - removed, dtype=np.intp)
+    j = 0
+    i = 0
+    while True:
+        out[j] = i
+        j += 1
+        if i == last:
+            break
+        i = nxt[i]
+    return out

@@ -21,6 +21,7 @@ from itertools import accumulate
 import numpy as np
 
 from schemas.errors import LocalizationError
+from service.core import _kernels
 
 #: Default first-stage stop threshold (metres) of the fixed-threshold DCE, for 1 cm range noise.
 #:
@@ -192,7 +193,17 @@ def dce(points: np.ndarray, threshold: float = DCE_NOISE_THRESHOLD) -> np.ndarra
     Removes interior vertices of ``points`` ``(k, 2)`` (metres) in order of least relevance
     (eq. 2) while that relevance is below ``threshold`` metres. The result always contains
     ``0`` and ``k - 1``.
+
+    Runs the compiled kernel :func:`service.core._kernels.dce_kept` (same removal order as
+    :class:`CurveEvolution`) when numba is available.
     """
+    if _kernels.HAVE_NUMBA:
+        p = np.asarray(points, dtype=np.float64)
+        if p.ndim != 2 or p.shape[1] != 2 or p.shape[0] < 2:
+            raise LocalizationError(f"expected (k >= 2, 2) points, got {p.shape}")
+        if not np.all(np.isfinite(p)):
+            raise LocalizationError("DCE input has non-finite coordinates")
+        return _kernels.dce_kept(np.ascontiguousarray(p), float(threshold))
     ce = CurveEvolution(points)
     ce.evolve_to(threshold)
     return ce.kept_indices()

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from schemas.errors import LocalizationError
+from service.core import _kernels
 from service.core.dce import (
     DCE_NOISE_THRESHOLD,
     CurveEvolution,
@@ -156,3 +157,18 @@ def test_refine_vertices_leaves_far_or_flat_vertices() -> None:
     np.testing.assert_allclose(ref[1], pts[2])  # lines turn by < 0.15 rad: vertex kept
     with pytest.raises(LocalizationError, match="end points"):
         refine_vertices(pts, np.array([1, 3]))
+
+
+@pytest.mark.skipif(not _kernels.HAVE_NUMBA, reason="numba kernels not installed")
+def test_compiled_dce_keeps_the_same_vertices_as_curve_evolution() -> None:
+    rng = np.random.default_rng(31)
+    for trial in range(500):
+        k = int(rng.integers(2, 150))
+        if trial % 3 == 0:  # a noisy wall: many near-ties
+            p = np.column_stack([np.linspace(0, 3, k), rng.normal(0, 0.01, k)])
+        else:
+            p = np.cumsum(rng.normal(size=(k, 2)) * rng.uniform(0.001, 0.5), axis=0)
+        th = float(rng.uniform(0.001, 0.5))
+        ce = CurveEvolution(p)
+        ce.evolve_to(th)
+        assert np.array_equal(dce(p, th), ce.kept_indices())
