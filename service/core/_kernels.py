@@ -667,3 +667,73 @@ def dce_kept(p: np.ndarray, threshold: float) -> np.ndarray:
             break
         i = nxt[i]
     return out
+
+
+@njit(cache=True, nogil=True)
+def order_dp(
+    skip_p: np.ndarray,
+    skip_q: np.ndarray,
+    cell_start: np.ndarray,
+    b_is: np.ndarray,
+    b_js: np.ndarray,
+    b_cost: np.ndarray,
+) -> tuple[float, np.ndarray]:
+    """Kernel of :func:`service.core.matching.order_preserving_dp` (eq. 5), same recurrence
+    and tie order. Blocks ending at cell ``(i_e, j_e)`` are ``cell_start[i_e * m + j_e] ..
+    cell_start[i_e * m + j_e + 1] - 1`` of ``b_is, b_js, b_cost`` (in their original order).
+    Returns ``(cost, path (L, 4) rows (i_s, i_e, j_s, j_e))``."""
+    n = skip_p.shape[0]
+    m = skip_q.shape[0]
+    C = np.empty((n + 1, m + 1))
+    bi = np.empty((n + 1, m + 1), dtype=np.intp)
+    bj = np.empty((n + 1, m + 1), dtype=np.intp)
+    bf = np.zeros((n + 1, m + 1), dtype=np.bool_)
+    C[0, 0] = 0.0
+    for i in range(1, n + 1):
+        C[i, 0] = C[i - 1, 0] + skip_p[i - 1]
+        bi[i, 0] = i - 1
+        bj[i, 0] = 0
+    for j in range(1, m + 1):
+        C[0, j] = C[0, j - 1] + skip_q[j - 1]
+        bi[0, j] = 0
+        bj[0, j] = j - 1
+    for i in range(1, n + 1):
+        sp = skip_p[i - 1]
+        for j in range(1, m + 1):
+            best = C[i - 1, j] + sp
+            ai = i - 1
+            aj = j
+            af = False
+            c = C[i, j - 1] + skip_q[j - 1]
+            if c < best:
+                best = c
+                ai = i
+                aj = j - 1
+            cell = (i - 1) * m + (j - 1)
+            for t in range(cell_start[cell], cell_start[cell + 1]):
+                c = C[b_is[t], b_js[t]] + b_cost[t]
+                if c < best:
+                    best = c
+                    ai = b_is[t]
+                    aj = b_js[t]
+                    af = True
+            C[i, j] = best
+            bi[i, j] = ai
+            bj[i, j] = aj
+            bf[i, j] = af
+    out = np.empty((n + m, 4), dtype=np.intp)
+    L = 0
+    i = n
+    j = m
+    while i > 0 or j > 0:
+        pi = bi[i, j]
+        pj = bj[i, j]
+        if bf[i, j]:
+            out[L, 0] = pi
+            out[L, 1] = i - 1
+            out[L, 2] = pj
+            out[L, 3] = j - 1
+            L += 1
+        i = pi
+        j = pj
+    return C[n, m], out[:L][::-1].copy()

@@ -141,8 +141,31 @@ def alignment_difference(
 Blocks = dict[tuple[int, int], list[tuple[int, int, float]]]
 
 
+@dataclass(frozen=True)
+class BlockArrays:
+    """:data:`Blocks` as flat arrays (what :func:`match_with_cost` builds): block ``t`` is
+    ``P[i_s[t]..i_e[t]] ~ Q[j_s[t]..j_e[t]]`` at ``cost[t]``; blocks ending at the same cell
+    are tried in array order (as the lists of a :data:`Blocks` dict)."""
+
+    i_s: np.ndarray
+    i_e: np.ndarray
+    j_s: np.ndarray
+    j_e: np.ndarray
+    cost: np.ndarray
+
+
+def _blocks_to_arrays(blocks: Blocks) -> BlockArrays:
+    rows = [(ie, je, i_s, j_s, c) for (ie, je), lst in blocks.items() for i_s, j_s, c in lst]
+    if not rows:
+        z = np.zeros(0, dtype=np.intp)
+        return BlockArrays(z, z, z, z, np.zeros(0))
+    ie, je, i_s, j_s, c = zip(*rows, strict=True)
+    a = [np.asarray(x, dtype=np.intp) for x in (i_s, ie, j_s, je)]
+    return BlockArrays(*a, np.asarray(c, dtype=np.float64))
+
+
 def order_preserving_dp(
-    skip_p: Sequence[float], skip_q: Sequence[float], blocks: Blocks
+    skip_p: Sequence[float], skip_q: Sequence[float], blocks: Blocks | BlockArrays
 ) -> tuple[float, list[tuple[int, int, int, int]]]:
     """Solve eq. 5 over two linearly ordered vectors of polylines (§5.2's extended DP).
 
@@ -158,7 +181,45 @@ def order_preserving_dp(
     ``q_{j-1}`` with ``p_i`` is reconsidered and may be replaced by ``p_i ~ (q_{j-1}, q_j)``
     concatenated (1:n, n:1 and n:m), so a split object is still matched. Order is a hard
     constraint by construction. Returns ``(total cost, [(i_s, i_e, j_s, j_e), ...])`` in order.
+
+    ``blocks`` may also be a :class:`BlockArrays`. With numba the recurrence runs in the
+    kernel :func:`service.core._kernels.order_dp`, else in :func:`_order_preserving_dp_python`
+    (the reference; same recurrence and tie order).
     """
+    if not _kernels.HAVE_NUMBA:
+        if isinstance(blocks, BlockArrays):
+            d: Blocks = {}
+            for i_s, i_e, j_s, j_e, c in zip(
+                blocks.i_s.tolist(),
+                blocks.i_e.tolist(),
+                blocks.j_s.tolist(),
+                blocks.j_e.tolist(),
+                blocks.cost.tolist(),
+                strict=True,
+            ):
+                d.setdefault((i_e, j_e), []).append((i_s, j_s, c))
+            blocks = d
+        return _order_preserving_dp_python(skip_p, skip_q, blocks)
+    ba = blocks if isinstance(blocks, BlockArrays) else _blocks_to_arrays(blocks)
+    n, m = len(skip_p), len(skip_q)
+    cell = ba.i_e * m + ba.j_e
+    order = np.argsort(cell, kind="stable")
+    cell_start = np.searchsorted(cell[order], np.arange(n * m + 1)).astype(np.intp)
+    total, path = _kernels.order_dp(
+        np.asarray(skip_p, dtype=np.float64).reshape(-1),
+        np.asarray(skip_q, dtype=np.float64).reshape(-1),
+        cell_start,
+        np.ascontiguousarray(ba.i_s[order], dtype=np.intp),
+        np.ascontiguousarray(ba.j_s[order], dtype=np.intp),
+        np.ascontiguousarray(ba.cost[order], dtype=np.float64),
+    )
+    return float(total), [tuple(r) for r in path.tolist()]  # type: ignore[misc]
+
+
+def _order_preserving_dp_python(
+    skip_p: Sequence[float], skip_q: Sequence[float], blocks: Blocks
+) -> tuple[float, list[tuple[int, int, int, int]]]:
+    """Pure-Python reference of :func:`order_preserving_dp` for a :data:`Blocks` dict."""
     n, m = len(skip_p), len(skip_q)
     C = np.empty((n + 1, m + 1))
     back: list[list[tuple[int, int, int, int] | None]] = [[None] * (m + 1) for _ in range(n + 1)]
@@ -411,58 +472,77 @@ def match_with_cost(
     )
     dphi = np.abs(np.mod(poses[:, 2] - est[2] + math.pi, _TWO_PI) - math.pi)
     dA = np.hypot(dx, dy) + config.rotation_weight * dphi
-    blocks: Blocks = {}
-    info: dict[tuple[int, int, int, int], tuple[float, float, np.ndarray]] = {}
+    # S* of every surviving block pair, cached per scan block and map features (a map block
+    # is identified by its features' indices in Q, independent of the cut of the order).
     surv = np.nonzero(dA <= config.max_consistency)[0]
-    qid = [id(f) for f in Qf]
-    pid = id(P)
-    smax_gate = config.max_shape_distance
-    w_c = config.consistency_weight
-    for k, (i_s, i_e, j_s, j_e), dak in zip(
-        surv.tolist(), ca[surv].tolist(), dA[surv].tolist(), strict=True
-    ):
-        # Shape distance S* of the block pair (cached per scan block and map features), gated.
-        skey = ("S2", pid, i_s, i_e, *qid[j_s : j_e + 1])
-        sdist = cache.get(skey)
-        if sdist is None:
-            if i_s == i_e:
-                pa = _shape_arcs(P.features[i_s], P.features[i_s].vertices, cache)
-            else:
-                pa = _shape_arcs(
-                    ("P", pid, i_s, i_e),
-                    lambda: _concat(P.features[i_s : i_e + 1], "vertices"),  # noqa: B023
-                    cache,
-                )
-            if j_s == j_e:
-                qa = _shape_arcs(Qf[j_s], Qf[j_s].vertices, cache)
-            else:
-                qf = Qf[j_s : j_e + 1]
-                qa = _shape_arcs(
-                    ("Q", *qid[j_s : j_e + 1]),
-                    lambda: _concat(qf, "vertices"),  # noqa: B023
-                    cache,
-                )
-            sdist = float(sd(pa, qa))
-            cache[skey] = sdist
-        if sdist > smax_gate:
-            continue
-        blocks.setdefault((i_e, j_e), []).append((i_s, j_s, sdist + w_c * dak))
-        info[(i_s, i_e, j_s, j_e)] = (sdist, dak, poses[k])
+    cs = ca[surv]
+    o = np.asarray(q_order, dtype=np.int64)
+    M = len(Q.features) + 1
+    qkey = np.zeros(len(cs), dtype=np.int64)
+    for b in range(K):
+        jb = np.minimum(cs[:, 2] + b, m - 1)
+        qkey += np.where(cs[:, 3] - cs[:, 2] >= b, o[jb] + 1, 0) * (M**b)
+    keys = ((cs[:, 0] * K + (cs[:, 1] - cs[:, 0])) * (M**K) + qkey).tolist()
+    sstore = cache.setdefault(("S2", id(P), id(Q)), {})
+    get = sstore.get
+    svals = [get(kk) for kk in keys]
+    if None in svals:
+        pid = id(P)
+        qid = [id(f) for f in Qf]
+        for r, kk in enumerate(keys):
+            if svals[r] is not None:
+                continue
+            sdist = sstore.get(kk)
+            if sdist is None:
+                i_s, i_e, j_s, j_e = cs[r].tolist()
+                if i_s == i_e:
+                    pa = _shape_arcs(P.features[i_s], P.features[i_s].vertices, cache)
+                else:
+                    pa = _shape_arcs(
+                        ("P", pid, i_s, i_e),
+                        lambda: _concat(P.features[i_s : i_e + 1], "vertices"),  # noqa: B023
+                        cache,
+                    )
+                if j_s == j_e:
+                    qa = _shape_arcs(Qf[j_s], Qf[j_s].vertices, cache)
+                else:
+                    qf = Qf[j_s : j_e + 1]
+                    qa = _shape_arcs(
+                        ("Q", *qid[j_s : j_e + 1]),
+                        lambda: _concat(qf, "vertices"),  # noqa: B023
+                        cache,
+                    )
+                sdist = float(sd(pa, qa))
+                sstore[kk] = sdist
+            svals[r] = sdist
+    s_arr = np.asarray(svals, dtype=np.float64)
+    keep = s_arr <= config.max_shape_distance
+    rows = surv[keep]
+    cb = cs[keep]
+    s_kept = s_arr[keep]
+    d_kept = dA[rows]
+    blocks = BlockArrays(
+        cb[:, 0], cb[:, 1], cb[:, 2], cb[:, 3], s_kept + config.consistency_weight * d_kept
+    )
     total, path = order_preserving_dp(skip_p, skip_q, blocks)
     matches = []
     induced = []
     for key in path:
-        s, d, pose = info[key]
         i_s, i_e, j_s, j_e = key
+        r = int(
+            np.nonzero(
+                (cb[:, 0] == i_s) & (cb[:, 1] == i_e) & (cb[:, 2] == j_s) & (cb[:, 3] == j_e)
+            )[0][0]
+        )
         matches.append(
             Match(
                 scan=tuple(range(i_s, i_e + 1)),
                 map=tuple(q_order[j] for j in range(j_s, j_e + 1)),
-                shape_distance=s,
-                pose_consistency=d,
+                shape_distance=float(s_kept[r]),
+                pose_consistency=float(d_kept[r]),
             )
         )
-        induced.append(pose)
+        induced.append(poses[rows[r]])
     return ConfigurationMatch(matches=matches, cost=total, induced=induced)
 
 

@@ -11,6 +11,7 @@ import math
 import numpy as np
 import pytest
 
+from service.core import _kernels, matching
 from service.core.configuration import Configuration, Feature
 from service.core.localizer import ShapeConfig
 from service.core.matching import (
@@ -230,3 +231,26 @@ def test_match_under_displacement_still_pairs_the_right_shapes() -> None:
     for pose in res.induced:
         assert np.hypot(*(pose[:2] - moved[:2])) < 0.02
         assert abs(pose[2] - moved[2]) < math.radians(0.5)
+
+
+@pytest.mark.skipif(not _kernels.HAVE_NUMBA, reason="numba kernels not installed")
+def test_compiled_dp_agrees_with_the_python_reference_including_ties() -> None:
+    rng = np.random.default_rng(41)
+    for trial in range(300):
+        n, m = int(rng.integers(0, 9)), int(rng.integers(0, 9))
+        # integer costs: many ties, so the tie order of the kernel is checked too
+        skip_p = rng.integers(0, 4, size=n).astype(float).tolist()
+        skip_q = rng.integers(0, 4, size=m).astype(float).tolist()
+        blocks: dict = {}
+        for _ in range(int(rng.integers(0, 3 * (n + m) + 1))):
+            if n == 0 or m == 0:
+                break
+            i_s, j_s = int(rng.integers(0, n)), int(rng.integers(0, m))
+            i_e = min(n - 1, i_s + int(rng.integers(0, 3)))
+            j_e = min(m - 1, j_s + int(rng.integers(0, 3)))
+            c = float(rng.integers(0, 6)) if trial % 2 else float(rng.uniform(0, 5))
+            blocks.setdefault((i_e, j_e), []).append((i_s, j_s, c))
+        got = order_preserving_dp(skip_p, skip_q, blocks)
+        ref = matching._order_preserving_dp_python(skip_p, skip_q, blocks)
+        assert got[0] == ref[0]
+        assert got[1] == ref[1]
