@@ -737,3 +737,82 @@ def order_dp(
         i = pi
         j = pj
     return C[n, m], out[:L][::-1].copy()
+
+
+@njit(cache=True, nogil=True)
+def grid_build(
+    pts: np.ndarray, cell: float
+) -> tuple[float, float, int, int, np.ndarray, np.ndarray]:
+    """Bucket ``pts`` ``(N, 2)`` into a dense grid of ``cell``-sized squares (CSR layout).
+    Returns ``(x0, y0, nx, ny, start (nx * ny + 1,), order (N,))``."""
+    n = pts.shape[0]
+    x0 = np.inf
+    y0 = np.inf
+    x1 = -np.inf
+    y1 = -np.inf
+    for i in range(n):
+        x0 = min(x0, pts[i, 0])
+        y0 = min(y0, pts[i, 1])
+        x1 = max(x1, pts[i, 0])
+        y1 = max(y1, pts[i, 1])
+    nx = int((x1 - x0) / cell) + 1
+    ny = int((y1 - y0) / cell) + 1
+    cid = np.empty(n, dtype=np.intp)
+    count = np.zeros(nx * ny + 1, dtype=np.intp)
+    for i in range(n):
+        cx = min(int((pts[i, 0] - x0) / cell), nx - 1)
+        cy = min(int((pts[i, 1] - y0) / cell), ny - 1)
+        cid[i] = cx * ny + cy
+        count[cid[i] + 1] += 1
+    start = np.cumsum(count)
+    fill = start[:-1].copy()
+    order = np.empty(n, dtype=np.intp)
+    for i in range(n):
+        order[fill[cid[i]]] = i
+        fill[cid[i]] += 1
+    return x0, y0, nx, ny, start, order
+
+
+@njit(cache=True, nogil=True)
+def grid_near(
+    pts: np.ndarray,
+    x0: float,
+    y0: float,
+    nx: int,
+    ny: int,
+    start: np.ndarray,
+    order: np.ndarray,
+    cell: float,
+    qx: np.ndarray,
+    qy: np.ndarray,
+    tol: float,
+) -> np.ndarray:
+    """Per query point ``(qx[i], qy[i])``: is some grid point closer than ``tol`` (<= ``cell``)?
+    Exact (all points of the 3 x 3 neighbouring cells are tested)."""
+    n = qx.shape[0]
+    out = np.zeros(n, dtype=np.bool_)
+    t2 = tol * tol
+    for i in range(n):
+        fx = (qx[i] - x0) / cell
+        fy = (qy[i] - y0) / cell
+        if fx < -1.0 or fy < -1.0 or fx >= nx + 1.0 or fy >= ny + 1.0:
+            continue
+        cx = math.floor(fx)
+        cy = math.floor(fy)
+        found = False
+        for ax in range(max(cx - 1, 0), min(cx + 2, nx)):
+            for ay in range(max(cy - 1, 0), min(cy + 2, ny)):
+                c = ax * ny + ay
+                for t in range(start[c], start[c + 1]):
+                    j = order[t]
+                    dx = pts[j, 0] - qx[i]
+                    dy = pts[j, 1] - qy[i]
+                    if dx * dx + dy * dy < t2:
+                        found = True
+                        break
+                if found:
+                    break
+            if found:
+                break
+        out[i] = found
+    return out

@@ -619,14 +619,44 @@ def _view_tree(Q: Configuration) -> cKDTree | None:
     return tree
 
 
+def _near(Q: Configuration, x: np.ndarray, y: np.ndarray, tol: float) -> np.ndarray:
+    """Per point ``(x[i], y[i])`` (map frame): is a map view point closer than ``tol``? A
+    bucket grid in a numba kernel (exact), else the view's KD-tree."""
+    if not _kernels.HAVE_NUMBA:
+        tree = _view_tree(Q)
+        assert tree is not None
+        d, _ = tree.query(np.column_stack([x, y]), k=1, distance_upper_bound=tol)
+        return np.isfinite(d)
+    key = ("_grid", tol)
+    grid = Q.__dict__.get(key)
+    pts = _stacked_points(Q)[0]
+    if grid is None:
+        cell = 1.01 * tol  # > tol, so the 3 x 3 neighbouring cells hold every near point
+        grid = (*_kernels.grid_build(pts, cell), cell)
+        Q.__dict__[key] = grid
+    x0, y0, nx, ny, start, order, cell = grid
+    return _kernels.grid_near(
+        pts,
+        x0,
+        y0,
+        nx,
+        ny,
+        start,
+        order,
+        cell,
+        np.ascontiguousarray(x, dtype=np.float64),
+        np.ascontiguousarray(y, dtype=np.float64),
+        float(tol),
+    )
+
+
 def support(Q: Configuration, scan_points: np.ndarray, pose: np.ndarray, tol: float) -> float:
     """Fraction of ``scan_points`` (robot frame) that lie within ``tol`` metres of the map
     view's points when placed at ``pose`` — how much of the scan a hypothesis explains."""
-    tree = _view_tree(Q)
-    if tree is None or len(scan_points) == 0:
+    if not Q.features or len(scan_points) == 0:
         return 0.0
-    d, _ = tree.query(transform_points(pose, scan_points), k=1, distance_upper_bound=tol)
-    return float(np.mean(np.isfinite(d)))
+    q = transform_points(pose, scan_points)
+    return float(np.mean(_near(Q, q[:, 0], q[:, 1], tol)))
 
 
 @dataclass(eq=False)
@@ -756,8 +786,7 @@ def heading_hypotheses(
     ``config.heading_hypotheses`` best local maxima are returned as ``[(support, pose), ...]``,
     best first.
     """
-    tree = _view_tree(Q)
-    if tree is None or len(scan_points) == 0:
+    if not Q.features or len(scan_points) == 0:
         return []
     sweep = min(config.heading_sweep if sweep is None else sweep, config.max_turn)
     step = config.heading_step if step is None else step
@@ -766,10 +795,8 @@ def heading_hypotheses(
     c, s_ = np.cos(th), np.sin(th)
     x = c[:, None] * scan_points[None, :, 0] - s_[:, None] * scan_points[None, :, 1] + prior[0]
     y = s_[:, None] * scan_points[None, :, 0] + c[:, None] * scan_points[None, :, 1] + prior[1]
-    d, _ = tree.query(
-        np.column_stack([x.ravel(), y.ravel()]), k=1, distance_upper_bound=config.support_tolerance
-    )
-    sup = np.isfinite(d).reshape(len(th), -1).mean(axis=1)
+    near = _near(Q, x.ravel(), y.ravel(), config.support_tolerance)
+    sup = near.reshape(len(th), -1).mean(axis=1)
     left = np.concatenate(([-1.0], sup[:-1]))
     right = np.concatenate((sup[1:], [-1.0]))
     peaks = np.nonzero((sup >= left) & (sup >= right))[0]

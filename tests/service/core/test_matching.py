@@ -254,3 +254,24 @@ def test_compiled_dp_agrees_with_the_python_reference_including_ties() -> None:
         ref = matching._order_preserving_dp_python(skip_p, skip_q, blocks)
         assert got[0] == ref[0]
         assert got[1] == ref[1]
+
+
+@pytest.mark.skipif(not _kernels.HAVE_NUMBA, reason="numba kernels not installed")
+def test_grid_near_agrees_with_a_kd_tree() -> None:
+    """The bucket-grid test behind support() and the heading sweep is exact."""
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(51)
+    for tol in (0.1, 0.25, 0.03):
+        feats = [
+            _feature(np.cumsum(rng.uniform(-2, 2, size=(4, 2)), axis=0).tolist(), True)
+            for _ in range(5)
+        ]
+        Q = _config(feats, "map")
+        pts = np.vstack([f.points for f in Q.features])
+        q = pts[rng.integers(0, len(pts), 3000)] + rng.normal(0, tol, size=(3000, 2))
+        q = np.vstack([q, rng.uniform(-10, 10, size=(500, 2))])
+        d, _ = cKDTree(pts).query(q, k=1, distance_upper_bound=tol)
+        got = matching._near(Q, q[:, 0], q[:, 1], tol)
+        assert np.array_equal(got, np.isfinite(d))
+        assert 0 < got.sum() < len(q)
