@@ -340,15 +340,33 @@ def map_order(
     facing scan has no polylines. Returns the order and each feature's ``(start, span)``
     angular interval (rad) seen from the estimate.
     """
-    if _kernels.HAVE_NUMBA and Q.features:
+    order, arr = _map_order_arrays(Q, estimate)
+    return order.tolist(), [(float(s), float(w)) for s, w in arr]
+
+
+def _map_order_arrays(Q: Configuration, estimate: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`map_order` as arrays: the order ``(m,)`` and the intervals ``(m, 2)`` (indexed
+    by feature, not by order)."""
+    if not Q.features:
+        return np.zeros(0, dtype=np.intp), np.zeros((0, 2))
+    if _kernels.HAVE_NUMBA:
         pts, off = _stacked_points(Q)
         arr = _kernels.angular_intervals(pts, off, np.asarray(estimate, dtype=np.float64))
-        ivs = [(float(s), float(w)) for s, w in arr]
     else:
-        ivs = [_angular_interval(f.points, estimate) for f in Q.features]
-    mids = [wrap_angle(s + 0.5 * w) for s, w in ivs]
-    order = sorted(range(len(Q.features)), key=lambda j: mids[j])
-    return order, ivs
+        arr = np.array([_angular_interval(f.points, estimate) for f in Q.features])
+    mids = wrap_angle(arr[:, 0] + 0.5 * arr[:, 1])
+    return np.argsort(np.atleast_1d(mids), kind="stable"), arr
+
+
+def _overlaps(start: np.ndarray, span: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    """:func:`_overlap` for arrays of intervals (same arithmetic, elementwise)."""
+    if hi - lo >= _TWO_PI - 1e-9:
+        return np.minimum(span, _TWO_PI)
+    total = np.zeros(len(start))
+    for shift in (-_TWO_PI, 0.0, _TWO_PI):
+        a = start + shift
+        total = total + np.maximum(0.0, np.minimum(a + span, hi) - np.maximum(a, lo))
+    return total
 
 
 def _feature_sample(f: Feature, k: int) -> np.ndarray:
@@ -389,15 +407,16 @@ def match_with_cost(
     cache = {} if cache is None else cache
     sd = shape_cost or _gated_shape_cost(config, config.max_shape_distance)
     n = len(P)
-    q_order, q_iv = map_order(Q, est)
+    q_ord, q_iv = _map_order_arrays(Q, est)
+    q_order = q_ord.tolist()
     m = len(q_order)
     Qf = [Q.features[j] for j in q_order]
-    Qiv = np.array([q_iv[j] for j in q_order]).reshape(-1, 2)
+    Qiv = q_iv[q_ord].reshape(-1, 2)
     fov = P.fov
     # Penalties R (angular size inside the scan's field of view, seen from the estimate).
     w_r = config.penalty_weight
     skip_p = [w_r * f.angular_size for f in P.features]
-    skip_q = [w_r * config.map_penalty_factor * _overlap(a, b, fov[0], fov[1]) for a, b in Qiv]
+    skip_q = (w_r * config.map_penalty_factor) * _overlaps(Qiv[:, 0], Qiv[:, 1], fov[0], fov[1])
     if n == 0 or m == 0:
         cost, _ = order_preserving_dp(skip_p, skip_q, {})
         return ConfigurationMatch(matches=[], cost=cost)
@@ -527,13 +546,10 @@ def match_with_cost(
     total, path = order_preserving_dp(skip_p, skip_q, blocks)
     matches = []
     induced = []
+    row_of = {tuple(r): k for k, r in enumerate(cb.tolist())}
     for key in path:
         i_s, i_e, j_s, j_e = key
-        r = int(
-            np.nonzero(
-                (cb[:, 0] == i_s) & (cb[:, 1] == i_e) & (cb[:, 2] == j_s) & (cb[:, 3] == j_e)
-            )[0][0]
-        )
+        r = row_of[key]
         matches.append(
             Match(
                 scan=tuple(range(i_s, i_e + 1)),
@@ -718,8 +734,14 @@ def step1_hypotheses(
     chosen = [k for c, k in comp[: config.step1_features] if c >= config.step1_min_complexity]
     if not chosen:
         return []
-    q_units = [u for u in _units(Q, Q.cyclic) if u.segments is not None]
-    q_rng = np.array([np.hypot(*(u.points.mean(axis=0) - prior[:2])) for u in q_units])
+    got = Q.__dict__.get("_step1_units")
+    if got is None:
+        q_units = [u for u in _units(Q, Q.cyclic) if u.segments is not None]
+        q_mean = np.array([u.points.mean(axis=0) for u in q_units]).reshape(-1, 2)
+        got = (q_units, q_mean)
+        Q.__dict__["_step1_units"] = got
+    q_units, q_mean = got
+    q_rng = np.hypot(q_mean[:, 0] - prior[0], q_mean[:, 1] - prior[1])
     sd = _gated_shape_cost(config, config.step1_max_shape_distance)
     out: list[tuple[np.ndarray, float]] = []
     pair_pts: list[np.ndarray] = []
@@ -743,7 +765,8 @@ def step1_hypotheses(
         scored.sort()
         for s, j in scored[: config.step1_pairs_per_feature]:
             qu = q_units[j]
-            out.append((induced_alignment(pu.vertices, qu.vertices), s))
+            qa = _shape_arcs(qu.key, qu.vertices, cache)  # prepared above
+            out.append((induced_alignment(pa, qa), s))
             pair_pts.append(_subsample(pu.points, config.align_points))
             pair_segs.append(qu.segments)  # type: ignore[arg-type]
     if out and config.step1_refine_iterations > 0:
