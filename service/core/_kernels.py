@@ -816,3 +816,43 @@ def grid_near(
                 break
         out[i] = found
     return out
+
+
+@njit(cache=True, nogil=True)
+def nearest_segment(points: np.ndarray, segments: np.ndarray) -> np.ndarray:
+    """Kernel of :func:`service.core.configuration._hit_segments`: index of the segment
+    nearest to each point (first one on ties), same arithmetic as the numpy version."""
+    n = points.shape[0]
+    S = segments.shape[0]
+    ee = np.empty(S)
+    for s in range(S):
+        ex = segments[s, 2] - segments[s, 0]
+        ey = segments[s, 3] - segments[s, 1]
+        v = ex * ex + ey * ey
+        ee[s] = v if v > 1e-18 else 1e-18
+    out = np.zeros(n, dtype=np.intp)
+    for i in range(n):
+        px = points[i, 0]
+        py = points[i, 1]
+        best = np.inf
+        bj = 0
+        for s in range(S):
+            ax = segments[s, 0]
+            ay = segments[s, 1]
+            ex = segments[s, 2] - ax
+            ey = segments[s, 3] - ay
+            dx = px - ax
+            dy = py - ay
+            u = (dx * ex + dy * ey) / ee[s]
+            if u < 0.0:
+                u = 0.0
+            elif u > 1.0:
+                u = 1.0
+            rx = dx - u * ex
+            ry = dy - u * ey
+            d2 = rx * rx + ry * ry
+            if d2 < best:
+                best = d2
+                bj = s
+        out[i] = bj
+    return out

@@ -26,6 +26,7 @@ from functools import cached_property
 import numpy as np
 
 from schemas.errors import LocalizationError
+from service.core import _kernels
 from service.core.dce import dce
 from service.core.polylines import Polyline, group_polylines
 from service.core.pose import transform_points
@@ -234,7 +235,13 @@ def scan_configuration(
 
 
 def _hit_segments(points: np.ndarray, segments: np.ndarray, chunk: int = 256) -> np.ndarray:
-    """Index of the segment nearest to each point (the segment a ray hit), ``(k,)``."""
+    """Index of the segment nearest to each point (the segment a ray hit), ``(k,)``.
+    A numba kernel when available (same arithmetic and ties), else chunked numpy."""
+    if _kernels.HAVE_NUMBA:
+        return _kernels.nearest_segment(
+            np.ascontiguousarray(points, dtype=np.float64),
+            np.ascontiguousarray(segments, dtype=np.float64),
+        )
     a = segments[:, 0:2]
     e = segments[:, 2:4] - a
     ee = np.maximum(np.einsum("ij,ij->i", e, e), 1e-18)
@@ -283,9 +290,15 @@ def map_view(
     raw = _features_from_ranges(ranges, angles, params, wrap=full)
     segs_all = caster.segments
     feats: list[Feature] = []
+    # One nearest-segment pass over all features' points (transformed, stacked).
+    hit = np.zeros(0, dtype=np.intp)
+    if raw and len(segs_all):
+        hit = _hit_segments(transform_points(pose, np.vstack([g.points for g, _ in raw])), segs_all)
+    off = 0
     for g, v in raw:
         pts = transform_points(pose, g.points)
-        ids = np.unique(_hit_segments(pts, segs_all))
+        ids = np.unique(hit[off : off + len(pts)])
+        off += len(pts)
         feats.append(
             Feature(
                 vertices=transform_points(pose, v),

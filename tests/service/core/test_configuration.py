@@ -12,6 +12,8 @@ import numpy as np
 import pytest
 
 from schemas.errors import LocalizationError
+from service.core import _kernels
+from service.core import configuration as conf_mod
 from service.core.configuration import (
     ExtractionParams,
     MapViewCache,
@@ -120,3 +122,22 @@ def test_bad_input_raises_localization_error() -> None:
         scan_configuration(np.zeros(0), np.zeros(0))
     with pytest.raises(LocalizationError, match="pose"):
         map_view(ROOM, np.array([0.0, np.nan, 0.0]))
+
+
+@pytest.mark.skipif(not _kernels.HAVE_NUMBA, reason="numba kernels not installed")
+def test_compiled_hit_segments_agree_with_numpy() -> None:
+    """The nearest-segment kernel returns the numpy version's indices (incl. ties: points on
+    shared vertices of a closed ring go to the first segment)."""
+    rng = np.random.default_rng(61)
+    for _ in range(20):
+        v = rng.uniform(-5, 5, size=(int(rng.integers(3, 40)), 2))
+        segs = np.column_stack([v, np.roll(v, -1, axis=0)])
+        pts = np.vstack([rng.uniform(-6, 6, size=(300, 2)), v])
+        got = _kernels.nearest_segment(pts, segs)
+        flag = _kernels.HAVE_NUMBA
+        try:
+            _kernels.HAVE_NUMBA = False
+            ref = conf_mod._hit_segments(pts, segs, chunk=64)
+        finally:
+            _kernels.HAVE_NUMBA = flag
+        assert np.array_equal(got, ref)
