@@ -1061,6 +1061,8 @@ def ambiguity(hyps: list[Hypothesis], gconfig: GlobalConfig) -> float:
 #: A hypothesis of this scan continues a track of the last one within this distance (m) and
 #: heading change (rad): between two scans a robot may move a few decimetres and turn a lot.
 _ASSOCIATE = (0.6, 1.0)
+#: Heading offsets (rad) under which a kept hypothesis seeds the next scan's search.
+_SEED_TURNS = (0.0, -0.4, 0.4, -0.8, 0.8)
 
 
 @dataclass
@@ -1094,8 +1096,9 @@ class GlobalShapeLocalizer:
     the previous scans (and, after a loss, the last tracked pose); each hypothesis' cost is
     averaged over the last ``gconfig.window`` scans. The best one wins when its mean cost is
     below ``gconfig.max_fix_cost``, its ambiguity against the best distinct alternative is
-    below ``gconfig.max_fix_ambiguity``, it has been best on two consecutive scans (or on one
-    with ambiguity below ``gconfig.single_scan_ambiguity``), the scan holds enough shape
+    below ``gconfig.max_fix_ambiguity``, it has been best on two consecutive scans and seen on
+    every scan of the window (or is best on one with ambiguity below
+    ``gconfig.single_scan_ambiguity``), the scan holds enough shape
     (``gconfig.min_information``), and the tracker, reset to it, accepts the same scan within
     ``gconfig.confirm_distance``. Until then the estimate is the
     best guess with status ``initializing`` (never had a fix) or ``lost`` (lost it) and the
@@ -1207,6 +1210,15 @@ class GlobalShapeLocalizer:
         self._last_odom = o
         return delta
 
+    def _seeds(self) -> list[np.ndarray]:
+        """The kept hypotheses as seeds of this scan's search, each also turned by +-0.4 and
+        +-0.8 rad: a robot may turn that much between two scans, more than the fit recovers."""
+        out = []
+        for t in self._tracks:
+            for dth in _SEED_TURNS:
+                out.append(np.array([t.pose[0], t.pose[1], wrap_angle(t.pose[2] + dth)]))
+        return out
+
     def _start_search(self, last_pose: np.ndarray | None) -> None:
         self._searching = True
         self._search_status = "lost"
@@ -1228,9 +1240,7 @@ class GlobalShapeLocalizer:
             for t in self._tracks:
                 t.pose = compose(t.pose, delta)
         P = scan_configuration(r, a, self.config.extraction())
-        res = global_search(
-            self.index, r, a, self.config, g, seeds=[t.pose for t in self._tracks], P=P
-        )
+        res = global_search(self.index, r, a, self.config, g, seeds=self._seeds(), P=P)
         # associate this scan's hypotheses with the tracks
         new_tracks: list[_Track] = []
         for h in res.hypotheses[: g.keep]:
@@ -1269,7 +1279,11 @@ class GlobalShapeLocalizer:
             "violation": best.hyp.violation,
             "information": res.information,
         }
-        confirmed = best.wins >= 2 or amb < g.single_scan_ambiguity
+        # confirmed: best on two consecutive scans and seen on every scan of the window (a
+        # hypothesis that just appeared may be a twin the true one briefly lost to), or clear
+        # enough on one scan
+        steady = best.wins >= 2 and len(best.costs) >= min(self._episode, g.window)
+        confirmed = steady or amb < g.single_scan_ambiguity
         informative = res.information >= g.min_information
         if (
             best.hyp.cost <= g.max_fix_cost
