@@ -12,6 +12,9 @@ pinned to 1) and prints, per setup, p50 / p99 / mean milliseconds per scan of ev
 * pose        — least squares over matched pairs (``pose_from_matches``)
 * total       — the whole ``ShapeLocalizer.update``; "other" = total minus the stages
 
+The first updates of the process (loading or compiling the numba kernels) run before the
+measurement and their time is printed separately.
+
 Usage: ``python bench/bench_shape.py [--scans1 600] [--scans2 150]``. The stages are timed by
 wrapping the core's functions in this script only; numbers are wall-clock and noisy on a
 shared machine (the header prints the load average).
@@ -36,6 +39,7 @@ import numpy as np
 import service.core.configuration as conf_mod
 import service.core.localizer as loc_mod
 import service.core.matching as match_mod
+from service.core._kernels import HAVE_NUMBA
 from sim_publisher.scenario import make_setup
 
 STAGES = ("extraction", "map view", "heading", "S*", "ΔA fits", "DP", "pose")
@@ -94,6 +98,17 @@ def main() -> None:
     _install()
     load = os.getloadavg()
     print(f"shape localiser, 361 beams, 1 BLAS thread; load average {load[0]:.2f} {load[1]:.2f}")
+    # The first update of a process loads the compiled kernels (numba's on-disk cache) or
+    # compiles them; reported here once and kept out of the per-scan statistics.
+    warm = make_setup(2, seed=0, max_scans=3)
+    t0 = time.perf_counter()
+    wl = loc_mod.ShapeLocalizer(warm.map_data, warm.truth[0])
+    for i in range(len(warm)):
+        wl.update(*warm.scan(i))
+    print(
+        f"kernels {'numba' if HAVE_NUMBA else 'numpy/Python reference (numba not installed)'}; "
+        f"first updates of this process (kernel load or compile): {time.perf_counter() - t0:.2f} s"
+    )
     for setup_id, n in ((1, args.scans1), (2, args.scans2)):
         if n <= 0:
             continue
