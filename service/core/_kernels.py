@@ -83,7 +83,8 @@ def _solve3(A: np.ndarray, b: np.ndarray) -> np.ndarray:
 @njit(cache=True, nogil=True)
 def fit_blocks(
     P: np.ndarray,
-    own: np.ndarray,
+    pt_order: np.ndarray,
+    pt_start: np.ndarray,
     segs: np.ndarray,
     seg_start: np.ndarray,
     seg_len: np.ndarray,
@@ -94,119 +95,135 @@ def fit_blocks(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Kernel of :func:`service.core.pose.fit_pairs_stacked`.
 
-    ``P`` ``(N, 2)`` points, ``own`` ``(N,)`` pair index; pair ``k``'s segments are rows
-    ``seg_start[k] .. seg_start[k] + seg_len[k] - 1`` of ``segs`` ``(S, 4)``; ``init``
-    ``(K, 3)``. Returns ``(poses (K, 3) unwrapped, rms (K,))``.
+    ``P`` ``(N, 2)`` points; pair ``k``'s points are ``P[pt_order[pt_start[k] :
+    pt_start[k + 1]]]`` (in increasing row order, as numpy's ``bincount`` sums them) and its
+    segments rows ``seg_start[k] .. seg_start[k] + seg_len[k] - 1`` of ``segs`` ``(S, 4)``;
+    ``init`` ``(K, 3)``. Returns ``(poses (K, 3) unwrapped, rms (K,))``.
     """
     K = init.shape[0]
-    N = P.shape[0]
     poses = init.copy()
     rms = np.zeros(K)
-    ee_all = np.empty(segs.shape[0])
-    for s in range(segs.shape[0]):
+    S = segs.shape[0]
+    sax = np.empty(S)
+    say = np.empty(S)
+    sex = np.empty(S)
+    sey = np.empty(S)
+    see = np.empty(S)
+    snx = np.empty(S)
+    sny = np.empty(S)
+    for s in range(S):
+        sax[s] = segs[s, 0]
+        say[s] = segs[s, 1]
         ex = segs[s, 2] - segs[s, 0]
         ey = segs[s, 3] - segs[s, 1]
+        sex[s] = ex
+        sey[s] = ey
         v = ex * ex + ey * ey
-        ee_all[s] = v if v > 1e-18 else 1e-18
-    c = np.empty(K)
-    sn = np.empty(K)
-    H = np.zeros((K, 3, 3))
-    g = np.zeros((K, 3))
-    wsum = np.zeros(K)
-    wrr = np.zeros(K)
+        see[s] = v if v > 1e-18 else 1e-18
+        sq = math.sqrt(see[s])
+        snx[s] = -(ey / sq)
+        sny[s] = ex / sq
     A = np.empty((3, 3))
     b = np.empty(3)
-    for _ in range(iterations):
-        for k in range(K):
-            c[k] = math.cos(poses[k, 2])
-            sn[k] = math.sin(poses[k, 2])
-        H[:] = 0.0
-        g[:] = 0.0
-        wsum[:] = 0.0
-        wrr[:] = 0.0
-        for i in range(N):
-            k = own[i]
-            px = P[i, 0]
-            py = P[i, 1]
-            qx = c[k] * px - sn[k] * py + poses[k, 0]
-            qy = sn[k] * px + c[k] * py + poses[k, 1]
-            best = np.inf
-            bj = -1
-            bt = 0.0
-            brx = 0.0
-            bry = 0.0
-            s0 = seg_start[k]
-            for s in range(s0, s0 + seg_len[k]):
-                ax = segs[s, 0]
-                ay = segs[s, 1]
-                ex = segs[s, 2] - ax
-                ey = segs[s, 3] - ay
-                dx = qx - ax
-                dy = qy - ay
-                t = (dx * ex + dy * ey) / ee_all[s]
-                if t < 0.0:
-                    t = 0.0
-                elif t > 1.0:
-                    t = 1.0
-                rx = dx - t * ex
-                ry = dy - t * ey
-                d2 = rx * rx + ry * ry
-                if d2 < best:
-                    best = d2
-                    bj = s
-                    bt = t
-                    brx = rx
-                    bry = ry
-            if bj < 0:
-                continue
-            ex = segs[bj, 2] - segs[bj, 0]
-            ey = segs[bj, 3] - segs[bj, 1]
-            sq = math.sqrt(ee_all[bj])
-            nx = -(ey / sq)
-            ny = ex / sq
-            if bt <= 0.0 or bt >= 1.0:
-                rn = math.hypot(brx, bry)
-                if rn > 1e-12:
-                    nx = brx / rn
-                    ny = bry / rn
-            r = brx * nx + bry * ny
-            w = 1.0 / (1.0 + (r / robust_scale) ** 2)
-            lx = qx - poses[k, 0]
-            ly = qy - poses[k, 1]
-            j0 = nx
-            j1 = ny
-            j2 = ny * lx - nx * ly
-            w0 = j0 * w
-            w1 = j1 * w
-            w2 = j2 * w
-            g[k, 0] += w0 * r
-            g[k, 1] += w1 * r
-            g[k, 2] += w2 * r
-            H[k, 0, 0] += w0 * j0
-            H[k, 0, 1] += w0 * j1
-            H[k, 0, 2] += w0 * j2
-            H[k, 1, 1] += w1 * j1
-            H[k, 1, 2] += w1 * j2
-            H[k, 2, 2] += w2 * j2
-            wsum[k] += w
-            wrr[k] += w * r * r
-        for k in range(K):
-            H[k, 1, 0] = H[k, 0, 1]
-            H[k, 2, 0] = H[k, 0, 2]
-            H[k, 2, 1] = H[k, 1, 2]
-            tr = (H[k, 0, 0] + H[k, 1, 1] + H[k, 2, 2]) / 3.0
+    for k in range(K):
+        s0 = seg_start[k]
+        s1 = s0 + seg_len[k]
+        for _ in range(iterations):
+            px0 = poses[k, 0]
+            py0 = poses[k, 1]
+            c = math.cos(poses[k, 2])
+            sn = math.sin(poses[k, 2])
+            h00 = 0.0
+            h01 = 0.0
+            h02 = 0.0
+            h11 = 0.0
+            h12 = 0.0
+            h22 = 0.0
+            g0 = 0.0
+            g1 = 0.0
+            g2 = 0.0
+            wsum = 0.0
+            wrr = 0.0
+            for t in range(pt_start[k], pt_start[k + 1]):
+                i = pt_order[t]
+                px = P[i, 0]
+                py = P[i, 1]
+                qx = c * px - sn * py + px0
+                qy = sn * px + c * py + py0
+                best = np.inf
+                bj = -1
+                bt = 0.0
+                brx = 0.0
+                bry = 0.0
+                for s in range(s0, s1):
+                    ex = sex[s]
+                    ey = sey[s]
+                    dx = qx - sax[s]
+                    dy = qy - say[s]
+                    u = (dx * ex + dy * ey) / see[s]
+                    if u < 0.0:
+                        u = 0.0
+                    elif u > 1.0:
+                        u = 1.0
+                    rx = dx - u * ex
+                    ry = dy - u * ey
+                    d2 = rx * rx + ry * ry
+                    if d2 < best:
+                        best = d2
+                        bj = s
+                        bt = u
+                        brx = rx
+                        bry = ry
+                if bj < 0:
+                    continue
+                nx = snx[bj]
+                ny = sny[bj]
+                if bt <= 0.0 or bt >= 1.0:
+                    rn = math.hypot(brx, bry)
+                    if rn > 1e-12:
+                        nx = brx / rn
+                        ny = bry / rn
+                r = brx * nx + bry * ny
+                z = r / robust_scale
+                w = 1.0 / (1.0 + z * z)
+                lx = qx - px0
+                ly = qy - py0
+                j2 = ny * lx - nx * ly
+                w0 = nx * w
+                w1 = ny * w
+                w2 = j2 * w
+                g0 += w0 * r
+                g1 += w1 * r
+                g2 += w2 * r
+                h00 += w0 * nx
+                h01 += w0 * ny
+                h02 += w0 * j2
+                h11 += w1 * ny
+                h12 += w1 * j2
+                h22 += w2 * j2
+                wsum += w
+                wrr += w * r * r
+            tr = (h00 + h11 + h22) / 3.0
             if tr < 1e-12:
                 tr = 1e-12
-            for r1 in range(3):
-                for r2 in range(3):
-                    A[r1, r2] = H[k, r1, r2] + (damping * tr if r1 == r2 else 0.0)
-                b[r1] = g[k, r1]
+            dmp = damping * tr
+            A[0, 0] = h00 + dmp
+            A[0, 1] = h01
+            A[0, 2] = h02
+            A[1, 0] = h01
+            A[1, 1] = h11 + dmp
+            A[1, 2] = h12
+            A[2, 0] = h02
+            A[2, 1] = h12
+            A[2, 2] = h22 + dmp
+            b[0] = g0
+            b[1] = g1
+            b[2] = g2
             d = _solve3(A, b)
-            poses[k, 0] = poses[k, 0] - d[0]
-            poses[k, 1] = poses[k, 1] - d[1]
+            poses[k, 0] = px0 - d[0]
+            poses[k, 1] = py0 - d[1]
             poses[k, 2] = poses[k, 2] - d[2]
-            ws = wsum[k] if wsum[k] > 1e-12 else 1e-12
-            rms[k] = math.sqrt(wrr[k] / ws)
+            rms[k] = math.sqrt(wrr / (wsum if wsum > 1e-12 else 1e-12))
     return poses, rms
 
 
@@ -304,7 +321,8 @@ def pose_iterations(
                     nx = rvx / rn
                     ny = rvy / rn
             r = (qx - fx) * nx + (qy - fy) * ny
-            w = 1.0 / (1.0 + (r / robust_scale) ** 2)
+            z = r / robust_scale
+            w = 1.0 / (1.0 + z * z)
             lx = qx - pose[0]
             ly = qy - pose[1]
             j0 = nx
@@ -872,7 +890,7 @@ def warm_up() -> float:
     own = np.zeros(4, dtype=np.intp)
     z = np.zeros(1, dtype=np.intp)
     two = np.array([2], dtype=np.intp)
-    fit_blocks(p, own, segs, z, two, np.zeros((1, 3)), 2, 0.1, 0.05)
+    fit_blocks(p, np.arange(4), np.array([0, 4]), segs, z, two, np.zeros((1, 3)), 2, 0.1, 0.05)
     pose_iterations(p, own, segs, z, two, np.zeros(3), 2, 0.3, 0.05, 1e-3, 1e-6, np.zeros(3), 0.0)
     angular_intervals(p, np.array([0, 4], dtype=np.intp), np.zeros(3))
     _, _, _, cum, tab = arc_tables(p, 4)

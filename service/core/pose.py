@@ -462,9 +462,16 @@ def fit_pairs_blocks(
             robust_scale=robust_scale,
             damping=damping,
         )
+    own = np.asarray(own, dtype=np.intp)
+    if len(own) > 1 and np.any(own[1:] < own[:-1]):
+        pt_order = np.argsort(own, kind="stable").astype(np.intp)
+    else:
+        pt_order = np.arange(len(own), dtype=np.intp)
+    pt_start = np.searchsorted(own[pt_order], np.arange(K + 1)).astype(np.intp)
     poses, rms = _kernels.fit_blocks(
         np.ascontiguousarray(P, dtype=np.float64),
-        np.ascontiguousarray(own, dtype=np.intp),
+        pt_order,
+        pt_start,
         np.ascontiguousarray(segs, dtype=np.float64),
         np.ascontiguousarray(seg_start, dtype=np.intp),
         np.ascontiguousarray(seg_len, dtype=np.intp),
