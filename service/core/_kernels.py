@@ -901,4 +901,73 @@ def warm_up() -> float:
     x0, y0, nx, ny, start, order = grid_build(p, 0.1)
     grid_near(p, x0, y0, nx, ny, start, order, 0.1, p[:, 0].copy(), p[:, 1].copy(), 0.1)
     nearest_segment(p, segs)
+    split_cuts(np.array([0, 3], dtype=np.intp), p, 1.5)
     return time.perf_counter() - t0
+
+
+@njit(cache=True, nogil=True)
+def split_cuts(
+    keep: np.ndarray, points: np.ndarray, piece_length: float
+) -> tuple[bool, np.ndarray, np.ndarray]:
+    """Kernel of :func:`service.core.configuration.split_pieces` (same arithmetic). Returns
+    ``(single, v, bounds)``: ``single`` means "one piece, ``keep`` itself"; otherwise piece
+    ``p`` is ``v[bounds[p] : bounds[p + 1] + 1]``."""
+    n = points.shape[0]
+    cum_raw = np.zeros(n)
+    acc = 0.0
+    for i in range(n - 1):
+        acc += np.hypot(points[i + 1, 0] - points[i, 0], points[i + 1, 1] - points[i, 1])
+        cum_raw[i + 1] = acc
+    verts = np.empty(n, dtype=np.intp)
+    nv = 0
+    verts[nv] = keep[0]
+    nv += 1
+    for t in range(keep.shape[0] - 1):
+        a = keep[t]
+        b = keep[t + 1]
+        span = cum_raw[b] - cum_raw[a]
+        nsub = int(span // piece_length)
+        if nsub >= 2 and b - a > nsub:
+            last = -1
+            for q in range(1, nsub):
+                target = cum_raw[a] + span * q / nsub
+                # searchsorted(cum_raw[a : b + 1], target, side="left") + a
+                lo = a
+                hi = b + 1
+                while lo < hi:
+                    mid = (lo + hi) // 2
+                    if cum_raw[mid] < target:
+                        lo = mid + 1
+                    else:
+                        hi = mid
+                e = lo
+                if e < a + 1:
+                    e = a + 1
+                if e > b - 1:
+                    e = b - 1
+                if e != last:  # targets increase, so equal values are adjacent
+                    verts[nv] = e
+                    nv += 1
+                    last = e
+        verts[nv] = b
+        nv += 1
+    v = verts[:nv].copy()
+    if nv <= 2 and cum_raw[n - 1] < 2.0 * piece_length:
+        return True, v, np.zeros(0, dtype=np.intp)
+    total = cum_raw[v[nv - 1]]
+    bounds = np.empty(nv + 1, dtype=np.intp)
+    nb = 0
+    bounds[nb] = 0
+    nb += 1
+    start = 0
+    for k in range(1, nv - 1):
+        if (
+            cum_raw[v[k]] - cum_raw[v[start]] >= piece_length
+            and total - cum_raw[v[k]] >= 0.5 * piece_length
+        ):
+            bounds[nb] = k
+            nb += 1
+            start = k
+    bounds[nb] = nv - 1
+    nb += 1
+    return False, v, bounds[:nb].copy()

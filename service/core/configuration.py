@@ -129,6 +129,23 @@ def split_pieces(keep: np.ndarray, points: np.ndarray, piece_length: float) -> l
     """
     if piece_length <= 0 or len(points) < 3:
         return [keep]
+    if _kernels.HAVE_NUMBA:
+        single, v, bounds = _kernels.split_cuts(
+            np.ascontiguousarray(keep, dtype=np.intp),
+            np.ascontiguousarray(points, dtype=np.float64),
+            float(piece_length),
+        )
+        if single:
+            return [keep]
+        b = bounds.tolist()
+        return [v[b[p] : b[p + 1] + 1] for p in range(len(b) - 1)]
+    return _split_pieces_numpy(keep, points, piece_length)
+
+
+def _split_pieces_numpy(
+    keep: np.ndarray, points: np.ndarray, piece_length: float
+) -> list[np.ndarray]:
+    """Numpy reference of :func:`split_pieces` (``piece_length > 0``, >= 3 points)."""
     d = np.hypot(*np.diff(points, axis=0).T)
     cum_raw = np.concatenate(([0.0], np.cumsum(d)))
     verts = [int(keep[0])]

@@ -141,3 +141,25 @@ def test_compiled_hit_segments_agree_with_numpy() -> None:
         finally:
             _kernels.HAVE_NUMBA = flag
         assert np.array_equal(got, ref)
+
+
+@pytest.mark.skipif(not _kernels.HAVE_NUMBA, reason="numba kernels not installed")
+def test_compiled_split_pieces_agrees_with_numpy() -> None:
+    from service.core.dce import dce
+
+    rng = np.random.default_rng(62)
+    multi = 0
+    for trial in range(400):
+        k = int(rng.integers(3, 300))
+        if trial % 2:  # long noisy walls: extra vertices and several pieces
+            p = np.column_stack([np.linspace(0, rng.uniform(0.5, 12), k), rng.normal(0, 0.01, k)])
+        else:
+            p = np.cumsum(rng.normal(size=(k, 2)) * rng.uniform(0.01, 0.3), axis=0)
+        keep = dce(p, float(rng.uniform(0.01, 0.3)))
+        pl = float(rng.choice([0.5, 1.5, 3.0]))
+        got = conf_mod.split_pieces(keep, p, pl)
+        ref = conf_mod._split_pieces_numpy(keep, p, pl)
+        multi += len(ref) > 1
+        assert len(got) == len(ref)
+        assert all(np.array_equal(a, b) for a, b in zip(got, ref, strict=True))
+    assert multi > 100
