@@ -66,7 +66,7 @@ def _install() -> None:
     match_mod.shape_distance = _timed("S*", match_mod.shape_distance)
     match_mod.prepare = _timed("S*", match_mod.prepare)
     match_mod.fit_pairs = _timed("ΔA fits", match_mod.fit_pairs)
-    match_mod.fit_pairs_blocks = _timed("ΔA fits", match_mod.fit_pairs_blocks)
+    match_mod.fit_pairs_ranges = _timed("ΔA fits", match_mod.fit_pairs_ranges)
     match_mod.order_preserving_dp = _timed("DP", match_mod.order_preserving_dp)
     match_mod.pose_from_matches = _timed("pose", match_mod.pose_from_matches)
     loc_mod.pose_from_matches = _timed("pose", loc_mod.pose_from_matches)

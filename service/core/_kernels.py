@@ -84,7 +84,8 @@ def _solve3(A: np.ndarray, b: np.ndarray) -> np.ndarray:
 def fit_blocks(
     P: np.ndarray,
     pt_order: np.ndarray,
-    pt_start: np.ndarray,
+    pt_beg: np.ndarray,
+    pt_end: np.ndarray,
     segs: np.ndarray,
     seg_start: np.ndarray,
     seg_len: np.ndarray,
@@ -95,8 +96,8 @@ def fit_blocks(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Kernel of :func:`service.core.pose.fit_pairs_stacked`.
 
-    ``P`` ``(N, 2)`` points; pair ``k``'s points are ``P[pt_order[pt_start[k] :
-    pt_start[k + 1]]]`` (in increasing row order, as numpy's ``bincount`` sums them) and its
+    ``P`` ``(N, 2)`` points; pair ``k``'s points are ``P[pt_order[pt_beg[k] : pt_end[k]]]``
+    (in increasing row order, as numpy's ``bincount`` sums them) and its
     segments rows ``seg_start[k] .. seg_start[k] + seg_len[k] - 1`` of ``segs`` ``(S, 4)``;
     ``init`` ``(K, 3)``. Returns ``(poses (K, 3) unwrapped, rms (K,))``.
     """
@@ -144,7 +145,7 @@ def fit_blocks(
             g2 = 0.0
             wsum = 0.0
             wrr = 0.0
-            for t in range(pt_start[k], pt_start[k + 1]):
+            for t in range(pt_beg[k], pt_end[k]):
                 i = pt_order[t]
                 px = P[i, 0]
                 py = P[i, 1]
@@ -890,7 +891,9 @@ def warm_up() -> float:
     own = np.zeros(4, dtype=np.intp)
     z = np.zeros(1, dtype=np.intp)
     two = np.array([2], dtype=np.intp)
-    fit_blocks(p, np.arange(4), np.array([0, 4]), segs, z, two, np.zeros((1, 3)), 2, 0.1, 0.05)
+    fit_blocks(p, np.arange(4), z, np.array([4]), segs, z, two, np.zeros((1, 3)), 2, 0.1, 0.05)
+    block_candidates(np.ones((2, 2), dtype=np.bool_), 3, True)
+    range_means(p, z, np.array([4]))
     pose_iterations(p, own, segs, z, two, np.zeros(3), 2, 0.3, 0.05, 1e-3, 1e-6, np.zeros(3), 0.0)
     angular_intervals(p, np.array([0, 4], dtype=np.intp), np.zeros(3))
     _, _, _, cum, tab = arc_tables(p, 4)
@@ -971,3 +974,58 @@ def split_cuts(
     bounds[nb] = nv - 1
     nb += 1
     return False, v, bounds[:nb].copy()
+
+
+@njit(cache=True, nogil=True)
+def block_candidates(single: np.ndarray, K: int, join_total: bool) -> np.ndarray:
+    """Kernel of the candidate blocks of :func:`service.core.matching.match_with_cost`:
+    rows ``(i_s, i_e, j_s, j_e)`` with ``single[i_s, j_s]`` and ``single[i_e, j_e]``, runs of
+    up to ``K`` polylines (``K`` in total over both sides with ``join_total``), in the order
+    (i_s, j_s) row-major, then ``i_e``, then ``j_e``."""
+    n, m = single.shape
+    cap = 16
+    out = np.empty((cap, 4), dtype=np.intp)
+    c = 0
+    for i_s in range(n):
+        for j_s in range(m):
+            if not single[i_s, j_s]:
+                continue
+            for a in range(K):
+                i_e = i_s + a
+                if i_e >= n:
+                    break
+                nb = K - a if join_total else K
+                for b in range(nb):
+                    j_e = j_s + b
+                    if j_e >= m:
+                        break
+                    if single[i_e, j_e]:
+                        if c == cap:
+                            cap *= 2
+                            bigger = np.empty((cap, 4), dtype=np.intp)
+                            bigger[:c] = out[:c]
+                            out = bigger
+                        out[c, 0] = i_s
+                        out[c, 1] = i_e
+                        out[c, 2] = j_s
+                        out[c, 3] = j_e
+                        c += 1
+    return out[:c].copy()
+
+
+@njit(cache=True, nogil=True)
+def range_means(P: np.ndarray, beg: np.ndarray, end: np.ndarray) -> np.ndarray:
+    """Mean of the rows ``P[beg[k] : end[k]]`` per ``k`` (sums in row order, as
+    ``np.bincount`` forms them), ``(K, 2)``."""
+    K = beg.shape[0]
+    out = np.empty((K, 2))
+    for k in range(K):
+        sx = 0.0
+        sy = 0.0
+        for i in range(beg[k], end[k]):
+            sx += P[i, 0]
+            sy += P[i, 1]
+        cnt = float(end[k] - beg[k])
+        out[k, 0] = sx / cnt
+        out[k, 1] = sy / cnt
+    return out

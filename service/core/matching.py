@@ -32,7 +32,7 @@ from service.core import _kernels
 from service.core.configuration import Configuration, Feature
 from service.core.pose import (
     fit_pairs,
-    fit_pairs_blocks,
+    fit_pairs_ranges,
     pose_from_matches,
     transform_points,
 )
@@ -426,18 +426,21 @@ def match_with_cost(
     # Candidate blocks P[i_s..i_e] ~ Q[j_s..j_e] (runs of up to max_join polylines) whose
     # first and last singles overlap, in the order (i_s, j_s) row-major, then a, then b.
     K = config.max_join
-    combos = [(a, b) for a in range(K) for b in range(K - a if config.join_total else K)]
-    ii, jj = np.nonzero(single)
-    ok = np.zeros((len(ii), len(combos)), dtype=bool)
-    for c, (a, b) in enumerate(combos):
-        ie, je = ii + a, jj + b
-        v = (ie < n) & (je < m)
-        ok[v, c] = single[ie[v], je[v]]
-    r_idx, c_idx = np.nonzero(ok)
-    comb = np.array(combos, dtype=np.intp).reshape(-1, 2)
-    ca = np.column_stack(
-        [ii[r_idx], ii[r_idx] + comb[c_idx, 0], jj[r_idx], jj[r_idx] + comb[c_idx, 1]]
-    ).astype(np.intp)
+    if _kernels.HAVE_NUMBA:
+        ca = _kernels.block_candidates(single, K, config.join_total)
+    else:
+        combos = [(a, b) for a in range(K) for b in range(K - a if config.join_total else K)]
+        ii, jj = np.nonzero(single)
+        ok = np.zeros((len(ii), len(combos)), dtype=bool)
+        for c, (a, b) in enumerate(combos):
+            ie, je = ii + a, jj + b
+            v = (ie < n) & (je < m)
+            ok[v, c] = single[ie[v], je[v]]
+        r_idx, c_idx = np.nonzero(ok)
+        comb = np.array(combos, dtype=np.intp).reshape(-1, 2)
+        ca = np.column_stack(
+            [ii[r_idx], ii[r_idx] + comb[c_idx, 0], jj[r_idx], jj[r_idx] + comb[c_idx, 1]]
+        ).astype(np.intp)
     cand = ca
     if len(cand) == 0:
         cost, _ = order_preserving_dp(skip_p, skip_q, {})
@@ -454,18 +457,16 @@ def match_with_cost(
     q_segs = [f.segments if f.segments is not None else np.zeros((0, 4)) for f in Qf]
     q_off = np.concatenate(([0], np.cumsum([len(x) for x in q_segs])))
     q_all = np.vstack(q_segs)
-    p_start, p_len = p_off[ca[:, 0]], p_off[ca[:, 1] + 1] - p_off[ca[:, 0]]
-    own = np.repeat(np.arange(len(cand)), p_len)
-    rows = np.arange(int(p_len.sum())) - np.repeat(np.cumsum(p_len) - p_len, p_len)
-    pts_all = p_all[np.repeat(p_start, p_len) + rows]
+    p_beg, p_end = p_off[ca[:, 0]], p_off[ca[:, 1] + 1]
     s_start, s_len = q_off[ca[:, 2]], q_off[ca[:, 3] + 1] - q_off[ca[:, 2]]
     smax = int(s_len.max()) if len(s_len) else 0
     if smax == 0 or len(q_all) == 0:
         cost, _ = order_preserving_dp(skip_p, skip_q, {})
         return ConfigurationMatch(matches=[], cost=cost)
-    poses, _rms = fit_pairs_blocks(
-        pts_all,
-        own,
+    poses, _rms = fit_pairs_ranges(
+        p_all,
+        p_beg,
+        p_end,
         q_all,
         s_start,
         s_len,
@@ -474,13 +475,20 @@ def match_with_cost(
         robust_scale=config.align_robust_scale,
         damping=config.align_damping,
     )
-    cnt = np.bincount(own, minlength=len(cand)).astype(float)
-    cen = np.column_stack(
-        [
-            np.bincount(own, weights=pts_all[:, 0], minlength=len(cand)) / cnt,
-            np.bincount(own, weights=pts_all[:, 1], minlength=len(cand)) / cnt,
-        ]
-    )
+    if _kernels.HAVE_NUMBA:
+        cen = _kernels.range_means(p_all, p_beg.astype(np.intp), p_end.astype(np.intp))
+    else:
+        p_len = p_end - p_beg
+        own = np.repeat(np.arange(len(cand)), p_len)
+        rows = np.arange(int(p_len.sum())) - np.repeat(np.cumsum(p_len) - p_len, p_len)
+        pts_all = p_all[np.repeat(p_beg, p_len) + rows]
+        cnt = np.bincount(own, minlength=len(cand)).astype(float)
+        cen = np.column_stack(
+            [
+                np.bincount(own, weights=pts_all[:, 0], minlength=len(cand)) / cnt,
+                np.bincount(own, weights=pts_all[:, 1], minlength=len(cand)) / cnt,
+            ]
+        )
     c_h, s_h = np.cos(poses[:, 2]), np.sin(poses[:, 2])
     c_e, s_e = np.cos(est[2]), np.sin(est[2])
     dx = (c_h * cen[:, 0] - s_h * cen[:, 1] + poses[:, 0]) - (

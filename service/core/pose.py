@@ -425,6 +425,58 @@ def fit_pairs_stacked(
     )
 
 
+def fit_pairs_ranges(
+    P: np.ndarray,
+    pt_beg: np.ndarray,
+    pt_end: np.ndarray,
+    segs: np.ndarray,
+    seg_start: np.ndarray,
+    seg_len: np.ndarray,
+    initial_pose: np.ndarray,
+    *,
+    iterations: int = 3,
+    robust_scale: float = 0.1,
+    damping: float = 0.05,
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`fit_pairs_blocks` where pair ``k``'s points are the run of rows
+    ``P[pt_beg[k] : pt_end[k]]`` (runs may overlap: nothing is copied)."""
+    pt_beg = np.asarray(pt_beg, dtype=np.intp)
+    pt_end = np.asarray(pt_end, dtype=np.intp)
+    if not _kernels.HAVE_NUMBA or len(pt_beg) == 0:
+        lens = pt_end - pt_beg
+        own = np.repeat(np.arange(len(pt_beg)), lens)
+        rows = np.arange(int(lens.sum())) - np.repeat(np.cumsum(lens) - lens, lens)
+        return fit_pairs_blocks(
+            P[np.repeat(pt_beg, lens) + rows],
+            own,
+            segs,
+            seg_start,
+            seg_len,
+            initial_pose,
+            iterations=iterations,
+            robust_scale=robust_scale,
+            damping=damping,
+        )
+    init = np.asarray(initial_pose, dtype=np.float64)
+    K = len(seg_len)
+    poses0 = init.copy() if init.ndim == 2 else np.tile(init, (K, 1))
+    poses, rms = _kernels.fit_blocks(
+        np.ascontiguousarray(P, dtype=np.float64),
+        np.arange(len(P), dtype=np.intp),
+        pt_beg,
+        pt_end,
+        np.ascontiguousarray(segs, dtype=np.float64),
+        np.ascontiguousarray(seg_start, dtype=np.intp),
+        np.ascontiguousarray(seg_len, dtype=np.intp),
+        np.ascontiguousarray(poses0),
+        int(iterations),
+        float(robust_scale),
+        float(damping),
+    )
+    poses[:, 2] = wrap_angle(poses[:, 2])
+    return poses, rms
+
+
 def fit_pairs_blocks(
     P: np.ndarray,
     own: np.ndarray,
@@ -471,7 +523,8 @@ def fit_pairs_blocks(
     poses, rms = _kernels.fit_blocks(
         np.ascontiguousarray(P, dtype=np.float64),
         pt_order,
-        pt_start,
+        pt_start[:-1],
+        pt_start[1:],
         np.ascontiguousarray(segs, dtype=np.float64),
         np.ascontiguousarray(seg_start, dtype=np.intp),
         np.ascontiguousarray(seg_len, dtype=np.intp),
