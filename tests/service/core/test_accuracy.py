@@ -1,7 +1,8 @@
 """Acceptance bars of the shape-based localiser on the paper's two setups (section 6).
 
-Whole tour of each setup, initial pose = truth[0], no odometry. Slow: about 1.5 min for
-setup 1 (~3900 scans) and 0.5 min for setup 2 (~410 scans) on an idle 2-core machine.
+Whole tour of each setup, initial pose = truth[0], no odometry. About 20 s for setup 1
+(~3900 scans) and 7 s for setup 2 (~410 scans) with the compiled kernels (numba), 1.5 min
+and 0.5 min without.
 """
 
 from __future__ import annotations
