@@ -10,6 +10,8 @@ $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet -e '.[dev,plot]'
+	# compile the numba kernels once (~10 s) so services and tests start warm
+	$(PY) -c "from service.core._kernels import warm_up; print(f'numba kernels ready in {warm_up():.1f} s')"
 	touch $(STAMP)
 
 test: $(STAMP)
