@@ -58,6 +58,11 @@ def invert(a: np.ndarray) -> np.ndarray:
     return np.array([-(c * a[0] + s * a[1]), s * a[0] - c * a[1], wrap_angle(-a[2])])
 
 
+def relative(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The increment ``d`` with ``a ∘ d = b``: pose ``b`` expressed in the frame of ``a``."""
+    return compose(invert(a), b)
+
+
 def rigid_transform_2d(
     src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None
 ) -> np.ndarray:

@@ -237,7 +237,7 @@ class ICPLocalizer:
                 if n_trim < n_keep:
                     cut = np.partition(d2[keep], n_trim - 1)[n_trim - 1]
                     keep &= d2 <= cut
-            # Closed-form rigid least squares (same as baselines.rigid_fit, inlined for speed).
+            # Closed-form rigid LSQ: pose.rigid_transform_2d inlined (no per-iteration checks).
             sx, sy, tx_, ty_ = px[keep], py[keep], mx[keep], my[keep]
             csx, csy, ctx, cty = sx.mean(), sy.mean(), tx_.mean(), ty_.mean()
             ax, ay, bx, by = sx - csx, sy - csy, tx_ - ctx, ty_ - cty

@@ -291,7 +291,7 @@ class LineLocalizer:
     ) -> np.ndarray:
         """Index of the nearest gated map line per scan line (``-1``: none), Cox-style."""
         cfg = self.config
-        ends = transform_points(np.vstack([np.vstack([ln.p0, ln.p1]) for ln in lines]), pose)
+        ends = transform_points(pose, np.vstack([np.vstack([ln.p0, ln.p1]) for ln in lines]))
         a, b = ends[0::2], ends[1::2]  # (k, 2) each
         sd = b - a
         ang = np.arctan2(sd[:, 1], sd[:, 0])
@@ -358,7 +358,7 @@ class LineLocalizer:
         mids = np.concatenate(
             [np.full(len(lines[k].indices), assoc[k]) for k in np.flatnonzero(matched)]
         )
-        q = transform_points(pts[idx], pose)
+        q = transform_points(pose, pts[idx])
         res = np.einsum("ij,ij->i", q, self._normal[mids]) - self._offset[mids]
         rms = float(np.sqrt(np.mean(res**2)))
         explained = float(len(idx) / max(len(pts), 1))

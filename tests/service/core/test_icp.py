@@ -7,7 +7,6 @@ import pytest
 import shapely
 
 from schemas.errors import LocalizationError
-from service.core.baselines import rigid_fit, transform_points
 from service.core.baselines.icp import DistanceGrid, ICPConfig, ICPLocalizer, rasterize_segments
 from service.core.types import MapData, wrap_angle
 
@@ -90,14 +89,6 @@ def test_distance_grid_nearest_is_closest_occupied_centre() -> None:
         best = np.min(np.hypot(*(centres - p).T))
         # The lookup is exact up to the cell of the query point (<= half a diagonal).
         assert np.hypot(*(n - p)) <= best + 0.05 * np.sqrt(2) + 1e-9
-
-
-def test_rigid_fit_recovers_transform_exactly() -> None:
-    rng = np.random.default_rng(0)
-    src = rng.uniform(-3, 3, size=(50, 2))
-    pose = np.array([1.2, -0.7, 2.9])
-    dst = transform_points(src, pose)
-    assert np.allclose(rigid_fit(src, dst), pose, atol=1e-12)
 
 
 @pytest.mark.parametrize(

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from schemas.errors import LocalizationError
-from service.core.baselines import scan_points, transform_points
+from service.core.baselines import scan_points
 from service.core.baselines.lines import (
     LineConfig,
     LineLocalizer,
@@ -16,6 +16,7 @@ from service.core.baselines.lines import (
     fit_line,
     map_lines,
 )
+from service.core.pose import transform_points
 from service.core.types import MapData, wrap_angle
 
 
@@ -71,7 +72,7 @@ def test_extraction_finds_the_four_walls_of_a_square_room() -> None:
     walls = {(0.0, 0.0): None, (math.pi / 2, 0.0): None, (0.0, 5.0): None, (math.pi / 2, 5.0): None}
     found = []
     for ln in lines:
-        ends = transform_points(np.vstack([ln.p0, ln.p1]), pose)
+        ends = transform_points(pose, np.vstack([ln.p0, ln.p1]))
         alpha, r, _ = fit_line(ends)
         a = float(np.mod(alpha, math.pi))  # undirected normal direction
         if abs(a - math.pi) < 0.1:
