@@ -462,12 +462,42 @@ def fit_pairs_ranges(
             robust_scale=robust_scale,
             damping=damping,
         )
+    return _fit_kernel(
+        P,
+        np.arange(len(P), dtype=np.intp),
+        pt_beg,
+        pt_end,
+        segs,
+        seg_start,
+        seg_len,
+        initial_pose,
+        iterations,
+        robust_scale,
+        damping,
+    )
+
+
+def _fit_kernel(
+    P: np.ndarray,
+    pt_order: np.ndarray,
+    pt_beg: np.ndarray,
+    pt_end: np.ndarray,
+    segs: np.ndarray,
+    seg_start: np.ndarray,
+    seg_len: np.ndarray,
+    initial_pose: np.ndarray,
+    iterations: int,
+    robust_scale: float,
+    damping: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Run :func:`service.core._kernels.fit_blocks`: pair ``k`` owns the points
+    ``P[pt_order[pt_beg[k]:pt_end[k]]]`` and the segments ``segs[seg_start[k]:][:seg_len[k]]``;
+    ``initial_pose`` is one pose for all pairs or one per pair."""
     init = np.asarray(initial_pose, dtype=np.float64)
-    K = len(seg_len)
-    poses0 = init.copy() if init.ndim == 2 else np.tile(init, (K, 1))
+    poses0 = init.copy() if init.ndim == 2 else np.tile(init, (len(seg_len), 1))
     poses, rms = _kernels.fit_blocks(
         np.ascontiguousarray(P, dtype=np.float64),
-        np.arange(len(P), dtype=np.intp),
+        pt_order,
         pt_beg,
         pt_end,
         np.ascontiguousarray(segs, dtype=np.float64),
@@ -525,21 +555,19 @@ def fit_pairs_blocks(
     else:
         pt_order = np.arange(len(own), dtype=np.intp)
     pt_start = np.searchsorted(own[pt_order], np.arange(K + 1)).astype(np.intp)
-    poses, rms = _kernels.fit_blocks(
-        np.ascontiguousarray(P, dtype=np.float64),
+    return _fit_kernel(
+        P,
         pt_order,
         pt_start[:-1],
         pt_start[1:],
-        np.ascontiguousarray(segs, dtype=np.float64),
-        np.ascontiguousarray(seg_start, dtype=np.intp),
-        np.ascontiguousarray(seg_len, dtype=np.intp),
-        np.ascontiguousarray(poses0),
-        int(iterations),
-        float(robust_scale),
-        float(damping),
+        segs,
+        seg_start,
+        seg_len,
+        poses0,
+        iterations,
+        robust_scale,
+        damping,
     )
-    poses[:, 2] = wrap_angle(poses[:, 2])
-    return poses, rms
 
 
 def _fit_pairs_stacked_numpy(
