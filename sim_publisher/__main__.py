@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 import signal
 import sys
 import threading
@@ -56,6 +57,8 @@ class SimOptions:
     kidnap_at: int | None = None
     kidnap_to: float | None = None
     kidnap_robots: int = 1
+    look_around: int = 0
+    look_turn_deg: float = 90.0
 
 
 def main(
@@ -85,6 +88,8 @@ def main(
         ),
         global_localization=options.global_localization,
         send_odom=options.odom,
+        look_around=options.look_around,
+        look_turn=math.radians(options.look_turn_deg),
     )
     with open_session(conf, endpoints) as session:
         client = ShapelocClient(session=session, prefix=options.prefix, timeout=2.0)
@@ -287,6 +292,22 @@ def build_parser() -> argparse.ArgumentParser:
         default=1,
         help="how many robots (sim-0, sim-1, ...) are kidnapped (default 1: sim-0)",
     )
+    p.add_argument(
+        "--look-around",
+        type=int,
+        default=0,
+        metavar="N",
+        help="look-around start: every robot first takes N scans turning in place at its start "
+        "(--look-turn-deg between scans) and then drives; use with --global so the localiser "
+        "sees the whole room (a 180-degree laser: 3 scans 90 degrees apart). Default 0: off",
+    )
+    p.add_argument(
+        "--look-turn-deg",
+        type=float,
+        default=90.0,
+        metavar="DEG",
+        help="turn between look-around scans in degrees, counter-clockwise positive (default 90)",
+    )
     p.add_argument("--scans", type=int, help="stop after this many scans per robot")
     p.add_argument("--duration", type=float, help="stop after this many seconds")
     p.add_argument(
@@ -333,6 +354,10 @@ def options_from_args(args: argparse.Namespace) -> SimOptions:
         raise ValueError("--kidnap-to must be in [0, 1]")
     if args.kidnap_robots < 0:
         raise ValueError("--kidnap-robots must be >= 0")
+    if args.look_around < 0:
+        raise ValueError("--look-around must be >= 0")
+    if not math.isfinite(args.look_turn_deg):
+        raise ValueError("--look-turn-deg must be a finite number")
     bad = [m for m in args.method if m not in METHODS]
     if bad:
         raise ValueError(f"unknown method {bad[0]!r}; expected one of {', '.join(METHODS)}")
@@ -359,6 +384,8 @@ def options_from_args(args: argparse.Namespace) -> SimOptions:
         kidnap_at=args.kidnap_at,
         kidnap_to=args.kidnap_to,
         kidnap_robots=args.kidnap_robots,
+        look_around=args.look_around,
+        look_turn_deg=args.look_turn_deg,
     )
 
 

@@ -10,6 +10,8 @@ limits; "no return" beams are NaN.
 
 from __future__ import annotations
 
+import math
+import zlib
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -18,7 +20,7 @@ import numpy as np
 
 from schemas.codec import map_to_map_data
 from schemas.messages import Map, RobotConfig, Scan, Truth
-from service.core.types import METHODS, MapData
+from service.core.types import METHODS, MapData, wrap_angle
 from sim_publisher.scenario import Setup, make_setup
 from sim_publisher.world import World
 
@@ -55,6 +57,18 @@ class SimRobot:
     Kidnapping: with ``kidnap_at`` set, the scan with that ``seq`` (and the ones after it) is
     taken at the tour position ``kidnap_to`` (trajectory index) instead of where the robot
     was: the robot is carried away without the localiser being told. The truth topic follows.
+
+    Look-around start: with ``look_around = N > 0`` the first ``N`` scans (seq ``0..N-1``) are
+    taken at the tour's start position with headings ``theta0 - (N - k) * look_turn`` (``k`` the
+    seq, ``theta0`` the heading of the start pose, ``look_turn`` radians CCW): the robot turns
+    in place by ``look_turn`` between scans, and scan ``N`` is the tour's start pose, after
+    which it drives the tour as without look-around. During the spin the odometry turns by
+    ``look_turn * (1 + look_turn_error)`` per scan, position unchanged; ``look_turn_error`` is
+    a seeded ~2 % rotation error (from ``look_seed`` and the robot id). The spin's odometry
+    ends at the setup odometry of the start pose, so odometry stays one continuous frame and
+    from seq ``N`` on every message equals the one the robot without look-around sends ``N``
+    scans earlier (same stamp). A kidnap during the spin ends the spin (the robot is carried
+    to the kidnap position and drives on from there).
     """
 
     def __init__(
@@ -70,6 +84,9 @@ class SimRobot:
         send_odom: bool = True,
         kidnap_at: int | None = None,
         kidnap_to: int | None = None,
+        look_around: int = 0,
+        look_turn: float = math.pi / 2,
+        look_seed: int = 0,
     ) -> None:
         if method not in METHODS:
             raise ValueError(f"unknown method {method!r}; expected one of {', '.join(METHODS)}")
@@ -96,6 +113,19 @@ class SimRobot:
             if kidnap_to is None
             else int(np.clip(kidnap_to // stride, 0, len(self.indices) - 1))
         )
+        if isinstance(look_around, bool) or not isinstance(look_around, (int, np.integer)):
+            raise ValueError(f"look_around must be an integer, got {look_around!r}")
+        if look_around < 0:
+            raise ValueError(f"look_around must be >= 0, got {look_around}")
+        if isinstance(look_turn, bool) or not math.isfinite(look_turn):
+            raise ValueError(f"look_turn must be a finite angle in radians, got {look_turn!r}")
+        self.look_around = int(look_around)
+        self.look_turn = float(look_turn)
+        rng = np.random.default_rng((int(look_seed), zlib.crc32(robot_id.encode("utf-8"))))
+        sign = 1.0 if rng.random() < 0.5 else -1.0
+        #: Relative rotation error of the odometry while turning in place (about 2 %).
+        self.look_turn_error = float(sign * rng.uniform(0.01, 0.03))
+        self._spin_left = self.look_around
         self._dir = 1
         self.seq = 0
         laser = setup.laser
@@ -111,8 +141,14 @@ class SimRobot:
 
     @property
     def start_pose(self) -> np.ndarray:
-        """True pose at the next scan, ``(3,)`` map frame."""
-        return np.asarray(self.setup.truth[self.index], dtype=np.float64).copy()
+        """True pose at the next scan, ``(3,)`` map frame (turned while looking around)."""
+        pose = np.asarray(self.setup.truth[self.index], dtype=np.float64).copy()
+        if self._spin_left > 0:
+            pose[2] = wrap_angle(pose[2] - self._spin_left * self.look_turn)
+        return pose
+
+    def _kidnap_next(self) -> bool:
+        return self.kidnap_at is not None and self.seq == self.kidnap_at
 
     def config(self) -> RobotConfig:
         """Configuration message: the map, the method, and the true pose at the next scan as
@@ -122,19 +158,33 @@ class SimRobot:
 
     def step(self, stamp: float) -> tuple[Scan, Truth]:
         """Scan and ground truth at the current tour position, then advance one step (at
-        ``seq == kidnap_at`` the robot first jumps to the kidnap position)."""
-        if self.kidnap_at is not None and self.seq == self.kidnap_at:
+        ``seq == kidnap_at`` the robot first jumps to the kidnap position; while looking
+        around it turns in place instead of advancing)."""
+        if self._kidnap_next():
             assert self._kidnap_pos is not None
             self._pos = self._kidnap_pos
             self._dir = 1
+            self._spin_left = 0
         i = self.index
-        ranges, angles = self.setup.scan(i)
+        spinning = self._spin_left > 0
+        if spinning:
+            pose = self.start_pose
+            # noise index past the tour's samples: a spun scan never reuses a tour scan's noise
+            ranges, angles = self.setup.laser.scan(pose, len(self.setup) + self.seq)
+            o = np.asarray(self.setup.odom[i], dtype=np.float64).copy()
+            o[2] = wrap_angle(
+                o[2] - self._spin_left * self.look_turn * (1.0 + self.look_turn_error)
+            )
+        else:
+            ranges, angles = self.setup.scan(i)
+            pose = np.asarray(self.setup.truth[i], dtype=np.float64)
+            o = np.asarray(self.setup.odom[i], dtype=np.float64)
         ranges = np.asarray(ranges, dtype=np.float64)
         if len(angles) != len(ranges):
             raise ValueError("laser returned mismatched ranges/angles")
         odom = None
         if self.send_odom:
-            odom = [float(v) for v in self.setup.odom[i]]
+            odom = [float(v) for v in o]
         scan = Scan(
             seq=self.seq,
             stamp=float(stamp),
@@ -145,11 +195,12 @@ class SimRobot:
             ranges=ranges,
             odom=odom,
         )
-        truth = Truth(
-            seq=self.seq, stamp=float(stamp), pose=[float(v) for v in self.setup.truth[i]]
-        )
+        truth = Truth(seq=self.seq, stamp=float(stamp), pose=[float(v) for v in pose])
         self.seq += 1
-        self._advance()
+        if spinning:
+            self._spin_left -= 1
+        else:
+            self._advance()
         return scan, truth
 
     def _advance(self) -> None:
@@ -252,8 +303,11 @@ class SimFleet:
         *,
         global_localization: bool = False,
         send_odom: bool = True,
+        look_around: int = 0,
+        look_turn: float = math.pi / 2,
     ) -> SimFleet:
-        """Build robots (one setup per robot seed) and load their maps."""
+        """Build robots (one setup per robot seed) and load their maps; ``look_around`` and
+        ``look_turn`` (radians) are passed to every robot (see :class:`SimRobot`)."""
         maps: dict[str, MapData] = {}
         by_spec: dict[str, str] = {}
         robots = []
@@ -284,6 +338,9 @@ class SimFleet:
                     send_odom=send_odom,
                     kidnap_at=sp.kidnap_at,
                     kidnap_to=kidnap_to,
+                    look_around=look_around,
+                    look_turn=look_turn,
+                    look_seed=sp.seed,
                 )
             )
         return SimFleet(robots, maps)
