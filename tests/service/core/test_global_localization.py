@@ -227,3 +227,43 @@ def test_kidnapped_robot_goes_lost_and_relocalises(setup: int, stride: int) -> N
     first_lost = statuses.index("lost")
     assert "tracking" in statuses[first_lost:10], statuses
     assert statuses[-1] == "tracking"
+
+
+# ------------------------------------------------------------------ kernels, evidence, composite
+
+
+@pytest.mark.skipif(not gl._kernels.HAVE_NUMBA, reason="numba kernels not installed")
+def test_field_score_kernel_agrees_with_the_numpy_reference(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    idx = gl.load_or_build_index(office_schematic_map())
+    rng = np.random.default_rng(61)
+    poses = np.column_stack(
+        [rng.uniform(-1, 15, 300), rng.uniform(-1, 24, 300), rng.uniform(-4, 4, 300)]
+    )
+    pts = rng.uniform(-6, 6, size=(80, 2))
+    got = gl._field_scores(idx, poses, pts, 0.05)
+    monkeypatch.setattr(gl._kernels, "HAVE_NUMBA", False)
+    ref = gl._field_scores(idx, poses, pts, 0.05)
+    assert np.max(np.abs(got - ref)) < 1e-12
+    assert np.ptp(ref) > 0.1  # the inputs exercise the field, not only its outside
+
+
+def test_evidence_counts_agreeing_blocks_not_beams() -> None:
+    base = np.zeros(160)
+    best = gl.Hypothesis(pose=np.zeros(3), cost=0.0, beam_cost=base)
+    # one block strongly better: one observation
+    one = base.copy()
+    one[:16] = 3.0
+    assert gl.evidence(best, gl.Hypothesis(np.zeros(3), 0.0, beam_cost=one)) == pytest.approx(1.0)
+    # four blocks mildly better each: twice the evidence of one strong block
+    four = base.copy()
+    four[[0, 20, 40, 60]] = 1.0
+    assert gl.evidence(best, gl.Hypothesis(np.zeros(3), 0.0, beam_cost=four)) == pytest.approx(2.0)
+    # a block for and a block against cancel
+    mixed = base.copy()
+    mixed[0], mixed[40] = 1.0, -1.0
+    assert gl.evidence(best, gl.Hypothesis(np.zeros(3), 0.0, beam_cost=mixed)) == 0.0
+    # same predictions, or no per-beam costs: no evidence
+    assert gl.evidence(best, gl.Hypothesis(np.zeros(3), 0.0, beam_cost=base)) == 0.0
+    assert gl.evidence(best, gl.Hypothesis(np.zeros(3), 0.0)) == 0.0
