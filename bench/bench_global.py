@@ -1,17 +1,18 @@
 """Global localisation acceptance measurement (prints tables).
 
 ``python bench/bench_global.py [--poses 200] [--seed 1] [--maps metric,schematic]
-[--setup-scans N] [--no-setups]``
+[--motions creep,look-around] [--setup-scans N] [--no-setups]``
 
 1. Precompute per map: the view index built cold (into an empty cache dir) and loaded from
    that cache (a fresh process' view: the in-memory copy is dropped first).
 2. Random free-space poses (``sim_publisher.publisher.random_free_poses``, >= 0.3 m from any
    obstacle, heading uniform; seeded) per map, no initial pose, up to 3 scans each. The robot
-   MOVES 3 cm along its heading between the scans (it stays put if that would leave free
-   space). Found = the first ``tracking`` estimate is within 0.5 m and 10 deg of the truth;
-   a ``tracking`` estimate outside that is a confident wrong pose. Time to first fix = wall
-   time of the ``update`` calls up to the fix (one process, one core; the machine's load is
-   printed).
+   MOVES 3 cm along its heading between the scans (``creep``: it stays put if that would leave
+   free space; no odometry), or TURNS 90 deg in place (``look-around``: odometry sent, the
+   localiser fuses the scans). Found = the first ``tracking`` estimate is within 0.5 m and
+   10 deg of the truth; a ``tracking`` estimate outside that is a confident wrong pose. Time
+   to first fix = wall time of the ``update`` calls up to the fix (one process, one core; the
+   machine's load is printed).
 3. No confident wrong poses: both full setups (``sim_publisher.scenario.make_setup``) run with
    ``initial_pose`` null; of all estimates with status ``tracking``, the fraction passing the
    setup's proximity test (setup 1: 100 mm / 45 deg, setup 2: 500 mm / 45 deg).
@@ -36,6 +37,7 @@ from service.core.types import wrap_angle
 from sim_publisher.office import office_metric_map, office_schematic_map, office_world
 from sim_publisher.publisher import random_free_poses
 from sim_publisher.scenario import make_setup
+from sim_publisher.trajectory import simulate_odometry
 
 MAPS = {"metric": (office_metric_map, 1), "schematic": (office_schematic_map, 2)}
 
@@ -61,8 +63,22 @@ def precompute(name: str, cache: Path) -> tuple[float, float, int, int]:
     return cold, warm, len(idx.viewpoints), len(idx)
 
 
-def random_trials(name: str, n: int, seed: int) -> dict[str, float]:
-    """Found / wrong / unresolved fractions and time-to-first-fix percentiles."""
+def trial_poses(start: np.ndarray, motion: str, world, turn: float = np.pi / 2) -> np.ndarray:
+    """The up to 3 true poses of one trial (map frame). ``creep``: 3 cm forward per scan (stays
+    put if that would leave free space). ``look-around``: turns in place by ``turn`` per scan."""
+    if motion == "look-around":
+        return np.array([[start[0], start[1], wrap_angle(start[2] + s * turn)] for s in range(3)])
+    out = []
+    for s in range(3):
+        p = start + np.array([0.03 * s * np.cos(start[2]), 0.03 * s * np.sin(start[2]), 0.0])
+        out.append(p if world.is_free(p[:2], 0.25)[0] else start.copy())
+    return np.array(out)
+
+
+def random_trials(name: str, n: int, seed: int, motion: str = "creep") -> dict[str, float]:
+    """Found / wrong / unresolved fractions and time-to-first-fix percentiles. ``motion`` as in
+    :func:`trial_poses`; look-around trials send odometry (``simulate_odometry``: about 1-3 %
+    rotation error), creep trials send none."""
     md = MAPS[name][0]()
     su = make_setup(MAPS[name][1], max_scans=2)
     world = office_world()
@@ -70,16 +86,15 @@ def random_trials(name: str, n: int, seed: int) -> dict[str, float]:
     ttf: list[float] = []
     scans_needed: list[int] = []
     for k, start in enumerate(random_free_poses(world, n, seed)):
+        truth = trial_poses(start, motion, world)
+        odom = simulate_odometry(truth, seed=1000 + k) if motion == "look-around" else None
         loc = create_localizer("shape", md, None)
         spent = 0.0
         for s in range(3):
-            step = np.array([0.03 * s * np.cos(start[2]), 0.03 * s * np.sin(start[2]), 0.0])
-            p = start + step
-            if not world.is_free(p[:2], 0.25)[0]:
-                p = start
+            p = truth[s]
             r, a = su.laser.scan(p, 1000 * k + s)
             t0 = time.perf_counter()
-            est = loc.update(r, a)
+            est = loc.update(r, a, None if odom is None else odom[s])
             spent += time.perf_counter() - t0
             if est.status == "tracking":
                 ok = np.hypot(*(est.pose[:2] - p[:2])) < 0.5 and abs(
@@ -138,6 +153,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--maps", default="metric,schematic")
     ap.add_argument("--setup-scans", type=int, default=None, help="truncate the setups")
     ap.add_argument("--no-setups", action="store_true", help="skip the full-setup runs")
+    ap.add_argument(
+        "--motions", default="creep,look-around", help="trial motions (creep, look-around)"
+    )
     args = ap.parse_args(argv)
     maps = [m.strip() for m in args.maps.split(",") if m.strip()]
     print(f"load average at start: {_load()}")
@@ -147,22 +165,26 @@ def main(argv: list[str] | None = None) -> int:
         for m in maps:
             cold, warm, v, u = precompute(m, Path(tmp))
             print(f"| {m} | {v} | {u} | {cold:.1f} | {warm:.2f} |")
+    motions = [m.strip() for m in args.motions.split(",") if m.strip()]
     print(
         f"\n{args.poses} random free-space poses per map (seed {args.seed}), no initial pose, "
-        "<= 3 scans, moving 3 cm forward between scans"
+        "<= 3 scans; creep: 3 cm forward between scans, no odometry; look-around: turning "
+        "90 deg in place between scans, odometry sent"
     )
     print(
-        "| map | found < 0.5 m, < 10 deg | confident wrong | no fix in 3 scans "
+        "| map | motion | found < 0.5 m, < 10 deg | confident wrong | no fix in 3 scans "
         "| scans to fix (mean) | first fix p50 s | p95 s |"
     )
-    print("|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|")
     for m in maps:
-        r = random_trials(m, args.poses, args.seed)
-        print(
-            f"| {m} | {100 * r['found']:.1f} % | {100 * r['wrong']:.1f} % | "
-            f"{100 * r['none']:.1f} % | {r['scans_mean']:.2f} | {r['ttf50']:.2f} | "
-            f"{r['ttf95']:.2f} |"
-        )
+        for motion in motions:
+            r = random_trials(m, args.poses, args.seed, motion)
+            print(
+                f"| {m} | {motion} | {100 * r['found']:.1f} % | {100 * r['wrong']:.1f} % | "
+                f"{100 * r['none']:.1f} % | {r['scans_mean']:.2f} | {r['ttf50']:.2f} | "
+                f"{r['ttf95']:.2f} |",
+                flush=True,
+            )
     print(f"load average: {_load()}")
     if not args.no_setups:
         print("\nFull setups with initial_pose null (no confident wrong poses)")

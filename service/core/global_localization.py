@@ -817,8 +817,6 @@ class Hypothesis:
     violation: float = 0.0
     explained: float = 0.0
     short: float = 0.0
-    #: Per-beam cost on the verified beams (same beams for every hypothesis of one scan).
-    beam_cost: np.ndarray | None = field(default=None, repr=False)
 
 
 @dataclass
@@ -978,17 +976,9 @@ def verify(
         return Hypothesis(pose=pose.copy(), cost=1.0 + gconfig.cost_floor)
     r = ranges[idx]
     pred = index.caster.cast(pose, angles[idx], config.view_max_range)
-    hit_b = np.abs(r - pred) <= tol  # NaN prediction compares False
-    viol_b = np.isfinite(pred) & (r > pred + max(tol, gconfig.violation_margin))
-    short_b = r < pred - tol
-    beam_cost = (
-        1.0
-        - hit_b
-        - gconfig.short_credit * short_b
-        + gconfig.violation_weight * viol_b
-        + gconfig.cost_floor
-    )
-    hit, viol, short = float(np.mean(hit_b)), float(np.mean(viol_b)), float(np.mean(short_b))
+    hit = float(np.mean(np.abs(r - pred) <= tol))  # NaN prediction compares False
+    viol = float(np.mean(np.isfinite(pred) & (r > pred + max(tol, gconfig.violation_margin))))
+    short = float(np.mean(r < pred - tol))
     total = 0.0
     good = 0.0
     for f in P.features:
@@ -1011,7 +1001,6 @@ def verify(
         violation=viol,
         explained=explained,
         short=short,
-        beam_cost=beam_cost,
     )
 
 
@@ -1191,26 +1180,6 @@ def global_search(
         candidates=n_induced,
         information=information,
     )
-
-
-def evidence(best: Hypothesis, other: Hypothesis, block: int = 16) -> float:
-    """How consistently the beams prefer ``best`` over ``other`` (both verified on the same
-    scan, so their per-beam costs line up): the beams are cut into consecutive blocks of
-    ``block`` beams, each block sums its cost differences ``S_j`` (positive: ``best`` explains
-    it better), and the result is ``sum S_j / sqrt(sum S_j^2)`` — a z-score that counts each
-    block, not each beam, as one observation, because neighbouring beams on one surface are
-    not independent evidence (a niche the floor plan leaves out, or a door seen through,
-    changes a whole stretch at once). ``k`` blocks that all agree give ``sqrt(k)``; blocks
-    that disagree cancel; blocks where both predict the same add nothing. 0 when the costs
-    are missing or never differ."""
-    if best.beam_cost is None or other.beam_cost is None:
-        return 0.0
-    if best.beam_cost.shape != other.beam_cost.shape or best.beam_cost.size == 0:
-        return 0.0
-    d = other.beam_cost - best.beam_cost
-    S = np.add.reduceat(d, np.arange(0, d.size, max(1, block)))
-    norm = float(np.sqrt(np.sum(S * S)))
-    return float(S.sum() / norm) if norm > 1e-12 else 0.0
 
 
 def ambiguity(hyps: list[Hypothesis], gconfig: GlobalConfig) -> float:

@@ -247,23 +247,3 @@ def test_field_score_kernel_agrees_with_the_numpy_reference(
     ref = gl._field_scores(idx, poses, pts, 0.05)
     assert np.max(np.abs(got - ref)) < 1e-12
     assert np.ptp(ref) > 0.1  # the inputs exercise the field, not only its outside
-
-
-def test_evidence_counts_agreeing_blocks_not_beams() -> None:
-    base = np.zeros(160)
-    best = gl.Hypothesis(pose=np.zeros(3), cost=0.0, beam_cost=base)
-    # one block strongly better: one observation
-    one = base.copy()
-    one[:16] = 3.0
-    assert gl.evidence(best, gl.Hypothesis(np.zeros(3), 0.0, beam_cost=one)) == pytest.approx(1.0)
-    # four blocks mildly better each: twice the evidence of one strong block
-    four = base.copy()
-    four[[0, 20, 40, 60]] = 1.0
-    assert gl.evidence(best, gl.Hypothesis(np.zeros(3), 0.0, beam_cost=four)) == pytest.approx(2.0)
-    # a block for and a block against cancel
-    mixed = base.copy()
-    mixed[0], mixed[40] = 1.0, -1.0
-    assert gl.evidence(best, gl.Hypothesis(np.zeros(3), 0.0, beam_cost=mixed)) == 0.0
-    # same predictions, or no per-beam costs: no evidence
-    assert gl.evidence(best, gl.Hypothesis(np.zeros(3), 0.0, beam_cost=base)) == 0.0
-    assert gl.evidence(best, gl.Hypothesis(np.zeros(3), 0.0)) == 0.0
