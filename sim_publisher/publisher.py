@@ -59,10 +59,12 @@ class SimRobot:
     was: the robot is carried away without the localiser being told. The truth topic follows.
 
     Look-around start: with ``look_around = N > 0`` the first ``N`` scans (seq ``0..N-1``) are
-    taken at the tour's start position with headings ``theta0 - (N - k) * look_turn`` (``k`` the
-    seq, ``theta0`` the heading of the start pose, ``look_turn`` radians CCW): the robot turns
-    in place by ``look_turn`` between scans, and scan ``N`` is the tour's start pose, after
-    which it drives the tour as without look-around. During the spin the odometry turns by
+    taken at the tour's start position with headings ``theta0 - (N - 1 - k) * look_turn``
+    (``k`` the seq, ``theta0`` the heading of the start pose, ``look_turn`` radians CCW): the
+    robot turns in place by ``look_turn`` between scans and ends the spin facing the tour (scan
+    ``N - 1`` is taken at the start pose), so no turn separates the spin from the tour; scan
+    ``N`` is the tour's start pose again, after which it drives the tour as without
+    look-around. During the spin the odometry turns by
     ``look_turn * (1 + look_turn_error)`` per scan, position unchanged; ``look_turn_error`` is
     a seeded ~2 % rotation error (from ``look_seed`` and the robot id). The spin's odometry
     ends at the setup odometry of the start pose, so odometry stays one continuous frame and
@@ -144,7 +146,7 @@ class SimRobot:
         """True pose at the next scan, ``(3,)`` map frame (turned while looking around)."""
         pose = np.asarray(self.setup.truth[self.index], dtype=np.float64).copy()
         if self._spin_left > 0:
-            pose[2] = wrap_angle(pose[2] - self._spin_left * self.look_turn)
+            pose[2] = wrap_angle(pose[2] - (self._spin_left - 1) * self.look_turn)
         return pose
 
     def _kidnap_next(self) -> bool:
@@ -173,7 +175,7 @@ class SimRobot:
             ranges, angles = self.setup.laser.scan(pose, len(self.setup) + self.seq)
             o = np.asarray(self.setup.odom[i], dtype=np.float64).copy()
             o[2] = wrap_angle(
-                o[2] - self._spin_left * self.look_turn * (1.0 + self.look_turn_error)
+                o[2] - (self._spin_left - 1) * self.look_turn * (1.0 + self.look_turn_error)
             )
         else:
             ranges, angles = self.setup.scan(i)

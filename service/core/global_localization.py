@@ -179,12 +179,24 @@ class GlobalConfig(BaseModel):
         "360-degree scan from the newest pose (service.core.composite), when they came with "
         "odometry; 1 = every scan alone.",
     )
-    composite_bins: int = Field(720, ge=8, description="Beams of the virtual composite scan.")
+    composite_bins: int = Field(
+        720,
+        ge=8,
+        description="Beams of the virtual composite scan (fewer when the laser's own beams are "
+        "coarser: never finer than them).",
+    )
     composite_travel: float = Field(
         0.5,
         gt=0,
         description="Older scans taken farther than this (m, by odometry) from the newest one "
         "are left out of the composite (their occlusions would no longer hold).",
+    )
+    odom_turn_assist: float = Field(
+        1.0,
+        gt=0,
+        description="While tracking, an odometry turn larger than this (rad) since the last "
+        "scan moves the tracker's pose first (the tracker itself follows up to its max_turn "
+        "of 1.3 rad and otherwise ignores odometry).",
     )
     # --- decision ----------------------------------------------------------------------------
     window: int = Field(3, ge=1, description="Scans over which a hypothesis' cost is averaged.")
@@ -212,7 +224,8 @@ class GlobalConfig(BaseModel):
         0.35,
         ge=0,
         le=1,
-        description="single_scan_ambiguity for a composite scan. Schematic: 0.35.",
+        description="single_scan_ambiguity for a composite scan (the fit must also meet "
+        "max_fix_cost then). Schematic: 0.35.",
     )
     single_scan_ambiguity: float = Field(
         0.35,
@@ -1318,8 +1331,12 @@ class GlobalShapeLocalizer:
         ``angles`` radians robot frame, ``odom`` optional odometry pose (own frame; only used
         to move the kept hypotheses between scans)."""
         if not self._searching:
+            delta = self._remember_odom(odom)
+            if delta is not None and abs(float(delta[2])) > self.gconfig.odom_turn_assist:
+                # a turn the shape tracker cannot bridge (e.g. a look-around spin that goes on
+                # after the fix): trust the odometry's heading change for the prior
+                self.tracker.predict(delta)
             est = self.tracker.update(ranges, angles, odom)
-            self._remember_odom(odom)
             # The tracker's own ambiguity compares its step-2 hypotheses, which often converge
             # to the same pose (a "tie" of one pose with itself): not an integrity signal.
             # It stays in extras; the published ambiguity is the global one (None here).
@@ -1378,7 +1395,13 @@ class GlobalShapeLocalizer:
         self._history.append((r, a, here.copy()))
         if len(self._history) == 1:
             return r, a
-        return composite_scan(self._history, g.composite_bins)
+        # bins no finer than the laser's beams (a coarser laser would leave holes that split
+        # every polyline)
+        inc = float(np.median(np.abs(np.diff(a)))) if a.size > 1 else 0.0
+        bins = g.composite_bins
+        if inc > 0.0:
+            bins = int(min(bins, max(8, np.floor(2.0 * np.pi / inc + 1e-6))))
+        return composite_scan(self._history, bins)
 
     def _seeds(self) -> list[np.ndarray]:
         """The kept hypotheses as seeds of this scan's search, each also turned by +-0.4 and
@@ -1459,9 +1482,15 @@ class GlobalShapeLocalizer:
         }
         # confirmed: best on two consecutive scans and seen on every scan of the window (a
         # hypothesis that just appeared may be a twin the true one briefly lost to), or clear
-        # enough on one scan
+        # enough on one scan -- which on a composite also needs the plain (not the composite)
+        # cost bar: a lone mediocre fit far ahead of the rest can mean the true place was not
+        # found at all
         steady = best.wins >= 2 and (fused or len(best.costs) >= min(self._episode, g.window))
-        confirmed = steady or amb < (g.fused_single_ambiguity if fused else g.single_scan_ambiguity)
+        if fused:
+            single = amb < g.fused_single_ambiguity and best.hyp.cost <= g.max_fix_cost
+        else:
+            single = amb < g.single_scan_ambiguity
+        confirmed = steady or single
         informative = res.information >= g.min_information
         if (
             best.hyp.cost <= (g.fused_fix_cost if fused else g.max_fix_cost)

@@ -301,6 +301,14 @@ class ShapeLocalizer:
         self._velocity = np.zeros(2)
         self._views.clear()
 
+    def predict(self, delta: np.ndarray) -> None:
+        """Move the current pose by a known relative motion ``delta`` ``[dx, dy, dtheta]``
+        (robot frame, e.g. an odometry delta) before the next :meth:`update`; no-op without a
+        pose. For motions the matching alone cannot bridge (turns beyond ``max_turn``)."""
+        d = _check_pose(delta, "delta")
+        if self._pose is not None:
+            self._pose = compose(self._pose, d)
+
     def _prior(self, odom: np.ndarray | None) -> np.ndarray:
         assert self._pose is not None
         prior = self._pose

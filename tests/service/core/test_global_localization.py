@@ -14,8 +14,9 @@ from service.core.factory import create_localizer
 from service.core.types import MapData, wrap_angle
 from sim_publisher.laser import LaserSimulator
 from sim_publisher.office import office_metric_map, office_schematic_map, office_world
-from sim_publisher.publisher import random_free_poses
+from sim_publisher.publisher import SimFleet, fleet_specs, random_free_poses
 from sim_publisher.scenario import make_setup
+from sim_publisher.trajectory import simulate_odometry
 
 
 def _ring(x0: float, y0: float, x1: float, y1: float) -> np.ndarray:
@@ -132,18 +133,30 @@ def test_index_file_with_wrong_key_or_bad_arrays_is_refused(tmp_path: Path) -> N
 # ------------------------------------------------------------------------- global search
 
 
-def _global_trials(md: MapData, setup: int, n: int, seed: int) -> tuple[int, int, int]:
-    """``n`` random free-space poses, no initial pose, up to 3 scans moving 3 cm forward per
-    scan. Returns (found within 3 scans, confident wrong poses, trials)."""
+def _global_trials(
+    md: MapData, setup: int, n: int, seed: int, motion: str = "creep"
+) -> tuple[int, int, int]:
+    """``n`` random free-space poses, no initial pose, up to 3 scans. ``creep``: 3 cm forward
+    per scan, no odometry; ``look-around``: 90 degrees in place per scan with (noisy)
+    odometry, which the localiser fuses into one 360-degree composite. Returns (found within
+    3 scans, confident wrong poses, trials)."""
     su = make_setup(setup, max_scans=2)
     world = office_world()
     found = wrong = 0
     for k, start in enumerate(random_free_poses(world, n, seed)):
+        if motion == "look-around":
+            truth = np.array([[start[0], start[1], start[2] + s * np.pi / 2] for s in range(3)])
+            truth[:, 2] = wrap_angle(truth[:, 2])
+            odom: np.ndarray | None = simulate_odometry(truth, seed=1000 + k)
+        else:
+            step = np.array([0.03 * np.cos(start[2]), 0.03 * np.sin(start[2]), 0.0])
+            truth = np.array([start + s * step for s in range(3)])
+            odom = None
         loc = create_localizer("shape", md, None)
         for s in range(3):
-            p = start + np.array([0.03 * s * np.cos(start[2]), 0.03 * s * np.sin(start[2]), 0])
+            p = truth[s]
             r, a = su.laser.scan(p, 1000 * k + s)
-            est = loc.update(r, a)
+            est = loc.update(r, a, None if odom is None else odom[s])
             if est.status == "tracking":
                 if _found(est.pose, p):
                     found += 1
@@ -151,6 +164,7 @@ def _global_trials(md: MapData, setup: int, n: int, seed: int) -> tuple[int, int
                     wrong += 1
                 break
             assert est.status == "initializing"
+            assert est.ambiguity is not None and 0.0 <= est.ambiguity <= 1.0
     return found, wrong, n
 
 
@@ -166,9 +180,25 @@ def test_global_search_schematic_office_random_poses() -> None:
     assert found >= SCHEMATIC_FOUND_BAR * n, f"found {found}/{n}"
 
 
-#: What the schematic map reaches on this seeded subset (the acceptance asks 0.9; see
-#: docs/global.md for the measured figure and why symmetric floor plans fall short).
+def test_look_around_metric_office_random_poses() -> None:
+    found, wrong, n = _global_trials(office_metric_map(), 1, 12, seed=2029, motion="look-around")
+    assert wrong == 0
+    assert found == n, f"found {found}/{n}"
+
+
+def test_look_around_schematic_office_random_poses() -> None:
+    found, wrong, n = _global_trials(office_schematic_map(), 2, 16, seed=2028, motion="look-around")
+    assert wrong == 0
+    assert found >= LOOK_AROUND_FOUND_BAR * n, f"found {found}/{n}"
+
+
+#: What the schematic map reaches on these seeded subsets (the acceptance asks 0.9; see
+#: docs/global.md for the measured figures and why this floor plan falls short: its rooms
+#: W1 and W4 are congruent within 15 cm). Creeping 3 cm per scan with a 180-degree laser:
 SCHEMATIC_FOUND_BAR = 0.15
+#: Turning 90 degrees in place per scan (the 3 scans fused into one 360-degree view); 7 of
+#: these 16 poses are found (58-64 % over 2 x 100 poses with bench/bench_global.py):
+LOOK_AROUND_FOUND_BAR = 0.4
 
 
 def test_global_search_ranks_the_true_pose_first_on_a_distinctive_view() -> None:
@@ -200,6 +230,53 @@ def test_symmetric_room_stays_initializing_with_high_ambiguity() -> None:
         assert est.ambiguity is not None and est.ambiguity >= 0.8  # a tie is 1
         mirror = np.array([6 - p[0], 4 - p[1], wrap_angle(p[2] + np.pi)])
         assert _found(est.pose, p) or _found(est.pose, mirror)
+
+
+def test_symmetric_room_stays_ambiguous_after_looking_around() -> None:
+    # a full 360-degree view of a plain rectangle still fits the truth and its 180-degree twin
+    md = MapData.from_lists("rect", "metric", [_ring(0, 0, 6, 4)])
+    laser = LaserSimulator(md.segments(), seed=4)
+    loc = create_localizer("shape", md, None)
+    start = np.array([1.6, 1.3, 0.4])
+    truth = np.array([[1.6, 1.3, wrap_angle(0.4 + s * np.pi / 2)] for s in range(4)])
+    odom = simulate_odometry(truth, seed=5)
+    for s in range(4):
+        r, a = laser.scan(truth[s], s)
+        est = loc.update(r, a, odom[s])
+        assert est.status == "initializing", f"scan {s}: {est.status} at {est.pose}"
+        assert est.ambiguity is not None and est.ambiguity >= 0.8
+    assert len(loc._history) == 3  # the composite held the last 3 scans
+    p = truth[-1]
+    mirror = np.array([6 - p[0], 4 - p[1], wrap_angle(p[2] + np.pi)])
+    assert _found(est.pose, p) or _found(est.pose, mirror), start
+
+
+def test_composite_needs_odometry_and_stays_within_the_travel_limit() -> None:
+    loc = gl.GlobalShapeLocalizer(office_metric_map(), None)
+    assert loc.gconfig.composite_scans == 3 and loc.gconfig.composite_travel == 0.5
+    a = np.linspace(-np.pi / 2, np.pi / 2, 181)
+    r = np.full(181, 2.0)
+
+    def feed(odom: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        loc._remember_odom(odom)
+        return loc._composite(r, a)
+
+    out, _ = feed(None)  # no odometry: the scan alone, nothing kept
+    assert out is r and loc._history == []
+    feed(np.array([0.0, 0.0, 0.0]))
+    out, ang = feed(np.array([0.0, 0.0, np.pi]))  # turned around: a full circle
+    # 1-degree beams: 360 bins, not 720 (finer bins would leave a hole between beams)
+    assert len(loc._history) == 2 and ang.size == 360
+    assert np.isfinite(out).all()
+    feed(np.array([0.1, 0.0, np.pi / 2]))
+    feed(np.array([0.2, 0.0, 0.0]))
+    assert len(loc._history) == 3  # the newest 3 only
+    feed(np.array([2.0, 0.0, 0.0]))  # 1.8 m on: the older scans' occlusions no longer hold
+    assert len(loc._history) == 1
+    feed(None)  # odometry stopped: history dropped
+    assert loc._history == []
+    loc.reset(None)
+    assert loc._history == []
 
 
 # ------------------------------------------------------------------------- kidnapping
@@ -247,3 +324,49 @@ def test_field_score_kernel_agrees_with_the_numpy_reference(
     ref = gl._field_scores(idx, poses, pts, 0.05)
     assert np.max(np.abs(got - ref)) < 1e-12
     assert np.ptp(ref) > 0.1  # the inputs exercise the field, not only its outside
+
+
+# ------------------------------------------------------------------------- look-around start
+
+
+def _sim_run(start: float, scans: int) -> list[tuple[str, bool]]:
+    """A simulated robot on the schematic map with a 3-scan look-around start and no initial
+    pose; (status, pose passes 0.5 m / 10 deg) per scan."""
+    fleet = SimFleet.from_specs(
+        fleet_specs(1, ["schematic"], starts=[start]), global_localization=True, look_around=3
+    )
+    robot = fleet.robots[0]
+    loc = create_localizer("shape", next(iter(fleet.maps.values())), None)
+    out = []
+    for k in range(scans):
+        scan, truth = robot.step(float(k))
+        r = np.asarray(scan.ranges, dtype=float)
+        a = scan.angle_min + scan.angle_increment * np.arange(r.size)
+        est = loc.update(r, a, np.asarray(scan.odom))
+        out.append((est.status, _found(est.pose, np.asarray(truth.pose))))
+    return out
+
+
+@pytest.mark.parametrize("start", [0.35, 0.5])
+def test_look_around_start_fixes_within_three_scans_and_keeps_tracking(start: float) -> None:
+    # 0.5: the fix comes on the 2nd scan and the robot still turns 90 degrees after it, which
+    # the tracker alone cannot follow: the odometry's heading change bridges it
+    run = _sim_run(start, 7)
+    statuses = [s for s, _ in run]
+    assert "tracking" in statuses[:3], run
+    first = statuses.index("tracking")
+    assert all(s == "tracking" and ok for s, ok in run[first:]), run
+
+
+def test_predict_moves_the_tracker_pose_by_a_relative_motion() -> None:
+    from service.core.localizer import ShapeLocalizer
+
+    loc = ShapeLocalizer(office_metric_map(), np.array([1.0, 2.0, np.pi / 2]))
+    loc.predict(np.array([1.0, 0.0, np.pi / 2]))  # 1 m forward (= +y), then a left turn
+    assert loc.pose is not None
+    np.testing.assert_allclose(loc.pose, [1.0, 3.0, np.pi], atol=1e-12)
+    with pytest.raises(gl.LocalizationError):
+        loc.predict(np.array([np.nan, 0.0, 0.0]))
+    empty = ShapeLocalizer(office_metric_map(), None)
+    empty.predict(np.array([1.0, 0.0, 0.0]))
+    assert empty.pose is None
