@@ -63,6 +63,18 @@ def precompute(name: str, cache: Path) -> tuple[float, float, int, int]:
     return cold, warm, len(idx.viewpoints), len(idx)
 
 
+def office_room(x: float, y: float) -> str:
+    """Room of a point of the office world (``sim_publisher/worlds/make_office.py``): west rooms
+    W1-W4 (walls at y = 6, 12, 17), the corridor C (5.6 < x < 7.6), east rooms E1-E3 (walls at
+    y = 8, 15). W1 and W4 are congruent within 0.2 m (their doors sit 3.0 m and 2.8 m above
+    their south walls)."""
+    if x < 5.6:
+        return "W" + str(1 + int(y > 6.0) + int(y > 12.0) + int(y > 17.0))
+    if x > 7.6:
+        return "E" + str(1 + int(y > 8.0) + int(y > 15.0))
+    return "C"
+
+
 def trial_poses(start: np.ndarray, motion: str, world, turn: float = np.pi / 2) -> np.ndarray:
     """The up to 3 true poses of one trial (map frame). ``creep``: 3 cm forward per scan (stays
     put if that would leave free space). ``look-around``: turns in place by ``turn`` per scan."""
@@ -85,7 +97,10 @@ def random_trials(name: str, n: int, seed: int, motion: str = "creep") -> dict[s
     found = wrong = 0
     ttf: list[float] = []
     scans_needed: list[int] = []
+    rooms: dict[str, list[int]] = {}  # room -> [trials, found, wrong]
     for k, start in enumerate(random_free_poses(world, n, seed)):
+        room = rooms.setdefault(office_room(start[0], start[1]), [0, 0, 0])
+        room[0] += 1
         truth = trial_poses(start, motion, world)
         odom = simulate_odometry(truth, seed=1000 + k) if motion == "look-around" else None
         loc = create_localizer("shape", md, None)
@@ -102,6 +117,7 @@ def random_trials(name: str, n: int, seed: int, motion: str = "creep") -> dict[s
                 ) < np.deg2rad(10.0)
                 found += bool(ok)
                 wrong += not ok
+                room[1 if ok else 2] += 1
                 if ok:
                     ttf.append(spent)
                     scans_needed.append(s + 1)
@@ -115,6 +131,7 @@ def random_trials(name: str, n: int, seed: int, motion: str = "creep") -> dict[s
         "ttf50": float(np.percentile(t, 50)),
         "ttf95": float(np.percentile(t, 95)),
         "scans_mean": float(np.mean(scans_needed)) if scans_needed else float("nan"),
+        "rooms": rooms,
     }
 
 
@@ -176,15 +193,27 @@ def main(argv: list[str] | None = None) -> int:
         "| scans to fix (mean) | first fix p50 s | p95 s |"
     )
     print("|---|---|---|---|---|---|---|---|")
+    by_room = {}
     for m in maps:
         for motion in motions:
             r = random_trials(m, args.poses, args.seed, motion)
+            by_room[(m, motion)] = r["rooms"]
             print(
                 f"| {m} | {motion} | {100 * r['found']:.1f} % | {100 * r['wrong']:.1f} % | "
                 f"{100 * r['none']:.1f} % | {r['scans_mean']:.2f} | {r['ttf50']:.2f} | "
                 f"{r['ttf95']:.2f} |",
                 flush=True,
             )
+    names = sorted({k for rooms in by_room.values() for k in rooms})
+    print("\nBy room of the start pose: found / trials (confident wrong, if any)")
+    print("| map | motion | " + " | ".join(names) + " |")
+    print("|---|---|" + "---|" * len(names))
+    for (m, motion), rooms in by_room.items():
+        cells = []
+        for k in names:
+            t, f, w = rooms.get(k, [0, 0, 0])
+            cells.append(f"{f}/{t}" + (f" ({w})" if w else ""))
+        print(f"| {m} | {motion} | " + " | ".join(cells) + " |")
     print(f"load average: {_load()}")
     if not args.no_setups:
         print("\nFull setups with initial_pose null (no confident wrong poses)")
