@@ -211,8 +211,9 @@ class GlobalConfig(BaseModel):
         gt=0,
         le=1,
         description="max_fix_ambiguity for a composite scan (look-around): it holds every "
-        "scan of the window at once, so a smaller margin is as telling. Schematic: 0.7 "
-        "(margin >= 0.06; measured: about 1 % confident wrong fixes over 200 random poses).",
+        "scan of the window at once, so a smaller margin is as telling. Schematic: 0.5 "
+        "(margin >= 0.1; 0.6 and 0.7 let the twin rooms W1/W4 and E1/E3 win by noise: "
+        "0.5 % and 2 % confident wrong fixes over 200 random poses).",
     )
     fused_fix_cost: float = Field(
         0.2,
@@ -225,7 +226,8 @@ class GlobalConfig(BaseModel):
         ge=0,
         le=1,
         description="single_scan_ambiguity for a composite scan (the fit must also meet "
-        "max_fix_cost then). Schematic: 0.35.",
+        "max_fix_cost then). Schematic: 0 (always two scans: a 270-degree composite can miss "
+        "the one door that tells twin rooms apart).",
     )
     single_scan_ambiguity: float = Field(
         0.35,
@@ -242,6 +244,12 @@ class GlobalConfig(BaseModel):
     )
     confirm_distance: float = Field(
         0.3, gt=0, description="The tracker's first pose must be this close to the winner (m)."
+    )
+    confirm_angle: float = Field(
+        0.1,
+        gt=0,
+        description="... and turned less than this from it (rad): a tracker fit that swings the "
+        "heading away from the verified pose is not a confirmation.",
     )
     # --- integrity ---------------------------------------------------------------------------
     collapse_score: float = Field(
@@ -267,7 +275,8 @@ class GlobalConfig(BaseModel):
                 max_fix_ambiguity=0.35,
                 single_scan_ambiguity=0.0,
                 refine_top=32,
-                fused_fix_ambiguity=0.7,
+                fused_fix_ambiguity=0.5,
+                fused_single_ambiguity=0.0,
                 fused_fix_cost=0.45,
                 shortlist=150,
                 verify_beams=720,
@@ -1500,7 +1509,10 @@ class GlobalShapeLocalizer:
         ):
             self.tracker.reset(best.pose)
             est = self.tracker.update(r, a, None)
-            close = np.hypot(*(est.pose[:2] - best.pose[:2])) <= g.confirm_distance
+            close = (
+                np.hypot(*(est.pose[:2] - best.pose[:2])) <= g.confirm_distance
+                and abs(float(wrap_angle(est.pose[2] - best.pose[2]))) <= g.confirm_angle
+            )
             if est.status == "tracking" and "rejected" not in est.extras and close:
                 self._searching = False
                 self._tracks = []
