@@ -1204,6 +1204,40 @@ def global_search(
     )
 
 
+def self_similar(
+    index: ViewIndex,
+    best: Hypothesis,
+    ranges: np.ndarray,
+    angles: np.ndarray,
+    P: Configuration,
+    config: ShapeConfig,
+    gconfig: GlobalConfig,
+) -> Hypothesis | None:
+    """The map's own twin of ``best``, verified on the real scan, or ``None``.
+
+    A search can miss the true place altogether (furniture hides its walls) and then crown a
+    congruent room elsewhere with no close rival. So before a fix the map is asked where else
+    it looks the same: the scan the MAP would give at ``best.pose`` (a ray cast over the real
+    scan's beams that have returns) runs through :func:`global_search` itself; every
+    resulting pose distinct from ``best`` is a place the map cannot tell from it, and is
+    verified (:func:`verify`) on the real ``ranges`` / ``angles``. Returns the best verified
+    twin (lowest cost)."""
+    ok = np.isfinite(ranges)
+    pred = index.caster.cast(best.pose, angles, config.view_max_range)
+    pred = np.where(ok, pred, np.nan)
+    if np.count_nonzero(np.isfinite(pred)) < 10:
+        return None
+    res = global_search(index, pred, angles, config, gconfig)
+    out: Hypothesis | None = None
+    for h in res.hypotheses:
+        if not _distinct(h.pose, best.pose, gconfig):
+            continue
+        v = verify(index, h.pose, ranges, angles, P, config, gconfig)
+        if out is None or v.cost < out.cost:
+            out = v
+    return out
+
+
 def ambiguity(hyps: list[Hypothesis], gconfig: GlobalConfig) -> float:
     """Best vs best distinct alternative in [0, 1]: ``1 - (cost_2 - cost_1) / ambiguity_scale``
     clipped (1 = tie, 0 = the alternative is worse by the scale or more, or there is none);
@@ -1501,12 +1535,24 @@ class GlobalShapeLocalizer:
             single = amb < g.single_scan_ambiguity
         confirmed = steady or single
         informative = res.information >= g.min_information
+        max_amb = g.fused_fix_ambiguity if fused else g.max_fix_ambiguity
         if (
             best.hyp.cost <= (g.fused_fix_cost if fused else g.max_fix_cost)
-            and amb <= (g.fused_fix_ambiguity if fused else g.max_fix_ambiguity)
+            and amb <= max_amb
             and confirmed
             and informative
         ):
+            twin = self_similar(self.index, best.hyp, rs, as_, P, self.config, g)
+            if twin is not None:
+                twin_amb = ambiguity([best.hyp, twin], g)
+                extras["twin_ambiguity"] = twin_amb
+                if twin_amb > max_amb:
+                    # the map looks alike at another place and the scan cannot tell them apart:
+                    # keep both as tracks and wait for evidence
+                    self._tracks.append(_Track(twin.pose.copy(), [twin.cost], twin))
+                    amb = max(amb, twin_amb)
+                    extras["twin_rejected"] = 1.0
+                    return self._unresolved(best, amb, extras)
             self.tracker.reset(best.pose)
             est = self.tracker.update(r, a, None)
             close = (
@@ -1521,6 +1567,11 @@ class GlobalShapeLocalizer:
                 return est
             self.tracker.reset(None)
             extras["confirm_rejected"] = 1.0
+        return self._unresolved(best, amb, extras)
+
+    def _unresolved(self, best: _Track, amb: float, extras: dict[str, float]) -> Estimate:
+        """The best guess while the search goes on (status ``initializing`` or ``lost``)."""
+        g = self.gconfig
         score = float(np.clip(1.0 - best.hyp.cost + g.cost_floor, 0.0, 1.0))
         return Estimate(
             pose=best.pose.copy(),

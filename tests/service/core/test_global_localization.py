@@ -370,3 +370,41 @@ def test_predict_moves_the_tracker_pose_by_a_relative_motion() -> None:
     empty = ShapeLocalizer(office_metric_map(), None)
     empty.predict(np.array([1.0, 0.0, 0.0]))
     assert empty.pose is None
+
+
+# ------------------------------------------------------------------------- self-similarity
+
+
+def _twin_rooms() -> MapData:
+    """Two congruent L-shaped rooms 7 m apart (no 180-degree symmetry within a room)."""
+    room = np.array([[0, 0], [5, 0], [5, 2], [3, 2], [3, 3.5], [0, 3.5], [0, 0]], dtype=float)
+    return MapData.from_lists("twins", "metric", [room, room + np.array([7.0, 0.0])])
+
+
+def test_self_similar_finds_the_congruent_room_from_the_map_alone() -> None:
+    md = _twin_rooms()
+    laser = LaserSimulator(md.segments(), seed=7)
+    truth = np.array([1.2, 1.0, 0.3])
+    r, a = laser.scan(truth, 0)
+    idx = gl.load_or_build_index(md)
+    cfg = gl.ShapeConfig.for_kind("metric")
+    g = gl.GlobalConfig.for_kind("metric")
+    P = gl.scan_configuration(r, a, cfg.extraction())
+    best = gl.verify(idx, truth, r, a, P, cfg, g)
+    twin = gl.self_similar(idx, best, r, a, P, cfg, g)
+    assert twin is not None
+    assert _found(twin.pose, truth + np.array([7.0, 0.0, 0.0]))
+    assert abs(twin.cost - best.cost) < 0.05  # the scan cannot tell them apart
+
+
+def test_congruent_rooms_never_give_a_fix() -> None:
+    md = _twin_rooms()
+    laser = LaserSimulator(md.segments(), seed=8)
+    loc = create_localizer("shape", md, None)
+    truth = np.array([[1.2, 1.0, wrap_angle(0.3 + s * np.pi / 2)] for s in range(5)])
+    odom = simulate_odometry(truth, seed=9)
+    for s in range(5):
+        r, a = laser.scan(truth[s], s)
+        est = loc.update(r, a, odom[s])
+        assert est.status == "initializing", f"scan {s}: {est.status} at {est.pose}"
+        assert est.ambiguity is not None and est.ambiguity >= 0.5
