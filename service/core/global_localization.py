@@ -211,9 +211,9 @@ class GlobalConfig(BaseModel):
         gt=0,
         le=1,
         description="max_fix_ambiguity for a composite scan (look-around): it holds every "
-        "scan of the window at once, so a smaller margin is as telling. Schematic: 0.5 "
-        "(margin >= 0.1; 0.6 and 0.7 let the twin rooms W1/W4 and E1/E3 win by noise: "
-        "0.5 % and 2 % confident wrong fixes over 200 random poses).",
+        "scan of the window at once, so a smaller margin is as telling. Schematic: 0.7 "
+        "(margin >= 0.06; safe only together with the self-similarity check: without it the "
+        "twin rooms W1/W4 and E1/E3 won by noise, 2 % confident wrong fixes over 200 poses).",
     )
     fused_fix_cost: float = Field(
         0.2,
@@ -275,7 +275,7 @@ class GlobalConfig(BaseModel):
                 max_fix_ambiguity=0.35,
                 single_scan_ambiguity=0.0,
                 refine_top=32,
-                fused_fix_ambiguity=0.5,
+                fused_fix_ambiguity=0.7,
                 fused_single_ambiguity=0.0,
                 fused_fix_cost=0.45,
                 shortlist=150,
