@@ -960,6 +960,55 @@ def _beam_costs(
     return out
 
 
+def _refine(
+    index: ViewIndex,
+    poses: np.ndarray,
+    sp: np.ndarray,
+    config: ShapeConfig,
+    gconfig: GlobalConfig,
+) -> np.ndarray:
+    """Refine poses ``(k, 3)`` against the map with the robot-frame scan points ``sp``: a
+    point-to-line fit (Cauchy scale of the tracker), a tight second stage on the segments
+    right under the points, a polish on the distance field and a last continuous fit."""
+    poses = np.asarray(poses, dtype=np.float64)
+    n = len(poses)
+    refined, _ = fit_pairs(
+        [sp] * n,
+        [_nearby_segments(index.segments, transform_points(p, sp), 0.5) for p in poses],
+        poses,
+        iterations=gconfig.refine_iterations,
+        robust_scale=config.align_robust_scale,
+        damping=config.align_damping,
+    )
+    # second, tighter stage: only the segments right under the points and a small robust
+    # scale, so returns from unmapped objects (furniture on a floor plan) stop pulling
+    refined, _ = fit_pairs(
+        [sp] * n,
+        [
+            _nearby_segments(index.segments, transform_points(p, sp), 2.0 * gconfig.fine_scale)
+            for p in refined
+        ],
+        refined,
+        iterations=gconfig.refine_iterations,
+        robust_scale=gconfig.fine_scale,
+        damping=config.align_damping,
+    )
+    refined, _ = _polish(index, refined, sp, gconfig.fine_scale)
+    # and a last continuous fit from there (the distance field is quantised to its cells)
+    refined, _ = fit_pairs(
+        [sp] * n,
+        [
+            _nearby_segments(index.segments, transform_points(p, sp), 2.0 * gconfig.fine_scale)
+            for p in refined
+        ],
+        refined,
+        iterations=gconfig.refine_iterations,
+        robust_scale=gconfig.fine_scale,
+        damping=config.align_damping,
+    )
+    return refined
+
+
 def _distinct(a: np.ndarray, b: np.ndarray, gconfig: GlobalConfig) -> bool:
     return bool(
         np.hypot(*(a[:2] - b[:2])) > gconfig.distinct_distance
@@ -1156,40 +1205,7 @@ def global_search(
         if any(_near(H[i], p) for p in picked):
             continue
         picked.append(H[i])
-    refined, _ = fit_pairs(
-        [sp] * len(picked),
-        [_nearby_segments(index.segments, transform_points(p, sp), 0.5) for p in picked],
-        np.vstack(picked),
-        iterations=gconfig.refine_iterations,
-        robust_scale=config.align_robust_scale,
-        damping=config.align_damping,
-    )
-    # second, tighter stage: only the segments right under the points and a small robust
-    # scale, so returns from unmapped objects (furniture on a floor plan) stop pulling
-    refined, _ = fit_pairs(
-        [sp] * len(picked),
-        [
-            _nearby_segments(index.segments, transform_points(p, sp), 2.0 * gconfig.fine_scale)
-            for p in refined
-        ],
-        refined,
-        iterations=gconfig.refine_iterations,
-        robust_scale=gconfig.fine_scale,
-        damping=config.align_damping,
-    )
-    refined, _ = _polish(index, refined, sp, gconfig.fine_scale)
-    # and a last continuous fit from there (the distance field is quantised to its cells)
-    refined, _ = fit_pairs(
-        [sp] * len(picked),
-        [
-            _nearby_segments(index.segments, transform_points(p, sp), 2.0 * gconfig.fine_scale)
-            for p in refined
-        ],
-        refined,
-        iterations=gconfig.refine_iterations,
-        robust_scale=gconfig.fine_scale,
-        damping=config.align_damping,
-    )
+    refined = _refine(index, np.vstack(picked), sp, config, gconfig)
     hyps = [verify(index, refined[k], r, a, P, config, gconfig) for k in range(len(picked))]
     hyps.sort(key=lambda h: h.cost)
     out: list[Hypothesis] = []
@@ -1220,7 +1236,8 @@ def self_similar(
     it looks the same: the scan the MAP would give at ``best.pose`` (a ray cast over the real
     scan's beams that have returns) runs through :func:`global_search` itself; every
     resulting pose distinct from ``best`` is a place the map cannot tell from it, and is
-    verified (:func:`verify`) on the real ``ranges`` / ``angles``. Returns the best verified
+    refined on the real scan's points (:func:`_refine`) and verified (:func:`verify`) on the
+    real ``ranges`` / ``angles``. Returns the best verified
     twin (lowest cost)."""
     ok = np.isfinite(ranges)
     pred = index.caster.cast(best.pose, angles, config.view_max_range)
@@ -1228,11 +1245,18 @@ def self_similar(
     if np.count_nonzero(np.isfinite(pred)) < 10:
         return None
     res = global_search(index, pred, angles, config, gconfig)
+    cands = [h.pose for h in res.hypotheses if _distinct(h.pose, best.pose, gconfig)]
+    pts = np.vstack([f.points for f in P.features]) if P.features else np.zeros((0, 2))
+    sp = _subsample(pts, gconfig.support_points)
+    if not cands or len(sp) == 0:
+        return None
+    # the map-only search aligned the twins to the map's own view; fit them to the real scan
+    refined = _refine(index, np.vstack(cands), sp, config, gconfig)
     out: Hypothesis | None = None
-    for h in res.hypotheses:
-        if not _distinct(h.pose, best.pose, gconfig):
+    for pose in refined:
+        if not _distinct(pose, best.pose, gconfig):
             continue
-        v = verify(index, h.pose, ranges, angles, P, config, gconfig)
+        v = verify(index, pose, ranges, angles, P, config, gconfig)
         if out is None or v.cost < out.cost:
             out = v
     return out
