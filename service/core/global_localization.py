@@ -1236,8 +1236,8 @@ def self_similar(
     it looks the same: the scan the MAP would give at ``best.pose`` (a ray cast over the real
     scan's beams that have returns) runs through :func:`global_search` itself; every
     resulting pose distinct from ``best`` is a place the map cannot tell from it, and is
-    refined on the real scan's points (:func:`_refine`) and verified (:func:`verify`) on the
-    real ``ranges`` / ``angles``. Returns the best verified
+    verified (:func:`verify`) on the real ``ranges`` / ``angles`` both as found and refined on
+    the real scan's points (:func:`_refine`), whichever fits better. Returns the best verified
     twin (lowest cost)."""
     ok = np.isfinite(ranges)
     pred = index.caster.cast(best.pose, angles, config.view_max_range)
@@ -1250,10 +1250,11 @@ def self_similar(
     sp = _subsample(pts, gconfig.support_points)
     if not cands or len(sp) == 0:
         return None
-    # the map-only search aligned the twins to the map's own view; fit them to the real scan
+    # the map-only search aligned the twins to the map's own view; each is verified as found
+    # and fitted to the real scan, whichever verifies better (furniture can drag the fit off)
     refined = _refine(index, np.vstack(cands), sp, config, gconfig)
     out: Hypothesis | None = None
-    for pose in refined:
+    for pose in [*cands, *refined]:
         if not _distinct(pose, best.pose, gconfig):
             continue
         v = verify(index, pose, ranges, angles, P, config, gconfig)
