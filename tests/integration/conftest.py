@@ -7,6 +7,8 @@
   process is killed at teardown.
 * ``open_session(endpoint)``: a loopback-only Zenoh *client* session connected to
   ``endpoint`` (multicast scouting off); closed at teardown.
+* ``lockstep_sim(svc, sim_args, scans)``: run one simulated robot in lockstep against a
+  spawned service and return its pose messages and true poses by ``seq``.
 
 Zenoh is never used with its default peer configuration here.
 """
@@ -204,3 +206,60 @@ def service_health() -> Callable[..., Any]:
 
     (Test modules cannot import this conftest under ``--import-mode=importlib``.)"""
     return get_health
+
+
+def _sim_env() -> dict[str, str]:
+    env = dict(os.environ)
+    env["PYTHONPATH"] = str(REPO) + os.pathsep + env.get("PYTHONPATH", "")
+    env.pop("RUST_LOG", None)
+    return env
+
+
+def run_lockstep_sim(
+    svc: ServiceProc, sim_args: list[str], scans: int, robot: str = "sim-0"
+) -> tuple[dict[int, Any], dict[int, Any]]:
+    """Run ``python -m sim_publisher --connect <svc> --robots 1 --scans <scans> --max-rate
+    --lockstep <sim_args>`` to completion and return what came back over Zenoh for
+    ``robot``: its pose messages and its true poses (numpy ``(3,)``), each by ``seq``."""
+    import numpy as np
+
+    from clients.client import ShapelocClient
+
+    with ShapelocClient(svc.endpoint, timeout=5.0) as client:
+        poses = client.watch_poses([robot])
+        truths = client.watch_truth([robot])
+        sim = subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "sim_publisher",
+                "--connect",
+                svc.endpoint,
+                "--robots",
+                "1",
+                "--scans",
+                str(scans),
+                "--max-rate",
+                "--lockstep",
+                *sim_args,
+            ],
+            cwd=REPO,
+            env=_sim_env(),
+            capture_output=True,
+            text=True,
+            timeout=200,
+        )
+        assert sim.returncode == 0, sim.stderr
+        assert "lockstep: no pose" not in sim.stderr, sim.stderr
+        time.sleep(0.5)
+        est = {p.seq: p for _, p in poses.drain()}
+        truth = {t.seq: np.asarray(t.pose) for _, t in truths.drain()}
+    return est, truth
+
+
+@pytest.fixture
+def lockstep_sim() -> Callable[..., tuple[dict[int, Any], dict[int, Any]]]:
+    """``lockstep_sim(svc, sim_args, scans, robot="sim-0")`` -> (poses by seq, truths by seq):
+    one simulated robot driven in lockstep against a spawned service (see
+    :func:`run_lockstep_sim`)."""
+    return run_lockstep_sim

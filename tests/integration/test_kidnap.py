@@ -13,30 +13,17 @@ is wired yet). Also a unit test of the simulator's kidnap option.
 from __future__ import annotations
 
 import math
-import os
-import subprocess
-import sys
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from clients.client import ShapelocClient
 from sim_publisher.publisher import SimFleet, fleet_specs
 
-REPO = Path(__file__).resolve().parents[2]
 KIDNAP_AT = 8
 KIDNAP_TO = 0.6
 START = 0.1
 SCANS = 22
-
-
-def _env() -> dict[str, str]:
-    env = dict(os.environ)
-    env["PYTHONPATH"] = str(REPO) + os.pathsep + env.get("PYTHONPATH", "")
-    env.pop("RUST_LOG", None)
-    return env
 
 
 def _passes(p: np.ndarray, t: np.ndarray) -> bool:
@@ -63,46 +50,11 @@ def test_sim_kidnap_option_moves_the_truth() -> None:
 
 @pytest.mark.integration
 @pytest.mark.timeout(240)
-def test_kidnapped_robot_over_zenoh(spawn_service, tmp_path: Path) -> None:
+def test_kidnapped_robot_over_zenoh(spawn_service, lockstep_sim, tmp_path: Path) -> None:
     svc = spawn_service(tmp_path / "state", workers=1)
-    with ShapelocClient(svc.endpoint, timeout=5.0) as client:
-        poses = client.watch_poses(["sim-0"])
-        truths = client.watch_truth(["sim-0"])
-        sim = subprocess.run(
-            [
-                sys.executable,
-                "-m",
-                "sim_publisher",
-                "--connect",
-                svc.endpoint,
-                "--robots",
-                "1",
-                "--map",
-                "metric",
-                "--step-mm",
-                "50",
-                "--starts",
-                str(START),
-                "--kidnap-at",
-                str(KIDNAP_AT),
-                "--kidnap-to",
-                str(KIDNAP_TO),
-                "--scans",
-                str(SCANS),
-                "--max-rate",
-                "--lockstep",
-            ],
-            cwd=REPO,
-            env=_env(),
-            capture_output=True,
-            text=True,
-            timeout=200,
-        )
-        assert sim.returncode == 0, sim.stderr
-        assert "lockstep: no pose" not in sim.stderr, sim.stderr
-        time.sleep(0.5)
-        est = {p.seq: p for _, p in poses.drain()}
-        truth = {t.seq: np.asarray(t.pose) for _, t in truths.drain()}
+    args = ["--map", "metric", "--step-mm", "50", "--starts", str(START)]
+    args += ["--kidnap-at", str(KIDNAP_AT), "--kidnap-to", str(KIDNAP_TO)]
+    est, truth = lockstep_sim(svc, args, SCANS)
     assert sorted(est) == list(range(SCANS)), f"missing poses: {sorted(est)}\n{svc.log()}"
     assert sorted(truth) == list(range(SCANS))
     assert math.dist(truth[KIDNAP_AT - 1][:2], truth[KIDNAP_AT][:2]) > 3.0  # the jump

@@ -11,27 +11,13 @@ every estimate from the first fix on is ``tracking`` and passes the proximity te
 from __future__ import annotations
 
 import math
-import os
-import subprocess
-import sys
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from clients.client import ShapelocClient
-
-REPO = Path(__file__).resolve().parents[2]
 SCANS = 8
 START = 0.35  # a tour position in the corridor by the west rooms (setup 2)
-
-
-def _env() -> dict[str, str]:
-    env = dict(os.environ)
-    env["PYTHONPATH"] = str(REPO) + os.pathsep + env.get("PYTHONPATH", "")
-    env.pop("RUST_LOG", None)
-    return env
 
 
 def _passes(p: np.ndarray, t: np.ndarray) -> bool:
@@ -41,43 +27,12 @@ def _passes(p: np.ndarray, t: np.ndarray) -> bool:
 
 @pytest.mark.integration
 @pytest.mark.timeout(240)
-def test_look_around_start_on_the_schematic_map_over_zenoh(spawn_service, tmp_path: Path) -> None:
+def test_look_around_start_on_the_schematic_map_over_zenoh(
+    spawn_service, lockstep_sim, tmp_path: Path
+) -> None:
     svc = spawn_service(tmp_path / "state", workers=1)
-    with ShapelocClient(svc.endpoint, timeout=5.0) as client:
-        poses = client.watch_poses(["sim-0"])
-        truths = client.watch_truth(["sim-0"])
-        sim = subprocess.run(
-            [
-                sys.executable,
-                "-m",
-                "sim_publisher",
-                "--connect",
-                svc.endpoint,
-                "--robots",
-                "1",
-                "--map",
-                "schematic",
-                "--global",
-                "--look-around",
-                "3",
-                "--starts",
-                str(START),
-                "--scans",
-                str(SCANS),
-                "--max-rate",
-                "--lockstep",
-            ],
-            cwd=REPO,
-            env=_env(),
-            capture_output=True,
-            text=True,
-            timeout=200,
-        )
-        assert sim.returncode == 0, sim.stderr
-        assert "lockstep: no pose" not in sim.stderr, sim.stderr
-        time.sleep(0.5)
-        est = {p.seq: p for _, p in poses.drain()}
-        truth = {t.seq: np.asarray(t.pose) for _, t in truths.drain()}
+    args = ["--map", "schematic", "--global", "--look-around", "3", "--starts", str(START)]
+    est, truth = lockstep_sim(svc, args, SCANS)
     assert sorted(est) == list(range(SCANS)), f"missing poses: {sorted(est)}\n{svc.log()}"
     # the first 3 truths share a position and turn by 90 degrees (the look-around)
     assert math.dist(truth[0][:2], truth[2][:2]) < 1e-9
