@@ -929,6 +929,18 @@ def _polish(
     return out, best_score
 
 
+def _beam_fractions(
+    r: np.ndarray, pred: np.ndarray, tol: float, gconfig: GlobalConfig
+) -> tuple[float, float, float]:
+    """Fractions of beams (measured ``r``, map-predicted ``pred``, NaN = nothing within range)
+    that hit (within ``tol``), violate (return beyond the predicted wall by more than
+    ``max(tol, gconfig.violation_margin)``) and fall short (something unmapped in front)."""
+    hit = float(np.mean(np.abs(r - pred) <= tol))  # NaN prediction compares False
+    viol = float(np.mean(np.isfinite(pred) & (r > pred + max(tol, gconfig.violation_margin))))
+    short = float(np.mean(r < pred - tol))
+    return hit, viol, short
+
+
 def _beam_costs(
     index: ViewIndex,
     poses: np.ndarray,
@@ -953,9 +965,7 @@ def _beam_costs(
     caster = index.caster
     for k, pose in enumerate(np.asarray(poses, dtype=np.float64)):
         pred = caster.cast(pose, ang, config.view_max_range)
-        hit = np.mean(np.abs(r - pred) <= tol)
-        viol = np.mean(np.isfinite(pred) & (r > pred + max(tol, gconfig.violation_margin)))
-        short = np.mean(r < pred - tol)
+        hit, viol, short = _beam_fractions(r, pred, tol, gconfig)
         out[k] = 1.0 - hit - gconfig.short_credit * short + gconfig.violation_weight * viol
     return out
 
@@ -1047,9 +1057,7 @@ def verify(
         return Hypothesis(pose=pose.copy(), cost=1.0 + gconfig.cost_floor)
     r = ranges[idx]
     pred = index.caster.cast(pose, angles[idx], config.view_max_range)
-    hit = float(np.mean(np.abs(r - pred) <= tol))  # NaN prediction compares False
-    viol = float(np.mean(np.isfinite(pred) & (r > pred + max(tol, gconfig.violation_margin))))
-    short = float(np.mean(r < pred - tol))
+    hit, viol, short = _beam_fractions(r, pred, tol, gconfig)
     total = 0.0
     good = 0.0
     for f in P.features:
