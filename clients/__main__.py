@@ -19,9 +19,9 @@ from collections.abc import Sequence
 import zenoh
 
 from clients.client import DEFAULT_CONNECT, DEFAULT_PREFIX, DEFAULT_TIMEOUT, ShapelocClient
-from schemas.errors import ShapelocError, UnknownMap
 from schemas.messages import Map, PoseMsg
 from service.core.types import METHODS
+from service.errors import ShapelocError, UnknownMap
 
 
 def _positive(text: str) -> float:

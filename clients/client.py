@@ -2,9 +2,9 @@
 
 :class:`ShapelocClient` opens its own Zenoh session (client mode by default, so it fails fast
 when nothing listens at the given endpoints) or wraps a session the caller owns. Requests
-(``get``) time out after ``timeout`` seconds with :class:`~schemas.errors.ServiceTimeout`;
-``reply_err`` answers become :class:`~schemas.errors.RemoteError`, or
-:class:`~schemas.errors.UnknownRobot` / :class:`~schemas.errors.UnknownMap` when the service
+(``get``) time out after ``timeout`` seconds with :class:`~service.errors.ServiceTimeout`;
+``reply_err`` answers become :class:`~service.errors.RemoteError`, or
+:class:`~service.errors.UnknownRobot` / :class:`~service.errors.UnknownMap` when the service
 says so. Poses and maps are in the map frame (metres, radians, REP 103).
 """
 
@@ -26,7 +26,9 @@ from pydantic import BaseModel
 
 from schemas import keys
 from schemas.codec import MSGPACK_ENCODING, decode, encode
-from schemas.errors import (
+from schemas.messages import ErrorNotice, Health, Map, PoseMsg, RobotConfig, Scan, Truth
+from service.core.types import MapData
+from service.errors import (
     InvalidMessage,
     RemoteError,
     ServiceTimeout,
@@ -35,8 +37,6 @@ from schemas.errors import (
     UnknownRobot,
     Unreachable,
 )
-from schemas.messages import ErrorNotice, Health, Map, PoseMsg, RobotConfig, Scan, Truth
-from service.core.types import MapData
 
 DEFAULT_CONNECT = "tcp/127.0.0.1:7447"
 DEFAULT_PREFIX = "shapeloc"
@@ -116,10 +116,10 @@ def load_map_file(path: str | Path, map_id: str | None = None, kind: str | None 
     """Read a map file: a wire map (JSON/msgpack ``{"map_id","kind","polylines"}``), or GeoJSON.
 
     GeoJSON of kind ``metric`` (the default for GeoJSON) is read as a world of obstacle
-    polygons by :func:`sim_publisher.world.load_world` (all their boundaries become polylines);
+    polygons by :func:`service.maps.world.load_world` (all their boundaries become polylines);
     GeoJSON of kind ``schematic`` may hold LineStrings (room outlines) and Polygons. ``map_id``
     defaults to the file's ``map_id`` or its stem. Raises :class:`InvalidMessage` /
-    :class:`~schemas.errors.InvalidWorld` with the reason.
+    :class:`~service.errors.InvalidWorld` with the reason.
     """
     p = Path(path)
     try:
@@ -140,7 +140,7 @@ def load_map_file(path: str | Path, map_id: str | None = None, kind: str | None 
     if data.get("type") == "FeatureCollection" or data.get("type") == "Feature":
         kind = kind or "metric"
         if kind == "metric":
-            from sim_publisher.world import load_world
+            from service.maps.world import load_world
 
             md = load_world(p).to_map_data(mid)
             return map_from_data(md)

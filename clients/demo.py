@@ -28,8 +28,8 @@ from pathlib import Path
 import numpy as np
 
 from clients.client import ShapelocClient, Stream
-from schemas.errors import ShapelocError, Unreachable
 from schemas.messages import PoseMsg, Truth
+from service.errors import ShapelocError, Unreachable
 
 #: (robot id, map spec, proximity threshold mm); the simulator numbers robots sim-0..2.
 ROBOTS: tuple[tuple[str, str, float], ...] = (

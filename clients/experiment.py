@@ -30,8 +30,8 @@ from typing import Any
 
 import numpy as np
 
-from schemas.errors import LocalizationError, ShapelocError
 from service.core.types import METHODS, wrap_angle
+from service.errors import LocalizationError, ShapelocError
 
 #: Table 1 of the paper: (position error mm, heading error deg, proximity test %).
 PAPER_TABLE: dict[int, dict[str, tuple[float, float, float]]] = {

@@ -1,6 +1,7 @@
-"""Wire contract of shapeloc (``wire-v1``).
+"""Wire contract of shapeloc (``wire-v1``): message models, codec, key helpers.
 
-Kept import-light on purpose: ``schemas.errors`` is used by the pure localisation core, which
-must not pull in msgpack or zenoh. Import the models from ``schemas.messages`` and the
-encode/decode helpers from ``schemas.codec``.
+The wire does not know the localisation core: nothing here imports :mod:`service.core`.
+Errors come from the project's one hierarchy, :mod:`service.errors`. Converting wire messages
+to core types is the edge's job (:mod:`service.convert`). Import the models from
+``schemas.messages`` and the encode/decode helpers from ``schemas.codec``.
 """

@@ -2,7 +2,7 @@
 
 Payloads are msgpack maps with string keys; a payload whose Zenoh encoding is JSON
 (``application/json``, optionally with ``;``-parameters, or ``text/json``) is the same map as
-JSON. Every failure raises :class:`schemas.errors.InvalidMessage` with a compact
+JSON. Every failure raises :class:`service.errors.InvalidMessage` with a compact
 ``<field>: <reason>`` text.
 """
 
@@ -15,10 +15,10 @@ from typing import Any, TypeVar
 import msgpack
 import numpy as np
 
-from schemas.errors import InvalidMessage
 from schemas.limits import MAX_NESTING, MAX_PAYLOAD_BYTES
 from schemas.messages import Map, Scan, WireModel, wire_type_name
 from service.core.types import MapData
+from service.errors import InvalidMessage
 
 __all__ = [
     "JSON_ENCODING",

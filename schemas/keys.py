@@ -10,7 +10,7 @@ Layout below a configurable prefix (default ``shapeloc``)::
 
 Identifiers are 1-64 characters of ``[A-Za-z0-9_.-]``; a prefix is one or more such chunks
 joined by ``/``. Builders validate what they are given; parsers validate what they read. All
-failures raise :class:`schemas.errors.InvalidMessage` with a reason naming the field.
+failures raise :class:`service.errors.InvalidMessage` with a reason naming the field.
 """
 
 from __future__ import annotations
@@ -18,8 +18,8 @@ from __future__ import annotations
 import re
 from typing import Final, Literal, get_args
 
-from schemas.errors import InvalidMessage
 from schemas.limits import ID_CHARS, ID_MAX_LEN, ID_MIN_LEN
+from service.errors import InvalidMessage
 
 DEFAULT_PREFIX: Final[str] = "shapeloc"
 

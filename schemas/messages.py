@@ -14,7 +14,7 @@ marked as such. Validation is strict and precise:
 Array-valued fields are exposed as read-only float64 numpy arrays: poses ``(3,)``, ranges
 ``(n,)``, polylines a tuple of ``(k, 2)`` arrays, covariance ``(3, 3)``.
 
-Every validation failure raises :class:`schemas.errors.InvalidMessage` (also when a model is
+Every validation failure raises :class:`service.errors.InvalidMessage` (also when a model is
 built directly in Python); the text is ``<field path>: <reason>``, e.g. ``pose[2]: must be
 finite``. ``model_copy(update=...)`` does not validate: build a new model instead.
 """
@@ -31,7 +31,6 @@ from pydantic.functional_validators import PlainValidator
 from pydantic.json_schema import WithJsonSchema
 from pydantic_core import PydanticCustomError
 
-from schemas.errors import InvalidMessage
 from schemas.keys import id_error
 from schemas.limits import (
     ID_CHARS,
@@ -44,6 +43,7 @@ from schemas.limits import (
     MAX_TEXT_LEN,
     MAX_UINT,
 )
+from service.errors import InvalidMessage
 
 __all__ = [
     "MESSAGES",

@@ -16,7 +16,7 @@ import threading
 from collections.abc import Sequence
 from types import FrameType
 
-from schemas.errors import ShapelocError, StateError, Unreachable
+from service.errors import ShapelocError, StateError, Unreachable
 from service.settings import ServiceSettings, load_settings, zenoh_config
 
 log = logging.getLogger("shapeloc.service")

@@ -32,7 +32,11 @@ from typing import Any
 import numpy as np
 
 from schemas import codec, keys
-from schemas.errors import (
+from schemas.limits import MAX_PAYLOAD_BYTES
+from schemas.messages import ErrorNotice, Health, Map, PoseMsg, RobotConfig, Scan
+from service import __version__
+from service.core.types import MapData
+from service.errors import (
     InvalidMessage,
     LocalizationError,
     ServiceTimeout,
@@ -41,10 +45,6 @@ from schemas.errors import (
     UnknownMap,
     UnknownRobot,
 )
-from schemas.limits import MAX_PAYLOAD_BYTES
-from schemas.messages import ErrorNotice, Health, Map, PoseMsg, RobotConfig, Scan
-from service import __version__
-from service.core.types import MapData
 from service.settings import ServiceSettings
 from service.state import SavedPose, StateStore
 from service.workers import Assignment, InlineWorker, ProcessWorker, WorkerDiedError

@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
-from schemas.errors import InvalidMessage
+from service.errors import InvalidMessage
 
 if TYPE_CHECKING:
     import zenoh

@@ -10,7 +10,7 @@ Layout (``<state_dir>/shapeloc.sqlite3``, schema version in ``PRAGMA user_versio
 
 Every write is committed before the call returns, so a caller may log "stored" afterwards. A
 ``<state_dir>/shapeloc.lock`` file held with ``flock`` keeps two services off one directory.
-Anything unreadable raises :class:`~schemas.errors.StateError`; the store never resets itself.
+Anything unreadable raises :class:`~service.errors.StateError`; the store never resets itself.
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ from typing import Any
 
 import msgpack
 
-from schemas.errors import StateError
+from service.errors import StateError
 
 SCHEMA_VERSION = 1
 DB_NAME = "shapeloc.sqlite3"

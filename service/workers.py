@@ -38,9 +38,9 @@ from typing import Any
 
 import numpy as np
 
-from schemas.errors import LocalizationError, ServiceTimeout, ShapelocError
 from service.core.factory import create_localizer
 from service.core.types import Localizer, MapData, wrap_angle
+from service.errors import LocalizationError, ServiceTimeout, ShapelocError
 
 log = logging.getLogger("shapeloc.service.worker")
 

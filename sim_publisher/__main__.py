@@ -22,9 +22,9 @@ import zenoh
 from clients.client import DEFAULT_PREFIX, ShapelocClient, Stream, open_session, zenoh_config
 from schemas import keys
 from schemas.codec import MSGPACK_ENCODING, encode
-from schemas.errors import ServiceTimeout, ShapelocError
 from schemas.messages import PoseMsg
 from service.core.types import METHODS
+from service.errors import ServiceTimeout, ShapelocError
 from sim_publisher.publisher import SimFleet, fleet_specs
 
 log = logging.getLogger("shapeloc.sim")

@@ -12,8 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from schemas.errors import InvalidMessage
 from service.core.raycast import RayCaster
+from service.errors import InvalidMessage
 
 
 @dataclass(frozen=True)

@@ -14,9 +14,9 @@ from typing import Any
 
 import numpy as np
 
-from schemas.errors import InvalidWorld
 from service.core.types import MapData
-from sim_publisher.world import World, load_world
+from service.errors import InvalidWorld
+from service.maps.world import World, load_world
 
 WORLDS_DIR = Path(__file__).resolve().parent / "worlds"
 OFFICE_WORLD_PATH = WORLDS_DIR / "office.geojson"

@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from service.core.types import MapData
-from sim_publisher.world import World
+from service.maps.world import World
 
 
 def plot_map(ax: Any, map_data: MapData, **style: Any) -> None:

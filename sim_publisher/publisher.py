@@ -21,8 +21,8 @@ import numpy as np
 from schemas.codec import map_to_map_data
 from schemas.messages import Map, RobotConfig, Scan, Truth
 from service.core.types import METHODS, MapData, wrap_angle
+from service.maps.world import World
 from sim_publisher.scenario import Setup, make_setup
-from sim_publisher.world import World
 
 MAP_CHOICES = ("metric", "schematic")
 #: Setup whose sampling a robot uses by default, per map kind (paper sec. 6).

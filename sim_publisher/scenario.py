@@ -12,8 +12,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from schemas.errors import InvalidMessage
 from service.core.types import MapData
+from service.errors import InvalidMessage
+from service.maps.world import World
 from sim_publisher.laser import LaserConfig, LaserSimulator
 from sim_publisher.office import office_metric_map, office_schematic_map, office_world
 from sim_publisher.trajectory import (
@@ -23,7 +24,6 @@ from sim_publisher.trajectory import (
     simulate_odometry,
     tour_poses,
 )
-from sim_publisher.world import World
 
 __all__ = ["Setup", "make_setup", "run_stats"]
 

@@ -31,8 +31,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from schemas.errors import LocalizationError
 from service.core.pose import compose, invert, transform_points
+from service.errors import LocalizationError
 
 
 def composite_scan(

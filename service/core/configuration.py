@@ -25,13 +25,13 @@ from functools import cached_property
 
 import numpy as np
 
-from schemas.errors import LocalizationError
 from service.core import _kernels
 from service.core.dce import dce
 from service.core.polylines import Polyline, group_polylines
 from service.core.pose import transform_points
 from service.core.raycast import RayCaster
 from service.core.types import MapData, wrap_angle
+from service.errors import LocalizationError
 
 
 @dataclass(frozen=True)

@@ -20,8 +20,8 @@ from itertools import accumulate
 
 import numpy as np
 
-from schemas.errors import LocalizationError
 from service.core import _kernels
+from service.errors import LocalizationError
 
 #: Default first-stage stop threshold (metres) of the fixed-threshold DCE, for 1 cm range noise.
 #:

@@ -7,8 +7,8 @@ from typing import Any
 
 import numpy as np
 
-from schemas.errors import LocalizationError
 from service.core.types import METHODS, Localizer, MapData
+from service.errors import LocalizationError
 
 
 def create_localizer(

@@ -55,7 +55,6 @@ from scipy import ndimage
 from shapely import contains_xy
 from shapely.geometry import Polygon
 
-from schemas.errors import LocalizationError
 from service.core import _kernels
 from service.core.composite import composite_scan
 from service.core.configuration import (
@@ -71,6 +70,7 @@ from service.core.pose import compose, fit_pairs, invert, transform_points
 from service.core.raycast import RayCaster
 from service.core.similarity import ShapeArcs, prepare, shape_complexity, shape_distance
 from service.core.types import Estimate, MapData, Status, wrap_angle
+from service.errors import LocalizationError
 
 log = logging.getLogger("shapeloc.global")
 

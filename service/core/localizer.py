@@ -23,12 +23,12 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from schemas.errors import LocalizationError
 from service.core.configuration import ExtractionParams, MapViewCache, scan_configuration
 from service.core.dce import DCE_NOISE_THRESHOLD
 from service.core.matching import matched_pairs, support, two_step_match
 from service.core.pose import compose, invert, pose_from_matches
 from service.core.types import Estimate, MapData, Match, Status, wrap_angle
+from service.errors import LocalizationError
 
 
 class ShapeConfig(BaseModel):

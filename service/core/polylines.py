@@ -19,7 +19,7 @@ from functools import cached_property
 
 import numpy as np
 
-from schemas.errors import LocalizationError
+from service.errors import LocalizationError
 
 #: Minimum object distance assumed by the paper (§4.1): 10 cm.
 MIN_OBJECT_DISTANCE = 0.10

@@ -19,9 +19,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from schemas.errors import LocalizationError
 from service.core import _kernels
 from service.core.types import wrap_angle
+from service.errors import LocalizationError
 
 
 def rot(phi: float) -> np.ndarray:

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from schemas.errors import LocalizationError
+from service.errors import LocalizationError
 
 _TWO_PI = 2.0 * np.pi
 # Angular slack (rad) added around each segment's bearing interval; the exact test decides.

@@ -50,9 +50,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from schemas.errors import LocalizationError
 from service.core import _kernels
 from service.core.dce import DCE_NOISE_THRESHOLD, CurveEvolution, dce
+from service.errors import LocalizationError
 
 #: Default weight of the length misfit of the first / last matched arc pair (occlusion cuts).
 END_WEIGHT = 0.1

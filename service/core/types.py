@@ -12,7 +12,7 @@ from typing import Literal, Protocol
 
 import numpy as np
 
-from schemas.errors import LocalizationError
+from service.errors import LocalizationError
 
 MapKind = Literal["metric", "schematic"]
 Status = Literal["tracking", "lost", "initializing"]

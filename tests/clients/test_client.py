@@ -20,7 +20,9 @@ import zenoh
 
 from clients.client import ShapelocClient, load_map_file, zenoh_config
 from schemas.codec import decode, encode
-from schemas.errors import (
+from schemas.messages import ErrorNotice, Health, Map, PoseMsg, RobotConfig, Scan, Truth
+from service.core.types import MapData
+from service.errors import (
     InvalidMessage,
     RemoteError,
     ServiceTimeout,
@@ -28,8 +30,6 @@ from schemas.errors import (
     UnknownRobot,
     Unreachable,
 )
-from schemas.messages import ErrorNotice, Health, Map, PoseMsg, RobotConfig, Scan, Truth
-from service.core.types import MapData
 
 pytestmark = pytest.mark.timeout(60)
 

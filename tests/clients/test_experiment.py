@@ -23,7 +23,7 @@ from clients.experiment import (
     run,
     run_experiment,
 )
-from schemas.errors import LocalizationError
+from service.errors import LocalizationError
 
 REPO = Path(__file__).resolve().parents[2]
 

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import pytest
 
-from schemas.errors import InvalidMessage
 from schemas.keys import (
     DEFAULT_PREFIX,
     ROBOT_LEAVES,
@@ -22,6 +21,7 @@ from schemas.keys import (
     validate_id,
     validate_prefix,
 )
+from service.errors import InvalidMessage
 
 
 def test_builders_follow_the_wire_layout() -> None:

@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 
 from schemas.codec import check_key_id, decode, encode
-from schemas.errors import InvalidMessage, ShapelocError
 from schemas.limits import MAX_BEAMS, MAX_MAP_POINTS, MAX_PAYLOAD_BYTES, MAX_POLYLINES
 from schemas.messages import Health, Map, PoseMsg, RobotConfig, Scan, Truth, WireModel
+from service.errors import InvalidMessage, ShapelocError
 
 
 def _scan_dict(**over: Any) -> dict[str, Any]:

@@ -566,7 +566,7 @@ def test_config_delete_forgets_robot(harness: Harness) -> None:
 def test_invalid_stored_pose_is_a_state_error(tmp_path: Path) -> None:
     import sqlite3
 
-    from schemas.errors import StateError
+    from service.errors import StateError
 
     h = Harness(tmp_path)
     h.put_map()

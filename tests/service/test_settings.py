@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from schemas.errors import InvalidMessage
+from service.errors import InvalidMessage
 from service.settings import ServiceSettings, load_settings, zenoh_config
 
 

@@ -9,7 +9,7 @@ from pathlib import Path
 import msgpack
 import pytest
 
-from schemas.errors import StateError
+from service.errors import StateError
 from service.state import DB_NAME, SCHEMA_VERSION, SavedPose, StateStore
 
 MAP = {"map_id": "m1", "kind": "metric", "polylines": [[[0.0, 0.0], [1.0, 0.0]]]}

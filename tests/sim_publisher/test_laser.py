@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from schemas.errors import InvalidMessage
+from service.errors import InvalidMessage
 from sim_publisher.laser import LaserConfig, LaserSimulator
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from schemas.errors import InvalidMessage
+from service.errors import InvalidMessage
 from sim_publisher.office import office_world
 from sim_publisher.scenario import make_setup, run_stats
 from sim_publisher.trajectory import relative_motion, simulate_odometry, tour_poses

@@ -10,9 +10,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from schemas.errors import LocalizationError
 from service.core.pose import compose, relative, transform_points
 from service.core.types import wrap_angle
+from service.errors import LocalizationError
 
 __all__ = [
     "check_odom",

@@ -22,7 +22,6 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 from scipy import ndimage
 
-from schemas.errors import LocalizationError
 from service.core.baselines import (
     check_odom,
     check_pose,
@@ -31,6 +30,7 @@ from service.core.baselines import (
     scan_points,
 )
 from service.core.types import Estimate, MapData, wrap_angle
+from service.errors import LocalizationError
 
 
 class ICPConfig(BaseModel):

@@ -25,7 +25,6 @@ from dataclasses import dataclass
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from schemas.errors import LocalizationError
 from service.core.baselines import (
     check_odom,
     check_pose,
@@ -35,6 +34,7 @@ from service.core.baselines import (
     transform_points,
 )
 from service.core.types import Estimate, MapData, wrap_angle
+from service.errors import LocalizationError
 
 
 class LineConfig(BaseModel):

@@ -6,9 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from schemas.errors import LocalizationError
 from service.core.composite import composite_scan
 from service.core.raycast import RayCaster
+from service.errors import LocalizationError
 
 # a 6 x 4 m rectangle room, robot at (2, 1.5)
 _ROOM = np.array(

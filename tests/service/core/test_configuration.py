@@ -11,7 +11,6 @@ import math
 import numpy as np
 import pytest
 
-from schemas.errors import LocalizationError
 from service.core import _kernels
 from service.core import configuration as conf_mod
 from service.core.configuration import (
@@ -24,6 +23,7 @@ from service.core.configuration import (
 from service.core.pose import transform_points
 from service.core.raycast import RayCaster
 from service.core.types import MapData
+from service.errors import LocalizationError
 
 # A 8 x 5 m room with a 1 x 1 m pillar.
 ROOM = MapData.from_lists(

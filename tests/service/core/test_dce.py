@@ -7,7 +7,6 @@ import math
 import numpy as np
 import pytest
 
-from schemas.errors import LocalizationError
 from service.core import _kernels
 from service.core.dce import (
     DCE_NOISE_THRESHOLD,
@@ -17,6 +16,7 @@ from service.core.dce import (
     relevance,
     relevance_array,
 )
+from service.errors import LocalizationError
 
 
 def room_scan(width: float, height: float, cx: float, cy: float, n: int, sigma: float, seed: int):

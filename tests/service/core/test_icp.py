@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 import shapely
 
-from schemas.errors import LocalizationError
 from service.core.baselines.icp import DistanceGrid, ICPConfig, ICPLocalizer, rasterize_segments
 from service.core.types import MapData, wrap_angle
+from service.errors import LocalizationError
 
 
 def _cast(segments: np.ndarray, pose: np.ndarray, angles: np.ndarray, max_range: float):

@@ -7,7 +7,6 @@ import math
 import numpy as np
 import pytest
 
-from schemas.errors import LocalizationError
 from service.core.baselines import scan_points
 from service.core.baselines.lines import (
     LineConfig,
@@ -18,6 +17,7 @@ from service.core.baselines.lines import (
 )
 from service.core.pose import transform_points
 from service.core.types import MapData, wrap_angle
+from service.errors import LocalizationError
 
 
 def _cast(segments: np.ndarray, pose: np.ndarray, angles: np.ndarray, max_range: float):

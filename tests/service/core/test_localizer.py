@@ -7,11 +7,11 @@ import math
 import numpy as np
 import pytest
 
-from schemas.errors import LocalizationError
 from service.core.factory import create_localizer
 from service.core.localizer import ShapeConfig, ShapeLocalizer
 from service.core.raycast import RayCaster
 from service.core.types import MapData
+from service.errors import LocalizationError
 
 # An L-shaped room with a pillar and a cupboard: enough shape for the matcher.
 ROOM = MapData.from_lists(

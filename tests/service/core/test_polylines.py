@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from schemas.errors import LocalizationError
 from service.core.polylines import Polyline, group_polylines, scan_to_points
+from service.errors import LocalizationError
 
 ANGLES = np.linspace(-math.pi / 2, math.pi / 2, 361)  # 0.5 deg beams over 180 deg
 

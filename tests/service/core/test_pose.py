@@ -5,7 +5,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from schemas.errors import LocalizationError
 from service.core import _kernels
 from service.core import pose as pose_mod
 from service.core.pose import (
@@ -16,6 +15,7 @@ from service.core.pose import (
     rigid_transform_2d,
     transform_points,
 )
+from service.errors import LocalizationError
 
 
 def test_rigid_transform_recovers_synthetic_transform_exactly() -> None:

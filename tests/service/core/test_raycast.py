@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from schemas.errors import LocalizationError
 from service.core.raycast import RayCaster
+from service.errors import LocalizationError
 
 
 def _square(x0: float, y0: float, x1: float, y1: float) -> np.ndarray:

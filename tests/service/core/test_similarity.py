@@ -11,7 +11,6 @@ import math
 import numpy as np
 import pytest
 
-from schemas.errors import LocalizationError
 from service.core import _kernels
 from service.core import similarity as sim
 from service.core.dce import dce, refine_vertices
@@ -24,6 +23,7 @@ from service.core.similarity import (
     shape_distance,
     shape_match,
 )
+from service.errors import LocalizationError
 
 ANGLES = np.linspace(-math.pi / 2, math.pi / 2, 361)
 # A wall with a 45-degree-chamfered protrusion towards the sensor (5.4 m long, 6 vertices).

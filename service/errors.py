@@ -1,5 +1,8 @@
 """The one error hierarchy of shapeloc.
 
+Dependency-free on purpose: the wire (:mod:`schemas`), the core (:mod:`service.core`) and every
+edge import it, so neither the wire nor the core has to import the other.
+
 Every error the project raises on purpose derives from :class:`ShapelocError`. The transport
 layer (the Zenoh node) turns these into ``reply_err`` payloads and notices on
 ``<prefix>/errors``; anything else escaping a handler is a bug and is reported as such.

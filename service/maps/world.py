@@ -25,8 +25,8 @@ import shapely
 from shapely.geometry import MultiPolygon, Polygon, box, shape
 from shapely.validation import explain_validity
 
-from schemas.errors import InvalidWorld
 from service.core.types import MapData
+from service.errors import InvalidWorld
 
 _MAX_FILE_BYTES = 20_000_000
 

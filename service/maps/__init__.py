@@ -1,0 +1,6 @@
+"""Map formats and map tools (adapters beside the core; no zenoh).
+
+World files (GeoJSON / WKT obstacle polygons), wire map files, ROS ``map_server`` occupancy
+grids, maps built from logs, schematisation and map fidelity. Everything here takes and
+returns core types (:class:`service.core.types.MapData`, numpy arrays).
+"""
