@@ -27,6 +27,7 @@ from pydantic import BaseModel
 from schemas import keys
 from schemas.codec import MSGPACK_ENCODING, decode, encode
 from schemas.messages import ErrorNotice, Health, Map, PoseMsg, RobotConfig, Scan, Truth
+from service.convert import map_message_of
 from service.core.types import MapData
 from service.errors import (
     InvalidMessage,
@@ -143,7 +144,7 @@ def load_map_file(path: str | Path, map_id: str | None = None, kind: str | None 
             from service.maps.world import load_world
 
             md = load_world(p).to_map_data(mid)
-            return map_from_data(md)
+            return map_message_of(md)
         return Map(map_id=mid, kind=kind, polylines=_geojson_lines(data, p))
     wire = dict(data)
     wire["map_id"] = mid
@@ -181,16 +182,6 @@ def _geojson_lines(data: dict, p: Path) -> list[list[list[float]]]:
     if not out:
         raise InvalidMessage(f"{p}: no LineString or Polygon features")
     return out
-
-
-def map_from_data(md: MapData, name: str | None = None) -> Map:
-    """Wire :class:`Map` message of a core :class:`MapData`."""
-    return Map(
-        map_id=md.map_id,
-        kind=md.kind,
-        polylines=[p.tolist() for p in md.polylines],
-        name=name,
-    )
 
 
 class Stream(Generic[M]):
@@ -421,7 +412,7 @@ class ShapelocClient:
         it (raises :class:`ServiceTimeout` otherwise).
         """
         if isinstance(map_, MapData):
-            msg = map_from_data(map_)
+            msg = map_message_of(map_)
         elif isinstance(map_, Map):
             msg = map_
         else:

@@ -16,8 +16,7 @@ import msgpack
 import numpy as np
 
 from schemas.limits import MAX_NESTING, MAX_PAYLOAD_BYTES
-from schemas.messages import Map, Scan, WireModel, wire_type_name
-from service.core.types import MapData
+from schemas.messages import Scan, WireModel, wire_type_name
 from service.errors import InvalidMessage
 
 __all__ = [
@@ -27,7 +26,6 @@ __all__ = [
     "decode",
     "encode",
     "is_json_encoding",
-    "map_to_map_data",
     "scan_arrays",
 ]
 
@@ -170,11 +168,6 @@ def check_key_id(msg_id: str, key_id: str, field: str) -> None:
     """Raise ``InvalidMessage`` unless the id inside a message equals the id in its key."""
     if msg_id != key_id:
         raise InvalidMessage(f"{field} {msg_id!r} does not match key {key_id!r}")
-
-
-def map_to_map_data(m: Map) -> MapData:
-    """The core's view of a map (same id, kind and read-only ``(k, 2)`` polylines, metres)."""
-    return MapData(map_id=m.map_id, kind=m.kind, polylines=m.polylines)
 
 
 def scan_arrays(scan: Scan) -> tuple[np.ndarray, np.ndarray]:

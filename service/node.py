@@ -35,6 +35,7 @@ from schemas import codec, keys
 from schemas.limits import MAX_PAYLOAD_BYTES
 from schemas.messages import ErrorNotice, Health, Map, PoseMsg, RobotConfig, Scan
 from service import __version__
+from service.convert import map_data_of
 from service.core.types import MapData
 from service.errors import (
     InvalidMessage,
@@ -88,11 +89,6 @@ def encoding_name(enc: object) -> str | None:
 def error_kind(exc: BaseException) -> str:
     """Counter name of a rejection: the exception class name (``InvalidMessage``, ...)."""
     return type(exc).__name__
-
-
-def map_data_of(msg: Map) -> MapData:
-    """Core view of a validated map (polylines in metres, map frame)."""
-    return codec.map_to_map_data(msg)
 
 
 def scan_arrays_of(msg: Scan) -> tuple[np.ndarray, np.ndarray]:

@@ -18,8 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-from schemas.codec import map_to_map_data
 from schemas.messages import Map, RobotConfig, Scan, Truth
+from service.convert import map_data_of
 from service.core.types import METHODS, MapData, wrap_angle
 from service.maps.world import World
 from sim_publisher.scenario import Setup, make_setup
@@ -44,7 +44,7 @@ def map_for(spec: str) -> MapData:
         return office_schematic_map()
     from clients.client import load_map_file
 
-    return map_to_map_data(load_map_file(Path(spec)))
+    return map_data_of(load_map_file(Path(spec)))
 
 
 class SimRobot:

@@ -15,7 +15,6 @@ from schemas.codec import (
     decode,
     encode,
     is_json_encoding,
-    map_to_map_data,
     scan_arrays,
 )
 from schemas.messages import (
@@ -216,14 +215,18 @@ def test_arrays_are_read_only_float64() -> None:
     assert isinstance(m.polylines, tuple) and m.polylines[0].shape == (5, 2)
 
 
-def test_map_to_map_data() -> None:
+def test_map_data_of() -> None:
+    from service.convert import map_data_of, map_message_of
+
     m = full_samples()[0]
     assert isinstance(m, Map)
-    md = map_to_map_data(m)
+    md = map_data_of(m)
     assert (md.map_id, md.kind) == ("office", "schematic")
     assert len(md.polylines) == 2
     np.testing.assert_array_equal(md.polylines[1], [[1.0, 1.0], [2.0, 1.5]])
     assert md.segments().shape == (5, 4)
+    back = map_message_of(md, name=m.name)
+    assert (back.map_id, back.kind, len(back.polylines)) == (m.map_id, m.kind, 2)
 
 
 @pytest.mark.parametrize(
