@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from typing import Annotated, Any, ClassVar, Literal, Self
+from typing import Annotated, Any, ClassVar, Literal, Self, get_args
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
@@ -47,9 +47,11 @@ from service.errors import InvalidMessage
 
 __all__ = [
     "MESSAGES",
+    "METHODS",
     "ErrorNotice",
     "Health",
     "Map",
+    "Method",
     "PoseMsg",
     "RobotConfig",
     "Scan",
@@ -59,6 +61,11 @@ __all__ = [
     "wire_type_name",
     "wrap_pi",
 ]
+
+#: The localisation methods a robot may be configured with (``RobotConfig.method``). The wire
+#: owns these names; ``service.core.types.METHODS`` is the core's equal copy (a test checks).
+Method = Literal["shape", "icp", "lines"]
+METHODS: tuple[str, ...] = get_args(Method)
 
 _TWO_PI = 2.0 * math.pi
 _ID_PATTERN = f"^[{ID_CHARS}]{{1,{ID_MAX_LEN}}}$"
@@ -551,9 +558,7 @@ class RobotConfig(WireModel):
     schema_name: ClassVar[str] = "robot_config"
 
     map_id: Ident = Field(description="Id of the map to localise against.")
-    method: Literal["shape", "icp", "lines"] = Field(
-        default="shape", description="Localisation method."
-    )
+    method: Method = Field(default="shape", description="Localisation method.")
     initial_pose: OptPose3 = Field(
         default=None, description="Initial pose in the map frame; null: global localisation."
     )

@@ -16,6 +16,9 @@ from service.errors import LocalizationError
 
 MapKind = Literal["metric", "schematic"]
 Status = Literal["tracking", "lost", "initializing"]
+#: The methods :func:`service.core.factory.create_localizer` builds. The wire owns the names
+#: (``schemas.messages.METHODS``); the core cannot import it, so this copy must stay equal
+#: (tests/test_layers.py checks).
 METHODS: tuple[str, ...] = ("shape", "icp", "lines")
 
 
