@@ -20,7 +20,7 @@ test: $(STAMP)
 	$(PY) -m pytest
 
 demo: $(STAMP)
-	$(PY) -m clients.demo
+	$(PY) -m sim_publisher.demo
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .
@@ -30,7 +30,7 @@ bench: $(STAMP)
 	for b in bench/bench_*.py; do $(PY) $$b || exit 1; done
 
 experiment: $(STAMP)
-	$(VENV)/bin/shapeloc experiment
+	$(VENV)/bin/shapeloc-sim experiment
 
 schemas: $(STAMP)
 	$(PY) -m schemas.export

@@ -1,9 +1,9 @@
 """``shapeloc``: command line of the shapeloc localizer service.
 
-Commands: ``health``, ``maps``, ``map put|get|delete``, ``configure``, ``pose``, ``watch`` and
-``experiment`` (the paper's section-6 runs, from :mod:`clients.experiment`). It connects as a
-Zenoh client to ``--connect`` (default ``tcp/127.0.0.1:7447``) and fails at once if nothing
-listens. Exit code 0 on success, 1 on an error (one line on stderr), 2 on bad usage.
+Commands: ``health``, ``maps``, ``map put|get|delete``, ``configure``, ``pose`` and ``watch``
+(the paper's experiment is ``shapeloc-sim experiment``: it belongs to the simulator). It
+connects as a Zenoh client to ``--connect`` (default ``tcp/127.0.0.1:7447``) and fails at once
+if nothing listens. Exit code 0 on success, 1 on an error (one line on stderr), 2 on bad usage.
 """
 
 from __future__ import annotations
@@ -19,8 +19,7 @@ from collections.abc import Sequence
 import zenoh
 
 from clients.client import DEFAULT_CONNECT, DEFAULT_PREFIX, DEFAULT_TIMEOUT, ShapelocClient
-from schemas.messages import Map, PoseMsg
-from service.core.types import METHODS
+from schemas.messages import METHODS, Map, PoseMsg
 from service.errors import ShapelocError, UnknownMap
 
 
@@ -86,9 +85,6 @@ def build_parser() -> argparse.ArgumentParser:
     watch.add_argument("robot_id", nargs="?", default="*", help="robot id (default: all)")
     watch.add_argument("--count", type=int, help="stop after this many poses")
     watch.add_argument("--seconds", type=_positive, help="stop after this many seconds")
-
-    exp = sub.add_parser("experiment", help="the paper's section-6 experiment", add_help=True)
-    exp.set_defaults(_experiment_parser=exp)
     return p
 
 
@@ -190,44 +186,9 @@ def _watch(c: ShapelocClient, args: argparse.Namespace, out: object) -> int:
     return 0
 
 
-def _experiment(argv: Sequence[str]) -> int:
-    try:
-        from clients import experiment
-    except ImportError as exc:
-        print(f"shapeloc: error: the experiment module is not available: {exc}", file=sys.stderr)
-        return 1
-    p = argparse.ArgumentParser(prog="shapeloc experiment")
-    experiment.add_arguments(p)
-    return int(experiment.run(p.parse_args(list(argv))))
-
-
-_VALUED = ("--connect", "--prefix", "--timeout")
-
-
-def _command_index(argv: Sequence[str]) -> int | None:
-    """Index of the subcommand word in ``argv`` (skipping global options and their values)."""
-    i = 0
-    while i < len(argv):
-        a = argv[i]
-        if a in _VALUED:
-            i += 2
-            continue
-        if not a.startswith("-"):
-            return i
-        i += 1
-    return None
-
-
 def cli(argv: Sequence[str] | None = None) -> int:
     """Console entry point ``shapeloc``; returns the exit code."""
-    argv = list(sys.argv[1:] if argv is None else argv)
-    parser = build_parser()
-    # `experiment` owns its arguments: hand everything after it to clients.experiment.
-    i = _command_index(argv)
-    if i is not None and argv[i] == "experiment":
-        parser.parse_args(argv[: i + 1])
-        return _experiment(argv[i + 1 :])
-    args = parser.parse_args(argv)
+    args = build_parser().parse_args(argv)
     zenoh.init_log_from_env_or("error")
     try:
         return run(args)

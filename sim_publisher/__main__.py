@@ -1,8 +1,15 @@
-"""``python -m sim_publisher`` / ``shapeloc-sim``: drive simulated robots and publish over Zenoh.
+"""``python -m sim_publisher`` / ``shapeloc-sim``: the simulator's command line.
 
-Puts the maps, configures every robot, then publishes per robot and tick a scan on
-``<prefix>/robots/<id>/scan`` and the ground truth on ``<prefix>/robots/<id>/truth`` (msgpack,
-wire contract v1) until ``--scans`` / ``--duration`` is reached or SIGINT/SIGTERM arrives.
+Subcommands (one entry each in :data:`COMMANDS`):
+
+* ``run`` (also what ``shapeloc-sim`` without a subcommand means, so ``shapeloc-sim --connect
+  ... --robots 2`` keeps working): drive simulated robots and publish over Zenoh. Puts the
+  maps, configures every robot, then publishes per robot and tick a scan on
+  ``<prefix>/robots/<id>/scan`` and the ground truth on ``<prefix>/robots/<id>/truth``
+  (msgpack, wire contract v1) until ``--scans`` / ``--duration`` is reached or SIGINT/SIGTERM
+  arrives. :func:`main` is the same from Python.
+* ``experiment``: the paper's section-6 experiment, in process (no Zenoh);
+  :mod:`sim_publisher.experiment`.
 """
 
 from __future__ import annotations
@@ -14,7 +21,7 @@ import signal
 import sys
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import zenoh
@@ -22,9 +29,9 @@ import zenoh
 from clients.client import DEFAULT_PREFIX, ShapelocClient, Stream, open_session, zenoh_config
 from schemas import keys
 from schemas.codec import MSGPACK_ENCODING, encode
-from schemas.messages import PoseMsg
-from service.core.types import METHODS
+from schemas.messages import METHODS, PoseMsg
 from service.errors import ServiceTimeout, ShapelocError
+from sim_publisher import experiment
 from sim_publisher.publisher import SimFleet, fleet_specs
 
 log = logging.getLogger("shapeloc.sim")
@@ -230,13 +237,8 @@ def _csv(text: str) -> list[str]:
     return [t.strip() for t in text.split(",") if t.strip()]
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """The simulator's command line."""
-    p = argparse.ArgumentParser(
-        prog="shapeloc-sim",
-        description="Drive simulated robots along the office tour and publish their laser scans "
-        "and ground truth to a shapeloc service over Zenoh.",
-    )
+def add_run_arguments(p: argparse.ArgumentParser) -> None:
+    """The options of ``shapeloc-sim run`` (see :func:`options_from_args`)."""
     p.add_argument("--robots", type=int, default=1, help="number of robots (ids sim-0..N-1)")
     p.add_argument(
         "--map",
@@ -333,7 +335,6 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--listen", action="append", default=None, help="endpoint to listen on")
     p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
-    return p
 
 
 def options_from_args(args: argparse.Namespace) -> SimOptions:
@@ -389,9 +390,9 @@ def options_from_args(args: argparse.Namespace) -> SimOptions:
     )
 
 
-def cli(argv: Sequence[str] | None = None) -> int:
-    """Console entry point ``shapeloc-sim``."""
-    args = build_parser().parse_args(argv)
+def cli_run(args: argparse.Namespace) -> int:
+    """``shapeloc-sim run``: validate the options, open the session, run until done or a
+    signal (SIGINT/SIGTERM stop after the current tick)."""
     logging.basicConfig(
         level=logging.DEBUG if args.verbose else logging.INFO,
         format="%(asctime)s %(name)s %(levelname)s %(message)s",
@@ -423,6 +424,70 @@ def cli(argv: Sequence[str] | None = None) -> int:
     finally:
         for sig, handler in old.items():
             signal.signal(sig, handler)
+
+
+@dataclass(frozen=True)
+class Command:
+    """One ``shapeloc-sim`` subcommand: its help line, the function adding its options to its
+    subparser and the function running it on the parsed arguments (returns the exit code)."""
+
+    help: str
+    add_arguments: Callable[[argparse.ArgumentParser], None]
+    run: Callable[[argparse.Namespace], int]
+
+
+#: The subcommands, in ``--help`` order; add one here (e.g. ``replay``) and it is wired up.
+COMMANDS: dict[str, Command] = {
+    "run": Command(
+        "drive simulated robots along the office tour and publish their scans and ground "
+        "truth over Zenoh (the default when no subcommand is given)",
+        add_run_arguments,
+        cli_run,
+    ),
+    "experiment": Command(
+        "the paper's section-6 experiment (Table 1), in process, no Zenoh",
+        experiment.add_arguments,
+        experiment.run,
+    ),
+}
+#: What ``shapeloc-sim`` runs when its first argument is not a subcommand.
+DEFAULT_COMMAND = "run"
+
+
+class _Parser(argparse.ArgumentParser):
+    """The top-level parser: arguments not starting with a subcommand (or ``-h``) are parsed
+    as :data:`DEFAULT_COMMAND`'s, so ``shapeloc-sim --robots 2`` means
+    ``shapeloc-sim run --robots 2``."""
+
+    def parse_known_args(
+        self, args: Sequence[str] | None = None, namespace: argparse.Namespace | None = None
+    ) -> tuple[argparse.Namespace, list[str]]:
+        argv = list(sys.argv[1:] if args is None else args)
+        if not argv or (argv[0] not in COMMANDS and argv[0] not in ("-h", "--help")):
+            argv.insert(0, DEFAULT_COMMAND)
+        return super().parse_known_args(argv, namespace)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The simulator's command line: ``shapeloc-sim [COMMAND] ...`` (``run`` by default)."""
+    p = _Parser(
+        prog="shapeloc-sim",
+        description="The shapeloc simulator: simulated robots publishing to a shapeloc service "
+        f"over Zenoh, and the paper's experiment. Without a COMMAND, {DEFAULT_COMMAND!r} is "
+        "meant.",
+    )
+    sub = p.add_subparsers(
+        dest="command", metavar="COMMAND", required=True, parser_class=argparse.ArgumentParser
+    )
+    for name, command in COMMANDS.items():
+        command.add_arguments(sub.add_parser(name, help=command.help, description=command.help))
+    return p
+
+
+def cli(argv: Sequence[str] | None = None) -> int:
+    """Console entry point ``shapeloc-sim``; returns the exit code."""
+    args = build_parser().parse_args(argv)
+    return COMMANDS[args.command].run(args)
 
 
 if __name__ == "__main__":

@@ -8,16 +8,14 @@ from __future__ import annotations
 
 import json
 import socket
-import sys
 import time
-import types
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 import zenoh
 
-from clients.__main__ import _command_index, build_parser, cli
+from clients.__main__ import build_parser, cli
 from clients.client import zenoh_config
 from schemas.codec import encode
 from schemas.messages import Health, PoseMsg
@@ -116,12 +114,6 @@ def test_parser_requires_a_command_and_valid_arguments(capsys) -> None:
     assert w.robot_id == "*" and w.count is None
 
 
-def test_command_index_skips_global_options() -> None:
-    assert _command_index(["--connect", "x", "--prefix", "p", "pose", "experiment"]) == 4
-    assert _command_index(["--timeout", "1", "experiment", "--quick"]) == 2
-    assert _command_index(["--connect", "x"]) is None
-
-
 def test_unreachable_service_exits_1_fast_with_one_line(capsys) -> None:
     ep = free_endpoint()
     t0 = time.monotonic()
@@ -158,26 +150,12 @@ def test_invalid_robot_id_is_a_clean_error(fake_service, capsys) -> None:
     assert "robot_id" in capsys.readouterr().err
 
 
-def test_experiment_delegates_remaining_arguments(monkeypatch) -> None:
-    seen = {}
-    fake = types.ModuleType("clients.experiment")
-
-    def add_arguments(parser) -> None:
-        parser.add_argument("--setup", type=int, default=1)
-        parser.add_argument("--connect")
-
-    def run(args) -> int:
-        seen.update(vars(args))
-        return 3
-
-    fake.add_arguments = add_arguments
-    fake.run = run
-    monkeypatch.setitem(sys.modules, "clients.experiment", fake)
-    import clients
-
-    monkeypatch.setattr(clients, "experiment", fake, raising=False)
-    assert cli(["--timeout", "1", "experiment", "--setup", "2", "--connect", "tcp/x:1"]) == 3
-    assert seen == {"setup": 2, "connect": "tcp/x:1"}
+def test_experiment_is_no_longer_a_shapeloc_command(capsys) -> None:
+    """The paper's experiment moved to the simulator (``shapeloc-sim experiment``)."""
+    with pytest.raises(SystemExit) as exc:
+        cli(["experiment", "--setup", "2"])
+    assert exc.value.code == 2
+    assert "invalid choice: 'experiment'" in capsys.readouterr().err
 
 
 REPO = Path(__file__).resolve().parents[2]
@@ -226,43 +204,6 @@ def test_docker_commands_parse_with_the_real_command_lines() -> None:
     cmd = json.loads(cmd_text[: cmd_text.index("]") + 1])
     assert cmd[0] == "shapeloc-service"
     assert service_parser().parse_args(cmd[1:]).state_dir == "/var/lib/shapeloc"
-
-
-def test_demo_accuracy_numbers_from_known_poses() -> None:
-    import numpy as np
-
-    from clients.demo import Track, accuracy_table
-
-    t = Track("sim-9", "metric", 100.0)
-    truth = [(0.0, 0.0, 0.0), (1.0, 0.0, 3.1), (2.0, 0.0, -3.1)]
-    est = [(0.05, 0.0, 0.1), (1.0, 0.2, -3.1), (2.0, 0.0, 3.1)]  # 50 mm, 200 mm, 0 mm
-    for seq, (tr, e) in enumerate(zip(truth, est, strict=True)):
-        t.truth[seq] = np.asarray(tr)
-        t.poses.append(
-            PoseMsg(
-                robot_id="sim-9",
-                seq=seq,
-                stamp=0.0,
-                pose=list(e),
-                status="tracking",
-                score=1.0,
-                method="shape",
-                map_id="office",
-                latency_ms=10.0 * (seq + 1),
-            )
-        )
-    r = t.row()
-    assert r["poses"] == 3 and r["scans"] == 3
-    assert r["pos_mm"] == pytest.approx((50.0 + 200.0 + 0.0) / 3)
-    # heading errors wrap: 0.1 rad, |(-3.1) - 3.1| -> 2*pi - 6.2, same for the third
-    wrapped = np.degrees(2 * np.pi - 6.2)
-    assert r["head_deg"] == pytest.approx((np.degrees(0.1) + 2 * wrapped) / 3)
-    assert r["proximity"] == pytest.approx(200.0 / 3)  # the 200 mm pose fails the 100 mm test
-    assert r["p50"] == pytest.approx(20.0)
-    table = accuracy_table([t])
-    assert "sim-9" in table.splitlines()[2] and "66.7" in table
-    empty = Track("sim-8", "schematic", 500.0).row()
-    assert empty["poses"] == 0 and np.isnan(empty["pos_mm"])
 
 
 def test_watch_prints_count_poses_then_exits(router, fake_service, capsys) -> None:

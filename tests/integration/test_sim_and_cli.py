@@ -6,6 +6,7 @@
   in-process on the same (wire-decoded) scans.
 * The ``shapeloc`` CLI against the real service: health, map put/list/delete, configure,
   pose, watch, unknown robot and unreachable service.
+* The demo (``python -m sim_publisher.demo``, what ``make demo`` runs), end to end.
 
 Every spawned process is killed at teardown. Takes about 30-60 s on a loaded 2-core machine.
 """
@@ -320,7 +321,7 @@ def test_cli_against_the_real_service(spawn_service, tmp_path: Path, capsys) -> 
 def test_demo_runs_end_to_end(tmp_path: Path) -> None:
     png = tmp_path / "demo.png"
     r = subprocess.run(
-        [sys.executable, "-m", "clients.demo", "--scans", "6", "--out", str(png)],
+        [sys.executable, "-m", "sim_publisher.demo", "--scans", "6", "--out", str(png)],
         cwd=REPO,
         env=_env(),
         capture_output=True,

@@ -17,7 +17,14 @@ import zenoh
 from clients.client import zenoh_config
 from schemas.codec import decode, encode, scan_arrays
 from schemas.messages import Map, RobotConfig, Scan, Truth
-from sim_publisher.__main__ import SimOptions, build_parser, cli, main, options_from_args
+from sim_publisher.__main__ import (
+    COMMANDS,
+    SimOptions,
+    build_parser,
+    cli,
+    main,
+    options_from_args,
+)
 from sim_publisher.laser import LaserConfig
 from sim_publisher.publisher import SimFleet, SimRobot, fleet_specs
 from sim_publisher.scenario import make_setup
@@ -158,6 +165,25 @@ def test_options_from_args_validation() -> None:
     with pytest.raises(SystemExit):
         p.parse_args(["--setup", "1", "--step-mm", "20"])
     assert cli(["--robots", "0"]) == 2
+
+
+def test_subcommands_and_run_as_the_default(capsys) -> None:
+    """``shapeloc-sim ARGS`` without a subcommand means ``shapeloc-sim run ARGS``."""
+    p = build_parser()
+    argv = ["--connect", "tcp/h:1", "--robots", "2", "--map", "metric,schematic", "--rate", "5"]
+    implicit, explicit = p.parse_args(argv), p.parse_args(["run", *argv])
+    assert implicit.command == explicit.command == "run"
+    assert vars(implicit) == vars(explicit)
+    assert options_from_args(implicit) == options_from_args(explicit)
+    assert p.parse_args([]).command == "run"  # no arguments at all: today's default run
+    assert set(COMMANDS) >= {"run", "experiment"}
+    with pytest.raises(SystemExit) as exc:
+        p.parse_args(["-h"])
+    assert exc.value.code == 0
+    out = capsys.readouterr().out
+    assert "run" in out and "experiment" in out
+    with pytest.raises(SystemExit):
+        p.parse_args(["experiment", "--robots", "2"])  # run's options are not experiment's
 
 
 def test_cli_unreachable_router_fails_fast(capsys) -> None:

@@ -1,4 +1,4 @@
-"""``make demo`` / ``python -m clients.demo``: the whole system on one machine, end to end.
+"""``make demo`` / ``python -m sim_publisher.demo``: the whole system on one machine, end to end.
 
 Starts the localizer service and the simulator as subprocesses on a free loopback port, lets
 three simulated robots (two on the exact metric office map, one on the schematic floor plan)
@@ -30,6 +30,8 @@ import numpy as np
 from clients.client import ShapelocClient, Stream
 from schemas.messages import PoseMsg, Truth
 from service.errors import ShapelocError, Unreachable
+from sim_publisher.office import office_schematic_map, office_world
+from sim_publisher.plot import figure_axes, plot_map, plot_path, plot_world
 
 #: (robot id, map spec, proximity threshold mm); the simulator numbers robots sim-0..2.
 ROBOTS: tuple[tuple[str, str, float], ...] = (
@@ -126,9 +128,6 @@ def _progress_lines(tracks: Sequence[Track], total: int) -> list[str]:
 
 def plot_tracks(tracks: Sequence[Track], path: Path) -> Path:
     """Write true and estimated paths over the office world and the schematic map."""
-    from sim_publisher.office import office_schematic_map, office_world
-    from sim_publisher.plot import figure_axes, plot_map, plot_path, plot_world
-
     fig, ax = figure_axes(7.0, 9.0)
     plot_world(ax, office_world(), wall_color="0.75", obstacle_color="0.88")
     plot_map(ax, office_schematic_map(), color="0.45", linewidth=0.6, linestyle="--")
@@ -243,6 +242,7 @@ def run_demo(
                     sys.executable,
                     "-m",
                     "sim_publisher",
+                    "run",
                     "--connect",
                     ep,
                     "--robots",
@@ -341,8 +341,10 @@ def run_demo(
 
 
 def cli(argv: Sequence[str] | None = None) -> int:
-    """Entry point of ``python -m clients.demo``."""
-    p = argparse.ArgumentParser(prog="python -m clients.demo", description=__doc__.split("\n")[0])
+    """Entry point of ``python -m sim_publisher.demo`` (``make demo``)."""
+    p = argparse.ArgumentParser(
+        prog="python -m sim_publisher.demo", description=__doc__.split("\n")[0]
+    )
     p.add_argument("--scans", type=int, default=120, help="scans per robot (default 120)")
     p.add_argument("--rate", type=float, default=4.0, help="scans per second per robot")
     p.add_argument("--method", choices=("shape", "icp", "lines"), default="shape")

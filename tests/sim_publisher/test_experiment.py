@@ -1,4 +1,5 @@
-"""Experiment runner (Table 1 of the paper): statistics, table layout, outputs, CLI, ranking."""
+"""Experiment runner (Table 1 of the paper): statistics, table layout, outputs, CLI
+(``shapeloc-sim experiment``, ``python -m sim_publisher.experiment``), ranking."""
 
 from __future__ import annotations
 
@@ -12,7 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from clients.experiment import (
+from service.errors import LocalizationError
+from sim_publisher.experiment import (
     BLOCK_TITLES,
     PAPER_TABLE,
     TABLE_COLUMNS,
@@ -23,7 +25,6 @@ from clients.experiment import (
     run,
     run_experiment,
 )
-from service.errors import LocalizationError
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -159,7 +160,7 @@ def test_cli_arguments_and_errors(tmp_path: Path, capsys: pytest.CaptureFixture[
 
 def test_module_entry_point_parses_arguments() -> None:
     proc = subprocess.run(
-        [sys.executable, "-m", "clients.experiment", "--help"],
+        [sys.executable, "-m", "sim_publisher.experiment", "--help"],
         cwd=REPO,
         capture_output=True,
         text=True,
@@ -169,3 +170,32 @@ def test_module_entry_point_parses_arguments() -> None:
     assert proc.returncode == 0, proc.stderr
     for opt in ("--setup", "--method", "--seed", "--max-scans", "--out", "--jobs", "--no-plots"):
         assert opt in proc.stdout
+
+
+def test_shapeloc_sim_experiment_delegates_its_arguments(monkeypatch) -> None:
+    """``shapeloc-sim experiment ...`` parses the experiment's options and runs
+    :func:`sim_publisher.experiment.main` with them (no Zenoh involved)."""
+    from sim_publisher import experiment
+    from sim_publisher.__main__ import cli as sim_cli
+
+    seen = {}
+
+    def fake_main(**kwargs) -> int:
+        seen.update(kwargs)
+        return 3
+
+    monkeypatch.setattr(experiment, "main", fake_main)
+    argv = ["experiment", "--setup", "2", "--method", "icp", "--max-scans", "7", "--no-plots"]
+    assert sim_cli([*argv, "--out", "x/y"]) == 3
+    assert seen == {
+        "setups": (2,),
+        "methods": ("icp",),
+        "seed": 0,
+        "max_scans": 7,
+        "out": Path("x/y"),
+        "progress": True,
+        "jobs": 2,
+        "plots": False,
+    }
+    with pytest.raises(SystemExit):
+        sim_cli(["experiment", "--setup", "3"])
