@@ -44,7 +44,7 @@ sys.path.insert(0, str(REPO))
 import zenoh  # noqa: E402
 
 from schemas.codec import decode, encode  # noqa: E402
-from schemas.messages import Health, Map, RobotConfig  # noqa: E402
+from schemas.messages import Health, RobotConfig  # noqa: E402
 
 P = "shapeloc"
 
@@ -276,9 +276,10 @@ def main(argv: list[str] | None = None) -> int:
                 time.sleep(0.2)
             assert session is not None
             with session:
-                from sim_publisher.office import map_message, office_metric_map
+                from service.convert import map_message_of
+                from sim_publisher.office import office_metric_map
 
-                session.put(f"{P}/maps/office", encode(Map(**map_message(office_metric_map()))))
+                session.put(f"{P}/maps/office", encode(map_message_of(office_metric_map())))
                 rec = Receiver(session)
                 print(
                     f"# service: method={args.method} workers={workers} rate={args.rate:g} Hz "

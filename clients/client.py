@@ -38,6 +38,7 @@ from service.errors import (
     UnknownRobot,
     Unreachable,
 )
+from service.maps.files import load_map_file
 
 DEFAULT_CONNECT = "tcp/127.0.0.1:7447"
 DEFAULT_PREFIX = "shapeloc"
@@ -111,77 +112,6 @@ def _remote_error(key: str, payload: bytes) -> ShapelocError:
 def _encoding_of(sample: Any) -> str | None:
     enc = getattr(sample, "encoding", None)
     return None if enc is None else str(enc)
-
-
-def load_map_file(path: str | Path, map_id: str | None = None, kind: str | None = None) -> Map:
-    """Read a map file: a wire map (JSON/msgpack ``{"map_id","kind","polylines"}``), or GeoJSON.
-
-    GeoJSON of kind ``metric`` (the default for GeoJSON) is read as a world of obstacle
-    polygons by :func:`service.maps.world.load_world` (all their boundaries become polylines);
-    GeoJSON of kind ``schematic`` may hold LineStrings (room outlines) and Polygons. ``map_id``
-    defaults to the file's ``map_id`` or its stem. Raises :class:`InvalidMessage` /
-    :class:`~service.errors.InvalidWorld` with the reason.
-    """
-    p = Path(path)
-    try:
-        raw = p.read_bytes()
-    except OSError as exc:
-        raise InvalidMessage(f"cannot read map file {p}: {exc.strerror or exc}") from exc
-    data: Any
-    try:
-        data = json.loads(raw)
-    except (UnicodeDecodeError, json.JSONDecodeError):
-        try:
-            data = msgpack.unpackb(raw, raw=False)
-        except Exception as exc:
-            raise InvalidMessage(f"{p}: neither JSON nor msgpack") from exc
-    if not isinstance(data, dict):
-        raise InvalidMessage(f"{p}: expected a JSON object, got {type(data).__name__}")
-    mid = map_id or data.get("map_id") or p.stem
-    if data.get("type") == "FeatureCollection" or data.get("type") == "Feature":
-        kind = kind or "metric"
-        if kind == "metric":
-            from service.maps.world import load_world
-
-            md = load_world(p).to_map_data(mid)
-            return map_message_of(md)
-        return Map(map_id=mid, kind=kind, polylines=_geojson_lines(data, p))
-    wire = dict(data)
-    wire["map_id"] = mid
-    if kind is not None:
-        wire["kind"] = kind
-    return decode(Map, json.dumps(wire).encode(), "application/json")
-
-
-def _geojson_lines(data: dict, p: Path) -> list[list[list[float]]]:
-    feats = data["features"] if data.get("type") == "FeatureCollection" else [data]
-    if not isinstance(feats, list):
-        raise InvalidMessage(f"{p}: 'features' must be a list")
-    out: list[list[list[float]]] = []
-    for i, f in enumerate(feats):
-        geom = f.get("geometry") if isinstance(f, dict) else None
-        if not isinstance(geom, dict):
-            raise InvalidMessage(f"{p}: feature {i} has no geometry")
-        gtype, coords = geom.get("type"), geom.get("coordinates")
-        if gtype == "LineString":
-            parts = [coords]
-        elif gtype == "MultiLineString" or gtype == "Polygon":
-            parts = coords
-        elif gtype == "MultiPolygon":
-            parts = [ring for poly in coords for ring in poly]
-        else:
-            raise InvalidMessage(f"{p}: feature {i}: unsupported geometry {gtype!r}")
-        for part in parts:
-            try:
-                arr = np.asarray(part, dtype=np.float64)
-            except (TypeError, ValueError) as exc:
-                raise InvalidMessage(f"{p}: feature {i}: coordinates are not numbers") from exc
-            if arr.ndim != 2 or arr.shape[0] < 2 or arr.shape[1] < 2:
-                raise InvalidMessage(f"{p}: feature {i}: need >= 2 points of [x, y]")
-            out.append(arr[:, :2].tolist())
-    if not out:
-        raise InvalidMessage(f"{p}: no LineString or Polygon features")
-    return out
 
 
 class Stream(Generic[M]):
@@ -407,16 +337,18 @@ class ShapelocClient:
     ) -> Map:
         """Store a map (``put <prefix>/maps/<map_id>``); returns the message sent.
 
-        ``map_`` is a core :class:`MapData`, a wire :class:`Map` or a file path (see
-        :func:`load_map_file`). With ``confirm`` the map is read back until the service holds
-        it (raises :class:`ServiceTimeout` otherwise).
+        ``map_`` is a core :class:`MapData`, a wire :class:`Map` or the path of a map file in
+        any format :func:`service.maps.files.load_map_file` reads (wire JSON/msgpack, GeoJSON
+        world or outlines, WKT world). ``map_id`` / ``kind`` override the map's own. With
+        ``confirm`` the map is read back until the service holds it (raises
+        :class:`ServiceTimeout` otherwise).
         """
         if isinstance(map_, MapData):
             msg = map_message_of(map_)
         elif isinstance(map_, Map):
             msg = map_
         else:
-            msg = load_map_file(map_, map_id=map_id, kind=kind)
+            msg = map_message_of(load_map_file(map_, map_id=map_id, kind=kind))
         if (map_id is not None and msg.map_id != map_id) or (kind is not None and msg.kind != kind):
             msg = Map(
                 map_id=map_id or msg.map_id,

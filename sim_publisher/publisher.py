@@ -19,8 +19,9 @@ from pathlib import Path
 import numpy as np
 
 from schemas.messages import Map, RobotConfig, Scan, Truth
-from service.convert import map_data_of
+from service.convert import map_message_of
 from service.core.types import METHODS, MapData, wrap_angle
+from service.maps.files import load_map_file
 from service.maps.world import World
 from sim_publisher.scenario import Setup, make_setup
 
@@ -32,7 +33,8 @@ DEFAULT_SETUP = {"metric": 1, "schematic": 2}
 def map_for(spec: str) -> MapData:
     """The map named by ``spec``: ``metric`` / ``schematic`` (the office) or a map/world file.
 
-    Files are read by :func:`clients.client.load_map_file` (wire JSON map or GeoJSON world).
+    Files are read by :func:`service.maps.files.load_map_file` (wire JSON/msgpack map, GeoJSON
+    world or outlines, WKT world).
     """
     if spec == "metric":
         from sim_publisher.office import office_metric_map
@@ -42,9 +44,7 @@ def map_for(spec: str) -> MapData:
         from sim_publisher.office import office_schematic_map
 
         return office_schematic_map()
-    from clients.client import load_map_file
-
-    return map_data_of(load_map_file(Path(spec)))
+    return load_map_file(Path(spec))
 
 
 class SimRobot:
@@ -349,10 +349,7 @@ class SimFleet:
 
     def map_messages(self) -> list[Map]:
         """Wire map messages of every map in use."""
-        return [
-            Map(map_id=md.map_id, kind=md.kind, polylines=[p.tolist() for p in md.polylines])
-            for md in self.maps.values()
-        ]
+        return [map_message_of(md) for md in self.maps.values()]
 
 
 def _mean_step_mm(truth: np.ndarray) -> float:

@@ -12,13 +12,12 @@ import socket
 import threading
 import time
 from collections.abc import Iterator
-from pathlib import Path
 
 import numpy as np
 import pytest
 import zenoh
 
-from clients.client import ShapelocClient, load_map_file, zenoh_config
+from clients.client import ShapelocClient, zenoh_config
 from schemas.codec import decode, encode
 from schemas.messages import ErrorNotice, Health, Map, PoseMsg, RobotConfig, Scan, Truth
 from service.core.types import MapData
@@ -30,6 +29,7 @@ from service.errors import (
     UnknownRobot,
     Unreachable,
 )
+from service.maps.files import save_map_file
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -217,6 +217,22 @@ def test_put_list_get_delete_maps(fake) -> None:
             c.get_map("hall")
 
 
+def test_put_map_reads_a_map_file(fake, tmp_path) -> None:
+    """A path goes through service.maps.files.load_map_file; --id / --kind override."""
+    svc, ep = fake
+    md = MapData.from_lists("room", "schematic", [[[0, 0], [4, 0], [4, 3], [0, 3], [0, 0]]])
+    path = save_map_file(md, tmp_path / "room.json")
+    with ShapelocClient(ep) as c:
+        sent = c.put_map(path, map_id="room2", kind="metric", confirm=True)
+        assert (sent.map_id, sent.kind) == ("room2", "metric")
+        got = c.get_map("room2")
+        assert got.kind == "metric"
+        np.testing.assert_array_equal(got.polylines[0], md.polylines[0])
+        with pytest.raises(InvalidMessage, match="cannot read map file"):
+            c.put_map(tmp_path / "missing.json")
+    assert set(svc.maps) == {"room2"}
+
+
 def test_configure_and_send_scan_publish_valid_messages(fake) -> None:
     svc, ep = fake
     scan = Scan(
@@ -268,46 +284,6 @@ def test_watch_poses_filters_robots_and_skips_garbage(router) -> None:
         assert sorted(got) == ["r1", "r3"]
         assert wait_until(lambda: (stream.drain(), stream.rejected)[1] == 1)
         assert stream.get(timeout=0.1) is None
-
-
-def test_load_map_file_formats(tmp_path: Path) -> None:
-    wire = tmp_path / "w.json"
-    wire.write_text(
-        json.dumps({"map_id": "a", "kind": "schematic", "polylines": [[[0, 0], [1, 0]]]})
-    )
-    assert load_map_file(wire).map_id == "a"
-    assert load_map_file(wire, map_id="b", kind="metric").kind == "metric"
-    gj = tmp_path / "rooms.geojson"
-    gj.write_text(
-        json.dumps(
-            {
-                "type": "FeatureCollection",
-                "features": [
-                    {
-                        "type": "Feature",
-                        "properties": {},
-                        "geometry": {"type": "LineString", "coordinates": [[0, 0], [2, 0], [2, 2]]},
-                    },
-                    {
-                        "type": "Feature",
-                        "properties": {},
-                        "geometry": {
-                            "type": "Polygon",
-                            "coordinates": [[[5, 5], [6, 5], [6, 6], [5, 5]]],
-                        },
-                    },
-                ],
-            }
-        )
-    )
-    m = load_map_file(gj, kind="schematic")
-    assert m.map_id == "rooms" and len(m.polylines) == 2
-    bad = tmp_path / "bad.json"
-    bad.write_text("[1, 2]")
-    with pytest.raises(InvalidMessage, match="expected a JSON object"):
-        load_map_file(bad)
-    with pytest.raises(InvalidMessage, match="cannot read map file"):
-        load_map_file(tmp_path / "missing.json")
 
 
 def test_callbacks_errors_watcher_and_wrapped_session(router) -> None:

@@ -9,6 +9,7 @@ from __future__ import annotations
 import threading
 import time
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -19,8 +20,9 @@ import zenoh
 
 from schemas.codec import decode, encode
 from schemas.messages import ErrorNotice, Health, Map, PoseMsg, RobotConfig, Scan
+from service.convert import map_message_of
 from service.core.factory import create_localizer
-from sim_publisher.office import map_message, office_metric_map, office_schematic_map
+from sim_publisher.office import office_metric_map, office_schematic_map
 from sim_publisher.scenario import make_setup
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(180)]
@@ -72,9 +74,7 @@ def wait_for(pred: Callable[[], bool], timeout_s: float, what: str, svc: Any) ->
 
 
 def put_map(s: zenoh.Session, map_data: Any, map_id: str) -> None:
-    wire = map_message(map_data)
-    wire["map_id"] = map_id
-    s.put(f"{P}/maps/{map_id}", encode(Map(**wire)))
+    s.put(f"{P}/maps/{map_id}", encode(map_message_of(replace(map_data, map_id=map_id))))
 
 
 def put_config(s: zenoh.Session, robot: str, map_id: str, method: str, pose: Any) -> None:
@@ -205,7 +205,7 @@ def test_kill9_restart_keeps_state(
     assert h is not None and (h.maps, h.robots) == (1, 1)
     maps = [decode(Map, r.ok.payload.to_bytes()) for r in s2.get(f"{P}/maps/*", timeout=2.0)]
     assert [m.map_id for m in maps] == ["office"]
-    assert maps[0] == Map(**{**map_message(office_metric_map()), "map_id": "office"})
+    assert maps[0] == map_message_of(office_metric_map("office"))
     replies = list(s2.get(f"{P}/robots/r1/pose", timeout=2.0))
     assert len(replies) == 1 and replies[0].ok is not None
     restored = decode(PoseMsg, replies[0].ok.payload.to_bytes())
@@ -266,7 +266,7 @@ def test_garbage_flood_does_not_stop_good_robot(
         ("noconfig", msgpack.packb(good)),
     ]
     control_garbage: list[tuple[str, bytes]] = [
-        (f"{P}/maps/office2", encode(Map(**{**map_message(office_metric_map()), "map_id": "x"}))),
+        (f"{P}/maps/office2", encode(map_message_of(office_metric_map("x")))),
         (f"{P}/maps/bad", b"{not json"),
         (f"{P}/maps/bad2", msgpack.packb({"map_id": "bad2", "kind": "metric", "polylines": 3})),
         (f"{P}/robots/r9/config", encode(RobotConfig(map_id="nomap"))),

@@ -9,7 +9,8 @@ import pytest
 import shapely
 from shapely.geometry import LineString, Point
 
-from sim_publisher.office import map_message, office_metric_map, office_schematic_map, office_world
+from service.convert import map_message_of
+from sim_publisher.office import office_metric_map, office_schematic_map, office_world
 
 
 def _by_name(name: str):
@@ -82,14 +83,14 @@ def test_schematic_has_outlines_only_with_door_gaps_and_jitter() -> None:
 
 def test_map_message_is_plain_json() -> None:
     for md in (office_metric_map(), office_schematic_map()):
-        msg = map_message(md)
+        msg = map_message_of(md, name=md.map_id).to_wire()
         assert set(msg) == {"map_id", "kind", "polylines", "name"}
         assert msg["kind"] == md.kind and msg["name"] == md.map_id
         back = json.loads(json.dumps(msg))
         assert back == msg
         assert all(type(v) is float for p in msg["polylines"] for xy in p for v in xy)
         np.testing.assert_array_equal(np.asarray(msg["polylines"][0]), md.polylines[0])
-    assert map_message(office_metric_map("o2"), name="Office")["name"] == "Office"
+    assert map_message_of(office_metric_map("o2"), name="Office").to_wire()["name"] == "Office"
 
 
 def test_plot_helpers_draw_every_polyline(tmp_path) -> None:
