@@ -1,1 +1,4 @@
-"""shapeloc clients: the Python client (:mod:`clients.client`), the ``shapeloc`` CLI and tools."""
+"""shapeloc clients: the Python client library (:mod:`clients.client`) and the ``shapeloc`` CLI.
+
+Never imports the simulator (:mod:`sim_publisher` sits above and uses this library).
+"""
