@@ -457,7 +457,18 @@ DEFAULT_COMMAND = "run"
 class _Parser(argparse.ArgumentParser):
     """The top-level parser: arguments not starting with a subcommand (or ``-h``) are parsed
     as :data:`DEFAULT_COMMAND`'s, so ``shapeloc-sim --robots 2`` means
-    ``shapeloc-sim run --robots 2``."""
+    ``shapeloc-sim run --robots 2``; its help ends with the default command's options."""
+
+    default_parser: argparse.ArgumentParser | None = None
+
+    def format_help(self) -> str:
+        text = super().format_help()
+        if self.default_parser is not None:
+            text += (
+                f"\nWithout a COMMAND the options are those of {DEFAULT_COMMAND!r}:\n\n"
+                + self.default_parser.format_help()
+            )
+        return text
 
     def parse_known_args(
         self, args: Sequence[str] | None = None, namespace: argparse.Namespace | None = None
@@ -480,7 +491,10 @@ def build_parser() -> argparse.ArgumentParser:
         dest="command", metavar="COMMAND", required=True, parser_class=argparse.ArgumentParser
     )
     for name, command in COMMANDS.items():
-        command.add_arguments(sub.add_parser(name, help=command.help, description=command.help))
+        sp = sub.add_parser(name, help=command.help, description=command.help)
+        command.add_arguments(sp)
+        if name == DEFAULT_COMMAND:
+            p.default_parser = sp
     return p
 
 

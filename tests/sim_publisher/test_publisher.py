@@ -182,6 +182,7 @@ def test_subcommands_and_run_as_the_default(capsys) -> None:
     assert exc.value.code == 0
     out = capsys.readouterr().out
     assert "run" in out and "experiment" in out
+    assert "--robots ROBOTS" in out  # the default command's options are listed too
     with pytest.raises(SystemExit):
         p.parse_args(["experiment", "--robots", "2"])  # run's options are not experiment's
 
