@@ -1,15 +1,17 @@
 """The Zenoh transport layer of the localizer service.
 
-:class:`ServiceNode` owns the session entities (subscribers, queryables, liveliness token),
-the in-memory view of maps / robot configurations / last poses, the :class:`StateStore` and
-one *link thread* per worker. Zenoh callbacks only copy bytes into queues or latest-wins
-slots; decoding, persistence and localisation run in the node's own threads:
+:class:`ServiceNode` owns the session entities (one subscriber on ``<prefix>/**``, the
+queryables, the liveliness token), the in-memory view of maps / robot configurations / last
+poses and the :class:`~service.state.StateStore`. Zenoh callbacks only do O(1) checks and
+copy bytes into queues; everything else runs in the node's own threads:
 
+* intake thread (:mod:`service.intake`): decodes and validates every scan on arrival; only a
+  valid scan reaches its robot's latest-wins slot, so garbage never displaces a good scan;
+* one link thread per worker (:mod:`service.scheduler`): forwards control changes to its
+  worker, then takes the next robot with a pending valid scan (round robin over robots),
+  runs it on the worker and publishes the pose;
 * control thread: map and config puts/deletes (FIFO), periodic pose saving;
-* query thread: ``get`` on maps, poses and health (FIFO);
-* one link thread per worker: forwards control changes to its worker, then takes the next
-  robot with a pending scan (round robin over robots; per robot only the newest unprocessed
-  scan is kept), validates it, runs it on the worker and publishes the pose.
+* query thread: ``get`` on maps, poses and health (FIFO, :mod:`service.queries`).
 
 Every rejected message produces an :class:`~schemas.messages.ErrorNotice` on
 ``<prefix>/errors`` and is counted per kind in the health reply.
@@ -23,9 +25,7 @@ import logging
 import queue
 import threading
 import time
-from collections import Counter, OrderedDict
-from concurrent.futures import Future
-from dataclasses import dataclass
+from collections import Counter
 from pathlib import Path
 from typing import Any
 
@@ -33,197 +33,74 @@ import numpy as np
 
 from schemas import codec, keys
 from schemas.limits import MAX_PAYLOAD_BYTES
-from schemas.messages import ErrorNotice, Health, Map, PoseMsg, RobotConfig, Scan
-from service import __version__
+from schemas.messages import ErrorNotice, Health, Map, PoseMsg, RobotConfig
+from service import queries
 from service.convert import map_data_of
 from service.core.types import MapData
 from service.errors import (
     InvalidMessage,
     LocalizationError,
-    ServiceTimeout,
     ShapelocError,
     StateError,
     UnknownMap,
     UnknownRobot,
 )
+from service.intake import (
+    MAX_SCAN_BYTES,
+    ControlClock,
+    Inbound,
+    RawScan,
+    ScanIntake,
+    ValidScan,
+    encoding_name,
+    error_kind,
+)
+from service.scheduler import LatestSlots, Worker, WorkerLink
 from service.settings import ServiceSettings
 from service.state import SavedPose, StateStore
-from service.workers import Assignment, InlineWorker, ProcessWorker, WorkerDiedError
+from service.workers import Assignment, InlineWorker, ProcessWorker
+
+__all__ = ["MAX_SCAN_BYTES", "LatestSlots", "RejectLog", "ServiceNode"]
 
 log = logging.getLogger("shapeloc.service")
 
 _MSGPACK = codec.MSGPACK_ENCODING
-
-#: Largest scan payload kept for decoding (bytes): 8192 beams as JSON text fit in ~200 KiB, so
-#: anything bigger is rejected in the callback without copying it.
-MAX_SCAN_BYTES = 512 * 1024
 VIEW_CACHE_DIR = "viewcache"  # under the state dir: per-map view index of global localisation
 
-# --------------------------------------------------------------------------- pure helpers
+
+class RejectLog:
+    """Rate limit for rejection log lines: at most ``burst`` lines per kind per ``window_s``
+    seconds; the number suppressed is logged with the next line of that kind after the
+    window. Counting (health) and notices (``<prefix>/errors``) are never limited."""
+
+    def __init__(self, burst: int = 10, window_s: float = 10.0) -> None:
+        self.burst = burst
+        self.window_s = window_s
+        self._win: dict[str, tuple[float, int, int]] = {}  # kind -> (start, logged, suppressed)
+        self._lock = threading.Lock()
+
+    def should_log(self, kind: str, now: float | None = None) -> tuple[bool, int]:
+        """``(log this one?, lines suppressed in the window that just ended)``."""
+        t = time.monotonic() if now is None else now
+        with self._lock:
+            start, logged, suppressed = self._win.get(kind, (t, 0, 0))
+            if t - start >= self.window_s:
+                self._win[kind] = (t, 1, 0)
+                return True, suppressed
+            if logged < self.burst:
+                self._win[kind] = (start, logged + 1, suppressed)
+                return True, 0
+            self._win[kind] = (start, logged, suppressed + 1)
+            return False, 0
 
 
-@dataclass(frozen=True)
-class Inbound:
-    """One received sample, as copied out of a Zenoh callback.
+@dataclasses.dataclass
+class _Restored:
+    """Everything read back from the state store, parsed, before any worker sees it."""
 
-    ``payload`` is ``None`` when the callback already rejected it (``reject`` says why);
-    ``t_recv`` is ``time.monotonic()`` seconds at reception. ``ctl`` is the number of control
-    messages (maps, configs) received before it (for a control message: its own number), so a
-    scan is only processed once every map/config received before it has been applied.
-    """
-
-    key: str
-    payload: bytes | None
-    encoding: str | None
-    t_recv: float
-    delete: bool = False
-    reject: str | None = None
-    ctl: int = 0
-
-
-def encoding_name(enc: object) -> str | None:
-    """The sample's encoding as a string (the codec decides JSON vs msgpack from it)."""
-    return None if enc is None else str(enc)
-
-
-def error_kind(exc: BaseException) -> str:
-    """Counter name of a rejection: the exception class name (``InvalidMessage``, ...)."""
-    return type(exc).__name__
-
-
-def scan_arrays_of(msg: Scan) -> tuple[np.ndarray, np.ndarray]:
-    """``(ranges, angles)`` of a scan: ranges in metres with NaN for no return, angles in
-    radians in the robot frame."""
-    return codec.scan_arrays(msg)
-
-
-class LatestSlots:
-    """Per-robot latest-wins slots with round-robin order over robots (thread-safe).
-
-    :meth:`offer` keeps only the newest item per robot (the replaced one is counted as
-    skipped) and never blocks; a robot keeps its place in the round-robin order while it has a
-    pending item, so a robot that publishes fast cannot starve the others. At most ``capacity``
-    robots can be pending; further new robots are refused (``offer`` returns ``False``).
-    """
-
-    def __init__(self, capacity: int) -> None:
-        self._items: OrderedDict[str, Any] = OrderedDict()
-        self._cond = threading.Condition()
-        self.capacity = capacity
-        self.skipped = 0
-        self.refused = 0
-        self._kick = False
-
-    def offer(self, robot_id: str, item: Any) -> bool:
-        """Store ``item`` as the newest pending item of ``robot_id``."""
-        with self._cond:
-            if robot_id in self._items:
-                self.skipped += 1
-                self._items[robot_id] = item
-            elif len(self._items) >= self.capacity:
-                self.refused += 1
-                return False
-            else:
-                self._items[robot_id] = item
-            self._cond.notify()
-            return True
-
-    def kick(self) -> None:
-        """Wake a waiting :meth:`take` (it returns ``None`` once)."""
-        with self._cond:
-            self._kick = True
-            self._cond.notify_all()
-
-    def take(self, timeout_s: float | None = None) -> tuple[str, Any] | None:
-        """Oldest pending robot and its newest item, or ``None`` on timeout / kick."""
-        with self._cond:
-            if not self._items and not self._kick:
-                self._cond.wait(timeout_s)
-            self._kick = False
-            if not self._items:
-                return None
-            return self._items.popitem(last=False)
-
-    def discard(self, robot_id: str) -> None:
-        """Drop a pending item (robot forgotten)."""
-        with self._cond:
-            self._items.pop(robot_id, None)
-
-    def __len__(self) -> int:
-        with self._cond:
-            return len(self._items)
-
-
-# --------------------------------------------------------------------------- the node
-
-
-class _Link:
-    """A worker plus the thread that feeds it (control requests first, then scans)."""
-
-    def __init__(self, node: ServiceNode, index: int) -> None:
-        self.node = node
-        self.index = index
-        self.worker: ProcessWorker | InlineWorker = node._new_worker(index)
-        self.slots = LatestSlots(capacity=node.settings.max_robots + 64)
-        self.control: queue.SimpleQueue[tuple[tuple[Any, ...], Future[Any]]] = queue.SimpleQueue()
-        self.thread = threading.Thread(target=self._run, name=f"shapeloc-link-{index}", daemon=True)
-
-    def submit(self, req: tuple[Any, ...]) -> Future[Any]:
-        """Queue a control request for this worker; the future gets its reply tuple."""
-        fut: Future[Any] = Future()
-        self.control.put((req, fut))
-        self.slots.kick()
-        return fut
-
-    def call(self, req: tuple[Any, ...]) -> tuple[str, Any]:
-        """Run a request on the worker, restarting it (and failing this request) if it dies."""
-        try:
-            return self.worker.call(req, self.node.settings.worker_timeout_s)
-        except (WorkerDiedError, ServiceTimeout) as e:
-            log.error("worker %d: %s; restarting it", self.index, e)
-            self.node._restart_worker(self)
-            return ("err", str(e))
-
-    def _drain_control(self) -> None:
-        while True:
-            try:
-                req, fut = self.control.get_nowait()
-            except queue.Empty:
-                return
-            fut.set_result(self.call(req))
-
-    def _await_control(self, ctl: int, timeout_s: float = 5.0) -> None:
-        """Wait until control message ``ctl`` (and all before it) is applied, serving this
-        worker's control requests meanwhile (the control thread may be waiting on them)."""
-        node = self.node
-        deadline = time.monotonic() + timeout_s
-        while not node._stopping.is_set() and time.monotonic() < deadline:
-            self._drain_control()
-            with node._ctl_cond:
-                if node._ctl_applied >= ctl:
-                    return
-                node._ctl_cond.wait(0.005)
-
-    def _run(self) -> None:
-        node = self.node
-        while not node._stopping.is_set():
-            self._drain_control()
-            got = self.slots.take(timeout_s=0.5)
-            if got is None:
-                continue
-            robot_id, inbound = got
-            self._await_control(inbound.ctl)
-            try:
-                node._process_scan(self, robot_id, inbound)
-            except Exception:  # never let the link die
-                log.exception("unexpected error processing a scan of %s", robot_id)
-        # drain control so no caller waits forever
-        while True:
-            try:
-                _req, fut = self.control.get_nowait()
-            except queue.Empty:
-                break
-            fut.set_result(("err", "service is shutting down"))
+    maps: dict[str, tuple[Map, MapData]]
+    configs: dict[str, RobotConfig]
+    poses: dict[str, PoseMsg]
 
 
 class ServiceNode:
@@ -231,21 +108,23 @@ class ServiceNode:
 
     Use as ``node = ServiceNode(settings, session); node.start(); ...; node.stop()``; the
     caller owns (and closes) the session. ``start`` restores the state (raising
-    :class:`StateError` if it is unreadable) before declaring anything on the network.
+    :class:`StateError` if it is unreadable, unless ``settings.reset_state``) before
+    declaring anything on the network.
     """
 
     def __init__(self, settings: ServiceSettings, session: Any) -> None:
         import zenoh
 
-        self._zenoh = zenoh
+        self.zenoh = zenoh
         self.settings = settings
         self.session = session
         self.prefix = settings.prefix
         self.instance_id = settings.effective_instance_id()
+        self.worker_timeout_s = settings.worker_timeout_s
         self._robots_ke = zenoh.KeyExpr(settings.robots)
         self._shard_cache: dict[str, bool] = {}
-        self._lock = threading.RLock()
-        self._stopping = threading.Event()
+        self.lock = threading.RLock()
+        self.stopping = threading.Event()
         self._started = time.monotonic()
         self.maps: dict[str, tuple[Map, MapData]] = {}
         self.configs: dict[str, RobotConfig] = {}
@@ -254,21 +133,30 @@ class ServiceNode:
         self.scans_processed = 0
         self.scans_rejected = 0
         self.errors: Counter[str] = Counter()
+        self.clock = ControlClock()
+        self.intake = ScanIntake(
+            accept=self._offer_scan,
+            reject=lambda key, exc: self.reject(key, "scan", exc),
+            per_robot=settings.intake_per_robot,
+            max_bytes=settings.intake_queue_bytes,
+            count_reject=self._count_reject,
+        )
+        self._reject_log = RejectLog()
         self._control_q: queue.Queue[Inbound | None] = queue.Queue(settings.control_queue_size)
         self._query_q: queue.Queue[Any] = queue.Queue(settings.query_queue_size)
         self._control_overflow = 0
         self._control_bytes = 0
-        self._ctl_received = 0
-        self._ctl_applied = 0
-        self._ctl_cond = threading.Condition()
+        self._dropped_reported = 0
         self._entities: list[Any] = []
         self._threads: list[threading.Thread] = []
+        self._errors_pub: Any = None
         self.state: StateStore | None = None
-        self.links: list[_Link] = []
+        self.links: list[WorkerLink] = []
         self.assignment = Assignment(1)
 
     # ------------------------------------------------------------------ lifecycle
-    def _new_worker(self, index: int) -> ProcessWorker | InlineWorker:
+    def new_worker(self, index: int) -> Worker:
+        """A fresh worker for link ``index`` (in-process with ``--workers 0``)."""
         # Global localisation caches each map's view index here (rebuilt when the map changes).
         cache_dir = Path(self.settings.state_dir) / VIEW_CACHE_DIR
         if self.settings.workers == 0:
@@ -276,14 +164,17 @@ class ServiceNode:
         return ProcessWorker(index, self.settings.log_level, cache_dir)
 
     def start(self) -> None:
-        """Open the state, start workers, restore, then declare the Zenoh entities."""
-        self.state = StateStore(self.settings.state_dir)
+        """Open and restore the state, start workers and threads, then declare the Zenoh
+        entities (nothing is visible on the network before the state is restored)."""
+        restored = self._open_state()
         n = max(1, self.settings.workers)
-        self.links = [_Link(self, i) for i in range(n)]
+        cap = self.settings.max_robots + 64
+        self.links = [WorkerLink(self, i, cap) for i in range(n)]
         self.assignment = Assignment(n)
-        self._restore()
+        self._restore(restored)
         for link in self.links:
             link.thread.start()
+        self.intake.start()
         self._threads = [
             threading.Thread(target=self._control_loop, name="shapeloc-control", daemon=True),
             threading.Thread(target=self._query_loop, name="shapeloc-query", daemon=True),
@@ -301,8 +192,11 @@ class ServiceNode:
             self.settings.workers,
         )
 
+    def uptime_s(self) -> float:
+        """Seconds since the node was created."""
+        return time.monotonic() - self._started
+
     def _declare(self) -> None:
-        z = self._zenoh
         s = self.session
         p = self.prefix
         self._errors_pub = s.declare_publisher(keys.errors_key(p))
@@ -318,17 +212,17 @@ class ServiceNode:
             self._entities.append(s.declare_queryable(ke, self._on_query))
         self._token = s.liveliness().declare_token(keys.alive_key(p, self.instance_id))
         self._entities.append(self._token)
-        _ = z
 
     def stop(self) -> None:
         """Undeclare entities, stop threads and workers, save poses, close the state."""
-        if self._stopping.is_set():
+        if self.stopping.is_set():
             return
-        self._stopping.set()
+        self.stopping.set()
         for e in reversed(self._entities):
             with contextlib.suppress(Exception):
                 e.undeclare()
         self._entities.clear()
+        self.intake.stop()
         for link in self.links:
             link.slots.kick()
         for q in (self._control_q, self._query_q):
@@ -347,49 +241,90 @@ class ServiceNode:
             self.state.close()
         log.info("service %s stopped", self.instance_id)
 
-    # ------------------------------------------------------------------ restore
-    def _restore(self) -> None:
-        assert self.state is not None
-        for map_id, wire in self.state.maps().items():
+    # ------------------------------------------------------------------ state
+    def _open_state(self) -> _Restored:
+        """Open the store and parse everything in it. With ``reset_state``, an unreadable
+        file (or one holding an invalid map, config or pose) is moved aside and the service
+        starts empty, loudly; without it the :class:`StateError` propagates (exit 1)."""
+        reset = self.settings.reset_state
+        self.state = StateStore(self.settings.state_dir, reset=reset)
+        try:
+            restored = self._load(self.state)
+        except StateError as e:
+            if not reset:
+                self.state.close()
+                raise
+            self.state.quarantine(str(e))
+            restored = _Restored({}, {}, {})
+        for moved_to, why in self.state.quarantined:
+            with self.lock:
+                self.errors["state.Reset"] += 1
+            log.error(
+                "--reset-state: state file %s was unusable (%s); moved it to %s and started "
+                "with NO maps and NO robots",
+                self.state.path,
+                why,
+                moved_to,
+            )
+        return restored
+
+    def _load(self, store: StateStore) -> _Restored:
+        out = _Restored({}, {}, {})
+        for map_id, wire in store.maps().items():
             try:
                 msg = Map.parse(wire)
-                md = map_data_of(msg)
+                out.maps[map_id] = (msg, map_data_of(msg))
             except ShapelocError as e:
-                raise StateError(f"stored map {map_id!r} is invalid: {e}") from e
-            self.maps[map_id] = (msg, md)
-            for link in self.links:
-                link.worker.call(("map", md), self.settings.worker_timeout_s)
-        saved = self.state.poses()
-        for robot_id, wire in self.state.robots().items():
+                raise StateError(f"{store.path}: stored map {map_id!r} is invalid: {e}") from e
+        saved = store.poses()
+        for robot_id, wire in store.robots().items():
             try:
                 cfg = RobotConfig.parse(wire)
             except ShapelocError as e:
-                raise StateError(f"stored config of robot {robot_id!r} is invalid: {e}") from e
+                raise StateError(
+                    f"{store.path}: stored config of robot {robot_id!r} is invalid: {e}"
+                ) from e
+            out.configs[robot_id] = cfg
+            sp = saved.get(robot_id)
+            if sp is None or sp.map_id != cfg.map_id:
+                continue
+            try:
+                out.poses[robot_id] = PoseMsg(
+                    robot_id=robot_id,
+                    seq=sp.seq,
+                    stamp=sp.stamp,
+                    pose=list(sp.pose),
+                    status=sp.status,
+                    score=0.0,
+                    method=cfg.method,
+                    map_id=cfg.map_id,
+                    latency_ms=0.0,
+                )
+            except ShapelocError as e:
+                raise StateError(
+                    f"{store.path}: stored pose of robot {robot_id!r} is invalid: {e}"
+                ) from e
+        return out
+
+    def _restore(self, r: _Restored) -> None:
+        """Hand the restored maps and this shard's robots (in id order) to the workers; a
+        restored robot resumes from its saved pose."""
+        t = self.settings.worker_timeout_s
+        for map_id, (msg, md) in r.maps.items():
+            self.maps[map_id] = (msg, md)
+            for link in self.links:
+                link.worker.call(("map", md), t)
+        for robot_id, cfg in r.configs.items():
             if not self.serves(robot_id):
                 continue
-            sp = saved.get(robot_id)
-            start = None
-            if sp is not None and sp.map_id == cfg.map_id:
-                start = list(sp.pose)
-                try:
-                    self.poses[robot_id] = PoseMsg(
-                        robot_id=robot_id,
-                        seq=sp.seq,
-                        stamp=sp.stamp,
-                        pose=start,
-                        status=sp.status,
-                        score=0.0,
-                        method=cfg.method,
-                        map_id=cfg.map_id,
-                        latency_ms=0.0,
-                    )
-                except ShapelocError as e:
-                    raise StateError(f"stored pose of robot {robot_id!r} is invalid: {e}") from e
+            pm = r.poses.get(robot_id)
+            start = None if pm is None else _lst(pm.pose)
+            if pm is not None:
+                self.poses[robot_id] = pm
             self.configs[robot_id] = cfg
             link = self.links[self.assignment.assign(robot_id)]
             st, why = link.worker.call(
-                ("config", robot_id, cfg.method, cfg.map_id, _lst(cfg.initial_pose), start),
-                self.settings.worker_timeout_s,
+                ("config", robot_id, cfg.method, cfg.map_id, _lst(cfg.initial_pose), start), t
             )
             if st != "ok":
                 log.error("restored robot %s could not be set up: %s", robot_id, why)
@@ -400,22 +335,26 @@ class ServiceNode:
         hit = self._shard_cache.get(robot_id)
         if hit is None:
             try:
-                hit = bool(self._robots_ke.intersects(self._zenoh.KeyExpr(robot_id)))
+                hit = bool(self._robots_ke.intersects(self.zenoh.KeyExpr(robot_id)))
             except Exception:
                 hit = True  # invalid ids are rejected (with a notice) further on
             if len(self._shard_cache) < 100_000:
                 self._shard_cache[robot_id] = hit
         return hit
 
-    def _link_of(self, robot_id: str) -> _Link:
+    def _link_of(self, robot_id: str) -> WorkerLink:
         return self.links[self.assignment.index_of(robot_id)]
 
-    def _restart_worker(self, link: _Link) -> None:
+    def restart_worker(self, link: WorkerLink) -> None:
+        """Replace a dead or hung worker and replay the maps and its robots (from their last
+        poses) into the new one."""
+        with self.lock:
+            self.errors["worker.Restarted"] += 1
         with contextlib.suppress(Exception):
             link.worker.close()
-        link.worker = self._new_worker(link.index)
+        link.worker = self.new_worker(link.index)
         t = self.settings.worker_timeout_s
-        with self._lock:
+        with self.lock:
             maps = [md for _m, md in self.maps.values()]
             robots = [
                 (rid, cfg, self.poses.get(rid))
@@ -447,8 +386,8 @@ class ServiceNode:
         return ("other", "")
 
     def _on_sample(self, sample: Any) -> None:
-        """Zenoh callback of ``<prefix>/**``: route scans to slots, maps/configs to the control
-        queue, ignore the rest (poses, errors, truth). No decoding, no compute."""
+        """Zenoh callback of ``<prefix>/**``: route scans to the intake, maps/configs to the
+        control queue, ignore the rest (poses, errors, truth). No decoding, no compute."""
         kind, robot_id = self.classify(str(sample.key_expr))
         if kind == "scan":
             self._on_scan(sample, robot_id)
@@ -456,39 +395,31 @@ class ServiceNode:
             self._on_control(sample)
 
     def _on_scan(self, sample: Any, robot_id: str) -> None:
-        """Copy the scan into its robot's latest-wins slot (no compute)."""
+        """Copy a scan sample into the intake queue after O(1) checks (no decoding here)."""
         t = time.monotonic()
-        key = str(sample.key_expr)
         if not self.serves(robot_id):
             return
-        delete = sample.kind == self._zenoh.SampleKind.DELETE
+        key = str(sample.key_expr)
         size = len(sample.payload)
-        ctl = self._ctl_received
-        if delete:
-            item = Inbound(key, None, None, t, delete=True, reject="a scan cannot be deleted")
+        ctl = self.clock.received
+        reject: ShapelocError | None = None
+        if sample.kind == self.zenoh.SampleKind.DELETE:
+            reject = InvalidMessage("a scan cannot be deleted")
         elif size > MAX_SCAN_BYTES:
-            item = Inbound(
-                key, None, None, t, reject=f"payload of {size} bytes exceeds {MAX_SCAN_BYTES}"
+            reject = InvalidMessage(f"payload of {size} bytes exceeds {MAX_SCAN_BYTES}")
+        elif robot_id not in self.configs and self.clock.applied >= ctl:
+            # no configuration and none pending: the payload is not kept (bounds the memory
+            # and CPU that unknown robot ids can take)
+            reject = UnknownRobot(
+                f"robot {robot_id!r} has no configuration; put "
+                f"{self.prefix}/robots/{robot_id}/config first"
             )
-        elif robot_id not in self.configs and self._ctl_applied >= ctl:
-            # no configuration and none pending: rejected later as UnknownRobot, so the
-            # payload is not kept (bounds the memory unknown robot ids can take)
-            item = Inbound(key, None, None, t)
+        if reject is not None:
+            item = RawScan(robot_id, key, None, None, t, ctl, reject)
         else:
-            item = Inbound(key, sample.payload.to_bytes(), encoding_name(sample.encoding), t)
-        item = dataclasses.replace(item, ctl=ctl)
-        if not self._link_of(robot_id).slots.offer(robot_id, item):
-            reason = f"service overloaded: more than {self.settings.max_robots} robots pending"
-            self._queue_notice(Inbound(key, None, None, t, reject=reason))
-
-    def _queue_notice(self, item: Inbound) -> None:
-        """Have the control thread publish a rejection decided in a callback."""
-        try:
-            self._control_q.put_nowait(item)
-        except queue.Full:
-            with self._lock:
-                self._control_overflow += 1
-                self.errors["control.Overloaded"] += 1
+            payload = sample.payload.to_bytes()
+            item = RawScan(robot_id, key, payload, encoding_name(sample.encoding), t, ctl)
+        self.intake.put(item)
 
     def control_item(self, sample: Any) -> Inbound | None:
         """Copy a map/config sample into an :class:`Inbound` (``None``: another shard's robot)."""
@@ -498,7 +429,7 @@ class ServiceNode:
             parts = key.rsplit("/", 2)
             if len(parts) == 3 and not self.serves(parts[-2]):
                 return None
-        delete = sample.kind == self._zenoh.SampleKind.DELETE
+        delete = sample.kind == self.zenoh.SampleKind.DELETE
         size = len(sample.payload)
         if size > MAX_PAYLOAD_BYTES:
             return Inbound(
@@ -515,54 +446,82 @@ class ServiceNode:
             return
         size = 0 if item.payload is None else len(item.payload)
         try:
-            with self._lock:
+            with self.lock:
                 if self._control_bytes + size > self.settings.control_queue_bytes:
                     raise queue.Full
                 self._control_bytes += size
-            self._control_q.put_nowait(dataclasses.replace(item, ctl=self._ctl_received + 1))
-            self._ctl_received += 1  # only this callback thread writes it
+            self._control_q.put_nowait(dataclasses.replace(item, ctl=self.clock.received + 1))
+            self.clock.next()  # only this callback thread numbers control messages
         except queue.Full:
-            with self._lock:
+            with self.lock:
                 self._control_overflow += 1
                 self.errors["control.Overloaded"] += 1
 
     def _on_query(self, query: Any) -> None:
-        """Zenoh callback: queue the query for the query thread (dropped if the queue is full,
-        which finalises it with no reply)."""
-        with contextlib.suppress(queue.Full):
+        """Zenoh callback: queue the query for the query thread (answered at once with
+        ``reply_err`` if the queue is full)."""
+        try:
             self._query_q.put_nowait(query)
+        except queue.Full:
+            with contextlib.suppress(Exception):
+                query.reply_err(b"service overloaded: query queue full")
+                query.drop()
 
     # ------------------------------------------------------------------ errors
     def reject(self, key: str, what: str, exc: BaseException | str) -> None:
-        """Count a rejected message and publish its :class:`ErrorNotice`."""
+        """Count a rejected message, log it (rate-limited) and publish its notice."""
         if isinstance(exc, BaseException):
             kind, text = error_kind(exc), str(exc)
         else:
             kind, text = "InvalidMessage", exc
-        with self._lock:
-            self.errors[f"{what}.{kind}"] += 1
+        name = f"{what}.{kind}"
+        with self.lock:
+            self.errors[name] += 1
             if what == "scan":
                 self.scans_rejected += 1
-        log.warning("rejected %s on %s: %s", what, key, text)
-        notice = ErrorNotice.make(key, f"{kind}: {text}")
+        log_it, suppressed = self._reject_log.should_log(name)
+        if suppressed:
+            log.warning("%d more %s rejections were not logged", suppressed, name)
+        if log_it:
+            log.warning("rejected %s on %s: %s", what, key, text)
+        self._notice(key, f"{kind}: {text}")
+
+    def _count_reject(self, key: str, exc: BaseException) -> None:
+        """Count a scan rejection whose notice is dropped in a flood (Zenoh callback)."""
+        with self.lock:
+            self.errors[f"scan.{error_kind(exc)}"] += 1
+            self.scans_rejected += 1
+
+    def _notice(self, key: str, text: str) -> None:
+        if self._errors_pub is None:
+            return
         try:
-            self._errors_pub.put(codec.encode(notice), encoding=_MSGPACK)
+            self._errors_pub.put(codec.encode(ErrorNotice.make(key, text)), encoding=_MSGPACK)
         except Exception as e:
             log.error("could not publish error notice: %s", e)
 
     # ------------------------------------------------------------------ scans
-    def _process_scan(self, link: _Link, robot_id: str, inbound: Inbound) -> None:
-        key = inbound.key
+    def _offer_scan(self, scan: ValidScan) -> None:
+        """Intake sink: a valid scan enters its robot's latest-wins slot."""
+        if not self._link_of(scan.robot_id).slots.offer(scan.robot_id, scan):
+            self.reject(
+                scan.key,
+                "scan",
+                InvalidMessage(
+                    f"service overloaded: more than {self.settings.max_robots} robots pending"
+                ),
+            )
+
+    def process_scan(self, link: WorkerLink, scan: ValidScan) -> None:
+        """Localise one valid scan on ``link``'s worker and publish the pose."""
+        robot_id, key = scan.robot_id, scan.key
         owner = self._link_of(robot_id)
         if owner is not link:  # assigned to another worker after the scan was queued here
-            owner.slots.offer(robot_id, inbound)
-            return
-        if inbound.reject is not None:
-            self.reject(key, "scan", InvalidMessage(inbound.reject))
+            owner.slots.offer(robot_id, scan)
             return
         try:
             keys.validate_id(robot_id, "robot_id")
-            with self._lock:
+            with self.lock:
                 cfg = self.configs.get(robot_id)
                 have_map = cfg is not None and cfg.map_id in self.maps
             if cfg is None:
@@ -570,38 +529,29 @@ class ServiceNode:
                     f"robot {robot_id!r} has no configuration; put "
                     f"{self.prefix}/robots/{robot_id}/config first"
                 )
-            if inbound.payload is None:
-                raise UnknownRobot(
-                    f"scan of robot {robot_id!r} arrived before its configuration; put "
-                    f"{self.prefix}/robots/{robot_id}/config first"
-                )
             if not have_map:
                 raise UnknownMap(
                     f"map {cfg.map_id!r} of robot {robot_id!r} is not stored (deleted?); the "
                     "robot waits for it"
                 )
-            assert inbound.payload is not None
-            msg = codec.decode(Scan, inbound.payload, inbound.encoding)
-            ranges, angles = scan_arrays_of(msg)
-            odom = None if msg.odom is None else np.array(msg.odom, dtype=np.float64)
         except ShapelocError as e:
             self.reject(key, "scan", e)
             return
-        status, out = link.call(("scan", robot_id, ranges, angles, odom))
+        status, out = link.call(("scan", robot_id, scan.ranges, scan.angles, scan.odom))
         if status != "ok":
             self.reject(key, "scan", LocalizationError(str(out)))
             return
         try:
             pose_msg = PoseMsg(
                 robot_id=robot_id,
-                seq=msg.seq,
-                stamp=msg.stamp,
+                seq=scan.seq,
+                stamp=scan.stamp,
                 pose=out["pose"],
                 status=out["status"],
                 score=out["score"],
                 method=cfg.method,
                 map_id=cfg.map_id,
-                latency_ms=(time.monotonic() - inbound.t_recv) * 1e3,
+                latency_ms=(time.monotonic() - scan.t_recv) * 1e3,
                 covariance=out["covariance"],
                 explained=_clip01(out["explained"]),
                 ambiguity=_clip01(out["ambiguity"]),
@@ -610,7 +560,7 @@ class ServiceNode:
         except ShapelocError as e:
             self.reject(key, "scan", LocalizationError(f"estimate not publishable: {e}"))
             return
-        with self._lock:
+        with self.lock:
             if self.configs.get(robot_id) is not cfg:
                 return  # reconfigured meanwhile: this estimate belongs to the old config
             self.poses[robot_id] = pose_msg
@@ -621,29 +571,22 @@ class ServiceNode:
     # ------------------------------------------------------------------ control
     def _control_loop(self) -> None:
         next_save = time.monotonic() + self.settings.pose_save_interval_s
-        while not self._stopping.is_set():
+        while not self.stopping.is_set():
             timeout = max(0.0, min(0.5, next_save - time.monotonic()))
             try:
                 item = self._control_q.get(timeout=timeout)
             except queue.Empty:
                 item = None
             if item is not None:
-                with self._lock:
+                with self.lock:
                     self._control_bytes -= 0 if item.payload is None else len(item.payload)
                 try:
                     self.handle_control(item)
                 except Exception:
                     log.exception("unexpected error on %s", item.key)
                 finally:
-                    with self._ctl_cond:
-                        self._ctl_applied = max(self._ctl_applied, item.ctl)
-                        self._ctl_cond.notify_all()
-            with self._lock:
-                overflow, self._control_overflow = self._control_overflow, 0
-            if overflow:
-                self.reject(
-                    f"{self.prefix}/**", "control", f"control queue full: {overflow} dropped"
-                )
+                    self.clock.mark_applied(item.ctl)
+            self._report_overflows()
             if time.monotonic() >= next_save:
                 next_save = time.monotonic() + self.settings.pose_save_interval_s
                 try:
@@ -651,15 +594,27 @@ class ServiceNode:
                 except StateError as e:
                     log.error("periodic pose save failed: %s", e)
 
+    def _report_overflows(self) -> None:
+        """One aggregated notice per overflow burst (control queue full, intake dropping)."""
+        with self.lock:
+            overflow, self._control_overflow = self._control_overflow, 0
+        if overflow:
+            self.reject(f"{self.prefix}/**", "control", f"control queue full: {overflow} dropped")
+        dropped = self.intake.queue.notices_dropped
+        if dropped > self._dropped_reported:
+            n, self._dropped_reported = dropped - self._dropped_reported, dropped
+            log.warning("scan flood: %d rejections counted without a notice or log line", n)
+            self._notice(
+                keys.robots_wildcard(self.prefix, "scan"),
+                f"Overloaded: scan flood, {n} further rejections counted in health only",
+            )
+
     def handle_control(self, item: Inbound) -> None:
         """Apply one map or config put/delete (rejecting it with a notice if invalid)."""
-        kind, _rid = self.classify(item.key)
-        what = "scan" if kind == "scan" else "map" if "/maps/" in item.key else "config"
+        what = "map" if "/maps/" in item.key else "config"
         try:
             if item.reject is not None:
                 raise InvalidMessage(item.reject)
-            if what == "scan":
-                raise InvalidMessage("scan without a reason to reject")  # not reached
             if what == "map":
                 self._handle_map(item)
             else:
@@ -676,13 +631,13 @@ class ServiceNode:
         assert self.state is not None
         map_id = keys.parse_map_key(self.prefix, item.key)
         if item.delete:
-            with self._lock:
+            with self.lock:
                 known = map_id in self.maps
             if not known:
                 raise UnknownMap(f"cannot delete map {map_id!r}: it is not stored")
             self.state.delete_map(map_id)
             log.info("map %s deleted (robots on it wait for a new one)", map_id)
-            with self._lock:
+            with self.lock:
                 self.maps.pop(map_id, None)
             self._broadcast(("map_delete", map_id))
             return
@@ -698,7 +653,7 @@ class ServiceNode:
             len(md.polylines),
             sum(len(p) for p in md.polylines),
         )
-        with self._lock:
+        with self.lock:
             self.maps[map_id] = (msg, md)
         self._broadcast(("map", md))
 
@@ -706,13 +661,13 @@ class ServiceNode:
         assert self.state is not None
         robot_id, _leaf = keys.parse_robot_key(self.prefix, item.key)
         if item.delete:
-            with self._lock:
+            with self.lock:
                 known = robot_id in self.configs
             if not known:
                 raise UnknownRobot(f"cannot delete config of robot {robot_id!r}: unknown robot")
             self.state.delete_robot(robot_id)
             log.info("robot %s removed", robot_id)
-            with self._lock:
+            with self.lock:
                 self.configs.pop(robot_id, None)
                 self.poses.pop(robot_id, None)
                 self._dirty.discard(robot_id)
@@ -723,7 +678,7 @@ class ServiceNode:
             return
         assert item.payload is not None
         cfg = codec.decode(RobotConfig, item.payload, item.encoding)
-        with self._lock:
+        with self.lock:
             if cfg.map_id not in self.maps:
                 raise UnknownMap(
                     f"robot {robot_id!r} names map {cfg.map_id!r}, which is not stored; put "
@@ -750,37 +705,43 @@ class ServiceNode:
             cfg.method,
             None if cfg.initial_pose is None else _lst(cfg.initial_pose),
         )
-        with self._lock:
+        with self.lock:
             self.configs[robot_id] = cfg
             self.poses.pop(robot_id, None)
             self._dirty.discard(robot_id)
 
     def save_poses(self) -> int:
-        """Write the poses that changed since the last save; returns how many."""
-        with self._lock:
+        """Write the poses that changed since the last save in one transaction; returns how
+        many. After a failed write the poses stay marked for the next save."""
+        with self.lock:
             dirty = {rid: self.poses[rid] for rid in self._dirty if rid in self.poses}
             self._dirty.clear()
         if not dirty or self.state is None:
             return 0
-        self.state.save_poses(
-            {
-                rid: SavedPose(
-                    p.map_id,
-                    float(p.pose[0]),
-                    float(p.pose[1]),
-                    float(p.pose[2]),
-                    p.seq,
-                    p.stamp,
-                    p.status,
-                )
-                for rid, p in dirty.items()
-            }
-        )
+        try:
+            self.state.save_poses(
+                {
+                    rid: SavedPose(
+                        p.map_id,
+                        float(p.pose[0]),
+                        float(p.pose[1]),
+                        float(p.pose[2]),
+                        p.seq,
+                        p.stamp,
+                        p.status,
+                    )
+                    for rid, p in dirty.items()
+                }
+            )
+        except StateError:
+            with self.lock:
+                self._dirty.update(rid for rid in dirty if rid in self.poses)
+            raise
         return len(dirty)
 
     # ------------------------------------------------------------------ queries
     def _query_loop(self) -> None:
-        while not self._stopping.is_set():
+        while not self.stopping.is_set():
             try:
                 query = self._query_q.get(timeout=0.5)
             except queue.Empty:
@@ -798,64 +759,12 @@ class ServiceNode:
                     query.drop()
 
     def answer(self, query: Any) -> None:
-        """Reply to one ``get`` on maps, a robot pose or the health key."""
-        z = self._zenoh
-        ke = query.key_expr
-        p = self.prefix
-        health = keys.health_key(p)
-        if ke.intersects(z.KeyExpr(health)):
-            query.reply(health, codec.encode(self.health()), encoding=_MSGPACK)
-        if ke.intersects(z.KeyExpr(keys.maps_wildcard(p))):
-            with self._lock:
-                items = [(mid, m) for mid, (m, _md) in self.maps.items()]
-            hits = 0
-            for mid, m in items:
-                k = keys.map_key(p, mid)
-                if ke.intersects(z.KeyExpr(k)):
-                    query.reply(k, codec.encode(m), encoding=_MSGPACK)
-                    hits += 1
-            if hits == 0 and "*" not in str(ke):
-                query.reply_err(f"unknown map: no map stored under {ke}".encode())
-        if ke.intersects(z.KeyExpr(keys.robots_wildcard(p, "pose"))):
-            with self._lock:
-                robots = list(self.configs)
-                poses = dict(self.poses)
-            hits = 0
-            for rid in robots:
-                k = keys.robot_key(p, rid, "pose")
-                if ke.intersects(z.KeyExpr(k)) and rid in poses:
-                    query.reply(k, codec.encode(poses[rid]), encoding=_MSGPACK)
-                    hits += 1
-            if hits == 0 and "*" not in str(ke):
-                parts = str(ke).split("/")
-                rid = parts[-2] if len(parts) >= 2 else ""
-                if not self.serves(rid):
-                    return  # another shard answers for this robot
-                if rid in robots:
-                    query.reply_err(f"robot {rid!r} has no estimate yet".encode())
-                else:
-                    query.reply_err(f"unknown robot {rid!r}".encode())
+        """Reply to one ``get`` (see :func:`service.queries.answer`)."""
+        queries.answer(self, query)
 
     def health(self) -> Health:
-        """Current health message (counts over this instance's robots)."""
-        with self._lock:
-            by_status = Counter(p.status for p in self.poses.values())
-            skipped = sum(lk.slots.skipped for lk in self.links)
-            errors = dict(self.errors)
-            if skipped:
-                errors["scan.Skipped"] = skipped
-            return Health(
-                status="ok",
-                version=__version__,
-                robots=len(self.configs),
-                maps=len(self.maps),
-                scans_processed=self.scans_processed,
-                scans_rejected=self.scans_rejected,
-                instance_id=self.instance_id,
-                uptime_s=time.monotonic() - self._started,
-                errors=errors,
-                robots_by_status=dict(by_status),
-            )
+        """Current health message (see :func:`service.queries.health`)."""
+        return queries.health(self)
 
 
 def _lst(a: Any) -> list[float] | None:

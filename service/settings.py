@@ -55,10 +55,14 @@ class ServiceSettings(BaseModel):
     robots: str = "**"
     instance_id: str | None = None
     workers: int = Field(default_factory=_default_workers, ge=0, le=64)
-    pose_save_interval_s: float = Field(default=5.0, gt=0.0)
+    pose_save_interval_s: float = Field(default=1.0, gt=0.0)
+    reset_state: bool = False
     control_queue_size: int = Field(default=1024, ge=1)
     control_queue_bytes: int = Field(default=64 * 1024 * 1024, ge=1024)
     query_queue_size: int = Field(default=256, ge=1)
+    intake_per_robot: int = Field(default=16, ge=1)
+    intake_queue_bytes: int = Field(default=64 * 1024 * 1024, ge=64 * 1024)
+    reconnect_max_ms: int = Field(default=1000, ge=100)
     max_robots: int = Field(default=1000, ge=1)
     worker_timeout_s: float = Field(default=30.0, gt=0.0)
     log_level: Literal["debug", "info", "warning", "error"] = "info"
@@ -173,7 +177,21 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--robots", metavar="KEYEXPR", help="serve only robot ids matching this")
     p.add_argument("--instance-id", dest="instance_id")
     p.add_argument("--workers", type=int, help="worker processes (0: compute in-process)")
-    p.add_argument("--pose-save-interval", dest="pose_save_interval_s", type=float)
+    p.add_argument(
+        "--pose-save-interval",
+        dest="pose_save_interval_s",
+        type=float,
+        metavar="S",
+        help="seconds between saves of the last poses (default 1)",
+    )
+    p.add_argument(
+        "--reset-state",
+        dest="reset_state",
+        action="store_const",
+        const=True,
+        help="if the state file is unreadable or invalid, move it aside "
+        "(shapeloc.sqlite3.bad-<time>) and start with no maps and no robots",
+    )
     p.add_argument("--max-robots", dest="max_robots", type=int)
     p.add_argument("--log-level", dest="log_level", choices=list(_LOG_LEVELS))
     return p
@@ -198,17 +216,23 @@ def load_settings(
 def zenoh_config(settings: ServiceSettings) -> zenoh.Config:
     """Build the Zenoh session configuration.
 
-    Starts from ``settings.zenoh_config`` (json5 file) if given, else an empty config. Mode,
-    listen and connect endpoints from the settings are applied on top, except that with a file
-    only the options explicitly set (env/CLI) override it. Multicast scouting is switched off
-    unless ``multicast_scouting`` is true; ``scouting/delay`` is 0 so open returns at once.
+    Starts from ``settings.zenoh_config`` (json5 file: TLS, mutual TLS, user/password
+    authentication, access control, ...) if given, else an empty config. Mode, listen and
+    connect endpoints from the settings are applied on top, except that with a file only the
+    options explicitly set (env/CLI) override it. Multicast scouting is switched off unless
+    ``multicast_scouting`` is true; ``scouting/delay`` is 0 so open returns at once. Unless
+    the file sets ``connect/retry``, lost connections are retried every 250 ms doubling up to
+    ``reconnect_max_ms`` (Zenoh's own default backs off to 4 s), so the service is back within
+    about a second of its router.
     """
     import zenoh
 
     explicit = settings.model_fields_set
+    file_conf: dict[str, Any] = {}
     if settings.zenoh_config is not None:
         try:
             conf = zenoh.Config.from_file(str(settings.zenoh_config))
+            file_conf = json.loads(str(conf))
         except Exception as e:
             raise InvalidMessage(f"zenoh config {settings.zenoh_config}: {e}") from e
         base_given = True
@@ -225,6 +249,13 @@ def zenoh_config(settings: ServiceSettings) -> zenoh.Config:
         conf.insert_json5("listen/endpoints", json.dumps(settings.listen))
     if apply("connect"):
         conf.insert_json5("connect/endpoints", json.dumps(settings.connect))
+    if not (file_conf.get("connect") or {}).get("retry"):
+        retry = {
+            "period_init_ms": min(250, settings.reconnect_max_ms),
+            "period_max_ms": settings.reconnect_max_ms,
+            "period_increase_factor": 2,
+        }
+        conf.insert_json5("connect/retry", json.dumps(retry))
     conf.insert_json5(
         "scouting/multicast/enabled", "true" if settings.multicast_scouting else "false"
     )

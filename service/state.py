@@ -10,7 +10,10 @@ Layout (``<state_dir>/shapeloc.sqlite3``, schema version in ``PRAGMA user_versio
 
 Every write is committed before the call returns, so a caller may log "stored" afterwards. A
 ``<state_dir>/shapeloc.lock`` file held with ``flock`` keeps two services off one directory.
-Anything unreadable raises :class:`~service.errors.StateError`; the store never resets itself.
+Anything unreadable (including an empty, i.e. truncated, database file, which SQLite alone
+would take for a new one) raises :class:`~service.errors.StateError`. The store never resets
+itself: only ``reset=True`` (``--reset-state``) moves a bad file aside, to
+``shapeloc.sqlite3.bad-<UTC time>``, and starts an empty one (listed in ``quarantined``).
 """
 
 from __future__ import annotations
@@ -70,19 +73,31 @@ class StateStore:
     is corrupt, foreign, or from a newer schema version.
     """
 
-    def __init__(self, state_dir: str | os.PathLike[str]) -> None:
+    def __init__(self, state_dir: str | os.PathLike[str], reset: bool = False) -> None:
         self.state_dir = Path(state_dir)
         self.path = self.state_dir / DB_NAME
         self._lock = threading.Lock()
+        #: ``(moved_to, reason)`` of every state file moved aside by :meth:`quarantine`.
+        self.quarantined: list[tuple[Path, str]] = []
         try:
             self.state_dir.mkdir(parents=True, exist_ok=True)
         except OSError as e:
             raise StateError(f"cannot create state directory {self.state_dir}: {e}") from e
         if not self.state_dir.is_dir():
             raise StateError(f"state directory {self.state_dir} is not a directory")
-        self._lock_fd = self._acquire_dir_lock()
+        self._lock_fd = self._acquire_dir_lock()  # a held lock is never a reason to reset
+        self._keep_file = False  # set when the file is fine but not ours to reset (newer schema)
         try:
-            self._db = self._open()
+            if self.path.exists() and not os.access(self.path, os.R_OK | os.W_OK):
+                raise StateError(f"state file {self.path} is not readable and writable")
+            try:
+                self._db = self._open()
+            except StateError as e:
+                if not reset or self._keep_file:
+                    raise
+                self._db = None  # type: ignore[assignment]
+                self._move_aside(str(e))
+                self._db = self._open()
         except BaseException:
             self._release_dir_lock()
             raise
@@ -111,8 +126,14 @@ class StateStore:
             self._lock_fd = -1
 
     def _open(self) -> sqlite3.Connection:
-        if self.path.exists() and not os.access(self.path, os.R_OK | os.W_OK):
-            raise StateError(f"state file {self.path} is not readable and writable")
+        wal = self.path.with_name(self.path.name + "-wal")
+        if self.path.exists() and self.path.stat().st_size == 0:
+            # SQLite would take an empty file for a new database and serve an empty state.
+            raise StateError(f"state file {self.path} is empty (0 bytes): truncated?")
+        if not self.path.exists() and wal.exists():
+            raise StateError(
+                f"state file {self.path} is missing but its write-ahead log {wal} exists"
+            )
         try:
             db = sqlite3.connect(self.path, check_same_thread=False, isolation_level=None)
         except sqlite3.Error as e:
@@ -141,6 +162,7 @@ class StateStore:
                 db.execute(f"PRAGMA user_version={SCHEMA_VERSION}")
                 db.execute("COMMIT")
             elif version > SCHEMA_VERSION:
+                self._keep_file = True
                 raise StateError(
                     f"state file {self.path} has schema version {version}, newer than the "
                     f"supported {SCHEMA_VERSION}; upgrade shapeloc"
@@ -163,15 +185,48 @@ class StateStore:
             raise
         return db
 
+    def _side_files(self) -> list[Path]:
+        return [self.path.with_name(self.path.name + sfx) for sfx in ("", "-wal", "-shm")]
+
+    def _move_aside(self, reason: str) -> Path:
+        """Rename the database (and its -wal/-shm files) to ``<name>.bad-<UTC time>[-wal]``."""
+        stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
+        target = self.path.with_name(f"{self.path.name}.bad-{stamp}")
+        n = 1
+        while target.exists():
+            n += 1
+            target = self.path.with_name(f"{self.path.name}.bad-{stamp}-{n}")
+        for src in self._side_files():
+            if src.exists():
+                dst = target.with_name(target.name + src.name[len(self.path.name) :])
+                try:
+                    src.rename(dst)
+                except OSError as e:
+                    raise StateError(f"cannot move bad state file {src} aside: {e}") from e
+        self.quarantined.append((target, reason))
+        return target
+
+    def quarantine(self, reason: str) -> Path:
+        """Move the current database aside (``reason`` is why) and start an empty one in its
+        place; the directory lock stays held. Returns where the old file went. Used by
+        ``--reset-state`` when the stored content itself is invalid."""
+        with self._lock:
+            if self._db is not None:
+                self._db.close()
+                self._db = None  # type: ignore[assignment]
+            target = self._move_aside(reason)
+            self._db = self._open()
+        return target
+
     def close(self) -> None:
         """Close the database and release the directory lock (idempotent)."""
         with self._lock:
-            if self._db is not None:
-                try:
+            try:
+                if self._db is not None:
                     self._db.close()
-                finally:
-                    self._db = None  # type: ignore[assignment]
-                    self._release_dir_lock()
+            finally:
+                self._db = None  # type: ignore[assignment]
+                self._release_dir_lock()
 
     def __enter__(self) -> StateStore:
         return self

@@ -580,3 +580,124 @@ def test_invalid_stored_pose_is_a_state_error(tmp_path: Path) -> None:
     db.close()
     with pytest.raises(StateError, match="stored pose of robot 'r1'"):
         Harness(tmp_path)
+
+
+# --------------------------------------------------------------------------- issue 14
+
+
+class GatedWorker:
+    """Wraps the in-process worker: scan requests wait for ``gate`` (a busy worker)."""
+
+    def __init__(self, inner: Any) -> None:
+        self.inner = inner
+        self.core = inner.core
+        self.gate = threading.Event()
+        self.entered = threading.Event()
+
+    def call(self, req: tuple[Any, ...], timeout_s: float | None = None) -> tuple[str, Any]:
+        if req[0] == "scan":
+            self.entered.set()
+            assert self.gate.wait(20.0)
+        return self.inner.call(req, timeout_s)
+
+    def close(self) -> None:
+        self.inner.close()
+
+
+def test_garbage_on_a_busy_robots_key_never_displaces_its_valid_scan(harness: Harness) -> None:
+    """While the robot's worker is busy, one valid scan waits in its latest-wins slot; 30
+    invalid payloads on the same key are rejected on arrival (with notices) and the valid
+    scan is still the one computed next. A newer valid scan does replace it (latest wins)."""
+    h = harness
+    h.put_map()
+    h.put_config()
+    gated = GatedWorker(h.node.links[0].worker)
+    h.node.links[0].worker = gated  # type: ignore[assignment]
+    h.put_scan("r1", 0, START)
+    assert gated.entered.wait(10.0)
+    h.put_scan("r1", 1, START)
+    good = h.scan_msg(2, START)
+    garbage = [
+        b"\xc1 not msgpack",
+        msgpack.packb({**good, "seq": "two"}),
+        msgpack.packb({**good, "ranges": "lots"}),
+    ]
+    for g in garbage * 10:
+        h.put("shapeloc/robots/r1/scan", g)
+    # every rejection is counted; each gets a notice unless the burst overflowed the robot's
+    # backlog (16 samples here), where the surplus is counted only (one summary notice)
+    wait_for(lambda: h.health().scans_rejected == 30)
+    dropped = h.node.intake.queue.notices_dropped
+    notes = _wait_notices(h, 30 - dropped)
+    per_scan = [n for n in notes if n.key == "shapeloc/robots/r1/scan"]
+    assert len(per_scan) == 30 - dropped
+    assert all("InvalidMessage" in n.error for n in per_scan)
+    assert (h.health().errors or {}).get("scan.InvalidMessage") == 30
+    assert "scan.Skipped" not in (h.health().errors or {})
+    gated.gate.set()
+    wait_for(lambda: len(h.poses()) == 2)
+    assert [p.seq for p in h.poses()] == [0, 1]
+    hl = h.health()
+    assert (hl.scans_processed, hl.scans_rejected) == (2, 30)
+    # valid replaces valid: the older of two pending valid scans is skipped
+    gated.gate.clear()
+    gated.entered.clear()
+    h.put_scan("r1", 2, START)
+    assert gated.entered.wait(10.0)
+    h.put_scan("r1", 3, START)
+    h.put_scan("r1", 4, START)
+    wait_for(lambda: (h.health().errors or {}).get("scan.Skipped") == 1)
+    gated.gate.set()
+    wait_for(lambda: len(h.poses()) == 4)
+    assert [p.seq for p in h.poses()] == [0, 1, 2, 4]
+
+
+def test_reset_state_moves_a_corrupt_file_aside_and_says_so(tmp_path: Path) -> None:
+    from service.errors import StateError
+
+    state = tmp_path / "state"
+    state.mkdir()
+    bad = b"garbage, not sqlite" * 300
+    (state / "shapeloc.sqlite3").write_bytes(bad)
+    with pytest.raises(StateError, match=r"shapeloc\.sqlite3"):
+        Harness(tmp_path)
+    assert (state / "shapeloc.sqlite3").read_bytes() == bad  # never touched without the flag
+    h = Harness(tmp_path, reset_state=True)
+    try:
+        hl = h.health()
+        assert (hl.maps, hl.robots) == (0, 0)
+        assert (hl.errors or {}).get("state.Reset") == 1
+        moved = list(state.glob("shapeloc.sqlite3.bad-*"))
+        assert len(moved) == 1 and moved[0].read_bytes() == bad
+        h.put_map()  # the fresh state works
+        assert h.node.state is not None and set(h.node.state.maps()) == {"room"}
+    finally:
+        h.node.stop()
+    h2 = Harness(tmp_path, reset_state=True)  # a healthy state is never reset
+    try:
+        assert set(h2.node.maps) == {"room"}
+        assert "state.Reset" not in (h2.health().errors or {})
+    finally:
+        h2.node.stop()
+
+
+def test_reset_state_also_covers_invalid_stored_content(tmp_path: Path) -> None:
+    import sqlite3
+
+    from service.errors import StateError
+
+    h = Harness(tmp_path)
+    h.put_map()
+    h.node.stop()
+    db = sqlite3.connect(tmp_path / "state" / "shapeloc.sqlite3")
+    db.execute("UPDATE maps SET payload=?", (msgpack.packb({"map_id": "room", "kind": "x"}),))
+    db.commit()
+    db.close()
+    with pytest.raises(StateError, match="stored map 'room' is invalid"):
+        Harness(tmp_path)
+    h2 = Harness(tmp_path, reset_state=True)
+    try:
+        assert h2.node.maps == {} and (h2.health().errors or {}).get("state.Reset") == 1
+        assert len(list((tmp_path / "state").glob("shapeloc.sqlite3.bad-*"))) == 1
+    finally:
+        h2.node.stop()

@@ -133,3 +133,63 @@ def test_closed_store_raises(tmp_path: Path) -> None:
     st.close()
     with pytest.raises(StateError, match="closed"):
         st.maps()
+
+
+def test_empty_file_is_an_error_not_a_new_database(tmp_path: Path) -> None:
+    """SQLite takes a 0-byte file for a new, empty database: a truncated state file must not
+    silently become an empty map set."""
+    (tmp_path / DB_NAME).write_bytes(b"")
+    with pytest.raises(StateError, match=r"shapeloc\.sqlite3 is empty"):
+        StateStore(tmp_path)
+
+
+def test_missing_file_with_leftover_wal_is_an_error(tmp_path: Path) -> None:
+    (tmp_path / (DB_NAME + "-wal")).write_bytes(b"\x00" * 64)
+    with pytest.raises(StateError, match="write-ahead log"):
+        StateStore(tmp_path)
+
+
+@pytest.mark.parametrize("cut", ["100", "page", "half", "minus_page"])
+def test_truncated_file_raises_and_reset_moves_it_aside(tmp_path: Path, cut: str) -> None:
+    src = tmp_path / "src"
+    with StateStore(src) as s:
+        for i in range(5):
+            s.put_map(f"m{i}", {"map_id": f"m{i}", "polylines": [[[0, 0], [i, 1]]] * 200})
+    data = (src / DB_NAME).read_bytes()
+    assert len(data) >= 4 * 4096
+    n = {"100": 100, "page": 4096, "half": len(data) // 2, "minus_page": len(data) - 4096}[cut]
+    d = tmp_path / "cut"
+    d.mkdir()
+    (d / DB_NAME).write_bytes(data[:n])
+    with pytest.raises(StateError, match=str(d / DB_NAME)):
+        StateStore(d)
+    with StateStore(d, reset=True) as s:
+        assert s.maps() == {}
+        [(moved, why)] = s.quarantined
+        assert moved.name.startswith(DB_NAME + ".bad-") and moved.read_bytes() == data[:n]
+        assert "shapeloc.sqlite3" in why
+
+
+def test_reset_never_touches_a_newer_schema_or_a_locked_dir(tmp_path: Path) -> None:
+    db = sqlite3.connect(tmp_path / DB_NAME)
+    db.execute("PRAGMA user_version=99")
+    db.close()
+    with pytest.raises(StateError, match="newer"):
+        StateStore(tmp_path, reset=True)
+    assert not list(tmp_path.glob("*.bad-*"))
+    other = tmp_path / "other"
+    with StateStore(other), pytest.raises(StateError, match="in use"):
+        StateStore(other, reset=True)
+    assert not list(other.glob("*.bad-*"))
+
+
+def test_quarantine_keeps_the_lock_and_starts_empty(tmp_path: Path) -> None:
+    with StateStore(tmp_path) as s:
+        s.put_map("m", {"map_id": "m"})
+        moved = s.quarantine("stored map 'm' is invalid")
+        assert s.maps() == {} and moved.exists()
+        with pytest.raises(StateError, match="in use"):
+            StateStore(tmp_path)
+        s.put_map("n", {"map_id": "n"})
+    with StateStore(tmp_path) as s2:
+        assert set(s2.maps()) == {"n"}
