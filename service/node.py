@@ -29,13 +29,11 @@ from collections import Counter
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from schemas import codec, keys
 from schemas.limits import MAX_PAYLOAD_BYTES
 from schemas.messages import ErrorNotice, Health, Map, PoseMsg, RobotConfig
 from service import queries
-from service.convert import map_data_of
+from service.control import ControlPlane, Restored, as_list, load_state
 from service.core.types import MapData
 from service.errors import (
     InvalidMessage,
@@ -57,7 +55,7 @@ from service.intake import (
 )
 from service.scheduler import LatestSlots, Worker, WorkerLink
 from service.settings import ServiceSettings
-from service.state import SavedPose, StateStore
+from service.state import StateStore
 from service.workers import Assignment, InlineWorker, ProcessWorker
 
 __all__ = ["MAX_SCAN_BYTES", "LatestSlots", "RejectLog", "ServiceNode"]
@@ -94,16 +92,7 @@ class RejectLog:
             return False, 0
 
 
-@dataclasses.dataclass
-class _Restored:
-    """Everything read back from the state store, parsed, before any worker sees it."""
-
-    maps: dict[str, tuple[Map, MapData]]
-    configs: dict[str, RobotConfig]
-    poses: dict[str, PoseMsg]
-
-
-class ServiceNode:
+class ServiceNode(ControlPlane):
     """The running service on an open Zenoh session.
 
     Use as ``node = ServiceNode(settings, session); node.start(); ...; node.stop()``; the
@@ -242,20 +231,20 @@ class ServiceNode:
         log.info("service %s stopped", self.instance_id)
 
     # ------------------------------------------------------------------ state
-    def _open_state(self) -> _Restored:
+    def _open_state(self) -> Restored:
         """Open the store and parse everything in it. With ``reset_state``, an unreadable
         file (or one holding an invalid map, config or pose) is moved aside and the service
         starts empty, loudly; without it the :class:`StateError` propagates (exit 1)."""
         reset = self.settings.reset_state
         self.state = StateStore(self.settings.state_dir, reset=reset)
         try:
-            restored = self._load(self.state)
+            restored = load_state(self.state)
         except StateError as e:
             if not reset:
                 self.state.close()
                 raise
             self.state.quarantine(str(e))
-            restored = _Restored({}, {}, {})
+            restored = Restored({}, {}, {})
         for moved_to, why in self.state.quarantined:
             with self.lock:
                 self.errors["state.Reset"] += 1
@@ -268,45 +257,7 @@ class ServiceNode:
             )
         return restored
 
-    def _load(self, store: StateStore) -> _Restored:
-        out = _Restored({}, {}, {})
-        for map_id, wire in store.maps().items():
-            try:
-                msg = Map.parse(wire)
-                out.maps[map_id] = (msg, map_data_of(msg))
-            except ShapelocError as e:
-                raise StateError(f"{store.path}: stored map {map_id!r} is invalid: {e}") from e
-        saved = store.poses()
-        for robot_id, wire in store.robots().items():
-            try:
-                cfg = RobotConfig.parse(wire)
-            except ShapelocError as e:
-                raise StateError(
-                    f"{store.path}: stored config of robot {robot_id!r} is invalid: {e}"
-                ) from e
-            out.configs[robot_id] = cfg
-            sp = saved.get(robot_id)
-            if sp is None or sp.map_id != cfg.map_id:
-                continue
-            try:
-                out.poses[robot_id] = PoseMsg(
-                    robot_id=robot_id,
-                    seq=sp.seq,
-                    stamp=sp.stamp,
-                    pose=list(sp.pose),
-                    status=sp.status,
-                    score=0.0,
-                    method=cfg.method,
-                    map_id=cfg.map_id,
-                    latency_ms=0.0,
-                )
-            except ShapelocError as e:
-                raise StateError(
-                    f"{store.path}: stored pose of robot {robot_id!r} is invalid: {e}"
-                ) from e
-        return out
-
-    def _restore(self, r: _Restored) -> None:
+    def _restore(self, r: Restored) -> None:
         """Hand the restored maps and this shard's robots (in id order) to the workers; a
         restored robot resumes from its saved pose."""
         t = self.settings.worker_timeout_s
@@ -318,13 +269,13 @@ class ServiceNode:
             if not self.serves(robot_id):
                 continue
             pm = r.poses.get(robot_id)
-            start = None if pm is None else _lst(pm.pose)
+            start = None if pm is None else as_list(pm.pose)
             if pm is not None:
                 self.poses[robot_id] = pm
             self.configs[robot_id] = cfg
             link = self.links[self.assignment.assign(robot_id)]
             st, why = link.worker.call(
-                ("config", robot_id, cfg.method, cfg.map_id, _lst(cfg.initial_pose), start), t
+                ("config", robot_id, cfg.method, cfg.map_id, as_list(cfg.initial_pose), start), t
             )
             if st != "ok":
                 log.error("restored robot %s could not be set up: %s", robot_id, why)
@@ -364,9 +315,9 @@ class ServiceNode:
         for md in maps:
             link.worker.call(("map", md), t)
         for rid, cfg, pm in robots:
-            start = None if pm is None else _lst(pm.pose)
+            start = None if pm is None else as_list(pm.pose)
             link.worker.call(
-                ("config", rid, cfg.method, cfg.map_id, _lst(cfg.initial_pose), start), t
+                ("config", rid, cfg.method, cfg.map_id, as_list(cfg.initial_pose), start), t
             )
 
     # ------------------------------------------------------------------ callbacks
@@ -568,177 +519,6 @@ class ServiceNode:
             self.scans_processed += 1
         self.session.put(keys.robot_key(self.prefix, robot_id, "pose"), payload, encoding=_MSGPACK)
 
-    # ------------------------------------------------------------------ control
-    def _control_loop(self) -> None:
-        next_save = time.monotonic() + self.settings.pose_save_interval_s
-        while not self.stopping.is_set():
-            timeout = max(0.0, min(0.5, next_save - time.monotonic()))
-            try:
-                item = self._control_q.get(timeout=timeout)
-            except queue.Empty:
-                item = None
-            if item is not None:
-                with self.lock:
-                    self._control_bytes -= 0 if item.payload is None else len(item.payload)
-                try:
-                    self.handle_control(item)
-                except Exception:
-                    log.exception("unexpected error on %s", item.key)
-                finally:
-                    self.clock.mark_applied(item.ctl)
-            self._report_overflows()
-            if time.monotonic() >= next_save:
-                next_save = time.monotonic() + self.settings.pose_save_interval_s
-                try:
-                    self.save_poses()
-                except StateError as e:
-                    log.error("periodic pose save failed: %s", e)
-
-    def _report_overflows(self) -> None:
-        """One aggregated notice per overflow burst (control queue full, intake dropping)."""
-        with self.lock:
-            overflow, self._control_overflow = self._control_overflow, 0
-        if overflow:
-            self.reject(f"{self.prefix}/**", "control", f"control queue full: {overflow} dropped")
-        dropped = self.intake.queue.notices_dropped
-        if dropped > self._dropped_reported:
-            n, self._dropped_reported = dropped - self._dropped_reported, dropped
-            log.warning("scan flood: %d rejections counted without a notice or log line", n)
-            self._notice(
-                keys.robots_wildcard(self.prefix, "scan"),
-                f"Overloaded: scan flood, {n} further rejections counted in health only",
-            )
-
-    def handle_control(self, item: Inbound) -> None:
-        """Apply one map or config put/delete (rejecting it with a notice if invalid)."""
-        what = "map" if "/maps/" in item.key else "config"
-        try:
-            if item.reject is not None:
-                raise InvalidMessage(item.reject)
-            if what == "map":
-                self._handle_map(item)
-            else:
-                self._handle_config(item)
-        except ShapelocError as e:
-            self.reject(item.key, what, e)
-
-    def _broadcast(self, req: tuple[Any, ...]) -> list[tuple[str, Any]]:
-        futs = [link.submit(req) for link in self.links]
-        t = self.settings.worker_timeout_s * 2 + 5
-        return [f.result(timeout=t) for f in futs]
-
-    def _handle_map(self, item: Inbound) -> None:
-        assert self.state is not None
-        map_id = keys.parse_map_key(self.prefix, item.key)
-        if item.delete:
-            with self.lock:
-                known = map_id in self.maps
-            if not known:
-                raise UnknownMap(f"cannot delete map {map_id!r}: it is not stored")
-            self.state.delete_map(map_id)
-            log.info("map %s deleted (robots on it wait for a new one)", map_id)
-            with self.lock:
-                self.maps.pop(map_id, None)
-            self._broadcast(("map_delete", map_id))
-            return
-        assert item.payload is not None
-        msg = codec.decode(Map, item.payload, item.encoding)
-        codec.check_key_id(msg.map_id, map_id, "map_id")
-        md = map_data_of(msg)
-        self.state.put_map(map_id, msg.to_wire())
-        log.info(
-            "map %s stored (%s, %d polylines, %d points)",
-            map_id,
-            msg.kind,
-            len(md.polylines),
-            sum(len(p) for p in md.polylines),
-        )
-        with self.lock:
-            self.maps[map_id] = (msg, md)
-        self._broadcast(("map", md))
-
-    def _handle_config(self, item: Inbound) -> None:
-        assert self.state is not None
-        robot_id, _leaf = keys.parse_robot_key(self.prefix, item.key)
-        if item.delete:
-            with self.lock:
-                known = robot_id in self.configs
-            if not known:
-                raise UnknownRobot(f"cannot delete config of robot {robot_id!r}: unknown robot")
-            self.state.delete_robot(robot_id)
-            log.info("robot %s removed", robot_id)
-            with self.lock:
-                self.configs.pop(robot_id, None)
-                self.poses.pop(robot_id, None)
-                self._dirty.discard(robot_id)
-            link = self._link_of(robot_id)
-            link.slots.discard(robot_id)
-            link.submit(("forget", robot_id)).result()
-            self.assignment.release(robot_id)
-            return
-        assert item.payload is not None
-        cfg = codec.decode(RobotConfig, item.payload, item.encoding)
-        with self.lock:
-            if cfg.map_id not in self.maps:
-                raise UnknownMap(
-                    f"robot {robot_id!r} names map {cfg.map_id!r}, which is not stored; put "
-                    f"{self.prefix}/maps/{cfg.map_id} first"
-                )
-            if robot_id not in self.configs and len(self.configs) >= self.settings.max_robots:
-                raise InvalidMessage(
-                    f"robot limit reached ({self.settings.max_robots}); {robot_id!r} refused"
-                )
-        new = robot_id not in self.configs
-        link = self.links[self.assignment.assign(robot_id)]
-        status, why = link.submit(
-            ("config", robot_id, cfg.method, cfg.map_id, _lst(cfg.initial_pose), None)
-        ).result(timeout=self.settings.worker_timeout_s * 2 + 5)
-        if status != "ok":
-            if new:
-                self.assignment.release(robot_id)
-            raise LocalizationError(f"robot {robot_id!r}: {why}")
-        self.state.put_robot(robot_id, cfg.to_wire())
-        log.info(
-            "robot %s config stored (map %s, method %s, initial pose %s)",
-            robot_id,
-            cfg.map_id,
-            cfg.method,
-            None if cfg.initial_pose is None else _lst(cfg.initial_pose),
-        )
-        with self.lock:
-            self.configs[robot_id] = cfg
-            self.poses.pop(robot_id, None)
-            self._dirty.discard(robot_id)
-
-    def save_poses(self) -> int:
-        """Write the poses that changed since the last save in one transaction; returns how
-        many. After a failed write the poses stay marked for the next save."""
-        with self.lock:
-            dirty = {rid: self.poses[rid] for rid in self._dirty if rid in self.poses}
-            self._dirty.clear()
-        if not dirty or self.state is None:
-            return 0
-        try:
-            self.state.save_poses(
-                {
-                    rid: SavedPose(
-                        p.map_id,
-                        float(p.pose[0]),
-                        float(p.pose[1]),
-                        float(p.pose[2]),
-                        p.seq,
-                        p.stamp,
-                        p.status,
-                    )
-                    for rid, p in dirty.items()
-                }
-            )
-        except StateError:
-            with self.lock:
-                self._dirty.update(rid for rid in dirty if rid in self.poses)
-            raise
-        return len(dirty)
-
     # ------------------------------------------------------------------ queries
     def _query_loop(self) -> None:
         while not self.stopping.is_set():
@@ -765,10 +545,6 @@ class ServiceNode:
     def health(self) -> Health:
         """Current health message (see :func:`service.queries.health`)."""
         return queries.health(self)
-
-
-def _lst(a: Any) -> list[float] | None:
-    return None if a is None else [float(v) for v in np.asarray(a).reshape(-1)]
 
 
 def _clip01(v: float | None) -> float | None:
