@@ -906,6 +906,15 @@ def warm_up() -> float:
     nearest_segment(p, segs)
     split_cuts(np.array([0, 3], dtype=np.intp), p, 1.5)
     field_scores(np.ones((2, 2)), 0.0, 0.0, 0.5, np.zeros((1, 3)), p, 0.1, 10.0)
+    # the map model's kernels (service.core._map_kernels; imported here, not at module level,
+    # because that module imports this one)
+    from service.core.mapmodel import MapModel
+    from service.core.refine import RefineParams, refine_pose
+    from service.core.types import MapData
+
+    model = MapModel(MapData.from_lists("warm-up", "metric", [p]))
+    refine_pose(model, p, np.zeros(3), RefineParams(iterations=2))
+    model.nearest(p, 0.5, np.full_like(p, np.nan))
     return time.perf_counter() - t0
 
 

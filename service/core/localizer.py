@@ -18,15 +18,23 @@ Frames and units: REP 103, metres and radians; poses ``[x, y, theta]`` in the ma
 
 from __future__ import annotations
 
-from typing import Any, Literal
+from typing import Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from service.core.configuration import ExtractionParams, MapViewCache, scan_configuration
+from service.core.configuration import (
+    Configuration,
+    ExtractionParams,
+    MapViewCache,
+    scan_configuration,
+)
 from service.core.dce import DCE_NOISE_THRESHOLD
-from service.core.matching import matched_pairs, support, two_step_match
-from service.core.pose import compose, invert, pose_from_matches
+from service.core.mapmodel import MapModel
+from service.core.matching import two_step_match
+from service.core.motion import Motion, MotionConfig, Prediction, check_pose3
+from service.core.pose import compose
+from service.core.refine import Refined, RefineParams, refine_pose, scan_normals
 from service.core.types import Estimate, MapData, Match, Status, wrap_angle
 from service.errors import LocalizationError
 
@@ -183,36 +191,94 @@ class ShapeConfig(BaseModel):
         description="Cost per metre between a step-2 hypothesis and the prior "
         "position, added when ranking hypotheses.",
     )
-    # --- quality / status ------------------------------------------------------------------
-    min_matches: int = Field(2, ge=1, description="Fewer matched pairs: the scan is rejected.")
-    min_explained: float = Field(
-        0.25, ge=0, le=1, description="Minimum matched fraction of the scan's polyline length."
+    # --- motion model and precise fit (the product's additions to the paper) --------------
+    motion: MotionConfig = Field(
+        default_factory=MotionConfig,
+        description="Motion prior: the odometry increment when a scan carries odom, else the "
+        "robot's own recent velocity (service.core.motion).",
     )
+    refine: RefineParams = Field(
+        default_factory=RefineParams,
+        description="The precise point-to-line fit against the whole map "
+        "(service.core.refine). Schematic: looser (robust_scale 0.08, inlier 0.25 m).",
+    )
+    fit_max_range: float = Field(
+        30.0, gt=0, description="Returns farther than this are not used by the fit (m)."
+    )
+    fit_points: int = Field(
+        400, ge=20, description="At most this many scan points (evenly spaced) enter the fit."
+    )
+    shape_search: Literal["always", "when_doubtful"] = Field(
+        "when_doubtful",
+        description="When the shape matching runs: on every scan, or only when the fit from "
+        "the odometry prior is doubtful (without odometry it always runs).",
+    )
+    doubt_loglik: float = Field(
+        0.6,
+        ge=0,
+        description="The fit from the odometry prior is doubtful when its mean per-point "
+        "log-likelihood falls this far below the robot's recent typical value.",
+    )
+    doubt_mahalanobis: float = Field(
+        16.0,
+        ge=0,
+        description="... or when it moved farther from the prior than this squared Mahalanobis "
+        "distance under the motion model.",
+    )
+    arbiter: Literal["likelihood", "shape"] = Field(
+        "likelihood",
+        description="How the candidate poses are chosen: by the scan's likelihood against the "
+        "map weighed with the motion prior (an exact map explains nearly every return), or "
+        "-- schematic -- by the shape matching whenever it matched enough of the scan (a "
+        "floor plan leaves most returns unexplained, so the metric likelihood cannot arbitrate "
+        "and eq. 5's correspondences decide, as in the paper).",
+    )
+    min_matches: int = Field(2, ge=1, description="Shape arbitration: fewest matched pairs.")
+    min_explained: float = Field(
+        0.25, ge=0, le=1, description="Shape arbitration: least matched share of the scan."
+    )
+    unmatched_weight: float = Field(
+        1.0,
+        ge=0,
+        le=1,
+        description="Weight in the precise fit of scan points whose polyline the shape "
+        "matching left unmatched (furniture a floor plan does not show). Schematic: 0.1.",
+    )
+    evidence_points: float = Field(
+        50.0,
+        gt=0,
+        description="Effective number of independent returns of one scan when its "
+        "log-likelihood is weighed against the motion prior (neighbouring beams are "
+        "correlated; AMCL subsamples to tens of beams for the same reason).",
+    )
+    # --- quality / status ------------------------------------------------------------------
     min_support: float = Field(
-        0.3, ge=0, le=1, description="Minimum fraction of scan points explained at the pose."
+        0.3,
+        ge=0,
+        le=1,
+        description="Minimum fraction of scan points the fit explains (within "
+        "refine.inlier_tolerance); below it the scan is rejected.",
     )
     max_step: float = Field(
         0.5,
         gt=0,
-        description="Largest travel between two scans (m): farther step-1 hypotheses and "
-        "pose jumps are rejected.",
+        description="Without odometry, the largest travel between two scans (m): farther "
+        "shape hypotheses and pose jumps are rejected. With odometry, 3 sigma of the motion "
+        "model are added.",
     )
     max_turn: float = Field(
         1.3,
         gt=0,
-        description="Largest turn between two scans (rad): farther-turned hypotheses and "
-        "poses are rejected.",
+        description="Largest turn between two scans (rad) beyond the prior's: farther-turned "
+        "hypotheses and poses are rejected.",
     )
     lost_after: int = Field(3, ge=1, description="Consecutive rejected scans before 'lost'.")
-    use_odometry: bool = Field(False, description="Seed the prior with the odometry delta.")
-    extrapolate: bool = Field(
-        True,
-        description="Seed the prior position with the localiser's own recent translation per "
-        "scan (no odometry): where a corridor leaves the position along it unobservable the "
-        "estimate keeps moving instead of lagging behind.",
-    )
-    velocity_smoothing: float = Field(
-        0.5, ge=0, le=1, description="Weight of the newest translation in the velocity average."
+    lost_sigma_xy: float = Field(
+        1.0,
+        gt=0,
+        description="With odometry, rejected scans only make the robot 'lost' once the "
+        "accumulated position sigma of the odometry since the last accepted scan exceeds "
+        "this (m); a few unmatched scans are bridged by the odometry.",
     )
 
     @classmethod
@@ -232,6 +298,15 @@ class ShapeConfig(BaseModel):
                 penalty_weight=1.5,
                 pose_inlier_distance=0.4,
                 pose_robust_scale=0.08,
+                unmatched_weight=0.1,
+                arbiter="shape",
+                refine=RefineParams(
+                    robust_scale=0.08,
+                    inlier_tolerance=0.25,
+                    trim_final=0.4,
+                    likelihood_sigma=0.15,
+                    point_sigma=0.08,
+                ),
             )
         raise LocalizationError(f"unknown map kind {kind!r}; expected metric or schematic")
 
@@ -247,19 +322,30 @@ class ShapeConfig(BaseModel):
         )
 
 
-def _check_pose(p: Any, what: str) -> np.ndarray:
-    a = np.asarray(p, dtype=np.float64)
-    if a.shape != (3,) or not np.all(np.isfinite(a)):
-        raise LocalizationError(f"{what}: expected 3 finite values [x, y, theta], got {a.shape}")
-    return np.array([a[0], a[1], wrap_angle(float(a[2]))])
-
-
 class ShapeLocalizer:
     """Shape-based localiser of one robot (implements :class:`service.core.types.Localizer`).
 
     ``map_data`` the map; ``initial_pose`` ``[x, y, theta]`` (map frame) or ``None`` (unknown:
-    global localisation is not implemented yet, every update answers ``initializing``);
-    ``config`` a :class:`ShapeConfig` (default: :meth:`ShapeConfig.for_kind` of the map).
+    every update answers ``initializing``; :mod:`service.core.global_localization` wraps this
+    tracker with the global search); ``config`` a :class:`ShapeConfig` (default:
+    :meth:`ShapeConfig.for_kind` of the map); ``model`` a shared
+    :class:`~service.core.mapmodel.MapModel` of ``map_data`` (built if not given).
+
+    Per scan (see ``docs/core.md`` for what runs where):
+
+    1. the motion model (:class:`~service.core.motion.Motion`) predicts the pose -- the
+       odometry increment when the scan carries ``odom``, else the robot's own velocity;
+    2. the precise fit (:func:`~service.core.refine.refine_pose`) aligns the scan with the
+       whole map from that prior;
+    3. the shape matching of §4-§5 (grouping, DCE, S*, eq. 5 via
+       :func:`~service.core.matching.two_step_match`) runs when there is no odometry, or when
+       the fit from the odometry prior is doubtful (its likelihood dropped, or it moved far
+       from the prior): its correspondences give pose hypotheses beyond the fit's basin, each
+       refined by the precise fit;
+    4. the candidate with the best scan likelihood, weighed against the motion prior, wins;
+       a scan whose best fit explains too little is rejected (the prior is kept) and enough
+       rejections make the robot ``lost``.
+
     Deterministic: the same inputs give the same outputs. Not thread-safe.
     """
 
@@ -270,11 +356,15 @@ class ShapeLocalizer:
         map_data: MapData,
         initial_pose: np.ndarray | None,
         config: ShapeConfig | None = None,
+        *,
+        model: MapModel | None = None,
     ) -> None:
         if config is not None and not isinstance(config, ShapeConfig):
             raise LocalizationError(f"config must be a ShapeConfig, got {type(config).__name__}")
         self.map_data = map_data
         self.config = config or ShapeConfig.for_kind(map_data.kind)
+        self.model = model if model is not None else MapModel(map_data)
+        self.motion = Motion(self.config.motion)
         self._params = self.config.extraction()
         self._views = MapViewCache(
             map_data,
@@ -284,8 +374,6 @@ class ShapeLocalizer:
             params=self._params,
         )
         self._pose: np.ndarray | None = None
-        self._last_odom: np.ndarray | None = None
-        self._rejected = 0
         self.reset(initial_pose)
 
     @property
@@ -295,32 +383,79 @@ class ShapeLocalizer:
 
     def reset(self, initial_pose: np.ndarray | None) -> None:
         """Forget the history; ``None`` means the pose is unknown."""
-        self._pose = None if initial_pose is None else _check_pose(initial_pose, "initial_pose")
-        self._last_odom = None
+        self._pose = None if initial_pose is None else check_pose3(initial_pose, "initial_pose")
         self._rejected = 0
-        self._velocity = np.zeros(2)
+        self._drift = 0.0  # odometry position variance accumulated while scans are rejected
+        self._typical: float | None = None  # recent typical log-likelihood of accepted fits
+        self.motion.reset()
         self._views.clear()
+        #: How many scans ran the shape matching (for benchmarks and tests).
+        self.shape_runs = 0
 
     def predict(self, delta: np.ndarray) -> None:
         """Move the current pose by a known relative motion ``delta`` ``[dx, dy, dtheta]``
-        (robot frame, e.g. an odometry delta) before the next :meth:`update`; no-op without a
-        pose. For motions the matching alone cannot bridge (turns beyond ``max_turn``)."""
-        d = _check_pose(delta, "delta")
+        (robot frame) before the next :meth:`update`; no-op without a pose."""
+        d = check_pose3(delta, "delta")
         if self._pose is not None:
             self._pose = compose(self._pose, d)
 
-    def _prior(self, odom: np.ndarray | None) -> np.ndarray:
-        assert self._pose is not None
-        prior = self._pose
-        if self.config.extrapolate:
-            prior = np.array([prior[0] + self._velocity[0], prior[1] + self._velocity[1], prior[2]])
-        if odom is not None:
-            o = _check_pose(odom, "odom")
-            if self.config.use_odometry and self._last_odom is not None:
-                delta = compose(invert(self._last_odom), o)
-                prior = compose(prior, delta)
-            self._last_odom = o
-        return prior
+    # ------------------------------------------------------------------ internals
+    def _fit_points(self, P: Configuration) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Robot-frame points of the scan's polylines (angular order), their normals and the
+        index of the feature each belongs to, for the precise fit (returns beyond
+        ``fit_max_range`` dropped, evenly thinned to ``fit_points``)."""
+        cfg = self.config
+        if not P.features:
+            return np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0, dtype=np.intp)
+        pts = np.vstack([f.points for f in P.features])
+        nrm = np.vstack([scan_normals(f.points) for f in P.features])
+        own = np.repeat(np.arange(len(P.features)), [len(f.points) for f in P.features])
+        keep = np.hypot(pts[:, 0], pts[:, 1]) <= cfg.fit_max_range
+        pts, nrm, own = pts[keep], nrm[keep], own[keep]
+        if len(pts) > cfg.fit_points:
+            k = np.linspace(0, len(pts) - 1, cfg.fit_points).round().astype(int)
+            pts, nrm, own = pts[k], nrm[k], own[k]
+        return pts, nrm, own
+
+    def _refine(
+        self,
+        pts: np.ndarray,
+        nrm: np.ndarray,
+        start: np.ndarray,
+        pred: Prediction,
+        weights: np.ndarray | None = None,
+    ) -> Refined:
+        return refine_pose(
+            self.model,
+            pts,
+            start,
+            self.config.refine,
+            normals=nrm,
+            weights=weights,
+            prior=pred.pose,
+            prior_information=pred.information,
+        )
+
+    def _score(self, f: Refined, pred: Prediction, weights: np.ndarray | None) -> float:
+        """Scan evidence (weighted mean log-likelihood x effective returns) minus the motion
+        prior's squared Mahalanobis distance / 2: a log-posterior up to a constant."""
+        e = f.pose - pred.pose
+        e[2] = wrap_angle(float(e[2]))
+        m2 = float(e @ pred.information @ e)
+        ll = f.loglik if weights is None else f.weighted_loglik(weights, self.config.refine)
+        return self.config.evidence_points * ll - 0.5 * m2
+
+    def _doubtful(self, f: Refined, pred: Prediction) -> bool:
+        cfg = self.config
+        if cfg.shape_search == "always" or pred.source != "odometry":
+            return True
+        e = f.pose - pred.pose
+        e[2] = wrap_angle(float(e[2]))
+        if float(e @ pred.information @ e) > cfg.doubt_mahalanobis:
+            return True
+        if f.inlier_fraction < cfg.min_support:
+            return True
+        return self._typical is not None and f.loglik < self._typical - cfg.doubt_loglik
 
     def update(
         self, ranges: np.ndarray, angles: np.ndarray, odom: np.ndarray | None = None
@@ -344,99 +479,120 @@ class ShapeLocalizer:
         if np.any(np.isinf(r)) or np.any(r[~np.isnan(r)] < 0):
             raise LocalizationError("ranges must be >= 0 or NaN (no return)")
         if self._pose is None:
+            if odom is not None:
+                check_pose3(odom, "odom")
             return Estimate(pose=np.zeros(3), status="initializing", score=0.0)
         cfg = self.config
-        prior = self._prior(odom)
+        pred = self.motion.predict(self._pose, odom)
         P = scan_configuration(r, a, self._params)
-        Q = self._views.view(prior)
-        if len(P) == 0 or len(Q) == 0:
-            return self._reject(prior, 0.0, (), 0.0, None, reason=1.0)
-        scan_pts = np.vstack([f.points for f in P.features])
-        # While scans are rejected the robot keeps moving: widen the admissible step.
-        max_step = cfg.max_step * (1 + self._rejected)
-        two = two_step_match(P, Q, prior, cfg, scan_pts, max_step=max_step)
-        matches = tuple(two.match.matches)
-        total_len = sum(f.length for f in P.features)
-        matched_len = sum(P.features[i].length for m in matches for i in m.scan)
-        explained = matched_len / total_len if total_len > 0 else 0.0
-        if len(matches) < cfg.min_matches:
-            return self._reject(prior, 0.0, matches, explained, two.ambiguity, reason=2.0)
-        pairs = matched_pairs(P, Q, matches)
-        fit = pose_from_matches(
-            pairs,
-            two.estimate,
-            iterations=cfg.pose_iterations,
-            inlier_distance=cfg.pose_inlier_distance,
-            robust_scale=cfg.pose_robust_scale,
-            prior=prior,
-            prior_weight=cfg.pose_prior_weight,
+        pts, nrm, own = self._fit_points(P)
+        if len(pts) < 3:
+            return self._reject(pred, 0.0, (), 0.0, None, reason=1.0)
+        cands: list[tuple[str, Refined]] = [("prior", self._refine(pts, nrm, pred.pose, pred))]
+        matches: tuple[Match, ...] = ()
+        explained: float | None = None
+        ambiguity: float | None = None
+        weights: np.ndarray | None = None
+        extras: dict[str, float] = {}
+        if self._doubtful(cands[0][1], pred):
+            self.shape_runs += 1
+            Q = self._views.view(pred.pose)
+            if len(Q):
+                scan_pts = np.vstack([f.points for f in P.features])
+                max_step = cfg.max_step * (1 + self._rejected)
+                if pred.source == "odometry":
+                    max_step += 3.0 * float(max(pred.sigma[0], pred.sigma[1]))
+                two = two_step_match(P, Q, pred.pose, cfg, scan_pts, max_step=max_step)
+                matches = tuple(two.match.matches)
+                total = sum(f.length for f in P.features)
+                done = sum(P.features[i].length for m in matches for i in m.scan)
+                explained = done / total if total > 0 else 0.0
+                ambiguity = two.ambiguity
+                extras["step1_hypotheses"] = float(two.hypotheses)
+                extras["eq5_cost"] = two.match.cost
+                if matches and cfg.unmatched_weight < 1.0:
+                    matched = np.zeros(len(P.features), dtype=bool)
+                    matched[[i for m in matches for i in m.scan]] = True
+                    weights = np.where(matched[own], 1.0, cfg.unmatched_weight)
+                if weights is not None:
+                    # the prior's fit again, now without the pull of unmatched structures
+                    cands[0] = ("prior", self._refine(pts, nrm, pred.pose, pred, weights))
+                cands.append(("shape", self._refine(pts, nrm, two.estimate, pred, weights)))
+        shape_ok = (
+            len(cands) > 1
+            and len(matches) >= cfg.min_matches
+            and (explained or 0.0) >= cfg.min_explained
         )
-        sup = support(
-            Q,
-            scan_pts[:: max(1, len(scan_pts) // cfg.support_points)],
-            fit.pose,
-            cfg.support_tolerance,
-        )
-        step = float(np.hypot(*(fit.pose[:2] - prior[:2])))
-        score = float(np.clip(0.5 * sup + 0.5 * explained, 0.0, 1.0))
-        extras = {
-            "rms": fit.rms,
-            "support": sup,
-            "inlier_fraction": fit.inlier_fraction,
-            "step1_hypotheses": float(two.hypotheses),
-            "eq5_cost": two.match.cost,
-        }
-        turn = abs(float(wrap_angle(fit.pose[2] - prior[2])))
-        if (
-            explained < cfg.min_explained
-            or sup < cfg.min_support
-            or step > max_step
-            or turn > cfg.max_turn
-        ):
-            extras["step"] = step
-            return self._reject(
-                prior, score, matches, explained, two.ambiguity, reason=3.0, extras=extras
+        if cfg.arbiter == "shape" and shape_ok:
+            name, best = cands[-1]
+        else:
+            scored = sorted(
+                ((self._score(f, pred, weights), k, n, f) for k, (n, f) in enumerate(cands)),
+                key=lambda t: (-t[0], t[1]),
             )
-        v = fit.pose[:2] - self._pose[:2]
-        a = cfg.velocity_smoothing
-        self._velocity = (1.0 - a) * self._velocity + a * v
-        vn = float(np.hypot(*self._velocity))
-        if vn > 0.5 * cfg.max_step:
-            self._velocity *= 0.5 * cfg.max_step / vn
+            _, _, name, best = scored[0]
+        fit = best.fit
+        sup = fit.inlier_fraction
+        score = float(np.clip(sup if explained is None else 0.5 * (sup + explained), 0.0, 1.0))
+        step = float(np.hypot(*(fit.pose[:2] - pred.pose[:2])))
+        turn = abs(float(wrap_angle(fit.pose[2] - pred.pose[2])))
+        extras.update(
+            {
+                "rms": fit.rms,
+                "support": sup,
+                "loglik": best.loglik,
+                "shape_won": 1.0 if name == "shape" else 0.0,
+                "step": step,
+            }
+        )
+        max_step = cfg.max_step * (1 + self._rejected)
+        if pred.source == "odometry":
+            max_step += 3.0 * float(max(pred.sigma[0], pred.sigma[1]))
+        if sup < cfg.min_support or step > max_step or turn > cfg.max_turn:
+            return self._reject(pred, score, matches, explained, ambiguity, 3.0, extras)
+        a_ = 0.1 if self._typical is not None else 1.0
+        self._typical = (1 - a_) * (self._typical or 0.0) + a_ * best.loglik
+        self.motion.accepted(self._pose, fit.pose)
         self._pose = fit.pose.copy()
         self._rejected = 0
+        self._drift = 0.0
         return Estimate(
             pose=fit.pose.copy(),
             status="tracking",
             score=score,
             matches=matches,
-            explained=float(explained),
-            ambiguity=two.ambiguity,
+            explained=explained,
+            ambiguity=ambiguity,
             covariance=fit.covariance,
             extras=extras,
         )
 
     def _reject(
         self,
-        prior: np.ndarray,
+        pred: Prediction,
         score: float,
         matches: tuple[Match, ...],
-        explained: float,
+        explained: float | None,
         ambiguity: float | None,
         reason: float,
         extras: dict[str, float] | None = None,
     ) -> Estimate:
         """The scan could not be matched well: keep the prior, count towards 'lost'."""
         self._rejected += 1
-        self._pose = prior.copy()
-        self._velocity *= 0.5  # do not coast on while nothing confirms the motion
-        status: Status = "lost" if self._rejected >= self.config.lost_after else "tracking"
+        self._pose = pred.pose.copy()
+        self.motion.rejected()
+        sig = pred.sigma
+        self._drift += float(sig[0] ** 2 + sig[1] ** 2)
+        lost = self._rejected >= self.config.lost_after
+        if pred.source == "odometry":
+            lost = lost and np.sqrt(self._drift) > self.config.lost_sigma_xy
+        status: Status = "lost" if lost else "tracking"
         return Estimate(
-            pose=prior.copy(),
+            pose=pred.pose.copy(),
             status=status,
             score=float(score),
             matches=matches,
-            explained=float(explained),
+            explained=explained,
             ambiguity=ambiguity,
             extras={**(extras or {}), "rejected": reason},
         )

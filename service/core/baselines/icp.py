@@ -6,9 +6,10 @@ distance transform (``scipy.ndimage.distance_transform_edt`` with ``return_indic
 computed once per map over the map's bounding box plus a margin, gives for every cell the
 centre of its nearest occupied cell, so the closest-point query of ICP is a table lookup.
 
-Each :meth:`ICPLocalizer.update` starts from the previous estimate (the paper's baselines do
-not use odometry; :attr:`ICPConfig.use_odometry` can opt in to seeding with odometry
-increments), transforms the scan points into the map, pairs each with its nearest occupied
+Each :meth:`ICPLocalizer.update` starts from the motion model's prior
+(:mod:`service.core.motion`, shared by every method): the previous estimate moved by the
+odometry increment when the scan carries ``odom``, else the previous estimate itself (the
+paper's experiment sends no odometry), transforms the scan points into the map, pairs each with its nearest occupied
 cell centre, rejects outliers with a distance gate that shrinks geometrically over the
 iterations followed by trimming of the worst pairs, and solves the closed-form 2D rigid least
 squares problem; this repeats until the pose change drops below the tolerances.
@@ -25,10 +26,9 @@ from scipy import ndimage
 from service.core.baselines import (
     check_odom,
     check_pose,
-    compose,
-    relative,
     scan_points,
 )
+from service.core.motion import Motion, MotionConfig
 from service.core.types import Estimate, MapData, wrap_angle
 from service.errors import LocalizationError
 
@@ -60,9 +60,10 @@ class ICPConfig(BaseModel):
     tracking_max_rms: float = Field(0.1, gt=0.0, description="rms pair distance to say tracking")
     range_max: float = Field(math.inf, gt=0.0, description="ignore returns beyond this range")
     use_odometry: bool = Field(
-        False,
-        description="seed each scan with the odometry increment; off as in the paper (and in "
-        "the experiment runner): the start value is the previous estimate",
+        True,
+        description="seed each scan with the odometry increment when the scan carries odom "
+        "(service.core.motion, shared by every method); without odometry -- the paper's "
+        "experiment -- the start value is the previous estimate",
     )
 
 
@@ -178,7 +179,7 @@ class ICPLocalizer:
         self.map_data = map_data
         self._pose = check_pose(initial_pose, self.method)
         self.grid = DistanceGrid(map_data, self.config.cell_size, self.config.margin)
-        self._last_odom: np.ndarray | None = None
+        self.motion = Motion(MotionConfig(use_odometry=self.config.use_odometry, extrapolate=False))
 
     @property
     def pose(self) -> np.ndarray | None:
@@ -188,15 +189,7 @@ class ICPLocalizer:
     def reset(self, initial_pose: np.ndarray | None) -> None:
         """Restart tracking from ``initial_pose``; ``None`` raises (no global localisation)."""
         self._pose = check_pose(initial_pose, self.method)
-        self._last_odom = None
-
-    def _seed(self, odom: np.ndarray | None) -> np.ndarray:
-        if not self.config.use_odometry or odom is None:
-            return self._pose.copy()
-        seed = self._pose.copy()
-        if self._last_odom is not None:
-            seed = compose(self._pose, relative(self._last_odom, odom))
-        return seed
+        self.motion.reset()
 
     def update(
         self, ranges: np.ndarray, angles: np.ndarray, odom: np.ndarray | None = None
@@ -205,9 +198,7 @@ class ICPLocalizer:
         cfg = self.config
         odom_v = check_odom(odom)
         pts = scan_points(ranges, angles, cfg.range_max)
-        pose = self._seed(odom_v)
-        if odom_v is not None:
-            self._last_odom = odom_v
+        pose = self.motion.predict(self._pose, odom_v).pose
         if len(pts) < cfg.min_points:
             self._pose = pose
             return Estimate(

@@ -8,8 +8,9 @@ a total-least-squares line fit (normal form ``n . p = r``) with outlier points d
 Map side: the map's polylines become line segments, consecutive (nearly) collinear edges
 merged into one.
 
-Matching, starting from the previous estimate (odometry only if
-:attr:`LineConfig.use_odometry` asks for it; off as in the paper): each scan line, moved into
+Matching, starting from the motion model's prior (:mod:`service.core.motion`: the previous
+estimate moved by the odometry increment when the scan carries ``odom``, else the previous
+estimate, as in the paper's experiment): each scan line, moved into
 the map with the current pose, is associated with the nearest map line (Cox-style) that passes
 an orientation gate, a perpendicular-distance gate and an overlap test; the pose then follows
 from damped Gauss-Newton least squares of the point-to-line distances of all points of the
@@ -28,11 +29,10 @@ from pydantic import BaseModel, ConfigDict, Field
 from service.core.baselines import (
     check_odom,
     check_pose,
-    compose,
-    relative,
     scan_points,
     transform_points,
 )
+from service.core.motion import Motion, MotionConfig
 from service.core.types import Estimate, MapData, wrap_angle
 from service.errors import LocalizationError
 
@@ -79,9 +79,10 @@ class LineConfig(BaseModel):
     tracking_max_rms: float = Field(0.05, gt=0.0, description="rms point-to-line distance")
     range_max: float = Field(math.inf, gt=0.0, description="ignore returns beyond this range")
     use_odometry: bool = Field(
-        False,
-        description="seed each scan with the odometry increment; off as in the paper (and in "
-        "the experiment runner): the start value is the previous estimate",
+        True,
+        description="seed each scan with the odometry increment when the scan carries odom "
+        "(service.core.motion, shared by every method); without odometry -- the paper's "
+        "experiment -- the start value is the previous estimate",
     )
 
 
@@ -265,7 +266,7 @@ class LineLocalizer:
         self.config = config or LineConfig()
         self.map_data = map_data
         self._pose = check_pose(initial_pose, self.method)
-        self._last_odom: np.ndarray | None = None
+        self.motion = Motion(MotionConfig(use_odometry=self.config.use_odometry, extrapolate=False))
         segs = map_lines(map_data, self.config.map_merge_angle)
         self.map_segments = segs
         d = segs[:, 2:] - segs[:, :2]
@@ -284,7 +285,7 @@ class LineLocalizer:
     def reset(self, initial_pose: np.ndarray | None) -> None:
         """Restart tracking from ``initial_pose``; ``None`` raises (no global localisation)."""
         self._pose = check_pose(initial_pose, self.method)
-        self._last_odom = None
+        self.motion.reset()
 
     def _associate(
         self, lines: list[LineSegment], pose: np.ndarray, angle_gate: float, dist_gate: float
@@ -308,11 +309,6 @@ class LineLocalizer:
         best = np.argmin(cost, axis=1)
         return np.where(ok.any(axis=1), best, -1)
 
-    def _seed(self, odom: np.ndarray | None) -> np.ndarray:
-        if not self.config.use_odometry or odom is None or self._last_odom is None:
-            return self._pose.copy()
-        return compose(self._pose, relative(self._last_odom, odom))
-
     def update(
         self, ranges: np.ndarray, angles: np.ndarray, odom: np.ndarray | None = None
     ) -> Estimate:
@@ -320,9 +316,7 @@ class LineLocalizer:
         cfg = self.config
         odom_v = check_odom(odom)
         pts = scan_points(ranges, angles, cfg.range_max)
-        pose = self._seed(odom_v)
-        if odom_v is not None:
-            self._last_odom = odom_v
+        pose = self.motion.predict(self._pose, odom_v).pose
         a = np.asarray(angles, dtype=np.float64)
         span = float(a.max() - a.min()) if a.size > 1 else 0.0
         step = span / (a.size - 1) if a.size > 1 else 0.0

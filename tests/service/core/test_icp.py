@@ -141,17 +141,18 @@ def test_icp_tracks_a_short_motion_without_odometry() -> None:
     assert abs(wrap_angle(est.pose[2] - truth[2])) < np.radians(1.5)
 
 
-def test_icp_odometry_seed_flag_uses_increments() -> None:
+def test_icp_uses_odometry_increments_by_default_and_not_when_switched_off() -> None:
     m = _room()
     start = np.array([1.0, 1.0, 0.0])
-    cfg = ICPConfig(use_odometry=True, max_iterations=1, gate_initial=0.05, gate_final=0.05)
+    cfg = ICPConfig(max_iterations=1, gate_initial=0.05, gate_final=0.05)
     loc = ICPLocalizer(m, start, cfg)
     loc.update(*_scan(m, start, seed=1), odom=np.array([10.0, 10.0, 0.0]))
     truth = np.array([1.5, 1.0, 0.0])
     # With a 0.05 m gate only the odometry seed can bring the estimate near the truth.
     est = loc.update(*_scan(m, truth, seed=2), odom=np.array([10.5, 10.0, 0.0]))
     assert np.hypot(*(est.pose[:2] - truth[:2])) < 0.03
-    off = ICPLocalizer(m, start, ICPConfig(max_iterations=1, gate_initial=0.05, gate_final=0.05))
+    off_cfg = ICPConfig(use_odometry=False, max_iterations=1, gate_initial=0.05, gate_final=0.05)
+    off = ICPLocalizer(m, start, off_cfg)
     off.update(*_scan(m, start, seed=1), odom=np.array([10.0, 10.0, 0.0]))
     est_off = off.update(*_scan(m, truth, seed=2), odom=np.array([10.5, 10.0, 0.0]))
     assert np.hypot(*(est_off.pose[:2] - truth[:2])) > 0.3

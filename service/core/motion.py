@@ -1,0 +1,234 @@
+"""Motion models: where the robot should be now, and how sure we are (one seam for every method).
+
+A :class:`MotionModel` turns the last pose and the scan's optional odometry into a *prior*
+pose with an *information matrix* (inverse covariance, map frame, ``[x, y, theta]``), the
+way AMCL's motion models seed its particles. Every localisation method (``shape``, ``icp``,
+``lines``) asks the same model:
+
+* :class:`OdometryMotion` -- the scan carries ``odom`` (the odometry pose in its own frame):
+  the prior is ``last_pose (+) (odom_prev^-1 (+) odom)``, the increment since the previous
+  scan; its uncertainty grows with the distance driven and the angle turned (the
+  ``alpha`` parameters of the classic odometry model, as in AMCL's ``diff`` model).
+* :class:`VelocityMotion` -- no odometry (the seed's experiment, ``--no-odom``): the robot is
+  assumed to keep its recent translation per scan (smoothed), heading unchanged; the prior is
+  weak, so the scan decides.
+
+:class:`Motion` picks per scan: odometry when the scan has it and ``use_odometry`` is on,
+else the velocity model (a scan without ``odom`` after scans with it falls back cleanly).
+Frames and units: REP 103, metres and radians; odometry increments are in the robot frame.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal, Protocol
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from service.core.pose import compose, invert
+from service.core.types import wrap_angle
+from service.errors import LocalizationError
+
+Source = Literal["odometry", "velocity"]
+
+
+class MotionConfig(BaseModel):
+    """Parameters of the motion models (metres, radians). Tuned on the intel and fr079 logs."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    use_odometry: bool = Field(
+        True,
+        description="Use a scan's odometry increment as the prior when the scan carries "
+        "'odom' (off: the paper's no-odometry mode even when odometry is sent).",
+    )
+    alpha_rot_rot: float = Field(0.1, ge=0, description="Rotation noise per radian turned.")
+    alpha_rot_trans: float = Field(0.05, ge=0, description="Rotation noise (rad) per metre driven.")
+    alpha_trans_trans: float = Field(0.1, ge=0, description="Translation noise per metre driven.")
+    alpha_trans_rot: float = Field(0.05, ge=0, description="Translation noise (m) per radian.")
+    sigma_xy_floor: float = Field(
+        0.03, gt=0, description="Smallest odometry position sigma per scan (m)."
+    )
+    sigma_theta_floor: float = Field(
+        0.02, gt=0, description="Smallest odometry heading sigma per scan (rad)."
+    )
+    extrapolate: bool = Field(
+        True,
+        description="Without odometry, extrapolate the robot's recent velocity (off: the prior "
+        "is the previous pose, as the paper's baselines do).",
+    )
+    velocity_smoothing: float = Field(
+        0.5, ge=0, le=1, description="Weight of the newest translation in the velocity average."
+    )
+    max_velocity: float = Field(
+        0.25, gt=0, description="Cap of the extrapolated translation per scan (m)."
+    )
+    velocity_sigma_xy: float = Field(
+        0.3, gt=0, description="Position sigma of the velocity prior (m): weak on purpose."
+    )
+    velocity_sigma_theta: float = Field(
+        0.6, gt=0, description="Heading sigma of the velocity prior (rad): weak on purpose."
+    )
+
+
+@dataclass(frozen=True)
+class Prediction:
+    """A prior pose ``[x, y, theta]`` (map frame) with its 3x3 information matrix (map frame,
+    1/m^2 and 1/rad^2), where it came from, and the odometry increment used (robot frame,
+    ``None`` without odometry)."""
+
+    pose: np.ndarray
+    information: np.ndarray
+    source: Source
+    delta: np.ndarray | None = None
+
+    @property
+    def sigma(self) -> np.ndarray:
+        """Standard deviations ``[sx, sy, stheta]`` of the prior (diagonal of its covariance)."""
+        return np.sqrt(1.0 / np.maximum(np.diag(self.information), 1e-12))
+
+
+class MotionModel(Protocol):
+    """The seam every method uses to predict the pose of the next scan."""
+
+    def reset(self) -> None:
+        """Forget odometry and velocity history (new start pose)."""
+        ...
+
+    def predict(self, pose: np.ndarray, odom: np.ndarray | None) -> Prediction:
+        """Prior for the scan that carries ``odom`` (or ``None``), from the last ``pose``."""
+        ...
+
+    def accepted(self, previous: np.ndarray, pose: np.ndarray) -> None:
+        """The scan was localised: ``previous`` -> ``pose`` is the motion it showed."""
+        ...
+
+    def rejected(self) -> None:
+        """The scan could not be localised (the prior was kept)."""
+        ...
+
+
+def check_pose3(p: object, what: str) -> np.ndarray:
+    """``[x, y, theta]`` as float64 with theta wrapped; :class:`LocalizationError` otherwise."""
+    a = np.asarray(p, dtype=np.float64)
+    if a.shape != (3,) or not np.all(np.isfinite(a)):
+        raise LocalizationError(f"{what}: expected 3 finite values [x, y, theta], got {a.shape}")
+    return np.array([a[0], a[1], wrap_angle(float(a[2]))])
+
+
+def _information(theta: float, sx: float, sy: float, st: float) -> np.ndarray:
+    """Information matrix (map frame) of independent robot-frame sigmas ``sx`` (forward),
+    ``sy`` (left) and ``st`` (heading) at heading ``theta``."""
+    c, s = np.cos(theta), np.sin(theta)
+    R = np.array([[c, -s], [s, c]])
+    info = np.zeros((3, 3))
+    info[:2, :2] = R @ np.diag([1.0 / sx**2, 1.0 / sy**2]) @ R.T
+    info[2, 2] = 1.0 / st**2
+    return info
+
+
+class OdometryMotion:
+    """Odometry increment as the prior (see the module docstring); sigmas per scan:
+    ``s_trans = floor + alpha_trans_trans * d + alpha_trans_rot * |dtheta|`` and
+    ``s_rot = floor + alpha_rot_rot * |dtheta| + alpha_rot_trans * d``."""
+
+    def __init__(self, config: MotionConfig) -> None:
+        self.config = config
+        self._last: np.ndarray | None = None
+
+    def reset(self) -> None:
+        self._last = None
+
+    def increment(self, odom: np.ndarray) -> np.ndarray | None:
+        """Robot-frame increment since the previous odometry pose (``None`` the first time);
+        remembers ``odom``."""
+        o = check_pose3(odom, "odom")
+        delta = None if self._last is None else compose(invert(self._last), o)
+        self._last = o
+        return delta
+
+    def predict(self, pose: np.ndarray, odom: np.ndarray | None) -> Prediction:
+        if odom is None:
+            raise LocalizationError("OdometryMotion.predict needs odometry")
+        delta = self.increment(odom)
+        c = self.config
+        if delta is None:
+            delta = np.zeros(3)
+        d = float(np.hypot(delta[0], delta[1]))
+        t = abs(float(delta[2]))
+        s_trans = c.sigma_xy_floor + c.alpha_trans_trans * d + c.alpha_trans_rot * t
+        s_rot = c.sigma_theta_floor + c.alpha_rot_rot * t + c.alpha_rot_trans * d
+        prior = compose(pose, delta)
+        info = _information(float(prior[2]), s_trans, s_trans, s_rot)
+        return Prediction(pose=prior, information=info, source="odometry", delta=delta)
+
+    def accepted(self, previous: np.ndarray, pose: np.ndarray) -> None:
+        return None
+
+    def rejected(self) -> None:
+        return None
+
+
+class VelocityMotion:
+    """Constant-velocity prior without odometry: the last pose moved by the smoothed
+    translation per scan (capped at ``max_velocity``), heading kept; weak information."""
+
+    def __init__(self, config: MotionConfig) -> None:
+        self.config = config
+        self._velocity = np.zeros(2)
+
+    @property
+    def velocity(self) -> np.ndarray:
+        """Smoothed translation per scan (map frame, m)."""
+        return self._velocity.copy()
+
+    def reset(self) -> None:
+        self._velocity = np.zeros(2)
+
+    def predict(self, pose: np.ndarray, odom: np.ndarray | None = None) -> Prediction:
+        c = self.config
+        v = self._velocity if c.extrapolate else np.zeros(2)
+        prior = np.array([pose[0] + v[0], pose[1] + v[1], pose[2]])
+        info = _information(
+            float(prior[2]), c.velocity_sigma_xy, c.velocity_sigma_xy, c.velocity_sigma_theta
+        )
+        return Prediction(pose=prior, information=info, source="velocity")
+
+    def accepted(self, previous: np.ndarray, pose: np.ndarray) -> None:
+        a = self.config.velocity_smoothing
+        self._velocity = (1.0 - a) * self._velocity + a * (pose[:2] - previous[:2])
+        vn = float(np.hypot(*self._velocity))
+        if vn > self.config.max_velocity:
+            self._velocity *= self.config.max_velocity / vn
+
+    def rejected(self) -> None:
+        self._velocity *= 0.5  # do not coast on while nothing confirms the motion
+
+
+class Motion:
+    """Per scan: :class:`OdometryMotion` when the scan carries ``odom`` (and
+    ``config.use_odometry``), else :class:`VelocityMotion`. Implements :class:`MotionModel`."""
+
+    def __init__(self, config: MotionConfig | None = None) -> None:
+        self.config = config or MotionConfig()
+        self.odometry = OdometryMotion(self.config)
+        self.velocity = VelocityMotion(self.config)
+
+    def reset(self) -> None:
+        self.odometry.reset()
+        self.velocity.reset()
+
+    def predict(self, pose: np.ndarray, odom: np.ndarray | None) -> Prediction:
+        if odom is not None and self.config.use_odometry:
+            return self.odometry.predict(pose, odom)
+        if odom is not None:
+            check_pose3(odom, "odom")  # same validation whether it is used or not
+        self.odometry.reset()  # a gap in the odometry: the next increment starts afresh
+        return self.velocity.predict(pose)
+
+    def accepted(self, previous: np.ndarray, pose: np.ndarray) -> None:
+        self.velocity.accepted(previous, pose)
+
+    def rejected(self) -> None:
+        self.velocity.rejected()
