@@ -9,10 +9,11 @@ centre of its nearest occupied cell, so the closest-point query of ICP is a tabl
 Each :meth:`ICPLocalizer.update` starts from the motion model's prior
 (:mod:`service.core.motion`, shared by every method): the previous estimate moved by the
 odometry increment when the scan carries ``odom``, else the previous estimate itself (the
-paper's experiment sends no odometry), transforms the scan points into the map, pairs each with its nearest occupied
-cell centre, rejects outliers with a distance gate that shrinks geometrically over the
-iterations followed by trimming of the worst pairs, and solves the closed-form 2D rigid least
-squares problem; this repeats until the pose change drops below the tolerances.
+paper's experiment sends no odometry), transforms the scan points into the map, pairs each
+with its nearest occupied cell centre, rejects outliers with a distance gate that shrinks
+geometrically over the iterations followed by trimming of the worst pairs, and solves the
+closed-form 2D rigid least squares problem; this repeats until the pose change drops below
+the tolerances.
 """
 
 from __future__ import annotations
