@@ -5,8 +5,11 @@
   ``python -m service --listen <endpoint> --state-dir <state_dir> ...`` and wait until it
   answers ``get shapeloc/service/health``; returns a :class:`ServiceProc`. Every spawned
   process is killed at teardown.
-* ``open_session(endpoint)``: a loopback-only Zenoh *client* session connected to
-  ``endpoint`` (multicast scouting off); closed at teardown.
+* ``open_session(endpoint, extra=None)``: a loopback-only Zenoh *client* session connected to
+  ``endpoint`` (multicast scouting off; ``extra`` maps config paths to values, e.g. TLS or
+  user/password); closed at teardown.
+* ``spawn_router(endpoint)``: a Zenoh router (a Python session in router mode) listening on
+  ``endpoint``; ``RouterProc.kill()`` / ``restart()``. Killed at teardown.
 * ``lockstep_sim(svc, sim_args, scans)``: run one simulated robot in lockstep against a
   spawned service and return its pose messages and true poses by ``seq``.
 
@@ -48,13 +51,16 @@ def free_endpoint() -> str:
     return f"tcp/127.0.0.1:{free_port()}"
 
 
-def client_config(endpoint: str) -> zenoh.Config:
-    """Loopback-only client configuration connecting to ``endpoint``."""
+def client_config(endpoint: str, extra: dict[str, Any] | None = None) -> zenoh.Config:
+    """Loopback-only client configuration connecting to ``endpoint``; ``extra`` maps Zenoh
+    config paths (``transport/link/tls/root_ca_certificate``, ...) to JSON values."""
     conf = zenoh.Config()
     conf.insert_json5("mode", json.dumps("client"))
     conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
     conf.insert_json5("scouting/multicast/enabled", "false")
     conf.insert_json5("scouting/delay", "0")
+    for path, value in (extra or {}).items():
+        conf.insert_json5(path, json.dumps(value))
     return conf
 
 
@@ -127,8 +133,15 @@ def _start(state_dir: Path, args: tuple[str, ...], endpoint: str, workers: int) 
     return ServiceProc(proc, endpoint, state_dir, log_path, tuple(args))
 
 
-def wait_ready(svc: ServiceProc, timeout_s: float = STARTUP_TIMEOUT_S, prefix: str = PREFIX) -> Any:
-    """Poll health until the service answers; fail with its log if it exits or times out."""
+def wait_ready(
+    svc: ServiceProc,
+    timeout_s: float = STARTUP_TIMEOUT_S,
+    prefix: str = PREFIX,
+    via: str | None = None,
+    extra: dict[str, Any] | None = None,
+) -> Any:
+    """Poll health until the service answers (through ``via``, default the service's own
+    endpoint, with client config ``extra``); fail with its log if it exits or times out."""
     deadline = time.monotonic() + timeout_s
     session = None
     try:
@@ -139,7 +152,7 @@ def wait_ready(svc: ServiceProc, timeout_s: float = STARTUP_TIMEOUT_S, prefix: s
                 )
             if session is None:
                 try:
-                    session = zenoh.open(client_config(svc.endpoint))
+                    session = zenoh.open(client_config(via or svc.endpoint, extra))
                 except zenoh.ZError:
                     time.sleep(0.2)
                     continue
@@ -155,7 +168,9 @@ def wait_ready(svc: ServiceProc, timeout_s: float = STARTUP_TIMEOUT_S, prefix: s
 
 @pytest.fixture
 def spawn_service() -> Iterator[Callable[..., ServiceProc]]:
-    """Factory: ``spawn_service(state_dir, *args, workers=1, endpoint=None, wait=True)``."""
+    """Factory: ``spawn_service(state_dir, *args, workers=1, endpoint=None, wait=True,
+    via=None, extra=None)`` (``via``/``extra``: where and how the readiness check connects,
+    e.g. a router's endpoint for a client-mode service, or TLS settings)."""
     procs: list[ServiceProc] = []
 
     def spawn(
@@ -164,11 +179,13 @@ def spawn_service() -> Iterator[Callable[..., ServiceProc]]:
         workers: int = 1,
         endpoint: str | None = None,
         wait: bool = True,
+        via: str | None = None,
+        extra: dict[str, Any] | None = None,
     ) -> ServiceProc:
         svc = _start(Path(state_dir), tuple(args), endpoint or free_endpoint(), workers)
         procs.append(svc)
         if wait:
-            wait_ready(svc, prefix=_prefix_of(args))
+            wait_ready(svc, prefix=_prefix_of(args), via=via, extra=extra)
         return svc
 
     yield spawn
@@ -185,12 +202,13 @@ def _prefix_of(args: tuple[str, ...]) -> str:
 
 
 @pytest.fixture
-def open_session() -> Iterator[Callable[[str], zenoh.Session]]:
-    """Factory: ``open_session(endpoint)`` -> client session, closed at teardown."""
+def open_session() -> Iterator[Callable[..., zenoh.Session]]:
+    """Factory: ``open_session(endpoint, extra=None)`` -> client session, closed at
+    teardown."""
     sessions: list[zenoh.Session] = []
 
-    def opener(endpoint: str) -> zenoh.Session:
-        s = zenoh.open(client_config(endpoint))
+    def opener(endpoint: str, extra: dict[str, Any] | None = None) -> zenoh.Session:
+        s = zenoh.open(client_config(endpoint, extra))
         sessions.append(s)
         return s
 
@@ -263,3 +281,70 @@ def lockstep_sim() -> Callable[..., tuple[dict[int, Any], dict[int, Any]]]:
     one simulated robot driven in lockstep against a spawned service (see
     :func:`run_lockstep_sim`)."""
     return run_lockstep_sim
+
+
+# A Zenoh router for the fault tests: a Python session in router mode (the compose file's
+# zenohd is the production form). Prints "ready" once listening; SIGTERM closes it.
+_ROUTER_CODE = """
+import json, signal, sys, threading, zenoh
+conf = zenoh.Config()
+conf.insert_json5("mode", '"router"')
+conf.insert_json5("listen/endpoints", json.dumps([sys.argv[1]]))
+conf.insert_json5("scouting/multicast/enabled", "false")
+conf.insert_json5("scouting/delay", "0")
+stop = threading.Event()
+signal.signal(signal.SIGTERM, lambda *a: stop.set())
+with zenoh.open(conf):
+    print("ready", flush=True)
+    stop.wait()
+"""
+
+
+@dataclass
+class RouterProc:
+    """A running Zenoh router process on ``endpoint``."""
+
+    endpoint: str
+    proc: subprocess.Popen[bytes] | None = None
+
+    def start(self) -> None:
+        """Start it and wait until it listens (it prints "ready")."""
+        self.proc = subprocess.Popen(
+            [sys.executable, "-c", _ROUTER_CODE, self.endpoint],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.DEVNULL,
+            env=_sim_env(),
+            start_new_session=True,
+        )
+        assert self.proc.stdout is not None
+        line = self.proc.stdout.readline()  # "ready", or b"" if it exited
+        if line.strip() != b"ready":
+            raise AssertionError(f"router on {self.endpoint} did not start: {line!r}")
+
+    def kill(self) -> None:
+        """SIGKILL (no goodbye on the links) and reap."""
+        if self.proc is not None and self.proc.poll() is None:
+            self.proc.kill()
+        if self.proc is not None:
+            self.proc.wait(timeout=10)
+
+    def restart(self) -> None:
+        """Kill, then start again on the same endpoint."""
+        self.kill()
+        self.start()
+
+
+@pytest.fixture
+def spawn_router() -> Iterator[Callable[[str], RouterProc]]:
+    """Factory: ``spawn_router(endpoint)`` -> a started :class:`RouterProc`."""
+    routers: list[RouterProc] = []
+
+    def spawn(endpoint: str) -> RouterProc:
+        r = RouterProc(endpoint)
+        routers.append(r)
+        r.start()
+        return r
+
+    yield spawn
+    for r in routers:
+        r.kill()
