@@ -3,6 +3,11 @@
 Beam ``i`` points at ``angle_min + i * angle_increment`` in the robot frame (radians, CCW from
 the robot's forward x axis); ranges are metres from the robot origin. "No return" (nothing
 within ``max_range``, a dropout, or a noisy value outside ``[range_min, max_range]``) is NaN.
+
+Moving obstacles (people) are passed per scan as circles ``(k, 3)`` ``[x, y, r]`` (map frame,
+m): they are intersected analytically with the beams and merged with the static ray cast,
+which is built once for the static segments. A circle that contains the sensor is not seen
+(the sensor would be inside it).
 """
 
 from __future__ import annotations
@@ -80,18 +85,53 @@ class LaserSimulator:
         self.angles = self.angle_min + self.angle_increment * np.arange(self.config.beams)
         self.angles.setflags(write=False)
 
-    def exact(self, pose: np.ndarray) -> np.ndarray:
-        """Noise-free ranges (m) from ``pose`` ``[x, y, theta]``, NaN beyond ``max_range``."""
-        return self._caster.cast(pose, self.angles, self.config.max_range)
+    def exact(self, pose: np.ndarray, circles: np.ndarray | None = None) -> np.ndarray:
+        """Noise-free ranges (m) from ``pose`` ``[x, y, theta]``, NaN beyond ``max_range``;
+        ``circles`` ``(k, 3)`` ``[x, y, r]`` are moving obstacles seen in this scan only."""
+        r = self._caster.cast(pose, self.angles, self.config.max_range)
+        if circles is not None and len(circles):
+            r = _with_circles(
+                r, np.asarray(pose, dtype=np.float64), self.angles, circles, self.config.max_range
+            )
+        return r
 
-    def scan(self, pose: np.ndarray, index: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    def scan(
+        self, pose: np.ndarray, index: int = 0, circles: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
         """One noisy scan from ``pose``: ``(ranges (n,) m with NaN for no return, angles (n,)
-        rad in the robot frame)``."""
+        rad in the robot frame)``. ``circles``: moving obstacles at the scan's time (see
+        :meth:`exact`); the noise draws do not depend on them."""
         cfg = self.config
-        r = self.exact(pose)
+        r = self.exact(pose, circles)
         rng = np.random.default_rng((self.seed, int(index)))
         noise = rng.normal(0.0, cfg.noise_sigma, size=r.shape) if cfg.noise_sigma > 0 else 0.0
         drop = rng.random(r.shape) < cfg.dropout
         r = r + noise
         r[drop | (r < cfg.range_min) | (r > cfg.max_range)] = np.nan
         return r, self.angles.copy()
+
+
+def _with_circles(
+    ranges: np.ndarray, pose: np.ndarray, angles: np.ndarray, circles: np.ndarray, max_range: float
+) -> np.ndarray:
+    """``ranges`` with the nearest hit on any circle ``[x, y, r]`` where it is nearer."""
+    c = np.asarray(circles, dtype=np.float64).reshape(-1, 3)
+    w = c[:, :2] - pose[:2]  # sensor -> centre (k, 2)
+    ww = np.einsum("ij,ij->i", w, w)
+    outside = ww > c[:, 2] ** 2
+    near = outside & (np.sqrt(ww) - c[:, 2] <= max_range)
+    if not near.any():
+        return ranges
+    w, ww, rad = w[near], ww[near], c[near, 2]
+    th = angles + pose[2]
+    d = np.c_[np.cos(th), np.sin(th)]  # (n, 2)
+    b = d @ w.T  # (n, k): projection of the centre on each beam
+    disc = b**2 - (ww - rad**2)[None, :]
+    with np.errstate(invalid="ignore"):
+        t = b - np.sqrt(disc)
+    t = np.where((disc >= 0.0) & (b > 0.0) & (t <= max_range), t, np.inf)
+    hit = t.min(axis=1)
+    out = ranges.copy()
+    closer = np.isfinite(hit) & ~(hit >= out)  # NaN static range: any circle hit is closer
+    out[closer] = hit[closer]
+    return out

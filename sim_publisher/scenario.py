@@ -4,11 +4,18 @@ Setup 1: exact metric map, a scan every ~11 mm of the tour (~3900 scans), proxim
 100 mm / 45 deg. Setup 2: schematic map, a scan every ~104 mm of the same tour (~410 scans),
 proximity test 500 mm / 45 deg. In both, scans are simulated against the TRUE office world
 (furniture included). Poses are map-frame ``[x, y, theta]`` (m, m, rad).
+
+:func:`building_setup` builds the same two setups for a generated building
+(:mod:`sim_publisher.generator`): its metric map for setup 1, its schematic map for setup 2,
+its tour sampled every 11 / 104 mm, the same laser and odometry models, and, when the building
+has moving people, scans that see them where they are at each scan's time.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -20,12 +27,16 @@ from sim_publisher.office import office_metric_map, office_schematic_map, office
 from sim_publisher.trajectory import (
     STEP_SETUP1,
     STEP_SETUP2,
+    OdometryNoise,
     run_stats,
     simulate_odometry,
     tour_poses,
 )
 
-__all__ = ["Setup", "make_setup", "run_stats"]
+if TYPE_CHECKING:
+    from sim_publisher.generator import Building, SchematicParams
+
+__all__ = ["Setup", "building_setup", "make_setup", "run_stats"]
 
 
 @dataclass
@@ -46,16 +57,26 @@ class Setup:
     proximity_deg: float = 45.0
     step_m: float = STEP_SETUP1
     world: World = field(default_factory=office_world, repr=False)
+    #: Time (s) of every scan (None: no clock; only needed with ``dynamic``).
+    times: np.ndarray | None = field(default=None, repr=False)
+    #: Moving obstacles: time (s) -> circles ``(k, 3)`` ``[x, y, r]`` (m) seen by the laser.
+    dynamic: Callable[[float], np.ndarray] | None = field(default=None, repr=False)
 
     def __len__(self) -> int:
         return int(self.truth.shape[0])
 
+    def circles(self, i: int) -> np.ndarray | None:
+        """The moving obstacles at scan ``i``'s time (None when there are none)."""
+        if self.dynamic is None or self.times is None:
+            return None
+        return self.dynamic(float(self.times[i]))
+
     def scan(self, i: int) -> tuple[np.ndarray, np.ndarray]:
         """Scan ``i`` at the true pose ``truth[i]``: ``(ranges m, NaN = no return; angles rad
-        robot frame)``. Deterministic in (seed, i)."""
+        robot frame)``, with the moving obstacles at its time. Deterministic in (seed, i)."""
         if not 0 <= i < len(self):
             raise IndexError(f"scan index {i} out of range [0, {len(self)})")
-        return self.laser.scan(self.truth[i], i)
+        return self.laser.scan(self.truth[i], i, self.circles(i))
 
     def passed(self, i: int, pose: np.ndarray) -> bool:
         """The paper's proximity test for an estimate of pose ``i``."""
@@ -99,4 +120,49 @@ def make_setup(
         proximity_mm=500.0,
         step_m=step,
         world=world,
+    )
+
+
+def building_setup(
+    building: Building,
+    setup: int,
+    seed: int = 0,
+    max_scans: int | None = None,
+    laser: LaserConfig | None = None,
+    schematic: SchematicParams | None = None,
+    people: bool = True,
+    odometry: OdometryNoise | None = None,
+) -> Setup:
+    """Setup 1 (exact metric map, a scan every 11 mm, proximity 100 mm / 45 deg) or 2
+    (schematic map, every 104 mm, 500 mm / 45 deg) on a generated building, as
+    :func:`make_setup` does for the office.
+
+    ``seed`` drives the laser noise and the odometry (``odometry`` overrides its noise model);
+    ``schematic`` the schematic map's parameters (setup 2); ``people=False`` hides the moving
+    people. Scan ``i`` is taken at time ``s_i / robot_speed`` (``s_i`` its arc length).
+    """
+    if setup not in (1, 2):
+        raise InvalidMessage(f"setup must be 1 or 2, got {setup!r}")
+    if max_scans is not None and max_scans < 1:
+        raise InvalidMessage(f"max_scans must be >= 1, got {max_scans}")
+    step = STEP_SETUP1 if setup == 1 else STEP_SETUP2
+    s = building.tour.arc(step, max_scans)
+    truth = building.tour.poses_at(s)
+    world = building.world
+    stream = seed * 10 + setup
+    odom = simulate_odometry(truth, seed=stream, noise=odometry)
+    sim = LaserSimulator(world.segments(), laser or LaserConfig(), seed=stream)
+    map_data = building.metric_map() if setup == 1 else building.schematic(schematic).map_data
+    dynamic = building.people_at if people and building.people else None
+    return Setup(
+        name=f"{building.name}-setup{setup}-{'metric' if setup == 1 else 'schematic'}",
+        map_data=map_data,
+        truth=truth,
+        odom=odom,
+        laser=sim,
+        proximity_mm=100.0 if setup == 1 else 500.0,
+        step_m=step,
+        world=world,
+        times=building.times(s),
+        dynamic=dynamic,
     )

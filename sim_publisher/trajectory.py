@@ -10,14 +10,20 @@ every ~104 mm gives ~30.6 deg, as in the paper's two setups.
 Odometry integrates the true per-step motion (in the robot frame) with a seeded, realistic
 error: a constant translational scale error, per-step translational noise, a constant
 rotational drift per metre and per-step rotational noise. It starts at the true first pose.
+
+:class:`Tour` is the same construction for any route (generated buildings use it): control
+points -> Chaikin corner cut -> arc-length resampling -> tangent + oscillation, with
+:meth:`Tour.calibrated` fitting the oscillation so that both setups' mean rotation per step
+match the paper on that route.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import lru_cache
 
 import numpy as np
+from scipy.optimize import least_squares
 
 from service.core.types import wrap_angle
 
@@ -57,6 +63,9 @@ OSC_AMPLITUDE = np.deg2rad(27.5)
 OSC_WAVENUMBER = 20.7
 STEP_SETUP1 = 0.011
 STEP_SETUP2 = 0.104
+# The paper's mean rotation per step of the two setups (rad).
+TURN_SETUP1 = float(np.deg2rad(4.0))
+TURN_SETUP2 = float(np.deg2rad(30.6))
 _DENSE_DS = 0.002  # resolution of the stored continuous path (m)
 
 
@@ -91,11 +100,12 @@ def chaikin(points: np.ndarray, iterations: int = 5) -> np.ndarray:
     return p
 
 
-@lru_cache(maxsize=1)
-def _dense_path() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def dense_path(
+    control: np.ndarray, iterations: int = 6
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Arc length ``s`` (m), positions ``(m, 2)`` and unwrapped tangent angle (rad) of the
-    smoothed tour, resampled every ``_DENSE_DS``."""
-    poly = chaikin(TOUR_WAYPOINTS, 6)
+    Chaikin-smoothed polyline through ``control`` points, resampled every ``_DENSE_DS``."""
+    poly = chaikin(control, iterations)
     seg = np.hypot(*np.diff(poly, axis=0).T)
     cum = np.concatenate([[0.0], np.cumsum(seg)])
     s = np.arange(0.0, cum[-1], _DENSE_DS)
@@ -112,25 +122,101 @@ def _dense_path() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return s, xy, tangent
 
 
+@dataclass(frozen=True)
+class Tour:
+    """One continuous tour (map frame): arc length ``s`` (m, every ``_DENSE_DS``), positions
+    ``xy`` (m), unwrapped path tangent (rad) and the heading oscillation ``amplitude`` (rad)
+    x ``sin(wavenumber (rad/m) * s)`` added to the tangent."""
+
+    s: np.ndarray
+    xy: np.ndarray
+    tangent: np.ndarray
+    amplitude: float = float(OSC_AMPLITUDE)
+    wavenumber: float = OSC_WAVENUMBER
+
+    @staticmethod
+    def from_control_points(control: np.ndarray, iterations: int = 6) -> Tour:
+        """The smoothed tour through ``control`` points ``(k, 2)`` (office oscillation)."""
+        s, xy, tangent = dense_path(np.asarray(control, dtype=np.float64), iterations)
+        return Tour(s, xy, tangent)
+
+    @property
+    def length(self) -> float:
+        """Length (m)."""
+        return float(self.s[-1])
+
+    def arc(self, step: float, max_scans: int | None = None) -> np.ndarray:
+        """Arc lengths (m) of the samples taken every ``step`` m (optionally the first
+        ``max_scans``)."""
+        s = np.arange(0.0, self.s[-1], step)
+        if max_scans is not None:
+            s = s[: max(int(max_scans), 0)]
+        return s
+
+    def poses(self, step: float, max_scans: int | None = None) -> np.ndarray:
+        """True poses ``(n, 3)`` every ``step`` m of arc length; heading = tangent +
+        ``amplitude * sin(wavenumber * s)`` wrapped to (-pi, pi]."""
+        return self.poses_at(self.arc(step, max_scans))
+
+    def poses_at(self, s: np.ndarray) -> np.ndarray:
+        """Poses ``(n, 3)`` at arc lengths ``s`` (m)."""
+        x = np.interp(s, self.s, self.xy[:, 0])
+        y = np.interp(s, self.s, self.xy[:, 1])
+        th = np.interp(s, self.s, self.tangent) + self.amplitude * np.sin(self.wavenumber * s)
+        return np.c_[x, y, wrap_angle(th)]
+
+    def truncated(self, length: float) -> Tour:
+        """The first ``length`` m of the tour."""
+        n = int(np.searchsorted(self.s, length, side="right"))
+        return replace(self, s=self.s[:n], xy=self.xy[:n], tangent=self.tangent[:n])
+
+    def calibrated(
+        self,
+        targets: tuple[tuple[float, float], ...] = (
+            (STEP_SETUP1, TURN_SETUP1),
+            (STEP_SETUP2, TURN_SETUP2),
+        ),
+    ) -> Tour:
+        """The tour with ``amplitude`` and ``wavenumber`` fitted (least squares on relative
+        errors) so that sampling every ``step`` m gives a mean absolute rotation per step of
+        ``turn`` rad, for each ``(step, turn)`` of ``targets``; starts from the office's."""
+
+        def resid(p: np.ndarray) -> np.ndarray:
+            t = replace(self, amplitude=float(p[0]), wavenumber=float(p[1]))
+            out = []
+            for step, turn in targets:
+                th = t.poses(step)[:, 2]
+                out.append(np.abs(wrap_angle(np.diff(th))).mean() / turn - 1.0)
+            return np.asarray(out)
+
+        x0 = np.array([OSC_AMPLITUDE, OSC_WAVENUMBER])
+        fit = least_squares(
+            resid,
+            x0,
+            bounds=([0.0, 5.0], [np.deg2rad(60.0), 40.0]),
+            diff_step=1e-2,  # the mean of |turns| has kinks; 1 % steps smooth over them
+            max_nfev=60,
+        )
+        return replace(self, amplitude=float(fit.x[0]), wavenumber=float(fit.x[1]))
+
+
+@lru_cache(maxsize=1)
+def office_tour() -> Tour:
+    """The office tour (``TOUR_WAYPOINTS``, 6 Chaikin iterations, office oscillation)."""
+    return Tour.from_control_points(TOUR_WAYPOINTS, 6)
+
+
 def tour_length() -> float:
-    """Length (m) of the smoothed tour."""
-    s, _, _ = _dense_path()
-    return float(s[-1])
+    """Length (m) of the smoothed office tour."""
+    return office_tour().length
 
 
 def tour_poses(step: float, max_scans: int | None = None) -> np.ndarray:
-    """True poses ``(n, 3)`` sampled every ``step`` metres of arc length along the tour.
+    """True poses ``(n, 3)`` sampled every ``step`` metres of arc length along the office tour.
 
     Heading = tangent + ``OSC_AMPLITUDE * sin(OSC_WAVENUMBER * s)``, wrapped to (-pi, pi].
     """
-    s_dense, xy, tangent = _dense_path()
-    s = np.arange(0.0, s_dense[-1], step)
-    if max_scans is not None:
-        s = s[: max(int(max_scans), 0)]
-    x = np.interp(s, s_dense, xy[:, 0])
-    y = np.interp(s, s_dense, xy[:, 1])
-    th = np.interp(s, s_dense, tangent) + OSC_AMPLITUDE * np.sin(OSC_WAVENUMBER * s)
-    return np.c_[x, y, wrap_angle(th)]
+    return office_tour().poses(step, max_scans)
 
 
 def relative_motion(a: np.ndarray, b: np.ndarray) -> np.ndarray:
