@@ -27,6 +27,7 @@ import numpy as np
 
 from service.core import _kernels
 from service.core.dce import dce
+from service.core.mapmodel import MapModel
 from service.core.polylines import Polyline, group_polylines
 from service.core.pose import transform_points
 from service.core.raycast import RayCaster
@@ -281,6 +282,7 @@ def map_view(
     beams: int = 720,
     max_range: float = 15.0,
     params: ExtractionParams | None = None,
+    model: MapModel | None = None,
 ) -> Configuration:
     """The map's abstract sensor reading from ``pose`` (§2.1, §5.2): a configuration.
 
@@ -289,7 +291,9 @@ def map_view(
     robot, so the configuration is cyclic); ranges beyond ``max_range`` metres are "no
     return". The virtual ranges are grouped and simplified exactly like a scan
     (:func:`scan_configuration`); the result is in the map frame, and every feature knows the
-    map segments its rays hit (``Feature.segments``).
+    map segments its rays hit (``Feature.segments``). With the map's ``model``
+    (:class:`~service.core.mapmodel.MapModel`, whose segments ``source`` must cast) the hit
+    segments come from its bucket grid instead of a search over every segment.
     """
     params = params or ExtractionParams()
     caster = source if isinstance(source, RayCaster) else RayCaster(source.segments())
@@ -310,7 +314,14 @@ def map_view(
     # One nearest-segment pass over all features' points (transformed, stacked).
     hit = np.zeros(0, dtype=np.intp)
     if raw and len(segs_all):
-        hit = _hit_segments(transform_points(pose, np.vstack([g.points for g, _ in raw])), segs_all)
+        pts = transform_points(pose, np.vstack([g.points for g, _ in raw]))
+        if model is not None:
+            hit = model.nearest(pts, 0.05).segment
+            if np.any(hit < 0):  # not on any segment (cannot happen for ray hits): search all
+                bad = hit < 0
+                hit[bad] = _hit_segments(pts[bad], segs_all)
+        else:
+            hit = _hit_segments(pts, segs_all)
     off = 0
     for g, v in raw:
         pts = transform_points(pose, g.points)
@@ -347,9 +358,11 @@ class MapViewCache:
         max_range: float = 15.0,
         reuse_distance: float = 0.1,
         params: ExtractionParams | None = None,
+        model: MapModel | None = None,
     ) -> None:
         self.map_data = map_data
-        self.caster = RayCaster(map_data.segments())
+        self.model = model
+        self.caster = RayCaster(map_data.segments() if model is None else model.segments)
         self.beams = beams
         self.max_range = max_range
         self.reuse_distance = reuse_distance
@@ -364,7 +377,7 @@ class MapViewCache:
         if last is not None and np.hypot(*(last.viewpoint[:2] - pose[:2])) < self.reuse_distance:
             return last
         self._last = map_view(
-            self.caster, pose, 2.0 * np.pi, self.beams, self.max_range, self.params
+            self.caster, pose, 2.0 * np.pi, self.beams, self.max_range, self.params, self.model
         )
         self.casts += 1
         return self._last

@@ -372,6 +372,7 @@ class ShapeLocalizer:
             max_range=self.config.view_max_range,
             reuse_distance=self.config.view_reuse_distance,
             params=self._params,
+            model=self.model,
         )
         self._pose: np.ndarray | None = None
         self.reset(initial_pose)
