@@ -80,3 +80,41 @@ def test_out_of_range_is_nan() -> None:
 def test_config_validation(kwargs: dict, match: str) -> None:
     with pytest.raises(InvalidMessage, match=match):
         LaserConfig(**kwargs)
+
+
+def test_moving_circles_are_seen_exactly_and_only_in_that_scan() -> None:
+    cfg = LaserConfig(beams=361, noise_sigma=0.0, dropout=0.0)
+    sim = LaserSimulator(_room(), cfg)
+    pose = np.array([2.0, 5.0, 0.0])
+    static = sim.exact(pose)
+    person = np.array([[5.0, 5.0, 0.5]])
+    seen = sim.exact(pose, person)
+    assert seen[180] == pytest.approx(2.5, abs=1e-12)  # straight ahead: 3 m minus the radius
+    # every changed beam ends on the circle, every other beam is the static range
+    changed = ~np.isclose(seen, static)
+    assert changed.sum() == np.sum(np.abs(sim.angles) < math.asin(0.5 / 3.0))  # 19.2 deg
+    ang = sim.angles[changed]
+    hits = pose[:2] + seen[changed, None] * np.c_[np.cos(ang), np.sin(ang)]
+    np.testing.assert_allclose(np.hypot(*(hits - person[0, :2]).T), 0.5, atol=1e-9)
+    np.testing.assert_array_equal(seen[~changed], static[~changed])
+    # no circles, an empty array, a circle around the sensor, one behind a wall: static ranges
+    np.testing.assert_array_equal(sim.exact(pose, None), static)
+    np.testing.assert_array_equal(sim.exact(pose, np.zeros((0, 3))), static)
+    np.testing.assert_array_equal(sim.exact(pose, np.array([[2.1, 5.0, 0.3]])), static)
+    np.testing.assert_array_equal(sim.exact(pose, np.array([[12.0, 5.0, 0.5]])), static)
+    # a circle fills a beam that saw nothing within max_range
+    short = LaserSimulator(_room(), LaserConfig(max_range=4.0, noise_sigma=0.0, dropout=0.0))
+    r = short.exact(pose, person)
+    assert np.isnan(short.exact(pose)[180]) and r[180] == pytest.approx(2.5)
+
+
+def test_noisy_scans_with_circles_share_the_static_noise_draws() -> None:
+    sim = LaserSimulator(_room(), seed=3)
+    pose = np.array([2.0, 5.0, 0.2])
+    person = np.array([[5.0, 5.5, 0.3]])
+    plain, _ = sim.scan(pose, 9)
+    busy, _ = sim.scan(pose, 9, person)
+    hit = ~np.isclose(sim.exact(pose, person), sim.exact(pose))
+    np.testing.assert_array_equal(np.isnan(plain), np.isnan(busy))  # same dropouts
+    np.testing.assert_array_equal(plain[~hit], busy[~hit])
+    assert np.nanmax(np.abs(busy[hit] - plain[hit])) > 1.0

@@ -94,3 +94,30 @@ def test_passed_is_the_paper_proximity_test() -> None:
     assert s.passed(1, t + np.array([0.07, 0.07, np.deg2rad(44)]))
     assert not s.passed(1, t + np.array([0.08, 0.07, 0.0]))
     assert not s.passed(1, t + np.array([0.0, 0.0, np.deg2rad(46)]))
+
+
+def test_tour_class_reproduces_the_office_tour() -> None:
+    from sim_publisher.trajectory import TOUR_WAYPOINTS, Tour, office_tour
+
+    t = Tour.from_control_points(TOUR_WAYPOINTS, 6)
+    np.testing.assert_array_equal(t.poses(0.011), tour_poses(0.011))
+    np.testing.assert_array_equal(office_tour().poses(0.104, 7), tour_poses(0.104, 7))
+    cut = t.truncated(10.0)
+    assert cut.length == pytest.approx(10.0, abs=0.003)
+    np.testing.assert_array_equal(cut.poses(0.104), t.poses(0.104)[: len(cut.poses(0.104))])
+
+
+@pytest.mark.parametrize("which", ["office", "zigzag"])
+def test_calibration_hits_both_turn_statistics(which: str) -> None:
+    from sim_publisher.trajectory import Tour, office_tour
+
+    if which == "office":
+        tour = office_tour()
+    else:  # many corners: the tangent alone turns a lot
+        pts = np.array([[0.0, 0.0], [2, 1], [4, 0], [6, 1], [8, 0], [8, 3], [5, 4], [2, 3]])
+        tour = Tour.from_control_points(pts, 6)
+    cal = tour.calibrated()
+    s1, s2 = run_stats(cal.poses(0.011)), run_stats(cal.poses(0.104))
+    assert s1["mean_rotation_deg"] == pytest.approx(4.0, rel=0.02)
+    assert s2["mean_rotation_deg"] == pytest.approx(30.6, rel=0.02)
+    np.testing.assert_array_equal(cal.xy, tour.xy)  # only the heading changes
