@@ -4,10 +4,11 @@
     b = generate_building(7)                      # type, layout and size drawn from seed 7
     b.world, b.metric_map(), b.schematic().map_data, b.tour.poses(0.011)
 
-Modules: :mod:`.params` (pydantic parameters), :mod:`.layout` (corridors, rooms, doors, walls,
-wall details), :mod:`.furniture` (obstacle catalogue and placement), :mod:`.schematic`
-(schematic map), :mod:`.tours` (robot tour and people's paths), :mod:`.grid` (raster helpers),
-:mod:`.building` (``generate_building``). See docs/worlds.md.
+Modules: :mod:`.params` (pydantic parameters), :mod:`.layout` (corridors, rooms, doors,
+walls), :mod:`.details` (pilasters, niches, attached columns), :mod:`.furniture` (obstacle
+catalogue and placement), :mod:`.schematic` (schematic map), :mod:`.tours` (robot tour and
+people's paths), :mod:`.grid` (raster helpers), :mod:`.building` (``generate_building``).
+See docs/worlds.md.
 """
 
 from sim_publisher.generator.building import Building, generate_building, resolve_params

@@ -17,6 +17,7 @@ from shapely.geometry import Point
 from service.core.types import MapData
 from service.errors import InvalidWorld
 from service.maps.world import Obstacle, World
+from sim_publisher.generator.details import wall_details
 from sim_publisher.generator.furniture import Item, furnish
 from sim_publisher.generator.layout import Door, Layout, Room, build_layout
 from sim_publisher.generator.params import (
@@ -216,16 +217,18 @@ def generate_building(seed: int, params: BuildingParams | None = None) -> Buildi
     seed = int(seed)
     p = resolve_params(seed, params)
     assert p.width is not None and p.height is not None and p.layout and p.building_type
+    shell_rng = np.random.default_rng([seed, 1])
     lay = build_layout(
         p.width,
         p.height,
         p.layout,
         p.building_type,
-        np.random.default_rng([seed, 1]),
+        shell_rng,
         door_bounds=p.door_width,
         wall_bounds=p.wall_thickness,
-        details=p.wall_details,
     )
+    if p.wall_details:
+        lay.details = wall_details(lay, shell_rng)
     walls = lay.walls()
     items = furnish(lay, walls, p.clutter, np.random.default_rng([seed, 2]))
     world = _world(walls, items)

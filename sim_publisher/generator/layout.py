@@ -1,4 +1,4 @@
-"""Floor layout: footprint, corridors, rooms, doors, walls of varied thickness, wall details.
+"""Floor layout: footprint, corridors, rooms, doors and walls of varied thickness.
 
 Everything is in the map frame (metres), x right, y up, the footprint ``[0, W] x [0, H]``
 (outer faces of the outer walls). Rooms and corridors are axis-aligned rectangles whose edges
@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import shapely
-from shapely.geometry import Point, Polygon, box
+from shapely.geometry import Polygon, box
 
 from service.errors import InvalidWorld
 from sim_publisher.generator.params import TYPE_SPECS, TypeSpec
@@ -405,9 +405,10 @@ def build_layout(
     rng: np.random.Generator,
     door_bounds: tuple[float, float] = (0.8, 1.8),
     wall_bounds: tuple[float, float] = (0.1, 0.3),
-    details: bool = True,
 ) -> Layout:
-    """Draw a building shell of ``W`` x ``H`` m. Raises InvalidWorld if the layout cannot fit."""
+    """Draw a building shell of ``W`` x ``H`` m (without wall details: see
+    :func:`sim_publisher.generator.details.wall_details`). Raises InvalidWorld if the layout
+    cannot fit."""
     spec = TYPE_SPECS[building_type]
     transpose = W > H
     Wc, Hc = (H, W) if transpose else (W, H)
@@ -454,8 +455,6 @@ def build_layout(
         core,
         [],
     )
-    if details:
-        lay.details = _details(lay, rng)
     return lay
 
 
@@ -602,114 +601,3 @@ def _wall_core(rooms, thickness, t_out, W, H):
             y = r.y0 if ky == 2 else r.y1
             parts.append(box(x - half[kx], y - half[ky], x + half[kx], y + half[ky]))
     return shapely.union_all(parts)
-
-
-# --------------------------------------------------------------------------- details
-def _face_box(room: Room, k: int, s: float, along: float, depth: float) -> Polygon:
-    """A box of ``along`` x ``depth`` m on the inner face ``k`` of ``room`` centred at ``s``
-    along it, standing ``depth`` m into the room (negative depth: into the wall)."""
-    r = room.inner
-    a = along / 2.0
-    if k == 0:
-        return box(min(r.x0, r.x0 + depth), s - a, max(r.x0, r.x0 + depth), s + a)
-    if k == 1:
-        return box(min(r.x1, r.x1 - depth), s - a, max(r.x1, r.x1 - depth), s + a)
-    if k == 2:
-        return box(s - a, min(r.y0, r.y0 + depth), s + a, max(r.y0, r.y0 + depth))
-    return box(s - a, min(r.y1, r.y1 - depth), s + a, max(r.y1, r.y1 - depth))
-
-
-def _half_round(room: Room, k: int, s: float, rad: float) -> Polygon:
-    r = room.inner
-    ang = np.linspace(0.0, np.pi, 25)
-    u, v = rad * np.cos(ang), rad * np.sin(ang)
-    if k == 0:
-        pts = np.c_[r.x0 + v, s + u]
-    elif k == 1:
-        pts = np.c_[r.x1 - v, s + u]
-    elif k == 2:
-        pts = np.c_[s + u, r.y0 + v]
-    else:
-        pts = np.c_[s + u, r.y1 - v]
-    return Polygon(pts)
-
-
-def _details(lay: Layout, rng) -> list[WallDetail]:
-    """Pilasters (0.2-0.4 m wide, 0.06-0.15 m deep) on room faces, niches (0.05-0.12 m deep)
-    in the outer walls, and, in some buildings, columns (0.15-0.3 m deep, square or
-    half-round) attached to the outer walls at a regular spacing."""
-    W, H = lay.width, lay.height
-    gaps = shapely.union_all([d.gap(0.0).buffer(0.35) for d in lay.doors]) if lay.doors else None
-    out: list[WallDetail] = []
-    taken: list[Polygon] = []
-
-    def ok(g: Polygon, room: Room) -> bool:
-        if gaps is not None and g.intersects(gaps):
-            return False
-        if not room.inner.poly().buffer(1e-9).contains(g.buffer(-1e-6)):
-            return False
-        return not any(g.distance(t) < 0.1 for t in taken)
-
-    def along(room: Room, k: int) -> tuple[float, float]:
-        r = room.inner
-        return (r.y0, r.y1) if k in (0, 1) else (r.x0, r.x1)
-
-    for room in lay.rooms:
-        if rng.random() < 0.35:  # pilaster on a random face
-            k = int(rng.integers(4))
-            lo, hi = along(room, k)
-            w, d = rng.uniform(0.2, 0.4), rng.uniform(0.06, 0.15)
-            if hi - lo > w + 1.2:
-                s = rng.uniform(lo + 0.5 + w / 2, hi - 0.5 - w / 2)
-                g = _face_box(room, k, s, w, d)
-                if ok(g, room):
-                    out.append(WallDetail("pilaster", g, float(d), True))
-                    taken.append(g)
-        outer = [k for k in range(4) if _on_boundary(*room.rect.side(k)[:2], W, H)]
-        if outer and rng.random() < 0.2 and lay.t_out >= 0.15:
-            k = outer[int(rng.integers(len(outer)))]
-            lo, hi = along(room, k)
-            w = rng.uniform(0.6, 1.2)
-            d = rng.uniform(0.05, min(0.12, lay.t_out - 0.08))
-            if hi - lo > w + 1.0:
-                s = rng.uniform(lo + 0.5 + w / 2, hi - 0.5 - w / 2)
-                g = _face_box(room, k, s, w, -d)
-                clear = gaps is None or not g.intersects(gaps)
-                if clear and not any(g.distance(t) < 0.1 for t in taken):
-                    out.append(WallDetail("niche", g, float(d), False))
-                    taken.append(g)
-    p_cols = 0.35 if lay.building_type == "office" else 0.6
-    if rng.random() < p_cols:
-        spacing = rng.uniform(4.0, 7.0)
-        rad = rng.uniform(0.15, 0.3)
-        square = bool(rng.random() < 0.5)
-        wid = rng.uniform(0.3, 0.6)
-        for room in lay.rooms:
-            for k in range(4):
-                if not _on_boundary(*room.rect.side(k)[:2], W, H):
-                    continue
-                lo, hi = along(room, k)
-                first = math.ceil((lo + 0.5) / spacing) * spacing
-                for s in np.arange(first, hi - 0.5, spacing):
-                    if square:
-                        g, size = _face_box(room, k, float(s), wid, rad), rad
-                    else:
-                        g, size = _half_round(room, k, float(s), rad), rad
-                    if s - lo > 0.5 + wid and hi - s > 0.5 + wid and ok(g, room):
-                        out.append(WallDetail("column", g, float(size), True))
-                        taken.append(g)
-    return out
-
-
-def door_keepouts(lay: Layout) -> list[Polygon]:
-    """The approach areas of every door (kept free of furniture and details)."""
-    return [d.approach() for d in lay.doors]
-
-
-def point_in_rooms(lay: Layout, p: np.ndarray) -> int:
-    """Index of the room whose rectangle holds point ``p``, or -1 (corridor / hall)."""
-    pt = Point(float(p[0]), float(p[1]))
-    for room in lay.rooms:
-        if room.rect.poly().contains(pt):
-            return room.index
-    return -1
