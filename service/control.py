@@ -49,6 +49,9 @@ class Restored:
     maps: dict[str, tuple[Map, MapData]]
     configs: dict[str, RobotConfig]
     poses: dict[str, PoseMsg]
+    #: Odometry pose ``(x, y, theta)`` (odometry frame) saved with each restored pose, for the
+    #: robots whose last scans carried odometry.
+    odoms: dict[str, tuple[float, float, float]] = dataclasses.field(default_factory=dict)
 
 
 def load_state(store: StateStore) -> Restored:
@@ -89,6 +92,8 @@ def load_state(store: StateStore) -> Restored:
             raise StateError(
                 f"{store.path}: stored pose of robot {robot_id!r} is invalid: {e}"
             ) from e
+        if sp.odom is not None:
+            out.odoms[robot_id] = sp.odom
     return out
 
 
@@ -103,6 +108,7 @@ class ControlPlane:
     maps: dict[str, tuple[Map, MapData]]
     configs: dict[str, RobotConfig]
     poses: dict[str, PoseMsg]
+    odoms: dict[str, tuple[float, float, float]]
     errors: Counter[str]
     state: StateStore | None
     links: list[WorkerLink]
@@ -224,6 +230,7 @@ class ControlPlane:
             with self.lock:
                 self.configs.pop(robot_id, None)
                 self.poses.pop(robot_id, None)
+                self.odoms.pop(robot_id, None)
                 self._dirty.discard(robot_id)
             link = self._link_of(robot_id)
             link.slots.discard(robot_id)
@@ -245,7 +252,7 @@ class ControlPlane:
         new = robot_id not in self.configs
         link = self.links[self.assignment.assign(robot_id)]
         status, why = link.submit(
-            ("config", robot_id, cfg.method, cfg.map_id, as_list(cfg.initial_pose), None)
+            ("config", robot_id, cfg.method, cfg.map_id, as_list(cfg.initial_pose), None, None)
         ).result(timeout=self.settings.worker_timeout_s * 2 + 5)
         if status != "ok":
             if new:
@@ -262,13 +269,19 @@ class ControlPlane:
         with self.lock:
             self.configs[robot_id] = cfg
             self.poses.pop(robot_id, None)
+            self.odoms.pop(robot_id, None)
             self._dirty.discard(robot_id)
 
     def save_poses(self) -> int:
         """Write the poses that changed since the last save in one transaction; returns how
-        many. After a failed write the poses stay marked for the next save."""
+        many, each with the robot's last odometry pose. After a failed write the poses stay
+        marked for the next save."""
         with self.lock:
-            dirty = {rid: self.poses[rid] for rid in self._dirty if rid in self.poses}
+            dirty = {
+                rid: (self.poses[rid], self.odoms.get(rid))
+                for rid in self._dirty
+                if rid in self.poses
+            }
             self._dirty.clear()
         if not dirty or self.state is None:
             return 0
@@ -283,8 +296,9 @@ class ControlPlane:
                         p.seq,
                         p.stamp,
                         p.status,
+                        odom,
                     )
-                    for rid, p in dirty.items()
+                    for rid, (p, odom) in dirty.items()
                 }
             )
         except StateError:

@@ -118,6 +118,9 @@ class ServiceNode(ControlPlane):
         self.maps: dict[str, tuple[Map, MapData]] = {}
         self.configs: dict[str, RobotConfig] = {}
         self.poses: dict[str, PoseMsg] = {}
+        # last odometry pose (odometry frame) each robot's localiser has seen: that of the last
+        # scan carrying one, saved with the pose so a restart measures the next increment from it
+        self.odoms: dict[str, tuple[float, float, float]] = {}
         self._dirty: set[str] = set()
         self.scans_processed = 0
         self.scans_rejected = 0
@@ -259,7 +262,7 @@ class ServiceNode(ControlPlane):
 
     def _restore(self, r: Restored) -> None:
         """Hand the restored maps and this shard's robots (in id order) to the workers; a
-        restored robot resumes from its saved pose."""
+        restored robot resumes from its saved pose and the odometry pose saved with it."""
         t = self.settings.worker_timeout_s
         for map_id, (msg, md) in r.maps.items():
             self.maps[map_id] = (msg, md)
@@ -270,12 +273,16 @@ class ServiceNode(ControlPlane):
                 continue
             pm = r.poses.get(robot_id)
             start = None if pm is None else as_list(pm.pose)
+            odom = None if pm is None else r.odoms.get(robot_id)
             if pm is not None:
                 self.poses[robot_id] = pm
+            if odom is not None:
+                self.odoms[robot_id] = odom
             self.configs[robot_id] = cfg
             link = self.links[self.assignment.assign(robot_id)]
+            init = as_list(cfg.initial_pose)
             st, why = link.worker.call(
-                ("config", robot_id, cfg.method, cfg.map_id, as_list(cfg.initial_pose), start), t
+                ("config", robot_id, cfg.method, cfg.map_id, init, start, as_list(odom)), t
             )
             if st != "ok":
                 log.error("restored robot %s could not be set up: %s", robot_id, why)
@@ -298,7 +305,7 @@ class ServiceNode(ControlPlane):
 
     def restart_worker(self, link: WorkerLink) -> None:
         """Replace a dead or hung worker and replay the maps and its robots (from their last
-        poses) into the new one."""
+        poses and odometry) into the new one."""
         with self.lock:
             self.errors["worker.Restarted"] += 1
         with contextlib.suppress(Exception):
@@ -308,16 +315,26 @@ class ServiceNode(ControlPlane):
         with self.lock:
             maps = [md for _m, md in self.maps.values()]
             robots = [
-                (rid, cfg, self.poses.get(rid))
+                (rid, cfg, self.poses.get(rid), self.odoms.get(rid))
                 for rid, cfg in self.configs.items()
                 if self._link_of(rid) is link
             ]
         for md in maps:
             link.worker.call(("map", md), t)
-        for rid, cfg, pm in robots:
+        for rid, cfg, pm, odom in robots:
             start = None if pm is None else as_list(pm.pose)
+            odom_start = None if pm is None else as_list(odom)
             link.worker.call(
-                ("config", rid, cfg.method, cfg.map_id, as_list(cfg.initial_pose), start), t
+                (
+                    "config",
+                    rid,
+                    cfg.method,
+                    cfg.map_id,
+                    as_list(cfg.initial_pose),
+                    start,
+                    odom_start,
+                ),
+                t,
             )
 
     # ------------------------------------------------------------------ callbacks
@@ -515,6 +532,12 @@ class ServiceNode(ControlPlane):
             if self.configs.get(robot_id) is not cfg:
                 return  # reconfigured meanwhile: this estimate belongs to the old config
             self.poses[robot_id] = pose_msg
+            if scan.odom is not None:
+                self.odoms[robot_id] = (
+                    float(scan.odom[0]),
+                    float(scan.odom[1]),
+                    float(scan.odom[2]),
+                )
             self._dirty.add(robot_id)
             self.scans_processed += 1
         self.session.put(keys.robot_key(self.prefix, robot_id, "pose"), payload, encoding=_MSGPACK)

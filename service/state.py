@@ -4,9 +4,14 @@ Layout (``<state_dir>/shapeloc.sqlite3``, schema version in ``PRAGMA user_versio
 
 * ``maps(map_id PRIMARY KEY, payload BLOB, updated REAL)``: the validated wire map (msgpack).
 * ``robots(robot_id PRIMARY KEY, payload BLOB, updated REAL)``: the validated wire config.
-* ``poses(robot_id PRIMARY KEY, map_id, x, y, theta, seq, stamp, status, updated REAL)``: the
-  last estimate per robot in the map frame (metres, radians), saved periodically and on
-  shutdown.
+* ``poses(robot_id PRIMARY KEY, map_id, x, y, theta, seq, stamp, status, updated REAL,
+  odom_x, odom_y, odom_theta)``: the last estimate per robot in the map frame (metres,
+  radians), saved periodically and on shutdown, with the odometry pose of the scan that
+  produced it (odometry frame; all three ``NULL`` if that scan carried none), so a restarted
+  localiser measures the next scan's odometry increment from it.
+
+Schema versions: 1 had no ``odom_*`` columns; 2 adds them (nullable). A version-1 file is
+migrated in place when opened (one transaction; its saved poses get ``NULL`` odometry).
 
 Every write is committed before the call returns, so a caller may log "stored" afterwards. A
 ``<state_dir>/shapeloc.lock`` file held with ``flock`` keeps two services off one directory.
@@ -33,7 +38,7 @@ import msgpack
 
 from service.errors import StateError
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 DB_NAME = "shapeloc.sqlite3"
 LOCK_NAME = "shapeloc.lock"
 
@@ -44,13 +49,28 @@ _TABLES = {
     "updated REAL NOT NULL)",
     "poses": "CREATE TABLE poses (robot_id TEXT PRIMARY KEY, map_id TEXT NOT NULL, "
     "x REAL NOT NULL, y REAL NOT NULL, theta REAL NOT NULL, seq INTEGER NOT NULL, "
-    "stamp REAL NOT NULL, status TEXT NOT NULL, updated REAL NOT NULL)",
+    "stamp REAL NOT NULL, status TEXT NOT NULL, updated REAL NOT NULL, "
+    "odom_x REAL, odom_y REAL, odom_theta REAL)",
 }
+
+#: Columns each schema version adds to ``poses`` (applied in order by :meth:`StateStore._open`).
+_MIGRATIONS: dict[int, list[str]] = {
+    2: [
+        "ALTER TABLE poses ADD COLUMN odom_x REAL",
+        "ALTER TABLE poses ADD COLUMN odom_y REAL",
+        "ALTER TABLE poses ADD COLUMN odom_theta REAL",
+    ],
+}
+_POSE_COLUMNS = (
+    "robot_id, map_id, x, y, theta, seq, stamp, status, updated, odom_x, odom_y, odom_theta"
+)
 
 
 @dataclass(frozen=True)
 class SavedPose:
-    """Last estimate of one robot: ``(x, y, theta)`` in the map frame of ``map_id``."""
+    """Last estimate of one robot: ``(x, y, theta)`` in the map frame of ``map_id``
+    (metres, metres, radians); ``odom``: the odometry pose ``(x, y, theta)`` (odometry frame)
+    of the scan that produced it, ``None`` if that scan carried none."""
 
     map_id: str
     x: float
@@ -59,6 +79,7 @@ class SavedPose:
     seq: int
     stamp: float
     status: str
+    odom: tuple[float, float, float] | None = None
 
     @property
     def pose(self) -> tuple[float, float, float]:
@@ -174,6 +195,9 @@ class StateStore:
                         f"state file {self.path} (schema {version}) lacks tables {sorted(missing)}"
                     )
                 db.execute("PRAGMA journal_mode=WAL")
+                if version < SCHEMA_VERSION:
+                    self._migrate(db, version)
+                self._check_pose_columns(db)
             db.execute("PRAGMA synchronous=FULL")
         except sqlite3.DatabaseError as e:
             db.close()
@@ -184,6 +208,32 @@ class StateStore:
             db.close()
             raise
         return db
+
+    def _migrate(self, db: sqlite3.Connection, version: int) -> None:
+        """Bring a file of schema ``version`` to :data:`SCHEMA_VERSION` in one transaction
+        (nothing changes if any step fails)."""
+        db.execute("BEGIN IMMEDIATE")
+        try:
+            for v in range(version + 1, SCHEMA_VERSION + 1):
+                for sql in _MIGRATIONS.get(v, []):
+                    db.execute(sql)
+            db.execute(f"PRAGMA user_version={SCHEMA_VERSION}")
+            db.execute("COMMIT")
+        except sqlite3.Error as e:
+            db.execute("ROLLBACK")
+            raise StateError(
+                f"state file {self.path}: migration from schema {version} to "
+                f"{SCHEMA_VERSION} failed: {e}"
+            ) from e
+
+    def _check_pose_columns(self, db: sqlite3.Connection) -> None:
+        have = {r[1] for r in db.execute("PRAGMA table_info(poses)")}
+        missing = [c for c in _POSE_COLUMNS.split(", ") if c not in have]
+        if missing:
+            raise StateError(
+                f"state file {self.path} (schema {SCHEMA_VERSION}): table poses lacks "
+                f"columns {missing}"
+            )
 
     def _side_files(self) -> list[Path]:
         return [self.path.with_name(self.path.name + sfx) for sfx in ("", "-wal", "-shm")]
@@ -337,26 +387,43 @@ class StateStore:
         for rid, p in poses.items():
             if not all(math.isfinite(v) for v in (p.x, p.y, p.theta)):
                 continue
+            odom: tuple[float | None, ...] = (None, None, None)
+            if p.odom is not None and all(math.isfinite(float(v)) for v in p.odom):
+                odom = tuple(float(v) for v in p.odom)
             ops.append(
                 (
-                    "INSERT OR REPLACE INTO poses(robot_id, map_id, x, y, theta, seq, stamp, "
-                    "status, updated) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
-                    (rid, p.map_id, p.x, p.y, p.theta, int(p.seq), p.stamp, p.status, now),
+                    f"INSERT OR REPLACE INTO poses({_POSE_COLUMNS}) "
+                    "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                    (rid, p.map_id, p.x, p.y, p.theta, int(p.seq), p.stamp, p.status, now, *odom),
                 )
             )
         if ops:
             self._write(ops)
 
     def poses(self) -> dict[str, SavedPose]:
-        """Last saved pose per robot."""
+        """Last saved pose per robot (``odom`` is ``None`` unless all three columns hold
+        finite numbers)."""
         rows = self._read(
-            "SELECT robot_id, map_id, x, y, theta, seq, stamp, status FROM poses ORDER BY robot_id"
+            "SELECT robot_id, map_id, x, y, theta, seq, stamp, status, odom_x, odom_y, "
+            "odom_theta FROM poses ORDER BY robot_id"
         )
         out: dict[str, SavedPose] = {}
-        for rid, map_id, x, y, th, seq, stamp, status in rows:
+        for rid, map_id, x, y, th, seq, stamp, status, ox, oy, oth in rows:
             try:
+                odom = None
+                if None not in (ox, oy, oth):
+                    odom = (float(ox), float(oy), float(oth))
+                    if not all(math.isfinite(v) for v in odom):
+                        odom = None
                 out[rid] = SavedPose(
-                    str(map_id), float(x), float(y), float(th), int(seq), float(stamp), str(status)
+                    str(map_id),
+                    float(x),
+                    float(y),
+                    float(th),
+                    int(seq),
+                    float(stamp),
+                    str(status),
+                    odom,
                 )
             except (TypeError, ValueError) as e:
                 raise StateError(f"state file {self.path}: poses row {rid!r} is corrupt") from e

@@ -11,9 +11,11 @@ Requests (all picklable):
 * ``("map", MapData)``: store/replace a map; robots on it restart from their last pose.
 * ``("map_delete", map_id)``: drop a map; its robots are kept and fail on scans until a new
   map of that id is put.
-* ``("config", robot_id, method, map_id, initial_pose | None, start_pose | None)``: (re)create
-  the robot's localiser at once (``start_pose`` overrides ``initial_pose``: restore from a saved
-  pose). On failure the previous configuration stays.
+* ``("config", robot_id, method, map_id, initial_pose | None, start_pose | None,
+  start_odom | None)``: (re)create the robot's localiser at once (``start_pose`` overrides
+  ``initial_pose``: restore from a saved pose; ``start_odom`` is the odometry pose at
+  ``start_pose``, so the next scan's odometry increment is measured from it). On failure the
+  previous configuration stays.
 * ``("scan", robot_id, ranges, angles, odom | None)``: one update; ranges in metres with NaN
   for no return, angles in radians in the robot frame, odom ``(x, y, theta)`` or ``None``.
 * ``("forget", robot_id)``.
@@ -99,6 +101,8 @@ class _Robot:
     initial_pose: np.ndarray | None
     last_pose: np.ndarray | None
     localizer: Localizer | None
+    #: odometry pose (odometry frame) at ``last_pose``: the last one a scan carried
+    last_odom: np.ndarray | None = None
 
 
 def _opt_float(v: Any) -> float | None:
@@ -162,17 +166,28 @@ class WorkerCore:
         map_id: str,
         initial_pose: list[float] | None,
         start_pose: list[float] | None = None,
+        start_odom: list[float] | None = None,
     ) -> None:
         init = None if initial_pose is None else np.asarray(initial_pose, dtype=np.float64)
         start = None if start_pose is None else np.asarray(start_pose, dtype=np.float64)
+        odom = None
+        if start is not None and start_odom is not None:
+            odom = np.asarray(start_odom, dtype=np.float64)
         md = self.maps.get(map_id)
         loc = None
         if md is not None:
-            loc = self._create(method, md, start if start is not None else init)
-        self.robots[robot_id] = _Robot(method, map_id, init, start, loc)
+            loc = self._create(method, md, start if start is not None else init, odom)
+        self.robots[robot_id] = _Robot(method, map_id, init, start, loc, odom)
 
-    def _create(self, method: str, md: MapData, start: np.ndarray | None) -> Localizer:
-        return create_localizer(method, md, start, cache_dir=self.cache_dir)
+    def _create(
+        self, method: str, md: MapData, start: np.ndarray | None, odom: np.ndarray | None = None
+    ) -> Localizer:
+        """A localiser at ``start`` (map frame); with ``odom`` (the odometry pose at
+        ``start``), the next scan's odometry increment is measured from it."""
+        loc = create_localizer(method, md, start, cache_dir=self.cache_dir)
+        if start is not None and odom is not None:
+            loc.reset(start, odom)
+        return loc
 
     def _scan(
         self,
@@ -191,9 +206,13 @@ class WorkerCore:
                 "map of that id to be put again"
             )
         if r.localizer is None:
-            start = r.last_pose if r.last_pose is not None else r.initial_pose
-            r.localizer = self._create(r.method, md, start)
+            if r.last_pose is not None:
+                r.localizer = self._create(r.method, md, r.last_pose, r.last_odom)
+            else:
+                r.localizer = self._create(r.method, md, r.initial_pose)
         est = r.localizer.update(ranges, angles, odom)
+        if odom is not None:
+            r.last_odom = np.asarray(odom, dtype=np.float64).copy()
         pose = np.asarray(est.pose, dtype=np.float64).reshape(-1)
         if pose.shape != (3,) or not np.all(np.isfinite(pose)):
             raise LocalizationError(f"method {r.method!r} produced a non-finite pose {pose}")

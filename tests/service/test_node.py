@@ -449,6 +449,46 @@ def test_queries(harness: Harness) -> None:
     assert (hl.status, hl.robots, hl.maps, hl.instance_id) == ("ok", 1, 1, "test-node")
 
 
+def _odom_of(pose: np.ndarray) -> list[float]:
+    """The robot's odometry pose for a map pose: the odometry frame is the map frame moved
+    by (5 m, -3 m) and turned by 1 rad."""
+    c, s = np.cos(1.0), np.sin(1.0)
+    x, y = c * pose[0] - s * pose[1] + 5.0, s * pose[0] + c * pose[1] - 3.0
+    return [float(x), float(y), float(pose[2] + 1.0)]
+
+
+def test_restore_resumes_odometry_increment(tmp_path: Path) -> None:
+    """The odometry pose of the last accepted scan is saved with its pose: after a restart the
+    next scan's increment (here a 0.7 rad turn, which ICP alone does not follow) is used."""
+    h = Harness(tmp_path)
+    h.put_map()
+    h.put_config()
+    path = [START + np.array([0.05 * i, 0.02 * i, 0.01 * i]) for i in range(3)]
+    for i, pose in enumerate(path):
+        h.put_scan("r1", i, pose, odom=_odom_of(pose))
+        wait_for(lambda i=i: len(h.poses()) == i + 1)
+    h.put_scan("r1", 3, path[-1])  # no odometry: the remembered one stays that of seq 2
+    wait_for(lambda: len(h.poses()) == 4)
+    h.node.stop()
+    h2 = Harness(tmp_path)
+    try:
+        np.testing.assert_allclose(h2.node.odoms["r1"], _odom_of(path[-1]), atol=1e-12)
+        turned = path[-1] + np.array([0.15, 0.1, 0.7])
+        h2.put_scan("r1", 10, turned, odom=_odom_of(turned))
+        wait_for(lambda: len(h2.poses()) == 1)
+        got = h2.poses()[0].pose
+        assert np.linalg.norm(got[:2] - turned[:2]) < 0.05
+        assert abs(got[2] - turned[2]) < 0.02
+    finally:
+        h2.node.stop()
+    h3 = Harness(tmp_path)  # a config put forgets the pose and its odometry
+    try:
+        h3.put_config()
+        assert "r1" not in h3.node.odoms and "r1" not in h3.node.poses
+    finally:
+        h3.node.stop()
+
+
 def test_restore_from_state(tmp_path: Path) -> None:
     h = Harness(tmp_path)
     h.put_map()

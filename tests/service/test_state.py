@@ -42,6 +42,86 @@ def test_round_trip_across_reopen(tmp_path: Path) -> None:
         assert (p.map_id, p.seq, p.stamp, p.status) == ("m1", 42, 12.5, "tracking")
 
 
+def test_odom_saved_with_the_pose(tmp_path: Path) -> None:
+    with StateStore(tmp_path) as st:
+        st.save_poses(
+            {
+                "r1": SavedPose("m1", 1.0, 2.0, 0.5, 7, 3.0, "tracking", (10.0, -4.0, 2.9)),
+                "r2": SavedPose("m1", 1.0, 2.0, 0.5, 8, 3.0, "tracking"),
+                "r3": SavedPose("m1", 1.0, 2.0, 0.5, 9, 3.0, "tracking", (0.0, float("inf"), 0)),
+            }
+        )
+    with StateStore(tmp_path) as st:
+        saved = st.poses()
+    assert saved["r1"].odom == (10.0, -4.0, 2.9)
+    assert saved["r2"].odom is None
+    assert saved["r3"].odom is None  # a non-finite odometry pose is not kept
+    assert saved["r3"].pose == (1.0, 2.0, 0.5)
+
+
+# The schema-1 layout as released (no odom columns), to check that such a file still opens.
+_V1_DDL = [
+    "CREATE TABLE maps (map_id TEXT PRIMARY KEY, payload BLOB NOT NULL, updated REAL NOT NULL)",
+    "CREATE TABLE robots (robot_id TEXT PRIMARY KEY, payload BLOB NOT NULL, updated REAL NOT NULL)",
+    "CREATE TABLE poses (robot_id TEXT PRIMARY KEY, map_id TEXT NOT NULL, "
+    "x REAL NOT NULL, y REAL NOT NULL, theta REAL NOT NULL, seq INTEGER NOT NULL, "
+    "stamp REAL NOT NULL, status TEXT NOT NULL, updated REAL NOT NULL)",
+]
+
+
+def _write_v1(path: Path) -> None:
+    db = sqlite3.connect(path)
+    for ddl in _V1_DDL:
+        db.execute(ddl)
+    db.execute("INSERT INTO maps VALUES ('m1', ?, 1.0)", (msgpack.packb(MAP),))
+    db.execute("INSERT INTO robots VALUES ('r1', ?, 1.0)", (msgpack.packb(CFG),))
+    db.execute("INSERT INTO poses VALUES ('r1', 'm1', 1.5, -2.0, 3.0, 42, 12.5, 'tracking', 1.0)")
+    db.execute("PRAGMA user_version=1")
+    db.commit()
+    db.close()
+
+
+def test_schema_1_file_is_migrated(tmp_path: Path) -> None:
+    assert SCHEMA_VERSION == 2
+    _write_v1(tmp_path / DB_NAME)
+    with StateStore(tmp_path) as st:
+        assert st.maps() == {"m1": MAP} and st.robots() == {"r1": CFG}
+        p = st.poses()["r1"]
+        assert (p.pose, p.seq, p.status, p.odom) == ((1.5, -2.0, 3.0), 42, "tracking", None)
+        st.save_poses({"r1": SavedPose("m1", 2.0, -2.0, 3.0, 43, 13.0, "tracking", (1, 2, 3))})
+    db = sqlite3.connect(tmp_path / DB_NAME)
+    assert db.execute("PRAGMA user_version").fetchone()[0] == 2
+    cols = [r[1] for r in db.execute("PRAGMA table_info(poses)")]
+    assert cols[-3:] == ["odom_x", "odom_y", "odom_theta"]
+    db.close()
+    with StateStore(tmp_path) as st:  # the migrated file reopens as a current one
+        assert st.poses()["r1"].odom == (1.0, 2.0, 3.0)
+
+
+def test_failed_migration_leaves_the_schema_1_file_untouched(tmp_path: Path) -> None:
+    _write_v1(tmp_path / DB_NAME)
+    db = sqlite3.connect(tmp_path / DB_NAME)
+    db.execute("ALTER TABLE poses ADD COLUMN odom_x REAL")  # a half-done foreign change
+    db.commit()
+    db.close()
+    with pytest.raises(StateError, match="migration from schema 1 to 2 failed"):
+        StateStore(tmp_path)
+    db = sqlite3.connect(tmp_path / DB_NAME)
+    assert db.execute("PRAGMA user_version").fetchone()[0] == 1
+    assert "odom_y" not in [r[1] for r in db.execute("PRAGMA table_info(poses)")]
+    db.close()
+
+
+def test_current_schema_without_odom_columns_raises(tmp_path: Path) -> None:
+    _write_v1(tmp_path / DB_NAME)
+    db = sqlite3.connect(tmp_path / DB_NAME)
+    db.execute(f"PRAGMA user_version={SCHEMA_VERSION}")
+    db.commit()
+    db.close()
+    with pytest.raises(StateError, match="poses lacks columns"):
+        StateStore(tmp_path)
+
+
 def test_config_put_forgets_saved_pose(tmp_path: Path) -> None:
     with StateStore(tmp_path) as st:
         st.put_robot("r1", CFG)
