@@ -19,11 +19,15 @@ Formats, chosen by the file's suffix (:data:`READERS`; any other suffix is sniff
     schematic floor plan; each line, and each polygon ring, becomes one polyline, kind
     ``schematic`` unless ``kind`` says otherwise. Z coordinates are dropped.
 * ``.wkt`` — a metric world in WKT (:meth:`service.maps.world.World.from_wkt`).
+* ``.yaml`` / ``.yml`` — a ROS ``map_server`` occupancy grid (YAML + PGM/PNG image;
+  :func:`service.maps.grid.read_map_yaml`), turned into polylines along the faces of its
+  occupied cells (:func:`service.maps.grid.grid_to_map`, default settings); kind ``metric``
+  unless ``kind`` says otherwise.
 
 Adding a format: write a reader ``(path, map_id, kind) -> MapData`` (``map_id`` / ``kind``
 ``None`` when not given; use :func:`default_map_id` and raise :class:`InvalidMessage` /
-:class:`InvalidWorld` naming the file) and register its suffixes in :data:`READERS`, e.g.
-``READERS[".yaml"] = read_ros_map`` for ROS ``map_server`` maps.
+:class:`InvalidWorld` naming the file) and register its suffixes in :data:`READERS`, as
+:func:`read_ros_map` is for ``.yaml``.
 """
 
 from __future__ import annotations
@@ -43,6 +47,7 @@ from schemas.messages import Map
 from service.convert import map_data_of, map_message_of
 from service.core.types import MapData, MapKind
 from service.errors import InvalidMessage, InvalidWorld
+from service.maps.grid import grid_to_map, read_map_yaml
 from service.maps.world import World
 
 #: Largest map file read, bytes (a wire map is at most 16 MiB on the wire; GeoJSON is wordier).
@@ -133,12 +138,25 @@ def read_wkt(path: Path, map_id: str | None, kind: MapKind | None) -> MapData:
     return md if kind in (None, md.kind) else MapData(mid, cast("MapKind", kind), md.polylines)
 
 
+def read_ros_map(path: Path, map_id: str | None, kind: MapKind | None) -> MapData:
+    """A ROS ``map_server`` map (YAML naming a PGM/PNG image): polylines along the faces of
+    its occupied cells (:func:`~service.maps.grid.grid_to_map`), map frame, metres."""
+    mid = _check_id(path, map_id or default_map_id(path))
+    grid = read_map_yaml(path)
+    try:
+        return grid_to_map(grid, mid, kind=kind or "metric")
+    except InvalidMessage as exc:
+        raise InvalidMessage(f"{path}: {exc}") from None
+
+
 #: Reader per lower-case file suffix; unknown suffixes go to :func:`read_serialized`.
 READERS: dict[str, MapReader] = {
     ".json": read_serialized,
     ".geojson": read_serialized,
     ".msgpack": read_serialized,
     ".wkt": read_wkt,
+    ".yaml": read_ros_map,
+    ".yml": read_ros_map,
 }
 
 

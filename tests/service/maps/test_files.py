@@ -197,3 +197,30 @@ def test_readers_dispatch_on_the_suffix(tmp_path: Path, monkeypatch: pytest.Monk
     assert load_map_file(p).map_id == "floor"
     assert load_map_file(p, map_id="f2", kind="schematic").map_id == "f2"
     assert seen == [("floor.PLAN", None, None), ("floor.PLAN", "f2", "schematic")]
+
+
+def test_ros_map_yaml_through_load_map_file(tmp_path: Path) -> None:
+    # a 2 x 1 m grid at 0.1 m, negated (255 = occupied), origin (-1, 2): its top row occupied
+    pix = np.zeros((10, 20), dtype=np.uint8)
+    pix[0, :] = 255
+    (tmp_path / "hall.pgm").write_bytes(b"P5\n20 10\n255\n" + pix.tobytes())
+    (tmp_path / "hall.yaml").write_text(
+        "image: hall.pgm\nresolution: 0.1\norigin: [-1.0, 2.0, 0.0]\nnegate: 1\n"
+        "occupied_thresh: 0.65\nfree_thresh: 0.196\n"
+    )
+    m = load_map_file(tmp_path / "hall.yaml")
+    assert (m.map_id, m.kind) == ("hall", "metric")
+    verts = np.vstack(m.polylines)
+    # the occupied row spans y = 2.9 .. 3.0 m and x = -1 .. 1 m (faces within half a cell)
+    assert verts[:, 0].min() == pytest.approx(-1.0, abs=0.051)
+    assert verts[:, 0].max() == pytest.approx(1.0, abs=0.051)
+    assert verts[:, 1].min() == pytest.approx(2.9, abs=0.051)
+    assert verts[:, 1].max() == pytest.approx(3.0, abs=0.051)
+    assert load_map_file(tmp_path / "hall.yaml", map_id="h2", kind="schematic").kind == "schematic"
+    (tmp_path / "empty.pgm").write_bytes(b"P5\n4 4\n255\n" + bytes([254] * 16))
+    (tmp_path / "empty.yaml").write_text(
+        "image: empty.pgm\nresolution: 0.1\norigin: [0, 0, 0]\nnegate: 0\n"
+        "occupied_thresh: 0.65\nfree_thresh: 0.196\n"
+    )
+    with pytest.raises(InvalidMessage, match=r"empty\.yaml: .*no occupied cells"):
+        load_map_file(tmp_path / "empty.yaml")
