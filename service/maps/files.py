@@ -17,7 +17,8 @@ Formats, chosen by the file's suffix (:data:`READERS`; any other suffix is sniff
     :meth:`service.maps.world.World.from_geojson`; every ring becomes a closed polyline. With
     any ``LineString`` / ``MultiLineString`` (or ``kind="schematic"``): **outlines**, e.g. a
     schematic floor plan; each line, and each polygon ring, becomes one polyline, kind
-    ``schematic`` unless ``kind`` says otherwise. Z coordinates are dropped.
+    ``schematic`` unless ``kind`` (or a top-level ``"kind"`` member, as
+    :func:`save_map_geojson` writes) says otherwise. Z coordinates are dropped.
 * ``.wkt`` — a metric world in WKT (:meth:`service.maps.world.World.from_wkt`).
 * ``.yaml`` / ``.yml`` — a ROS ``map_server`` occupancy grid (YAML + PGM/PNG image;
   :func:`service.maps.grid.read_map_yaml`), turned into polylines along the faces of its
@@ -93,6 +94,39 @@ def save_map_file(map_data: MapData, path: str | Path, name: str | None = None) 
     tmp = p.with_name(f".{p.name}.{os.getpid()}.tmp")
     try:
         tmp.write_bytes(data)
+        os.replace(tmp, p)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return p
+
+
+def save_map_geojson(map_data: MapData, path: str | Path, decimals: int = 4) -> Path:
+    """Write ``map_data`` as a GeoJSON ``FeatureCollection`` of ``LineString`` features (one per
+    polyline, map frame, metres rounded to ``decimals`` places) with the map's ``kind`` and
+    ``map_id`` as foreign members, which :func:`load_map_file` honours (so a metric map reads
+    back as metric, not as the default schematic outlines). Replaced atomically; returns the
+    path. Raises :class:`InvalidMessage` unless the path ends in ``.geojson``.
+    """
+    p = Path(path)
+    if p.suffix.lower() != ".geojson":
+        raise InvalidMessage(f"{p}: GeoJSON maps are written to a .geojson path")
+    feats = [
+        {
+            "type": "Feature",
+            "properties": {"index": i},
+            "geometry": {"type": "LineString", "coordinates": np.round(q, decimals).tolist()},
+        }
+        for i, q in enumerate(map_data.polylines)
+    ]
+    doc = {
+        "type": "FeatureCollection",
+        "map_id": map_data.map_id,
+        "kind": map_data.kind,
+        "features": feats,
+    }
+    tmp = p.with_name(f".{p.name}.{os.getpid()}.tmp")
+    try:
+        tmp.write_text(json.dumps(doc, separators=(",", ":")), encoding="utf-8")
         os.replace(tmp, p)
     finally:
         tmp.unlink(missing_ok=True)
@@ -199,6 +233,8 @@ def _from_geojson(path: Path, doc: dict, map_id: str | None, kind: MapKind | Non
         raise InvalidWorld(f"{path}: 'features' must be a list")
     geoms = [f.get("geometry") if isinstance(f, dict) else None for f in feats]
     has_lines = any(isinstance(g, dict) and g.get("type") in _LINE_TYPES for g in geoms)
+    if kind is None and doc.get("kind") in _KINDS:  # written by save_map_geojson
+        kind = cast("MapKind", doc["kind"])
     if kind == "schematic" or has_lines:
         polylines = geojson_polylines(feats, str(path))
         return MapData.from_lists(mid, kind or "schematic", polylines)

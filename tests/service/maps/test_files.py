@@ -13,7 +13,7 @@ import pytest
 from service.core.types import MapData
 from service.errors import InvalidMessage, InvalidWorld
 from service.maps import files
-from service.maps.files import READERS, load_map_file, save_map_file
+from service.maps.files import READERS, load_map_file, save_map_file, save_map_geojson
 
 REPO = Path(__file__).resolve().parents[3]
 WORLDS = REPO / "sim_publisher" / "worlds"
@@ -224,3 +224,14 @@ def test_ros_map_yaml_through_load_map_file(tmp_path: Path) -> None:
     )
     with pytest.raises(InvalidMessage, match=r"empty\.yaml: .*no occupied cells"):
         load_map_file(tmp_path / "empty.yaml")
+
+
+def test_save_map_geojson_keeps_the_kind(tmp_path: Path) -> None:
+    md = MapData.from_lists("lab", "metric", [SQUARE, [[0.123456789, -2.5], [3.0, 1.0]]])
+    out = save_map_geojson(md, tmp_path / "lab.geojson")
+    back = load_map_file(out)
+    assert (back.map_id, back.kind) == ("lab", "metric")  # not the outlines' default schematic
+    assert np.allclose(back.polylines[1], [[0.1235, -2.5], [3.0, 1.0]], atol=1e-12)
+    assert load_map_file(out, kind="schematic").kind == "schematic"
+    with pytest.raises(InvalidMessage, match=r"\.geojson path"):
+        save_map_geojson(md, tmp_path / "lab.json")
