@@ -1,6 +1,7 @@
 """``shapeloc``: command line of the shapeloc localizer service.
 
-Commands: ``health``, ``maps``, ``map put|get|delete``, ``configure``, ``pose`` and ``watch``
+Commands: ``health``, ``maps``, ``map put|get|delete`` (and, without a service, ``map
+import|build|schematize|fidelity``: :mod:`clients.maps_cli`), ``configure``, ``pose`` and ``watch``
 (the paper's experiment is ``shapeloc-sim experiment``: it belongs to the simulator). It
 connects as a Zenoh client to ``--connect`` (default ``tcp/127.0.0.1:7447``) and fails at once
 if nothing listens. Exit code 0 on success, 1 on an error (one line on stderr), 2 on bad usage.
@@ -18,6 +19,7 @@ from collections.abc import Sequence
 
 import zenoh
 
+from clients import maps_cli
 from clients.client import DEFAULT_CONNECT, DEFAULT_PREFIX, DEFAULT_TIMEOUT, ShapelocClient
 from schemas.messages import METHODS, Map, PoseMsg
 from service.errors import ShapelocError, UnknownMap
@@ -61,6 +63,7 @@ def build_parser() -> argparse.ArgumentParser:
     get.add_argument("map_id")
     dele = msub.add_parser("delete", help="delete a stored map")
     dele.add_argument("map_id")
+    maps_cli.add_parsers(msub)  # import, build, schematize, fidelity (local, no service)
 
     cfg = sub.add_parser("configure", help="configure (and reset) a robot")
     cfg.add_argument("robot_id")
@@ -110,6 +113,8 @@ def _fmt_map(m: Map) -> str:
 def run(args: argparse.Namespace, out: object = None) -> int:
     """Execute a parsed command; errors propagate as :class:`ShapelocError`."""
     out = out or sys.stdout
+    if args.command == "map" and args.map_command in maps_cli.LOCAL_ACTIONS:
+        return maps_cli.run(args, out)  # type: ignore[arg-type]
     endpoints = args.connect or [DEFAULT_CONNECT]
     with ShapelocClient(endpoints, prefix=args.prefix, timeout=args.timeout) as c:
         cmd = args.command
