@@ -49,3 +49,8 @@ class ServiceTimeout(ShapelocError, TimeoutError):
 
 class RemoteError(ShapelocError):
     """The service answered a request with ``reply_err``; the text is the service's reason."""
+
+
+class LogFormatError(ShapelocError, ValueError):
+    """A recorded log (ROS bag, CARMEN log, reference or relations file) is malformed or cannot be
+    used; the text names the file, the line or message, and the problem."""

@@ -20,6 +20,7 @@ import numpy as np
 
 from schemas.messages import Map, RobotConfig, Scan, Truth
 from service.convert import map_message_of
+from service.core.pose import compose, invert
 from service.core.types import METHODS, MapData, wrap_angle
 from service.maps.files import load_map_file
 from service.maps.world import World
@@ -56,7 +57,8 @@ class SimRobot:
 
     Kidnapping: with ``kidnap_at`` set, the scan with that ``seq`` (and the ones after it) is
     taken at the tour position ``kidnap_to`` (trajectory index) instead of where the robot
-    was: the robot is carried away without the localiser being told. The truth topic follows.
+    was: the robot is carried away without the localiser being told (its odometry stands still
+    across the jump, as wheels would). The truth topic follows.
 
     Look-around start: with ``look_around = N > 0`` the first ``N`` scans (seq ``0..N-1``) are
     taken at the tour's start position with headings ``theta0 - (N - 1 - k) * look_turn``
@@ -130,6 +132,11 @@ class SimRobot:
         self._spin_left = self.look_around
         self._dir = 1
         self.seq = 0
+        #: Map from the setup's odometry frame to the reported one: a kidnapped robot's wheels
+        #: do not see it carried, so at the kidnap the reported odometry stands still and
+        #: then continues from there (identity until then).
+        self._odom_frame = np.zeros(3)
+        self._last_odom: np.ndarray | None = None
         laser = setup.laser
         self.angle_min = float(laser.angle_min)
         self.angle_increment = float(laser.angle_increment)
@@ -167,6 +174,9 @@ class SimRobot:
             self._pos = self._kidnap_pos
             self._dir = 1
             self._spin_left = 0
+            if self._last_odom is not None:
+                carried = np.asarray(self.setup.odom[self.index], dtype=np.float64)
+                self._odom_frame = compose(self._last_odom, invert(carried))
         i = self.index
         spinning = self._spin_left > 0
         if spinning:
@@ -181,6 +191,8 @@ class SimRobot:
             ranges, angles = self.setup.scan(i)
             pose = np.asarray(self.setup.truth[i], dtype=np.float64)
             o = np.asarray(self.setup.odom[i], dtype=np.float64)
+        o = compose(self._odom_frame, o)
+        self._last_odom = o
         ranges = np.asarray(ranges, dtype=np.float64)
         if len(angles) != len(ranges):
             raise ValueError("laser returned mismatched ranges/angles")

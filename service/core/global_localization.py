@@ -66,6 +66,7 @@ from service.core.configuration import (
 from service.core.dce import dce
 from service.core.localizer import ShapeConfig, ShapeLocalizer
 from service.core.matching import induced_alignment
+from service.core.motion import check_pose3
 from service.core.pose import compose, fit_pairs, invert, transform_points
 from service.core.raycast import RayCaster
 from service.core.similarity import ShapeArcs, prepare, shape_complexity, shape_distance
@@ -194,9 +195,9 @@ class GlobalConfig(BaseModel):
     odom_turn_assist: float = Field(
         1.0,
         gt=0,
-        description="While tracking, an odometry turn larger than this (rad) since the last "
-        "scan moves the tracker's pose first (the tracker itself follows up to its max_turn "
-        "of 1.3 rad and otherwise ignores odometry).",
+        description="While tracking without the odometry prior (``motion.use_odometry`` "
+        "false), an odometry turn larger than this (rad) since the last scan still moves the "
+        "tracker's pose first (the tracker follows turns up to its max_turn of 1.3 rad).",
     )
     # --- decision ----------------------------------------------------------------------------
     window: int = Field(3, ge=1, description="Scans over which a hypothesis' cost is averaged.")
@@ -1390,12 +1391,15 @@ class GlobalShapeLocalizer:
         """``True`` while the pose is unknown (global search on every scan)."""
         return self._searching
 
-    def reset(self, initial_pose: np.ndarray | None) -> None:
-        """Forget the history; ``None`` starts a global search (status ``initializing``)."""
-        self.tracker.reset(initial_pose)
+    def reset(self, initial_pose: np.ndarray | None, odom: np.ndarray | None = None) -> None:
+        """Forget the history; ``None`` starts a global search (status ``initializing``).
+        ``odom``: odometry pose at ``initial_pose`` (the next increment starts from it)."""
+        self.tracker.reset(initial_pose, odom)
         self._tracks = []
         self._history = []
-        self._last_odom = None
+        self._last_odom = (
+            None if initial_pose is None or odom is None else check_pose3(odom, "odom")
+        )
         self._searching = initial_pose is None
         self._search_status = "initializing"
         self._episode = 0
@@ -1408,7 +1412,11 @@ class GlobalShapeLocalizer:
         to move the kept hypotheses between scans)."""
         if not self._searching:
             delta = self._remember_odom(odom)
-            if delta is not None and abs(float(delta[2])) > self.gconfig.odom_turn_assist:
+            if (
+                delta is not None
+                and not self.tracker.config.motion.use_odometry
+                and abs(float(delta[2])) > self.gconfig.odom_turn_assist
+            ):
                 # a turn the shape tracker cannot bridge (e.g. a look-around spin that goes on
                 # after the fix): trust the odometry's heading change for the prior
                 self.tracker.predict(delta)
@@ -1586,8 +1594,10 @@ class GlobalShapeLocalizer:
                     amb = max(amb, twin_amb)
                     extras["twin_rejected"] = 1.0
                     return self._unresolved(best, amb, extras)
-            self.tracker.reset(best.pose)
-            est = self.tracker.update(r, a, None)
+            # the tracker starts at the fix with this scan's odometry, so the next scan's
+            # increment (e.g. the rest of a look-around turn) is its motion prior
+            self.tracker.reset(best.pose, self._last_odom)
+            est = self.tracker.update(r, a, self._last_odom)
             close = (
                 np.hypot(*(est.pose[:2] - best.pose[:2])) <= g.confirm_distance
                 and abs(float(wrap_angle(est.pose[2] - best.pose[2]))) <= g.confirm_angle

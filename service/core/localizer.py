@@ -382,13 +382,14 @@ class ShapeLocalizer:
         """Last accepted pose ``[x, y, theta]`` (map frame), ``None`` before a fix."""
         return None if self._pose is None else self._pose.copy()
 
-    def reset(self, initial_pose: np.ndarray | None) -> None:
-        """Forget the history; ``None`` means the pose is unknown."""
+    def reset(self, initial_pose: np.ndarray | None, odom: np.ndarray | None = None) -> None:
+        """Forget the history; ``None`` means the pose is unknown. ``odom``: odometry pose
+        at ``initial_pose`` (the next scan's increment is measured from it)."""
         self._pose = None if initial_pose is None else check_pose3(initial_pose, "initial_pose")
         self._rejected = 0
         self._drift = 0.0  # odometry position variance accumulated while scans are rejected
         self._typical: float | None = None  # recent typical log-likelihood of accepted fits
-        self.motion.reset()
+        self.motion.reset(None if initial_pose is None else odom)
         self._views.clear()
         #: How many scans ran the shape matching (for benchmarks and tests).
         self.shape_runs = 0
@@ -550,19 +551,21 @@ class ShapeLocalizer:
         if pred.source == "odometry":
             max_step += 3.0 * float(max(pred.sigma[0], pred.sigma[1]))
         if sup < cfg.min_support or step > max_step or turn > cfg.max_turn:
-            return self._reject(pred, score, matches, explained, ambiguity, 3.0, extras)
+            return self._reject(pred, score, matches, sup, ambiguity, 3.0, extras)
         a_ = 0.1 if self._typical is not None else 1.0
         self._typical = (1 - a_) * (self._typical or 0.0) + a_ * best.loglik
         self.motion.accepted(self._pose, fit.pose)
         self._pose = fit.pose.copy()
         self._rejected = 0
         self._drift = 0.0
+        if explained is not None:
+            extras["matched_share"] = explained
         return Estimate(
             pose=fit.pose.copy(),
             status="tracking",
             score=score,
             matches=matches,
-            explained=explained,
+            explained=sup,
             ambiguity=ambiguity,
             covariance=fit.covariance,
             extras=extras,

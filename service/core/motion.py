@@ -92,8 +92,9 @@ class Prediction:
 class MotionModel(Protocol):
     """The seam every method uses to predict the pose of the next scan."""
 
-    def reset(self) -> None:
-        """Forget odometry and velocity history (new start pose)."""
+    def reset(self, odom: np.ndarray | None = None) -> None:
+        """Forget odometry and velocity history (new start pose); ``odom``, when given, is
+        the odometry pose at that start: the next increment is measured from it."""
         ...
 
     def predict(self, pose: np.ndarray, odom: np.ndarray | None) -> Prediction:
@@ -137,8 +138,8 @@ class OdometryMotion:
         self.config = config
         self._last: np.ndarray | None = None
 
-    def reset(self) -> None:
-        self._last = None
+    def reset(self, odom: np.ndarray | None = None) -> None:
+        self._last = None if odom is None else check_pose3(odom, "odom")
 
     def increment(self, odom: np.ndarray) -> np.ndarray | None:
         """Robot-frame increment since the previous odometry pose (``None`` the first time);
@@ -215,8 +216,8 @@ class Motion:
         self.odometry = OdometryMotion(self.config)
         self.velocity = VelocityMotion(self.config)
 
-    def reset(self) -> None:
-        self.odometry.reset()
+    def reset(self, odom: np.ndarray | None = None) -> None:
+        self.odometry.reset(odom if self.config.use_odometry else None)
         self.velocity.reset()
 
     def predict(self, pose: np.ndarray, odom: np.ndarray | None) -> Prediction:

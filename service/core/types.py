@@ -88,9 +88,11 @@ class Estimate:
     """Result of one :meth:`Localizer.update`.
 
     ``score`` is a match quality in [0, 1], higher is better (1: every scan feature explained
-    at zero cost). ``explained`` is the fraction of the scan's polyline length matched to the
-    map; ``ambiguity`` is best-vs-second-best hypothesis cost ratio in [0, 1] (1: tie), both
-    ``None`` where a method does not compute them. ``covariance`` is 3x3 or ``None``.
+    at zero cost). ``explained`` is the share of the scan the map explains at the published
+    pose (the shape tracker: scan points within ``inlier_tolerance`` of the map; the global
+    search: polyline length matched); ``ambiguity`` is best-vs-second-best hypothesis cost
+    ratio in [0, 1] (1: tie), both ``None`` where a method does not compute them.
+    ``covariance`` is 3x3 or ``None``.
     """
 
     pose: np.ndarray
@@ -118,8 +120,10 @@ class Localizer(Protocol):
         self, ranges: np.ndarray, angles: np.ndarray, odom: np.ndarray | None = None
     ) -> Estimate: ...
 
-    def reset(self, initial_pose: np.ndarray | None) -> None:
-        """Forget the history; ``None`` means global localisation (unknown pose)."""
+    def reset(self, initial_pose: np.ndarray | None, odom: np.ndarray | None = None) -> None:
+        """Forget the history; ``None`` means global localisation (unknown pose). ``odom``:
+        the odometry pose at ``initial_pose`` (e.g. saved with it before a restart), so the
+        next scan's odometry increment is measured from it."""
         ...
 
     @property

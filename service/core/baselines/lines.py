@@ -282,10 +282,11 @@ class LineLocalizer:
         """Last estimate ``[x, y, theta]`` (map frame), a copy."""
         return self._pose.copy()
 
-    def reset(self, initial_pose: np.ndarray | None) -> None:
-        """Restart tracking from ``initial_pose``; ``None`` raises (no global localisation)."""
+    def reset(self, initial_pose: np.ndarray | None, odom: np.ndarray | None = None) -> None:
+        """Restart tracking from ``initial_pose``; ``None`` raises (no global localisation).
+        ``odom``: odometry pose at ``initial_pose`` (the next increment starts from it)."""
         self._pose = check_pose(initial_pose, self.method)
-        self.motion.reset()
+        self.motion.reset(odom)
 
     def _associate(
         self, lines: list[LineSegment], pose: np.ndarray, angle_gate: float, dist_gate: float

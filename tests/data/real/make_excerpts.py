@@ -1,0 +1,193 @@
+"""Regenerate the real-log excerpts in this directory from the whole logs.
+
+Usage (from the repository root; reads ``/work/shared/data/real`` or ``--source DIR``)::
+
+    .venv/bin/python tests/data/real/make_excerpts.py [--source DIR] [--scans 300]
+
+Writes, for the first ``--scans`` scans of each log (see README.md beside this file):
+
+- ``intel.300.bag``, ``fr079.300.bag``: ROS 1 bags (bz2 chunks) written with ``rosbags``' writer.
+  The messages are copied byte for byte (no re-serialisation): every ``/scan`` message up to and
+  including the last kept scan, and every ``/odom``, ``/tf`` and ``/tf_static`` message up to one
+  second of bag time after it (so the last scan's odometry can still be interpolated), with the
+  original connections (type, message definition, md5sum) and bag times.
+- ``mit-csail.300.clf.gz``: the CARMEN log's lines up to and including the last kept ``FLASER``
+  line, unchanged, gzipped (mtime 0, so the file is reproducible).
+- ``<log>.300.gfs_reference_per_scan.txt``: the comment lines and the first ``--scans`` rows of
+  the per-scan reference file (one row per raw scan, the same order).
+- ``<log>.300.relations``: the relations whose two stamps are both among the kept scans'.
+- ``fr079.300.map.json``: a wire map (``service.maps.files.save_map_file``) built by
+  ``service.maps.build.build_map`` from the kept fr079 scans that have a flag-1 reference, each
+  at its reference (laser) pose; its fidelity (median / p90 distance of those scans' points to
+  the map's polylines) is printed.
+
+This script is the only place that reads the whole logs; the tests read the excerpts only.
+"""
+
+from __future__ import annotations
+
+import argparse
+import gzip
+import sys
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+DEFAULT_SOURCE = Path("/work/shared/data/real")
+BAGS = ("intel", "fr079")
+#: Bag time (s) of odometry / tf kept after the last kept scan.
+ODOM_TAIL_S = 1.0
+
+
+def cut_bag(src: Path, dst: Path, scans: int) -> int:
+    """Copy the first ``scans`` ``/scan`` messages of ``src`` and the other topics up to
+    :data:`ODOM_TAIL_S` after the last one into ``dst``; returns the number of messages."""
+    from rosbags.highlevel import AnyReader
+    from rosbags.rosbag1 import Writer
+
+    dst.unlink(missing_ok=True)
+    with AnyReader([src]) as reader:
+        scan_ids = {c.id for c in reader.connections if c.topic == "/scan"}
+        last_t = None
+        for k, (_conn, t, _raw) in enumerate(
+            reader.messages(connections=[c for c in reader.connections if c.id in scan_ids])
+        ):
+            if k == scans - 1:
+                last_t = t
+                break
+        if last_t is None:
+            raise SystemExit(f"{src}: fewer than {scans} scans")
+        end = last_t + int(ODOM_TAIL_S * 1e9)
+        writer = Writer(dst)
+        writer.set_compression(Writer.CompressionFormat.BZ2)
+        written = 0
+        with writer:
+            out = {
+                c.id: writer.add_connection(
+                    c.topic,
+                    c.msgtype,
+                    msgdef=c.msgdef.data,
+                    md5sum=c.digest,
+                    callerid=c.ext.callerid,
+                    latching=c.ext.latching,
+                )
+                for c in reader.connections
+            }
+            n_scans = 0
+            for conn, t, raw in reader.messages():
+                if conn.id in scan_ids:
+                    if n_scans >= scans:
+                        continue
+                    n_scans += 1
+                elif t > end:
+                    continue
+                writer.write(out[conn.id], t, raw)
+                written += 1
+    return written
+
+
+def cut_carmen(src: Path, dst: Path, scans: int) -> int:
+    """Copy the lines of ``src`` up to the ``scans``-th laser line into gzipped ``dst``."""
+    lines: list[str] = []
+    n = 0
+    with open(src, encoding="latin-1") as fh:
+        for line in fh:
+            lines.append(line)
+            if line.startswith(("FLASER ", "ROBOTLASER1 ")):
+                n += 1
+                if n == scans:
+                    break
+    if n < scans:
+        raise SystemExit(f"{src}: fewer than {scans} laser lines")
+    with open(dst, "wb") as raw, gzip.GzipFile(fileobj=raw, mode="wb", mtime=0) as gz:
+        gz.write("".join(lines).encode("latin-1"))
+    return len(lines)
+
+
+def cut_reference(src: Path, dst: Path, scans: int) -> list[float]:
+    """Copy the comment lines and the first ``scans`` rows; returns the kept stamps (s)."""
+    out: list[str] = []
+    stamps: list[float] = []
+    with open(src, encoding="latin-1") as fh:
+        for line in fh:
+            if line.startswith("#"):
+                out.append(line)
+                continue
+            if len(stamps) == scans:
+                break
+            out.append(line)
+            stamps.append(float(line.split()[0]))
+    dst.write_text("".join(out), encoding="latin-1")
+    return stamps
+
+
+def cut_relations(src: Path, dst: Path, stamps: list[float]) -> int:
+    """Copy the relations whose two stamps are within 1e-5 s of kept scan stamps (mit-csail's
+    relations print 5 decimals)."""
+    known = np.sort(np.array(stamps))
+
+    def kept(t: float) -> bool:
+        k = int(np.searchsorted(known, t))
+        near = known[max(k - 1, 0) : k + 1]
+        return bool(near.size and np.min(np.abs(near - t)) <= 1e-5)
+
+    out = []
+    with open(src, encoding="latin-1") as fh:
+        for line in fh:
+            tok = line.split()
+            if len(tok) == 8 and kept(float(tok[0])) and kept(float(tok[1])):
+                out.append(line)
+    dst.write_text("".join(out), encoding="latin-1")
+    return len(out)
+
+
+def build_fr079_map(bag: Path, reference: Path, dst: Path) -> None:
+    """Build the fr079 excerpt's map from its flag-1 scans at their reference poses."""
+    from service.logs import attach_reference, load_reference, read_log
+    from service.maps.build import build_map
+    from service.maps.fidelity import map_fidelity
+    from service.maps.files import save_map_file
+
+    info, it = read_log(bag)
+    scans = [s for s in attach_reference(it, load_reference(reference)) if s.reference_ok]
+    built = build_map(
+        scans=[(s.ranges, s.angles) for s in scans],
+        poses=np.array([s.reference for s in scans]),
+        map_id="fr079-300",  # build_map's defaults (2.5 cm grid, 2 cm simplification)
+    )
+    save_map_file(built.map_data, dst, name="fr079, first 300 scans (GMapping reference poses)")
+    n_lines = len(built.map_data.polylines)
+    print(f"{dst.name}: {n_lines} polylines from {len(scans)} flag-1 scans of {info.path.name}")
+    poses = np.array([s.reference for s in scans])
+    fid = map_fidelity(built.map_data, [(s.ranges, s.angles) for s in scans], poses)
+    print(f"  fidelity: median {fid.median:.4f} m, p90 {fid.p90:.4f} m over {fid.n_points} returns")
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--source", type=Path, default=DEFAULT_SOURCE)
+    ap.add_argument("--scans", type=int, default=300)
+    args = ap.parse_args(argv)
+    src: Path = args.source
+    n: int = args.scans
+    for name in BAGS:
+        count = cut_bag(src / f"{name}.orig.bag", HERE / f"{name}.{n}.bag", n)
+        print(f"{name}.{n}.bag: {count} messages")
+    count = cut_carmen(src / "mit-csail.clf", HERE / f"mit-csail.{n}.clf.gz", n)
+    print(f"mit-csail.{n}.clf.gz: {count} lines")
+    for name in (*BAGS, "mit-csail"):
+        ref = src / "corrected" / f"{name}.gfs_reference_per_scan.txt"
+        stamps = cut_reference(ref, HERE / f"{name}.{n}.gfs_reference_per_scan.txt", n)
+        k = cut_relations(src / f"{name}.relations", HERE / f"{name}.{n}.relations", stamps)
+        print(f"{name}.{n}: {len(stamps)} reference rows, {k} relations")
+    build_fr079_map(
+        HERE / f"fr079.{n}.bag",
+        HERE / f"fr079.{n}.gfs_reference_per_scan.txt",
+        HERE / f"fr079.{n}.map.json",
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
