@@ -31,7 +31,7 @@ from schemas import keys
 from schemas.codec import MSGPACK_ENCODING, encode
 from schemas.messages import METHODS, PoseMsg
 from service.errors import ServiceTimeout, ShapelocError
-from sim_publisher import experiment
+from sim_publisher import experiment, replay
 from sim_publisher.publisher import SimFleet, fleet_specs
 
 log = logging.getLogger("shapeloc.sim")
@@ -448,6 +448,12 @@ COMMANDS: dict[str, Command] = {
         "the paper's section-6 experiment (Table 1), in process, no Zenoh",
         experiment.add_arguments,
         experiment.run,
+    ),
+    "replay": Command(
+        "publish a recorded laser log (ROS bag or CARMEN) over Zenoh as a robot would, with "
+        "its reference poses on the truth key",
+        replay.add_arguments,
+        replay.run,
     ),
 }
 #: What ``shapeloc-sim`` runs when its first argument is not a subcommand.
