@@ -77,6 +77,8 @@ class LoggedScans:
         """Indices of the scans to draw a map from: every trusted pose, and carried ones with
         ``carried <= max_carried`` (``0`` = trusted only, ``inf`` = every scan with a pose)."""
         fin = np.all(np.isfinite(self.poses), axis=1)
+        if max_carried <= 0.0:
+            return np.nonzero(fin & self.ok)[0]
         return np.nonzero(fin & (self.ok | (self.carried <= max_carried)))[0]
 
     def trusted(self) -> tuple[list[tuple[np.ndarray, np.ndarray]], np.ndarray]:
