@@ -211,3 +211,46 @@ def test_unreadable_inputs_raise_log_format_error(tmp_path: Path) -> None:
         read_log(fake)
     with pytest.raises(LogFormatError, match="not a sensor_msgs/LaserScan"):
         read_log(FR079, scan_topic="/odom")
+
+
+@pytest.mark.parametrize("storage", ["sqlite3", "mcap"])
+def test_ros2_bag_reads_like_the_ros1_bag_it_was_converted_from(
+    tmp_path: Path, storage: str
+) -> None:
+    from rosbags.convert import convert
+
+    dst = tmp_path / f"fr079-{storage}"
+    convert(
+        srcs=[FR079],
+        dst=dst,
+        dst_storage=storage,
+        dst_version=8,
+        compress=None,
+        compress_mode="file",
+        default_typestore=None,
+        typestore=None,
+        exclude_topics=[],
+        include_topics=[],
+        exclude_msgtypes=[],
+        include_msgtypes=[],
+    )
+    ros1 = list(read_log(FR079)[1])
+    storage_file = next(p for p in dst.iterdir() if p.suffix in (".db3", ".mcap"))
+    for target in (dst, storage_file):  # the bag directory or its storage file
+        info, it = read_log(target)
+        assert info.format == "ros2" and info.scan_count == 300
+        assert info.laser_offset == pytest.approx([0.04, 0.0, 0.0])
+        scans = list(it)
+        assert [s.stamp for s in scans] == [s.stamp for s in ros1]
+        assert all(
+            np.array_equal(a.ranges, b.ranges, equal_nan=True) and np.array_equal(a.odom, b.odom)
+            for a, b in zip(scans, ros1, strict=True)
+        )
+
+
+def test_odometry_from_tf_equals_odometry_from_odom_topic() -> None:
+    by_odom = list(read_log(FR079)[1])
+    info, it = read_log(FR079, odom_topic="/tf")
+    assert info.odom_topic == "/tf" and info.odom_frames == ("odom", "base_link")
+    by_tf = list(it)
+    assert all(np.array_equal(a.odom, b.odom) for a, b in zip(by_odom, by_tf, strict=True))
