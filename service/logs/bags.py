@@ -4,7 +4,10 @@ Topics are found by message type when not given: the scan topic is the ``sensor_
 topic (``/scan`` when there are several); odometry is the ``nav_msgs/Odometry`` topic (``/odom``
 when there are several), else the ``odom -> <base>`` transforms on ``/tf``. The laser offset is
 the chain of ``/tf_static`` transforms from the odometry's child frame (the base) to the scan's
-``header.frame_id``; only level mounts (yaw only) are accepted.
+``header.frame_id``; only level mounts (yaw only) are accepted. ``LogScan.odom`` is the
+odometry pose of the base (``nav_msgs/Odometry`` ``pose.pose`` or the ``odom -> base``
+transform), linearly interpolated at the scan's ``header.stamp`` and composed with that offset:
+the laser's odometry pose (m, rad, in the odometry frame).
 
 Streaming: the bag is read once in bag-time order. Odometry poses are buffered (small); a scan is
 held back only until an odometry message at or after its stamp has been read (or

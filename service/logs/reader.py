@@ -1,4 +1,12 @@
-"""One entry point for every log format: :func:`read_log`."""
+"""One entry point for every log format: :func:`read_log` (and :func:`log_format`).
+
+Formats by path: ROS 1 bag (``.bag``), ROS 2 bag (a directory with ``metadata.yaml``, or its
+``.db3`` / ``.mcap`` file) -> :mod:`service.logs.bags`; CARMEN (``.clf``, ``.log``, ``.txt``,
+each optionally ``.gz``) -> :mod:`service.logs.carmen`. Whatever the format, the scans come as
+:class:`~service.logs.scan.LogScan` (metres, radians, seconds on the log's clock) with their
+odometry in the LASER frame (see :mod:`service.logs`); malformed input raises
+:class:`~service.errors.LogFormatError` naming the file (and line or topic).
+"""
 
 from __future__ import annotations
 
