@@ -179,6 +179,7 @@ def test_publish_paces_by_log_stamps(rate: float | None) -> None:
     scan_puts = [(t, decode(Scan, p)) for t, k, p in session.log if k.endswith("/fr/scan")]
     truth_puts = [decode(Truth, p) for _, k, p in session.log if k.endswith("/fr/truth")]
     assert [m.seq for _, m in scan_puts] == list(range(12))
+    assert all(m.odom == pytest.approx(s.odom) for (_, m), s in zip(scan_puts, scans, strict=True))
     assert [t.seq for t in truth_puts] == [s.index for s in scans if s.reference_ok]
     assert len(truth_puts) == 7  # flag-1 rows only (1-3, 7-9, 11)
     span = scans[-1].stamp - scans[0].stamp
@@ -199,3 +200,13 @@ def test_progress_line() -> None:
     assert "149 poses" in text and text.endswith("s\n")
     bar.update(151, 150)  # not due yet (not a terminal: every 5 s)
     assert out.getvalue() == text
+
+
+def test_publish_without_odometry() -> None:
+    scans = _scans(limit=3)
+    opts = ReplayOptions(log=BAG, robot="fr", map_id="m", rate=None, odom=False, progress=False)
+    session = _Session()
+    bar = Progress("x", 3, io.StringIO(), enabled=False)
+    _publish(session, opts, iter(scans), threading.Event(), None, bar, set())  # type: ignore[arg-type]
+    sent = [decode(Scan, p) for _, k, p in session.log if k.endswith("/fr/scan")]
+    assert len(sent) == 3 and all(m.odom is None for m in sent)
