@@ -89,11 +89,17 @@ def bench_log(
     held_poses = logged.poses[held]
     rows = []
     chosen = None
-    for label, mc in (
-        ("metric, flag-1 scans", 0.0),
-        (f"metric, + flag-0 <= {max_carried:g} m (chosen)", max_carried),
-        ("metric, every scan", math.inf),
-    ):
+    ways = sorted({0.0, 0.5, max_carried, math.inf})
+    for mc in ways:
+        label = (
+            "metric, flag-1 scans"
+            if mc == 0.0
+            else "metric, every scan"
+            if math.isinf(mc)
+            else f"metric, + flag-0 <= {mc:g} m"
+        )
+        if mc == max_carried:
+            label += " (chosen)"
         idx = logged.usable(mc)
         t0 = time.perf_counter()
         built = build_map([logged.scans[i] for i in idx], logged.poses[idx], map_id=name)

@@ -1,18 +1,28 @@
 """Shape-based localisation (SBL, paper §4-§6): :class:`ShapeConfig` and :class:`ShapeLocalizer`.
 
-Per scan (:meth:`ShapeLocalizer.update`):
+What runs where, per scan (:meth:`ShapeLocalizer.update`; ``docs/core.md`` has the table):
 
-1. the scan's configuration (§4.1-4.2: grouping, first-stage DCE) in the robot frame —
-   :func:`service.core.configuration.scan_configuration`;
-2. the map's abstract sensor reading from the last pose (§5.2) — a cached 360-degree map view,
-   :class:`service.core.configuration.MapViewCache`;
-3. two-step matching (§5.3): displacement estimate from the most complex / most similar pairs,
-   then the full eq. 5 dynamic programme — :func:`service.core.matching.two_step_match`;
-4. the pose by least squares over points of the matched pairs only —
-   :func:`service.core.pose.pose_from_matches`;
-5. a quality check deciding ``tracking`` / ``lost``.
+1. **Motion prior** -- :class:`service.core.motion.Motion`: the odometry increment since the
+   last scan when the scan carries ``odom`` (and ``motion.use_odometry``), else the robot's own
+   smoothed velocity (the paper's no-odometry mode, §5.2);
+2. **Scan configuration** (§4.1-4.2: grouping, first-stage DCE, angular order) --
+   :func:`service.core.configuration.scan_configuration`; its polylines' points are the
+   points of the precise fit;
+3. **Precise fit** from the prior -- :func:`service.core.refine.refine_pose`: robust
+   point-to-line against the whole map (:class:`service.core.mapmodel.MapModel`), the motion
+   prior as a Gaussian term; its scan log-likelihood is the evidence;
+4. **Shape matching** (§5: the map's abstract sensor reading from the prior, S*, the eq. 5
+   dynamic programme, two-step matching) -- :func:`service.core.matching.two_step_match` --
+   runs when there is no odometry or the fit from the odometry prior is doubtful (far from
+   the prior, low support, likelihood dropped): its correspondences give a pose beyond the
+   fit's basin, which the precise fit then refines (unmatched scan polylines down-weighted);
+5. **Arbitration** -- the candidate with the best scan likelihood weighed against the motion
+   prior wins (schematic maps: the shape candidate when the shape match is good enough);
+6. **Quality check** -- a fit that explains too little, or jumps beyond ``max_step`` /
+   ``max_turn``, is rejected (the prior is kept); ``lost_after`` rejections in a row (with
+   odometry: once the accumulated odometry uncertainty also exceeds ``lost_sigma_xy``) make
+   the status ``lost``.
 
-No odometry is needed (§5.2); ``odom`` may seed the prior when ``use_odometry`` is set.
 Frames and units: REP 103, metres and radians; poses ``[x, y, theta]`` in the map frame.
 """
 

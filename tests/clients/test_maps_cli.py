@@ -113,7 +113,7 @@ def test_build_schematize_fidelity(tmp_path: Path, capsys: pytest.CaptureFixture
     prefix.parent.mkdir()
     assert cli(["map", "build", str(log), "--poses", str(ref), "--out", str(prefix)]) == 0
     text = capsys.readouterr().out
-    assert "from 60 of 60 scans (20 corrected)" in text
+    assert "from 20 of 60 scans (20 corrected)" in text  # default: corrected scans only
     for suffix in (".yaml", ".pgm", ".geojson"):
         assert prefix.with_name("room" + suffix).is_file()
     fid_line = next(ln for ln in text.splitlines() if ln.startswith("fidelity:"))
@@ -128,11 +128,11 @@ def test_build_schematize_fidelity(tmp_path: Path, capsys: pytest.CaptureFixture
     grid = read_map_yaml(prefix.with_name("room.yaml"))
     assert grid.resolution == pytest.approx(0.025)
 
-    # the corrected scans only (max-carried 0): 20 scans
+    # every scan (max-carried inf): 60 scans
     p0 = tmp_path / "out" / "room0"
-    argv = ["map", "build", str(log), "--poses", str(ref), "--out", str(p0), "--max-carried", "0"]
+    argv = ["map", "build", str(log), "--poses", str(ref), "--out", str(p0), "--max-carried", "inf"]
     assert cli(argv) == 0
-    assert "from 20 of 60 scans" in capsys.readouterr().out
+    assert "from 60 of 60 scans" in capsys.readouterr().out
 
     # fidelity of the written map on the same log agrees with what build printed
     assert cli(["map", "fidelity", str(prefix) + ".geojson", str(log), "--poses", str(ref)]) == 0
