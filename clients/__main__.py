@@ -4,7 +4,10 @@ Commands: ``health``, ``maps``, ``map put|get|delete`` (and, without a service, 
 import|build|schematize|fidelity``: :mod:`clients.maps_cli`), ``configure``, ``pose`` and ``watch``
 (the paper's experiment is ``shapeloc-sim experiment``: it belongs to the simulator). It
 connects as a Zenoh client to ``--connect`` (default ``tcp/127.0.0.1:7447``) and fails at once
-if nothing listens. Exit code 0 on success, 1 on an error (one line on stderr), 2 on bad usage.
+if nothing listens. ``--zenoh-config FILE`` (Zenoh JSON5: TLS, mutual TLS, user/password) is the
+base configuration; ``--connect`` replaces its endpoints and the mode is always ``client``
+(see docs/reliability.md). Exit code 0 on success, 1 on an error (one line on stderr), 2 on
+bad usage.
 """
 
 from __future__ import annotations
@@ -20,7 +23,15 @@ from collections.abc import Sequence
 import zenoh
 
 from clients import maps_cli
-from clients.client import DEFAULT_CONNECT, DEFAULT_PREFIX, DEFAULT_TIMEOUT, ShapelocClient
+from clients.client import (
+    DEFAULT_CONNECT,
+    DEFAULT_PREFIX,
+    DEFAULT_TIMEOUT,
+    ShapelocClient,
+    config_endpoints,
+    open_session,
+    zenoh_config,
+)
 from schemas.messages import METHODS, Map, PoseMsg
 from service.errors import ShapelocError, UnknownMap
 
@@ -43,6 +54,12 @@ def build_parser() -> argparse.ArgumentParser:
         action="append",
         default=None,
         help=f"Zenoh endpoint of the service or router (repeatable; default {DEFAULT_CONNECT})",
+    )
+    p.add_argument(
+        "--zenoh-config",
+        dest="zenoh_config",
+        metavar="FILE",
+        help="Zenoh JSON5 config (TLS, mTLS, user/password); --connect replaces its endpoints",
     )
     p.add_argument("--prefix", default=DEFAULT_PREFIX, help="key prefix (default shapeloc)")
     p.add_argument(
@@ -116,7 +133,26 @@ def run(args: argparse.Namespace, out: object = None) -> int:
     if args.command == "map" and args.map_command in maps_cli.LOCAL_ACTIONS:
         return maps_cli.run(args, out)  # type: ignore[arg-type]
     endpoints = args.connect or [DEFAULT_CONNECT]
-    with ShapelocClient(endpoints, prefix=args.prefix, timeout=args.timeout) as c:
+    session = None
+    if getattr(args, "zenoh_config", None):
+        conf = zenoh_config(
+            "client",
+            connect=args.connect or (),
+            config_file=args.zenoh_config,
+            default_connect=[DEFAULT_CONNECT],
+        )
+        session = open_session(conf, config_endpoints(conf))
+    try:
+        return _run(args, out, endpoints, session)
+    finally:
+        if session is not None:
+            session.close()
+
+
+def _run(
+    args: argparse.Namespace, out: object, endpoints: list[str], session: zenoh.Session | None
+) -> int:
+    with ShapelocClient(endpoints, session=session, prefix=args.prefix, timeout=args.timeout) as c:
         cmd = args.command
         if cmd == "health":
             h = c.health()

@@ -17,7 +17,7 @@ from collections.abc import Sequence
 from types import FrameType
 
 from service.errors import ShapelocError, StateError, Unreachable
-from service.settings import ServiceSettings, load_settings, zenoh_config
+from service.settings import ServiceSettings, load_settings, security_summary, zenoh_config
 
 log = logging.getLogger("shapeloc.service")
 
@@ -50,6 +50,7 @@ def main(settings: ServiceSettings) -> int:
     faulthandler.register(signal.SIGUSR1, all_threads=True)  # kill -USR1: dump thread stacks
     try:
         conf = zenoh_config(settings)
+        log.info("zenoh: %s", security_summary(conf))
         try:
             session = zenoh.open(conf)
         except Exception as e:

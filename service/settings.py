@@ -261,3 +261,33 @@ def zenoh_config(settings: ServiceSettings) -> zenoh.Config:
     )
     conf.insert_json5("scouting/delay", "0")
     return conf
+
+
+def security_summary(conf: zenoh.Config) -> str:
+    """One line naming the wire security a Zenoh config switches on (TLS listeners, mutual
+    TLS, user/password, access control), without any secret, for the start-up log."""
+    try:
+        d = json.loads(str(conf))
+    except ValueError:
+        return "zenoh config not inspectable"
+    eps = (d.get("listen") or {}).get("endpoints") or []
+    if isinstance(eps, dict):
+        eps = [e for v in eps.values() for e in (v or [])]
+    link = ((d.get("transport") or {}).get("link") or {}).get("tls") or {}
+    auth = ((d.get("transport") or {}).get("auth") or {}).get("usrpwd") or {}
+    acl = d.get("access_control") or {}
+    parts = [
+        f"mode {d.get('mode') or 'peer'}",
+        f"listen {list(eps)}",
+        "TLS listener" if link.get("listen_certificate") else "no TLS certificate",
+        "mutual TLS" if link.get("enable_mtls") else "no mutual TLS",
+        "user/password dictionary" if auth.get("dictionary_file") else "no user/password",
+    ]
+    if acl.get("enabled"):
+        parts.append(
+            f"access control on (default {acl.get('default_permission')}, "
+            f"{len(acl.get('policies') or [])} policies)"
+        )
+    else:
+        parts.append("access control off")
+    return ", ".join(parts)

@@ -26,7 +26,14 @@ from dataclasses import dataclass, field
 
 import zenoh
 
-from clients.client import DEFAULT_PREFIX, ShapelocClient, Stream, open_session, zenoh_config
+from clients.client import (
+    DEFAULT_PREFIX,
+    ShapelocClient,
+    Stream,
+    config_endpoints,
+    open_session,
+    zenoh_config,
+)
 from schemas import keys
 from schemas.codec import MSGPACK_ENCODING, encode
 from schemas.messages import METHODS, PoseMsg
@@ -326,15 +333,50 @@ def add_run_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--no-maps", dest="put_maps", action="store_false", help="do not put the maps")
     p.add_argument("--prefix", default=DEFAULT_PREFIX, help="key prefix")
-    p.add_argument("--mode", choices=("client", "peer", "router"), default="client")
+    add_zenoh_arguments(p)
+    p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+
+
+DEFAULT_CONNECT = "tcp/127.0.0.1:7447"
+
+
+def add_zenoh_arguments(p: argparse.ArgumentParser) -> None:
+    """The Zenoh options every networked subcommand shares: ``--mode``, ``--connect``,
+    ``--listen`` and ``--zenoh-config`` (read back with :func:`zenoh_config_from_args`)."""
+    p.add_argument(
+        "--mode",
+        choices=("client", "peer", "router"),
+        default=None,
+        help="Zenoh mode (default client, or the --zenoh-config file's)",
+    )
     p.add_argument(
         "--connect",
         action="append",
         default=None,
-        help="endpoint to connect to (repeatable; default tcp/127.0.0.1:7447 in client mode)",
+        help=f"endpoint to connect to (repeatable; default {DEFAULT_CONNECT} in client mode)",
     )
     p.add_argument("--listen", action="append", default=None, help="endpoint to listen on")
-    p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    p.add_argument(
+        "--zenoh-config",
+        dest="zenoh_config",
+        metavar="FILE",
+        default=None,
+        help="Zenoh JSON5 config (TLS, mTLS, user/password) as the base; --mode, --connect "
+        "and --listen replace its values",
+    )
+
+
+def zenoh_config_from_args(args: argparse.Namespace) -> tuple[zenoh.Config, list[str]]:
+    """The session config of :func:`add_zenoh_arguments`' options and the connect endpoints
+    (for messages). Raises :class:`~service.errors.InvalidMessage` for an unreadable file."""
+    conf = zenoh_config(
+        args.mode,
+        connect=args.connect or (),
+        listen=args.listen or (),
+        config_file=getattr(args, "zenoh_config", None),
+        default_connect=[DEFAULT_CONNECT],
+    )
+    return conf, config_endpoints(conf, "connect")
 
 
 def options_from_args(args: argparse.Namespace) -> SimOptions:
@@ -404,11 +446,11 @@ def cli_run(args: argparse.Namespace) -> int:
     except ValueError as exc:
         print(f"shapeloc-sim: error: {exc}", file=sys.stderr)
         return 2
-    connect = args.connect
-    if connect is None and args.mode == "client":
-        connect = ["tcp/127.0.0.1:7447"]
-    endpoints = list(connect or [])
-    conf = zenoh_config(args.mode, connect=endpoints, listen=args.listen or [])
+    try:
+        conf, endpoints = zenoh_config_from_args(args)
+    except ShapelocError as exc:
+        print(f"shapeloc-sim: error: {exc}", file=sys.stderr)
+        return 2
     stop = threading.Event()
 
     def on_signal(signum: int, _frame: object) -> None:
