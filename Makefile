@@ -4,7 +4,7 @@ VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed-stamp
 
-.PHONY: test demo lint bench experiment schemas clean
+.PHONY: test demo lint bench bench-real experiment schemas clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -26,8 +26,18 @@ lint: $(STAMP)
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
 
+# bench_real.py is left out of `bench`: the whole matrix on the three real logs takes about an
+# hour; run it on its own with `make bench-real` (reads /work/shared/data/real), e.g.
+# `make bench-real BENCH_REAL_ARGS="--jobs 2 --resume"` to finish an interrupted run.
+BENCH_REAL_ARGS ?=
 bench: $(STAMP)
-	for b in bench/bench_*.py; do $(PY) $$b || exit 1; done
+	for b in bench/bench_*.py; do \
+		case $$b in bench/bench_real.py) continue;; esac; \
+		$(PY) $$b || exit 1; \
+	done
+
+bench-real: $(STAMP)
+	$(PY) bench/bench_real.py $(BENCH_REAL_ARGS)
 
 experiment: $(STAMP)
 	$(VENV)/bin/shapeloc-sim experiment
