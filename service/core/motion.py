@@ -9,6 +9,12 @@ way AMCL's motion models seed its particles. Every localisation method (``shape`
   the prior is ``last_pose (+) (odom_prev^-1 (+) odom)``, the increment since the previous
   scan; its uncertainty grows with the distance driven and the angle turned (the
   ``alpha`` parameters of the classic odometry model, as in AMCL's ``diff`` model).
+  **Stale odometry**: a reading bit-identical to the previous one is not a stop but an
+  odometry that was not updated (real logs: mit-csail's odometry freezes for a few scans,
+  then jumps 0.7-0.9 m at once; intel once). Such a scan gets a *hold* prior (the last pose,
+  with the velocity model's weak sigmas, source ``"held"``: the scan decides), and the next
+  fresh reading's increment is applied to the pose estimated at the scan where the previous
+  reading was taken, so motion that the held scans already tracked is not counted twice.
 * :class:`VelocityMotion` -- no odometry (the seed's experiment, ``--no-odom``): the robot is
   assumed to keep its recent translation per scan (smoothed), heading unchanged; the prior is
   weak, so the scan decides.
@@ -30,7 +36,7 @@ from service.core.pose import compose, invert
 from service.core.types import wrap_angle
 from service.errors import LocalizationError
 
-Source = Literal["odometry", "velocity"]
+Source = Literal["odometry", "velocity", "held"]
 
 
 class MotionConfig(BaseModel):
@@ -137,9 +143,37 @@ class OdometryMotion:
     def __init__(self, config: MotionConfig) -> None:
         self.config = config
         self._last: np.ndarray | None = None
+        self._anchor: np.ndarray | None = None  # pose estimate where ``_last`` was taken
+        self._fresh = True  # the previous predict used a fresh reading
 
     def reset(self, odom: np.ndarray | None = None) -> None:
         self._last = None if odom is None else check_pose3(odom, "odom")
+        self._anchor = None
+        self._fresh = True
+
+    def stale(self, odom: np.ndarray) -> bool:
+        """``True`` when ``odom`` repeats the previous reading bit for bit (see module doc)."""
+        o = check_pose3(odom, "odom")
+        return self._last is not None and bool(np.array_equal(o, self._last))
+
+    def hold(self, pose: np.ndarray) -> Prediction:
+        """Prior for a scan with a stale reading: the last pose, weak (velocity) sigmas; the
+        anchor stays where the reading was taken."""
+        self._settle(pose)
+        self._fresh = False
+        c = self.config
+        info = _information(
+            float(pose[2]), c.velocity_sigma_xy, c.velocity_sigma_xy, c.velocity_sigma_theta
+        )
+        return Prediction(
+            pose=np.asarray(pose, dtype=np.float64).copy(), information=info, source="held"
+        )
+
+    def _settle(self, pose: np.ndarray) -> None:
+        # ``pose`` is the outcome of the previous scan: if that scan brought a fresh reading,
+        # it is where the reading was taken
+        if self._fresh or self._anchor is None:
+            self._anchor = np.asarray(pose, dtype=np.float64).copy()
 
     def increment(self, odom: np.ndarray) -> np.ndarray | None:
         """Robot-frame increment since the previous odometry pose (``None`` the first time);
@@ -152,7 +186,10 @@ class OdometryMotion:
     def predict(self, pose: np.ndarray, odom: np.ndarray | None) -> Prediction:
         if odom is None:
             raise LocalizationError("OdometryMotion.predict needs odometry")
+        self._settle(pose)
+        base = self._anchor if self._anchor is not None else pose
         delta = self.increment(odom)
+        self._fresh = True
         c = self.config
         if delta is None:
             delta = np.zeros(3)
@@ -160,7 +197,7 @@ class OdometryMotion:
         t = abs(float(delta[2]))
         s_trans = c.sigma_xy_floor + c.alpha_trans_trans * d + c.alpha_trans_rot * t
         s_rot = c.sigma_theta_floor + c.alpha_rot_rot * t + c.alpha_rot_trans * d
-        prior = compose(pose, delta)
+        prior = compose(base, delta)
         info = _information(float(prior[2]), s_trans, s_trans, s_rot)
         return Prediction(pose=prior, information=info, source="odometry", delta=delta)
 
@@ -222,6 +259,8 @@ class Motion:
 
     def predict(self, pose: np.ndarray, odom: np.ndarray | None) -> Prediction:
         if odom is not None and self.config.use_odometry:
+            if self.odometry.stale(odom):
+                return self.odometry.hold(pose)
             return self.odometry.predict(pose, odom)
         if odom is not None:
             check_pose3(odom, "odom")  # same validation whether it is used or not

@@ -1,0 +1,77 @@
+"""The motion seam (service/core/motion.py): odometry increments, stale odometry, velocity."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from service.core.motion import Motion, MotionConfig
+from service.core.pose import compose
+from service.errors import LocalizationError
+
+
+def test_odometry_increment_is_applied_in_the_robot_frame() -> None:
+    m = Motion()
+    pose = np.array([1.0, 2.0, np.pi / 2])
+    first = m.predict(pose, np.array([10.0, 0.0, 0.0]))
+    assert first.source == "odometry"
+    np.testing.assert_allclose(first.pose, pose)  # no previous reading: no motion
+    # odometry frame: 1 m along its x and a 0.1 rad turn; the robot faces map +y
+    nxt = m.predict(pose, np.array([11.0, 0.0, 0.1]))
+    np.testing.assert_allclose(nxt.pose, [1.0, 3.0, np.pi / 2 + 0.1], atol=1e-12)
+    np.testing.assert_allclose(nxt.delta, [1.0, 0.0, 0.1], atol=1e-12)
+    # sigmas grow with the motion: floor + alpha * distance (+ alpha * angle)
+    c = MotionConfig()
+    s = nxt.sigma
+    assert s[0] == pytest.approx(c.sigma_xy_floor + c.alpha_trans_trans + 0.1 * c.alpha_trans_rot)
+    assert s[2] == pytest.approx(c.sigma_theta_floor + 0.1 * c.alpha_rot_rot + c.alpha_rot_trans)
+    assert s[0] > first.sigma[0]
+
+
+def test_a_stale_reading_holds_and_the_catch_up_is_not_counted_twice() -> None:
+    """mit-csail's odometry freezes for a few scans and then jumps: the held scans follow the
+    scan, and the jump is applied from where the frozen reading was taken."""
+    m = Motion()
+    start = np.array([0.0, 0.0, 0.0])
+    m.predict(start, np.array([0.0, 0.0, 0.0]))
+    moved = m.predict(start, np.array([0.2, 0.0, 0.0]))
+    np.testing.assert_allclose(moved.pose, [0.2, 0.0, 0.0], atol=1e-12)
+    here = moved.pose  # the scan confirms it
+    # frozen: the same reading three times while the robot drives on 0.2 m per scan; the
+    # localiser's scan fits move the pose
+    for _ in range(3):
+        held = m.predict(here, np.array([0.2, 0.0, 0.0]))
+        assert held.source == "held"
+        np.testing.assert_allclose(held.pose, here)
+        assert held.sigma[0] == pytest.approx(MotionConfig().velocity_sigma_xy)
+        here = here + np.array([0.2, 0.0, 0.0])
+    # the catch-up reading: 0.8 m since the frozen one; applied from where that was taken
+    # (x = 0.2), not from the current estimate (x = 0.8)
+    caught = m.predict(here, np.array([1.0, 0.0, 0.0]))
+    assert caught.source == "odometry"
+    np.testing.assert_allclose(caught.pose, [1.0, 0.0, 0.0], atol=1e-12)
+    # and after that, increments are from the newest estimate again
+    after = m.predict(np.array([1.05, 0.0, 0.0]), np.array([1.1, 0.0, 0.0]))
+    np.testing.assert_allclose(after.pose, [1.15, 0.0, 0.0], atol=1e-12)
+
+
+def test_no_odometry_uses_the_velocity_model_and_odometry_can_be_switched_off() -> None:
+    m = Motion()
+    p0 = np.array([0.0, 0.0, 0.3])
+    assert m.predict(p0, None).source == "velocity"
+    m.accepted(p0, np.array([0.1, 0.0, 0.3]))
+    pred = m.predict(np.array([0.1, 0.0, 0.3]), None)
+    assert pred.pose[0] > 0.1  # keeps (part of) its recent translation
+    assert pred.pose[2] == pytest.approx(0.3)
+    off = Motion(MotionConfig(use_odometry=False))
+    assert off.predict(p0, np.array([5.0, 5.0, 1.0])).source == "velocity"
+    with pytest.raises(LocalizationError):
+        off.predict(p0, np.array([np.nan, 0.0, 0.0]))  # validated even when unused
+
+
+def test_reset_with_odometry_bridges_a_restart() -> None:
+    m = Motion()
+    pose = np.array([2.0, 1.0, 0.5])
+    m.reset(np.array([4.0, 4.0, 0.0]))
+    pred = m.predict(pose, np.array([4.0, 4.0, 0.4]))  # turned 0.4 rad since the saved reading
+    np.testing.assert_allclose(pred.pose, compose(pose, np.array([0.0, 0.0, 0.4])), atol=1e-12)
