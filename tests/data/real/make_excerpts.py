@@ -2,7 +2,7 @@
 
 Usage (from the repository root; reads ``/work/shared/data/real`` or ``--source DIR``)::
 
-    .venv/bin/python tests/data/real/make_excerpts.py [--source DIR] [--scans 300]
+    .venv/bin/python tests/data/real/make_excerpts.py [--source DIR] [--scans 300] [--maps-only]
 
 Writes, for the first ``--scans`` scans of each log (see README.md beside this file):
 
@@ -20,6 +20,13 @@ Writes, for the first ``--scans`` scans of each log (see README.md beside this f
   ``service.maps.build.build_map`` from the kept fr079 scans that have a flag-1 reference, each
   at its reference (laser) pose; its fidelity (median / p90 distance of those scans' points to
   the map's polylines) is printed.
+- ``intel.300.map.json``, ``mit-csail.300.map.json``: the whole-log metric maps the real-data
+  benchmark uses (``docs/real/maps/{log}.geojson``, written by ``bench/bench_maps.py``) clipped
+  to the box around the excerpt's returns at its reference poses (plus :data:`CROP_MARGIN`);
+  pieces shorter than :data:`CROP_MIN_LENGTH` are dropped. Not built from the excerpt's own
+  flag-1 scans: intel's first 300 scans have only 12 of them and that map is too thin (fidelity
+  p90 0.31 m; ``shape`` with odometry ends 0.53 m off on it). ``--maps-only`` rewrites just the
+  three maps from the excerpts already here.
 
 This script is the only place that reads the whole logs; the tests read the excerpts only.
 """
@@ -34,10 +41,19 @@ from pathlib import Path
 import numpy as np
 
 HERE = Path(__file__).resolve().parent
+REPO = HERE.parents[2]
 DEFAULT_SOURCE = Path("/work/shared/data/real")
 BAGS = ("intel", "fr079")
 #: Bag time (s) of odometry / tf kept after the last kept scan.
 ODOM_TAIL_S = 1.0
+#: Margin (m) around the excerpt's returns when clipping a whole-log map.
+CROP_MARGIN = 1.0
+#: Clipped map pieces shorter than this (m) are dropped.
+CROP_MIN_LENGTH = 0.1
+#: Returns farther than this (m) do not widen the clipping box.
+CROP_MAX_RANGE = 30.0
+#: Logs whose excerpt map is clipped from the whole-log map, and the excerpt's log file.
+CLIPPED = {"intel": "intel.{n}.bag", "mit-csail": "mit-csail.{n}.clf.gz"}
 
 
 def cut_bag(src: Path, dst: Path, scans: int) -> int:
@@ -164,13 +180,83 @@ def build_fr079_map(bag: Path, reference: Path, dst: Path) -> None:
     print(f"  fidelity: median {fid.median:.4f} m, p90 {fid.p90:.4f} m over {fid.n_points} returns")
 
 
+def clip_full_map(log: Path, reference: Path, full_map: Path, dst: Path, map_id: str) -> None:
+    """Clip ``full_map`` to the box around ``log``'s returns at their reference poses (every
+    scan with a reference row, flag 0 too) widened by :data:`CROP_MARGIN`; write it to ``dst``
+    and print its fidelity on the excerpt's flag-1 scans."""
+    from shapely.geometry import LineString, box
+
+    from service.core.types import MapData
+    from service.logs import attach_reference, load_reference, read_log
+    from service.maps.fidelity import map_fidelity
+    from service.maps.files import load_map_file, save_map_file
+
+    info, it = read_log(log)
+    scans = list(attach_reference(it, load_reference(reference), scan_count=info.scan_count))
+    ends = []
+    for s in scans:
+        if s.reference is None:
+            continue
+        x, y, th = s.reference
+        ok = np.isfinite(s.ranges) & (s.ranges < CROP_MAX_RANGE)
+        r, a = s.ranges[ok], s.angles[ok] + th
+        ends.append(np.column_stack([x + r * np.cos(a), y + r * np.sin(a)]))
+    pts = np.vstack(ends)
+    lo = pts.min(axis=0) - CROP_MARGIN
+    hi = pts.max(axis=0) + CROP_MARGIN
+    window = box(lo[0], lo[1], hi[0], hi[1])
+    whole = load_map_file(full_map, kind="metric")
+    pieces: list[np.ndarray] = []
+    for line in whole.polylines:
+        cut = LineString(line).intersection(window)
+        for part in getattr(cut, "geoms", [cut]):
+            if isinstance(part, LineString) and part.length >= CROP_MIN_LENGTH:
+                pieces.append(np.asarray(part.coords, dtype=np.float64))
+    clipped = MapData.from_lists(map_id, "metric", pieces)
+    save_map_file(
+        clipped, dst, name=f"{full_map.name} clipped to the first {len(scans)} scans' area"
+    )
+    ok_scans = [s for s in scans if s.reference_ok]
+    fid = map_fidelity(
+        clipped, [(s.ranges, s.angles) for s in ok_scans], np.array([s.reference for s in ok_scans])
+    )
+    print(
+        f"{dst.name}: {len(pieces)} of {len(whole.polylines)} polylines of {full_map.name} in "
+        f"[{lo[0]:.1f}, {hi[0]:.1f}] x [{lo[1]:.1f}, {hi[1]:.1f}] m; fidelity on "
+        f"{len(ok_scans)} flag-1 scans: median {fid.median:.4f} m, p90 {fid.p90:.4f} m"
+    )
+
+
+def build_maps(n: int) -> None:
+    """Write the three excerpt maps from the excerpts in this directory."""
+    build_fr079_map(
+        HERE / f"fr079.{n}.bag",
+        HERE / f"fr079.{n}.gfs_reference_per_scan.txt",
+        HERE / f"fr079.{n}.map.json",
+    )
+    for name, pattern in CLIPPED.items():
+        clip_full_map(
+            HERE / pattern.format(n=n),
+            HERE / f"{name}.{n}.gfs_reference_per_scan.txt",
+            REPO / "docs" / "real" / "maps" / f"{name}.geojson",
+            HERE / f"{name}.{n}.map.json",
+            map_id=f"{name}-{n}",
+        )
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--source", type=Path, default=DEFAULT_SOURCE)
     ap.add_argument("--scans", type=int, default=300)
+    ap.add_argument(
+        "--maps-only", action="store_true", help="rewrite only the maps, from the excerpts here"
+    )
     args = ap.parse_args(argv)
     src: Path = args.source
     n: int = args.scans
+    if args.maps_only:
+        build_maps(n)
+        return 0
     for name in BAGS:
         count = cut_bag(src / f"{name}.orig.bag", HERE / f"{name}.{n}.bag", n)
         print(f"{name}.{n}.bag: {count} messages")
@@ -181,11 +267,7 @@ def main(argv: list[str] | None = None) -> int:
         stamps = cut_reference(ref, HERE / f"{name}.{n}.gfs_reference_per_scan.txt", n)
         k = cut_relations(src / f"{name}.relations", HERE / f"{name}.{n}.relations", stamps)
         print(f"{name}.{n}: {len(stamps)} reference rows, {k} relations")
-    build_fr079_map(
-        HERE / f"fr079.{n}.bag",
-        HERE / f"fr079.{n}.gfs_reference_per_scan.txt",
-        HERE / f"fr079.{n}.map.json",
-    )
+    build_maps(n)
     return 0
 
 
