@@ -48,6 +48,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import hashlib
 import math
 import os
 import shlex
@@ -232,13 +233,15 @@ def git_commit() -> str:
             text=True,
             check=True,
         )
-        dirty = subprocess.run(
-            ["git", "-C", str(REPO), "status", "--porcelain", "--", "service"],
+        diff = subprocess.run(
+            ["git", "-C", str(REPO), "diff", "HEAD", "--", "service"],
             capture_output=True,
-            text=True,
             check=True,
         )
-        return out.stdout.strip() + ("+dirty-service" if dirty.stdout.strip() else "")
+        if not diff.stdout:
+            return out.stdout.strip()
+        # uncommitted changes under service/: name them by a hash of the diff
+        return f"{out.stdout.strip()}+service-diff-{hashlib.sha1(diff.stdout).hexdigest()[:8]}"
     except (OSError, subprocess.CalledProcessError):
         return "unknown"
 
@@ -375,9 +378,9 @@ def markdown(rows: list[dict[str, object]], reference: dict[str, str], scans_lab
         + ", ".join(f"{k} {v:.3f} m" for k, v in RBPF.items())
         + ".",
         "",
-        "Produced by (command, git commit of HEAD — `+dirty-service` when service/ had"
-        " uncommitted changes —, 1-minute load average at each run's start on this 2-core"
-        " machine, parallel jobs):",
+        "Produced by (command, git commit of HEAD — `+service-diff-HASH` when service/ had"
+        " uncommitted changes, HASH naming that diff —, 1-minute load average at each run's"
+        " start on this 2-core machine, parallel jobs):",
         "",
     ]
     prov: dict[tuple[str, str, str], list[str]] = {}
