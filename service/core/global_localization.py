@@ -1402,6 +1402,7 @@ class GlobalShapeLocalizer:
         )
         self._searching = initial_pose is None
         self._search_status = "initializing"
+        self._unfit = 0  # consecutive tracked scans that did not fit the map at all
         self._episode = 0
 
     def update(
@@ -1428,7 +1429,15 @@ class GlobalShapeLocalizer:
                 est.extras["tracker_ambiguity"] = float(est.ambiguity)
             est.ambiguity = None
             rejected = "rejected" in est.extras
-            if est.status == "lost" or (rejected and est.score < self.gconfig.collapse_score):
+            # scans that no longer fit the map at all collapse the track: one such scan
+            # without an odometry prior, ``lost_after`` in a row with one (a furnished room on
+            # a floor plan, or a crowd, can leave a scan unexplained while odometry holds)
+            odometry_prior = odom is not None and self.tracker.config.motion.use_odometry
+            unfit = rejected and est.score < self.gconfig.collapse_score
+            self._unfit = self._unfit + 1 if unfit else 0
+            need = self.tracker.config.lost_after if odometry_prior else 1
+            collapsed = self._unfit >= need
+            if est.status == "lost" or collapsed:
                 self._start_search(est.pose)
                 est.status = "lost"
                 est.ambiguity = 1.0  # no hypotheses yet: nothing tells the places apart
@@ -1498,6 +1507,7 @@ class GlobalShapeLocalizer:
 
     def _start_search(self, last_pose: np.ndarray | None) -> None:
         self._searching = True
+        self._unfit = 0
         self._search_status = "lost"
         self._episode = 0
         self._tracks = []

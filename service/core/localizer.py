@@ -535,7 +535,9 @@ class ShapeLocalizer:
             and len(matches) >= cfg.min_matches
             and (explained or 0.0) >= cfg.min_explained
         )
-        if cfg.arbiter == "shape" and shape_ok:
+        # the "shape" arbiter stands in for a motion prior the velocity model cannot give;
+        # with odometry the likelihood weighed against the prior decides on every map
+        if cfg.arbiter == "shape" and shape_ok and pred.source != "odometry":
             name, best = cands[-1]
         else:
             scored = sorted(
