@@ -27,8 +27,8 @@ lint: $(STAMP)
 	$(VENV)/bin/ruff format --check .
 
 # bench_real.py is left out of `bench`: the whole matrix on the three real logs takes well over
-# an hour (33 of its 36 runs took 52 min at load 1-5 on 2 cores; shape without odometry on the
-# schematic maps more than 20 min per log); run it on its own with `make bench-real` (reads /work/shared/data/real), e.g.
+# an hour (its 36 runs took 97 min of run time at load 1-5 on 2 cores, 18-22 min each for shape
+# without odometry on the intel and fr079 schematic maps); run it on its own with `make bench-real` (reads /work/shared/data/real), e.g.
 # `make bench-real BENCH_REAL_ARGS="--jobs 2 --resume"` to finish an interrupted run.
 BENCH_REAL_ARGS ?=
 bench: $(STAMP)
