@@ -41,7 +41,7 @@ from typing import TextIO
 import numpy as np
 import zenoh
 
-from clients.client import DEFAULT_PREFIX, ShapelocClient, Stream, open_session, zenoh_config
+from clients.client import DEFAULT_PREFIX, ShapelocClient, Stream, open_session
 from schemas import keys
 from schemas.codec import MSGPACK_ENCODING, encode
 from schemas.messages import METHODS, PoseMsg, Scan, Truth
@@ -380,14 +380,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="seconds to wait for the service's health before replaying (0: don't)",
     )
     p.add_argument("--prefix", default=DEFAULT_PREFIX, help="key prefix")
-    p.add_argument("--mode", choices=("client", "peer", "router"), default="client")
-    p.add_argument(
-        "--connect",
-        action="append",
-        default=None,
-        help="endpoint to connect to (repeatable; default tcp/127.0.0.1:7447 in client mode)",
-    )
-    p.add_argument("--listen", action="append", default=None, help="endpoint to listen on")
+    from sim_publisher.__main__ import add_zenoh_arguments  # the options `run` takes
+
+    add_zenoh_arguments(p)
     p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
 
 
@@ -438,11 +433,13 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as exc:
         print(f"shapeloc-sim replay: error: {exc}", file=sys.stderr)
         return 2
-    connect = args.connect
-    if connect is None and args.mode == "client":
-        connect = ["tcp/127.0.0.1:7447"]
-    endpoints = list(connect or [])
-    conf = zenoh_config(args.mode, connect=endpoints, listen=args.listen or [])
+    from sim_publisher.__main__ import zenoh_config_from_args
+
+    try:
+        conf, endpoints = zenoh_config_from_args(args)
+    except ShapelocError as exc:
+        print(f"shapeloc-sim replay: error: {exc}", file=sys.stderr)
+        return 2
     stop = threading.Event()
 
     def on_signal(signum: int, _frame: object) -> None:

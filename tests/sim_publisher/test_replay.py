@@ -210,3 +210,16 @@ def test_publish_without_odometry() -> None:
     _publish(session, opts, iter(scans), threading.Event(), None, bar, set())  # type: ignore[arg-type]
     sent = [decode(Scan, p) for _, k, p in session.log if k.endswith("/fr/scan")]
     assert len(sent) == 3 and all(m.odom is None for m in sent)
+
+
+def test_replay_takes_the_shared_zenoh_options(tmp_path: Path) -> None:
+    from sim_publisher.__main__ import zenoh_config_from_args
+
+    cfg = tmp_path / "z.json5"
+    cfg.write_text('{ mode: "client", connect: { endpoints: ["tcp/127.0.0.1:7999"] } }')
+    p = build_parser()
+    argv = ["replay", str(BAG), "--robot", "r1", "--map", "m", "--zenoh-config", str(cfg)]
+    _conf, endpoints = zenoh_config_from_args(p.parse_args(argv))
+    assert endpoints == ["tcp/127.0.0.1:7999"]  # from the file
+    args = p.parse_args([*argv, "--connect", "tcp/127.0.0.1:7448"])
+    assert zenoh_config_from_args(args)[1] == ["tcp/127.0.0.1:7448"]  # the flag replaces it
