@@ -66,9 +66,9 @@ def client_config(endpoint: str) -> zenoh.Config:
     return c
 
 
-def health(session: zenoh.Session) -> Health | None:
-    """The service's Health, or None."""
-    for r in session.get(f"{P}/service/health", timeout=2.0):
+def health(session: zenoh.Session, timeout: float = 2.0) -> Health | None:
+    """The service's Health, or None (no answer within ``timeout`` s)."""
+    for r in session.get(f"{P}/service/health", timeout=timeout):
         if r.ok is not None:
             return decode(Health, r.ok.payload.to_bytes(), str(r.ok.encoding))
     return None

@@ -37,7 +37,6 @@ import json
 import multiprocessing as mp
 import os
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
@@ -53,38 +52,21 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+# the loopback helpers of the service benchmark (bench/ is on sys.path when run as a script)
+import bench_service  # noqa: E402
 import zenoh  # noqa: E402
+from bench_service import client_config, free_endpoint  # noqa: E402
 
-from schemas.codec import decode, encode  # noqa: E402
+from schemas.codec import encode  # noqa: E402
 from schemas.messages import Health, RobotConfig  # noqa: E402
 
 P = "shapeloc"
 MAPS = ("office", "office-schematic")
 
 
-def free_endpoint() -> str:
-    """An unused ``tcp/127.0.0.1:PORT``."""
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return f"tcp/127.0.0.1:{s.getsockname()[1]}"
-
-
-def client_config(endpoint: str) -> zenoh.Config:
-    """Loopback-only client config."""
-    c = zenoh.Config()
-    c.insert_json5("mode", json.dumps("client"))
-    c.insert_json5("connect/endpoints", json.dumps([endpoint]))
-    c.insert_json5("scouting/multicast/enabled", "false")
-    c.insert_json5("scouting/delay", "0")
-    return c
-
-
 def health(session: zenoh.Session) -> Health | None:
-    """The service's Health, or None."""
-    for r in session.get(f"{P}/service/health", timeout=3.0):
-        if r.ok is not None:
-            return decode(Health, r.ok.payload.to_bytes(), str(r.ok.encoding))
-    return None
+    """The service's Health, or None (3 s: the soak's service is busy)."""
+    return bench_service.health(session, timeout=3.0)
 
 
 # --------------------------------------------------------------------------- scans

@@ -23,6 +23,7 @@ import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import zenoh
 
@@ -432,9 +433,15 @@ def options_from_args(args: argparse.Namespace) -> SimOptions:
     )
 
 
-def cli_run(args: argparse.Namespace) -> int:
-    """``shapeloc-sim run``: validate the options, open the session, run until done or a
-    signal (SIGINT/SIGTERM stop after the current tick)."""
+def run_until_signal(
+    args: argparse.Namespace,
+    prog: str,
+    parse: Callable[[argparse.Namespace], Any],
+    body: Callable[[zenoh.Config, Any, threading.Event, list[str]], int],
+) -> int:
+    """What every networked subcommand does around its ``body``: logging, ``parse`` the
+    options (``ValueError`` -> exit 2), the Zenoh config (:func:`zenoh_config_from_args`),
+    SIGINT/SIGTERM set the ``stop`` event, errors print ``prog: error: ...`` (exit 1)."""
     logging.basicConfig(
         level=logging.DEBUG if args.verbose else logging.INFO,
         format="%(asctime)s %(name)s %(levelname)s %(message)s",
@@ -442,14 +449,14 @@ def cli_run(args: argparse.Namespace) -> int:
     )
     zenoh.init_log_from_env_or("error")
     try:
-        options = options_from_args(args)
+        options = parse(args)
     except ValueError as exc:
-        print(f"shapeloc-sim: error: {exc}", file=sys.stderr)
+        print(f"{prog}: error: {exc}", file=sys.stderr)
         return 2
     try:
         conf, endpoints = zenoh_config_from_args(args)
     except ShapelocError as exc:
-        print(f"shapeloc-sim: error: {exc}", file=sys.stderr)
+        print(f"{prog}: error: {exc}", file=sys.stderr)
         return 2
     stop = threading.Event()
 
@@ -459,13 +466,19 @@ def cli_run(args: argparse.Namespace) -> int:
 
     old = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
-        return main(conf, options, stop, endpoints)
+        return body(conf, options, stop, endpoints)
     except (ShapelocError, ValueError) as exc:
-        print(f"shapeloc-sim: error: {exc}", file=sys.stderr)
+        print(f"{prog}: error: {exc}", file=sys.stderr)
         return 1
     finally:
         for sig, handler in old.items():
             signal.signal(sig, handler)
+
+
+def cli_run(args: argparse.Namespace) -> int:
+    """``shapeloc-sim run``: validate the options, open the session, run until done or a
+    signal (SIGINT/SIGTERM stop after the current tick)."""
+    return run_until_signal(args, "shapeloc-sim", options_from_args, main)
 
 
 @dataclass(frozen=True)

@@ -29,7 +29,6 @@ from __future__ import annotations
 import argparse
 import logging
 import math
-import signal
 import sys
 import threading
 import time
@@ -45,7 +44,7 @@ from clients.client import DEFAULT_PREFIX, ShapelocClient, Stream, open_session
 from schemas import keys
 from schemas.codec import MSGPACK_ENCODING, encode
 from schemas.messages import METHODS, PoseMsg, Scan, Truth
-from service.errors import ServiceTimeout, ShapelocError
+from service.errors import ServiceTimeout
 from service.logs import LogInfo, LogScan, attach_reference, load_reference, read_log
 
 log = logging.getLogger("shapeloc.sim.replay")
@@ -422,36 +421,6 @@ def options_from_args(args: argparse.Namespace) -> ReplayOptions:
 def run(args: argparse.Namespace) -> int:
     """``shapeloc-sim replay``: validate, open the session, replay until done or a signal
     (SIGINT/SIGTERM stop after the current scan)."""
-    logging.basicConfig(
-        level=logging.DEBUG if args.verbose else logging.INFO,
-        format="%(asctime)s %(name)s %(levelname)s %(message)s",
-        stream=sys.stderr,
-    )
-    zenoh.init_log_from_env_or("error")
-    try:
-        options = options_from_args(args)
-    except ValueError as exc:
-        print(f"shapeloc-sim replay: error: {exc}", file=sys.stderr)
-        return 2
-    from sim_publisher.__main__ import zenoh_config_from_args
+    from sim_publisher.__main__ import run_until_signal  # what `run` does around its loop
 
-    try:
-        conf, endpoints = zenoh_config_from_args(args)
-    except ShapelocError as exc:
-        print(f"shapeloc-sim replay: error: {exc}", file=sys.stderr)
-        return 2
-    stop = threading.Event()
-
-    def on_signal(signum: int, _frame: object) -> None:
-        log.info("signal %d: stopping", signum)
-        stop.set()
-
-    old = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
-    try:
-        return main(conf, options, stop, endpoints)
-    except (ShapelocError, ValueError) as exc:
-        print(f"shapeloc-sim replay: error: {exc}", file=sys.stderr)
-        return 1
-    finally:
-        for sig, handler in old.items():
-            signal.signal(sig, handler)
+    return run_until_signal(args, "shapeloc-sim replay", options_from_args, main)

@@ -457,6 +457,14 @@ class ShapeLocalizer:
         ll = f.loglik if weights is None else f.weighted_loglik(weights, self.config.refine)
         return self.config.evidence_points * ll - 0.5 * m2
 
+    def _max_step(self, pred: Prediction) -> float:
+        """How far (m) a scan may move the pose from the prior: ``max_step``, widened while
+        scans are rejected, plus 3 sigma of an odometry prior."""
+        m = self.config.max_step * (1 + self._rejected)
+        if pred.source == "odometry":
+            m += 3.0 * float(max(pred.sigma[0], pred.sigma[1]))
+        return m
+
     def _doubtful(self, f: Refined, pred: Prediction) -> bool:
         cfg = self.config
         if cfg.shape_search == "always" or pred.source != "odometry":
@@ -511,10 +519,7 @@ class ShapeLocalizer:
             Q = self._views.view(pred.pose)
             if len(Q):
                 scan_pts = np.vstack([f.points for f in P.features])
-                max_step = cfg.max_step * (1 + self._rejected)
-                if pred.source == "odometry":
-                    max_step += 3.0 * float(max(pred.sigma[0], pred.sigma[1]))
-                two = two_step_match(P, Q, pred.pose, cfg, scan_pts, max_step=max_step)
+                two = two_step_match(P, Q, pred.pose, cfg, scan_pts, max_step=self._max_step(pred))
                 matches = tuple(two.match.matches)
                 total = sum(f.length for f in P.features)
                 done = sum(P.features[i].length for m in matches for i in m.scan)
@@ -559,10 +564,7 @@ class ShapeLocalizer:
                 "step": step,
             }
         )
-        max_step = cfg.max_step * (1 + self._rejected)
-        if pred.source == "odometry":
-            max_step += 3.0 * float(max(pred.sigma[0], pred.sigma[1]))
-        if sup < cfg.min_support or step > max_step or turn > cfg.max_turn:
+        if sup < cfg.min_support or step > self._max_step(pred) or turn > cfg.max_turn:
             return self._reject(pred, score, matches, sup, ambiguity, 3.0, extras)
         a_ = 0.1 if self._typical is not None else 1.0
         self._typical = (1 - a_) * (self._typical or 0.0) + a_ * best.loglik
