@@ -252,6 +252,39 @@ class GlobalConfig(BaseModel):
         description="... and turned less than this from it (rad): a tracker fit that swings the "
         "heading away from the verified pose is not a confirmation.",
     )
+    # --- recovery near the lost track ------------------------------------------------------
+    near_radius: float = Field(
+        1.0,
+        gt=0,
+        description="After a loss, hypotheses within this (m) of the dead-reckoned last pose "
+        "(moved by odometry, or held without it) are 'near the track': one of them is fixed "
+        "on one scan if its cost is within near_cost_margin of the best (the motion history is "
+        "the prior that twin places far away lack).",
+    )
+    near_growth: float = Field(
+        0.2,
+        ge=0,
+        description="The near radius grows by this share of the odometry travel since the "
+        "loss; without odometry by twice the robot's recent speed per scan.",
+    )
+    near_turn: float = Field(
+        0.6,
+        gt=0,
+        description="With odometry, a near hypothesis must also be turned less than this "
+        "(rad) from the dead-reckoned heading.",
+    )
+    near_cost_margin: float = Field(
+        0.1,
+        ge=0,
+        description="A near hypothesis wins over a far one unless the far one's cost is lower "
+        "by more than this.",
+    )
+    far_confirm_scans: int = Field(
+        4,
+        ge=1,
+        description="A fix far from the dead-reckoned last pose must have been the best "
+        "hypothesis on this many consecutive scans (never on one scan alone).",
+    )
     # --- integrity ---------------------------------------------------------------------------
     collapse_score: float = Field(
         0.5,
@@ -1404,6 +1437,8 @@ class GlobalShapeLocalizer:
         self._search_status = "initializing"
         self._unfit = 0  # consecutive tracked scans that did not fit the map at all
         self._episode = 0
+        self._anchor: np.ndarray | None = None  # dead-reckoned last tracked pose after a loss
+        self._anchor_travel = 0.0
 
     def update(
         self, ranges: np.ndarray, angles: np.ndarray, odom: np.ndarray | None = None
@@ -1512,8 +1547,11 @@ class GlobalShapeLocalizer:
         self._episode = 0
         self._tracks = []
         self._history = []
+        self._anchor = None
+        self._anchor_travel = 0.0
         if last_pose is not None:
             p = np.asarray(last_pose, dtype=np.float64).copy()
+            self._anchor = p.copy()
             # the last tracked pose was verified by the tracker a scan ago: it enters with that
             # history, so a transient loss (an occlusion) recovers to it first
             floor = self.gconfig.cost_floor
@@ -1527,9 +1565,13 @@ class GlobalShapeLocalizer:
         if delta is not None:
             for t in self._tracks:
                 t.pose = compose(t.pose, delta)
+            if self._anchor is not None:
+                self._anchor = compose(self._anchor, delta)
+                self._anchor_travel += float(np.hypot(delta[0], delta[1]))
         rs, as_ = self._composite(r, a)
         P = scan_configuration(rs, as_, self.config.extraction())
-        res = global_search(self.index, rs, as_, self.config, g, seeds=self._seeds(), P=P)
+        seeds = self._seeds() + self._anchor_seeds(delta is not None)
+        res = global_search(self.index, rs, as_, self.config, g, seeds=seeds, P=P)
         # associate this scan's hypotheses with the tracks
         new_tracks: list[_Track] = []
         for h in res.hypotheses[: g.keep]:
@@ -1566,6 +1608,10 @@ class GlobalShapeLocalizer:
                 extras={"hypotheses": 0.0, "candidates": float(res.candidates)},
             )
         best = new_tracks[0]
+        near_track = self._near_track(new_tracks, delta is not None)
+        if near_track is not None:
+            best = near_track
+        far = self._anchor is not None and near_track is None
         extras = {
             "hypotheses": float(len(new_tracks)),
             "candidates": float(res.candidates),
@@ -1585,15 +1631,25 @@ class GlobalShapeLocalizer:
         else:
             single = amb < g.single_scan_ambiguity
         confirmed = steady or single
+        if far:
+            # a fix far from where the track was lost moves the estimate across the building:
+            # it must win scan after scan first
+            confirmed = best.wins >= g.far_confirm_scans
         informative = res.information >= g.min_information
         max_amb = g.fused_fix_ambiguity if fused else g.max_fix_ambiguity
+        if near_track is not None:
+            # recovered near the lost track: the motion history rules out the far twins
+            confirmed, informative, amb = True, True, 0.0
+            extras["near_track"] = 1.0
         if (
             best.hyp.cost <= (g.fused_fix_cost if fused else g.max_fix_cost)
             and amb <= max_amb
             and confirmed
             and informative
         ):
-            twin = self_similar(self.index, best.hyp, rs, as_, P, self.config, g)
+            twin = None
+            if near_track is None:
+                twin = self_similar(self.index, best.hyp, rs, as_, P, self.config, g)
             if twin is not None:
                 twin_amb = ambiguity([best.hyp, twin], g)
                 extras["twin_ambiguity"] = twin_amb
@@ -1620,7 +1676,45 @@ class GlobalShapeLocalizer:
                 return est
             self.tracker.reset(None)
             extras["confirm_rejected"] = 1.0
+        if far and self._anchor is not None and best.wins < g.far_confirm_scans:
+            # the best guess to publish is still the dead-reckoned track, not a far place
+            # that has not yet proven itself
+            guess = _Track(self._anchor.copy(), best.costs, best.hyp, best.wins)
+            return self._unresolved(guess, amb, extras)
         return self._unresolved(best, amb, extras)
+
+    def _near_radius(self, odometry: bool) -> float:
+        g = self.gconfig
+        if odometry:
+            return g.near_radius + g.near_growth * self._anchor_travel
+        speed = float(np.hypot(*self.tracker.motion.velocity.velocity))
+        return g.near_radius + 2.0 * speed * self._episode
+
+    def _anchor_seeds(self, odometry: bool) -> list[np.ndarray]:
+        """The dead-reckoned last pose as seeds: turned by the usual offsets with odometry,
+        all round the circle without (the heading may have turned any amount)."""
+        if self._anchor is None:
+            return []
+        turns = _SEED_TURNS if odometry else tuple(np.arange(8) * (np.pi / 4))
+        x, y, th = self._anchor
+        return [np.array([x, y, wrap_angle(th + t)]) for t in turns]
+
+    def _near_track(self, tracks: list[_Track], odometry: bool) -> _Track | None:
+        """The best hypothesis near the dead-reckoned last pose, if its cost is within
+        ``near_cost_margin`` of the best overall; ``None`` otherwise (or before any loss)."""
+        if self._anchor is None or not tracks:
+            return None
+        g = self.gconfig
+        radius = self._near_radius(odometry)
+        for t in tracks:  # sorted by cost
+            if t.hyp.cost > tracks[0].hyp.cost + g.near_cost_margin:
+                return None
+            if np.hypot(*(t.pose[:2] - self._anchor[:2])) > radius:
+                continue
+            if odometry and abs(float(wrap_angle(t.pose[2] - self._anchor[2]))) > g.near_turn:
+                continue
+            return t
+        return None
 
     def _unresolved(self, best: _Track, amb: float, extras: dict[str, float]) -> Estimate:
         """The best guess while the search goes on (status ``initializing`` or ``lost``)."""

@@ -261,6 +261,31 @@ class ShapeConfig(BaseModel):
         "log-likelihood is weighed against the motion prior (neighbouring beams are "
         "correlated; AMCL subsamples to tens of beams for the same reason).",
     )
+    violation_beams: int = Field(
+        90, ge=0, description="Beams checked for passing through a map wall (0 = no check)."
+    )
+    violation_margin: float = Field(
+        0.3,
+        gt=0,
+        description="A return counts as passing through a wall when it lies this far (m) "
+        "beyond the range the map predicts from the candidate pose.",
+    )
+    violation_weight: float = Field(
+        2.0,
+        ge=0,
+        description="Log-likelihood per point charged for the fraction of beams that pass "
+        "through map walls, when candidates are weighed. The point-to-line fit only sees "
+        "returns near walls, so furniture lined up with a wall fits as well as the wall "
+        "itself; the beams that then go through the real walls tell the two apart (a floor "
+        "plan has no furniture, but no wall is transparent).",
+    )
+    violation_slack: float = Field(
+        0.1,
+        ge=0,
+        le=1,
+        description="Shape arbiter: the shape candidate wins only if its share of beams "
+        "through walls exceeds the other candidates' by at most this.",
+    )
     # --- quality / status ------------------------------------------------------------------
     min_support: float = Field(
         0.3,
@@ -276,11 +301,30 @@ class ShapeConfig(BaseModel):
         "shape hypotheses and pose jumps are rejected. With odometry, 3 sigma of the motion "
         "model are added.",
     )
+    speed_step_floor: float = Field(
+        0.2,
+        ge=0,
+        description="Without odometry, once three scans in a row were accepted (the robot's "
+        "speed is known), the step bound is at most this (m) plus speed_step_factor times "
+        "that speed per scan (a robot does not triple its speed between two scans), and "
+        "never above max_step.",
+    )
+    speed_step_factor: float = Field(
+        2.0, ge=0, description="See speed_step_floor (0 = bound by max_step only)."
+    )
     max_turn: float = Field(
         1.3,
         gt=0,
         description="Largest turn between two scans (rad) beyond the prior's: farther-turned "
         "hypotheses and poses are rejected.",
+    )
+    turn_recovery: bool = Field(
+        True,
+        description="Without odometry, a scan whose fit is rejected is matched once more from "
+        "the prior position with the cyclic order cut at headings all round the circle "
+        "(§5.2's cut-point hypotheses over 2π instead of heading_sweep): the velocity prior "
+        "keeps the heading, and a turn beyond max_turn between two scans would otherwise be "
+        "rejected and lose the track.",
     )
     lost_after: int = Field(3, ge=1, description="Consecutive rejected scans before 'lost'.")
     lost_sigma_xy: float = Field(
@@ -375,6 +419,16 @@ class ShapeLocalizer:
         self.config = config or ShapeConfig.for_kind(map_data.kind)
         self.model = model if model is not None else MapModel(map_data)
         self.motion = Motion(self.config.motion)
+        #: The shape matching's settings for a turn recovery: cut points all round the circle.
+        self._wide = self.config.model_copy(
+            update={
+                "heading_sweep": float(np.pi),
+                "max_turn": float(np.pi),
+                "heading_hypotheses": 4,
+                "step2_hypotheses": 4,
+                "fast_support": 1.01,
+            }
+        )
         self._params = self.config.extraction()
         self._views = MapViewCache(
             map_data,
@@ -397,6 +451,7 @@ class ShapeLocalizer:
         at ``initial_pose`` (the next scan's increment is measured from it)."""
         self._pose = None if initial_pose is None else check_pose3(initial_pose, "initial_pose")
         self._rejected = 0
+        self._streak = 0  # scans accepted in a row (the velocity is known after a few)
         self._drift = 0.0  # odometry position variance accumulated while scans are rejected
         self._typical: float | None = None  # recent typical log-likelihood of accepted fits
         self.motion.reset(None if initial_pose is None else odom)
@@ -448,22 +503,44 @@ class ShapeLocalizer:
             prior_information=pred.information,
         )
 
-    def _score(self, f: Refined, pred: Prediction, weights: np.ndarray | None) -> float:
-        """Scan evidence (weighted mean log-likelihood x effective returns) minus the motion
-        prior's squared Mahalanobis distance / 2: a log-posterior up to a constant."""
+    def _score(
+        self, f: Refined, pred: Prediction, weights: np.ndarray | None, violation: float = 0.0
+    ) -> float:
+        """Scan evidence (weighted mean log-likelihood, less ``violation_weight`` per share of
+        beams through walls, x effective returns) minus the motion prior's squared
+        Mahalanobis distance / 2: a log-posterior up to a constant."""
         e = f.pose - pred.pose
         e[2] = wrap_angle(float(e[2]))
         m2 = float(e @ pred.information @ e)
         ll = f.loglik if weights is None else f.weighted_loglik(weights, self.config.refine)
+        ll -= self.config.violation_weight * violation
         return self.config.evidence_points * ll - 0.5 * m2
 
     def _max_step(self, pred: Prediction) -> float:
         """How far (m) a scan may move the pose from the prior: ``max_step``, widened while
         scans are rejected, plus 3 sigma of an odometry prior."""
-        m = self.config.max_step * (1 + self._rejected)
+        cfg = self.config
+        m = cfg.max_step
+        if pred.source == "velocity" and cfg.speed_step_factor > 0 and self._streak >= 3:
+            speed = float(np.hypot(*self.motion.velocity.velocity))
+            m = min(m, cfg.speed_step_floor + cfg.speed_step_factor * speed)
+        m *= 1 + self._rejected
         if pred.source == "odometry":
             m += 3.0 * float(max(pred.sigma[0], pred.sigma[1]))
         return m
+
+    def _violation(self, r: np.ndarray, a: np.ndarray, pose: np.ndarray) -> float:
+        """Share of ``violation_beams`` evenly chosen valid beams whose return lies more than
+        ``violation_margin`` beyond the range the map predicts from ``pose`` (through a wall)."""
+        cfg = self.config
+        if cfg.violation_beams == 0:
+            return 0.0
+        ok = np.nonzero(np.isfinite(r) & (r > 0.0))[0]
+        if ok.size == 0:
+            return 0.0
+        sel = ok[np.linspace(0, ok.size - 1, min(cfg.violation_beams, ok.size)).astype(np.intp)]
+        expect = self._views.caster.cast(pose, a[sel], cfg.view_max_range)
+        return float(np.mean(np.isfinite(expect) & (r[sel] > expect + cfg.violation_margin)))
 
     def _doubtful(self, f: Refined, pred: Prediction) -> bool:
         cfg = self.config
@@ -542,14 +619,25 @@ class ShapeLocalizer:
         )
         # the "shape" arbiter stands in for a motion prior the velocity model cannot give;
         # with odometry the likelihood weighed against the prior decides on every map
-        if cfg.arbiter == "shape" and shape_ok and pred.source != "odometry":
+        viol = [self._violation(r, a, f.pose) for _n, f in cands]
+        if (
+            cfg.arbiter == "shape"
+            and shape_ok
+            and pred.source != "odometry"
+            and viol[-1] <= min(viol) + cfg.violation_slack
+        ):
             name, best = cands[-1]
+            k_best = len(cands) - 1
         else:
             scored = sorted(
-                ((self._score(f, pred, weights), k, n, f) for k, (n, f) in enumerate(cands)),
+                (
+                    (self._score(f, pred, weights, viol[k]), k, n, f)
+                    for k, (n, f) in enumerate(cands)
+                ),
                 key=lambda t: (-t[0], t[1]),
             )
-            _, _, name, best = scored[0]
+            _, k_best, name, best = scored[0]
+        extras["violation"] = viol[k_best]
         fit = best.fit
         sup = fit.inlier_fraction
         score = float(np.clip(sup if explained is None else 0.5 * (sup + explained), 0.0, 1.0))
@@ -565,12 +653,31 @@ class ShapeLocalizer:
             }
         )
         if sup < cfg.min_support or step > self._max_step(pred) or turn > cfg.max_turn:
-            return self._reject(pred, score, matches, sup, ambiguity, 3.0, extras)
+            rec = None
+            if cfg.turn_recovery and pred.source != "odometry":
+                rec = self._recover(P, pts, nrm, own, pred, sup)
+            if rec is None:
+                return self._reject(pred, score, matches, sup, ambiguity, 3.0, extras)
+            best, matches, explained, weights = rec
+            fit = best.fit
+            sup = fit.inlier_fraction
+            score = float(np.clip(0.5 * (sup + explained), 0.0, 1.0))
+            extras.update(
+                {
+                    "rms": fit.rms,
+                    "support": sup,
+                    "loglik": best.loglik,
+                    "shape_won": 1.0,
+                    "step": float(np.hypot(*(fit.pose[:2] - pred.pose[:2]))),
+                    "turn_recovered": abs(float(wrap_angle(fit.pose[2] - pred.pose[2]))),
+                }
+            )
         a_ = 0.1 if self._typical is not None else 1.0
         self._typical = (1 - a_) * (self._typical or 0.0) + a_ * best.loglik
         self.motion.accepted(self._pose, fit.pose)
         self._pose = fit.pose.copy()
         self._rejected = 0
+        self._streak += 1
         self._drift = 0.0
         if explained is not None:
             extras["matched_share"] = explained
@@ -585,6 +692,48 @@ class ShapeLocalizer:
             extras=extras,
         )
 
+    def _recover(
+        self,
+        P: Configuration,
+        pts: np.ndarray,
+        nrm: np.ndarray,
+        own: np.ndarray,
+        pred: Prediction,
+        rejected_support: float,
+    ) -> tuple[Refined, tuple[Match, ...], float, np.ndarray | None] | None:
+        """Turn recovery (no odometry): the two-step matching from the prior position with
+        cut-point hypotheses all round the circle, the precise fit from its estimate with the
+        prior's heading term dropped. Returns ``(fit, matches, matched share, weights)`` when
+        the result passes every bar the ordinary path has (support, matched share, step) and
+        explains more than the rejected fit did; ``None`` otherwise."""
+        cfg = self.config
+        Q = self._views.view(pred.pose)
+        if not len(Q):
+            return None
+        self.shape_runs += 1
+        scan_pts = np.vstack([f.points for f in P.features])
+        two = two_step_match(P, Q, pred.pose, self._wide, scan_pts, max_step=self._max_step(pred))
+        matches = tuple(two.match.matches)
+        total = sum(f.length for f in P.features)
+        explained = sum(P.features[i].length for m in matches for i in m.scan) / max(total, 1e-9)
+        if len(matches) < cfg.min_matches or explained < cfg.min_explained:
+            return None
+        weights = None
+        if cfg.unmatched_weight < 1.0:
+            matched = np.zeros(len(P.features), dtype=bool)
+            matched[[i for m in matches for i in m.scan]] = True
+            weights = np.where(matched[own], 1.0, cfg.unmatched_weight)
+        info = pred.information.copy()
+        info[2, :] = 0.0
+        info[:, 2] = 0.0
+        free = Prediction(pose=pred.pose, information=info, source=pred.source)
+        f = self._refine(pts, nrm, two.estimate, free, weights)
+        sup = f.fit.inlier_fraction
+        step = float(np.hypot(*(f.fit.pose[:2] - pred.pose[:2])))
+        if sup < cfg.min_support or sup <= rejected_support or step > self._max_step(pred):
+            return None
+        return f, matches, explained, weights
+
     def _reject(
         self,
         pred: Prediction,
@@ -597,6 +746,7 @@ class ShapeLocalizer:
     ) -> Estimate:
         """The scan could not be matched well: keep the prior, count towards 'lost'."""
         self._rejected += 1
+        self._streak = 0
         self._pose = pred.pose.copy()
         self.motion.rejected()
         sig = pred.sigma

@@ -408,3 +408,33 @@ def test_congruent_rooms_never_give_a_fix() -> None:
         est = loc.update(r, a, odom[s])
         assert est.status == "initializing", f"scan {s}: {est.status} at {est.pose}"
         assert est.ambiguity is not None and est.ambiguity >= 0.5
+
+
+# ------------------------------------------------------------- recovery near the lost track
+
+
+def _track(x: float, y: float, th: float, cost: float) -> gl._Track:
+    p = np.array([x, y, th])
+    return gl._Track(p, [cost], gl.Hypothesis(pose=p, cost=cost))
+
+
+def test_near_track_hypothesis_beats_a_slightly_better_far_twin() -> None:
+    """After a loss, a hypothesis near the dead-reckoned last pose wins over a far one unless
+    the far one is better by more than near_cost_margin; with odometry it must also keep the
+    dead-reckoned heading; before any loss (no anchor) nothing is near."""
+    loc = create_localizer("shape", _room_map(), None)
+    g = loc.gconfig
+    far, near = _track(4.5, 3.0, 0.0, 0.15), _track(1.3, 1.1, 0.1, 0.15 + 0.5 * g.near_cost_margin)
+    assert loc._near_track([far, near], odometry=True) is None  # no loss yet: no anchor
+    loc._start_search(np.array([1.0, 1.0, 0.0]))
+    assert loc._near_track([far, near], odometry=True) is near
+    much_better = _track(4.5, 3.0, 0.0, near.hyp.cost - 2.0 * g.near_cost_margin)
+    assert loc._near_track([much_better, near], odometry=True) is None
+    turned = _track(1.3, 1.1, g.near_turn + 0.3, near.hyp.cost)
+    assert loc._near_track([far, turned], odometry=True) is None
+    assert loc._near_track([far, turned], odometry=False) is turned  # any heading without
+    # odometry; the radius grows with the odometry travel since the loss
+    out = _track(1.0 + g.near_radius + 0.5, 1.0, 0.0, near.hyp.cost)
+    assert loc._near_track([far, out], odometry=True) is None
+    loc._anchor_travel = 0.6 / g.near_growth
+    assert loc._near_track([far, out], odometry=True) is out

@@ -139,3 +139,62 @@ def test_config_per_kind_and_factory() -> None:
     e = loc.update(_scan(np.array([3.05, 2.0, 0.02]), rng), ANGLES)
     assert e.status == "tracking"
     assert np.hypot(e.pose[0] - 3.05, e.pose[1] - 2.0) < 0.02
+
+
+@pytest.mark.parametrize("turn_deg", [120.0, -150.0])
+def test_turn_beyond_max_turn_is_recovered_without_odometry(turn_deg: float) -> None:
+    """A turn far beyond max_turn between two scans: the fit from the velocity prior (heading
+    kept) is rejected, and the turn recovery's cut points all round the circle find it."""
+    rng = np.random.default_rng(13)
+    start = np.array([3.0, 2.0, 0.2])
+    turned = np.array([3.08, 2.05, 0.2 + math.radians(turn_deg)])
+    cfg = ShapeConfig()
+    assert math.radians(abs(turn_deg)) > cfg.max_turn
+    loc = ShapeLocalizer(ROOM, start, cfg)
+    loc.update(_scan(start, rng), ANGLES)
+    e = loc.update(_scan(turned, rng), ANGLES)
+    assert e.status == "tracking" and "rejected" not in e.extras
+    assert e.extras["turn_recovered"] > cfg.max_turn
+    assert np.hypot(*(e.pose[:2] - turned[:2])) < 0.03
+    assert abs((e.pose[2] - turned[2] + math.pi) % (2 * math.pi) - math.pi) < math.radians(1)
+    # without the recovery the same scan is rejected and the prior's heading kept
+    off = ShapeLocalizer(ROOM, start, cfg.model_copy(update={"turn_recovery": False}))
+    off.update(_scan(start, np.random.default_rng(13)), ANGLES)
+    e2 = off.update(_scan(turned, rng), ANGLES)
+    assert "rejected" in e2.extras
+
+
+def test_beams_through_walls_measure_a_wrong_pose() -> None:
+    """The share of beams passing through map walls: none at the true pose, many at a pose
+    shifted towards a wall (the returns then lie behind it)."""
+    rng = np.random.default_rng(14)
+    pose = np.array([3.0, 2.0, 0.1])
+    loc = ShapeLocalizer(ROOM, pose)
+    r = _scan(pose, rng)
+    assert loc._violation(r, ANGLES, pose) == 0.0
+    shifted = pose + np.array([0.0, -0.8, 0.0])
+    assert loc._violation(r, ANGLES, shifted) > 0.2
+    off = ShapeLocalizer(ROOM, pose, ShapeConfig(violation_beams=0))
+    assert off._violation(r, ANGLES, shifted) == 0.0
+
+
+def test_step_bound_follows_the_robots_own_speed_without_odometry() -> None:
+    """Without odometry a jump of several times the robot's recent speed is rejected (a
+    robot does not triple its speed between two scans); max_step stays the upper bound."""
+    rng = np.random.default_rng(15)
+    truth = _path(41)  # steps of ~0.1 m
+    loc = ShapeLocalizer(ROOM, truth[0])
+    for p in truth:
+        loc.update(_scan(p, rng), ANGLES)
+    speed = float(np.hypot(*loc.motion.velocity.velocity))
+    assert 0.08 < speed < 0.13
+    pred = loc.motion.predict(loc.pose, None)
+    cfg = loc.config
+    assert loc._max_step(pred) == pytest.approx(
+        min(cfg.max_step, cfg.speed_step_floor + cfg.speed_step_factor * speed)
+    )
+    # before three accepted scans the speed is unknown: max_step alone bounds the step
+    fresh = ShapeLocalizer(ROOM, truth[0])
+    assert fresh._max_step(fresh.motion.predict(fresh.pose, None)) == cfg.max_step
+    # with the bound, the step gate is tighter than max_step at this speed
+    assert loc._max_step(pred) < cfg.max_step
