@@ -360,6 +360,7 @@ class ShapeConfig(BaseModel):
                     trim_final=0.4,
                     likelihood_sigma=0.15,
                     point_sigma=0.08,
+                    effective_points=50.0,
                 ),
             )
         raise LocalizationError(f"unknown map kind {kind!r}; expected metric or schematic")
@@ -430,6 +431,8 @@ class ShapeLocalizer:
             }
         )
         self._params = self.config.extraction()
+        # the velocity prior is weak on purpose: the points keep their full weight against it
+        self._refine_velocity = self.config.refine.model_copy(update={"effective_points": 0.0})
         self._views = MapViewCache(
             map_data,
             beams=self.config.view_beams,
@@ -496,7 +499,7 @@ class ShapeLocalizer:
             self.model,
             pts,
             start,
-            self.config.refine,
+            self.config.refine if pred.source == "odometry" else self._refine_velocity,
             normals=nrm,
             weights=weights,
             prior=pred.pose,

@@ -54,6 +54,16 @@ class RefineParams(BaseModel):
     likelihood_sigma: float = Field(
         0.05, gt=0, description="Sigma of the per-point likelihood used to compare fits (m)."
     )
+    effective_points: float = Field(
+        0.0,
+        ge=0,
+        description="Neighbouring returns are correlated (one wall, one piece of furniture): "
+        "the points of a scan carry about this many independent residuals' worth of "
+        "information against the prior, whatever their number (0 = every point counts "
+        "fully). Schematic: 50 with an odometry prior (the shape tracker keeps the velocity "
+        "prior at 0) -- where the plan explains little of the scan, the few walls it does "
+        "explain must not outweigh the odometry step by hundreds of points.",
+    )
     likelihood_floor: float = Field(
         0.05,
         gt=0,
@@ -164,6 +174,9 @@ def refine_pose(
         # the points' normal matrix is in units of 1/m^2 per unit weight; scale the prior
         # information so that both speak residual variances
         info = np.asarray(prior_information, dtype=np.float64).reshape(3, 3) * scale2
+        total = float(w.sum())
+        if params.effective_points > 0 and total > params.effective_points:
+            info = info * (total / params.effective_points)
     trim0 = min(max(params.trim_initial, params.trim_final), model.reach)
     trim1 = min(params.trim_final, model.reach)
     cg = float(np.cos(params.normal_gate)) if params.normal_gate < np.pi / 2 else -1.0
