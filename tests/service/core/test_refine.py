@@ -91,3 +91,26 @@ def test_loglik_prefers_the_true_pose_and_weights_discount_points() -> None:
     assert good.loglik > bad.loglik
     w = np.ones(len(pts))
     assert good.weighted_loglik(w, RefineParams()) == pytest.approx(good.loglik)
+
+
+def test_effective_points_let_the_prior_weigh_against_many_correlated_points() -> None:
+    """With every point counted, 300 points outweigh a prior 5 cm off; counted as 20
+    independent returns the prior pulls the fit part of the way; the prior's own weight is
+    unchanged when there are fewer points than that."""
+    rng = np.random.default_rng(8)
+    truth = np.array([2.5, 2.8, 0.4])
+    pts = _scan_of(truth, rng)
+    prior = truth + np.array([0.05, 0.0, 0.0])
+    info = np.diag([1.0 / 0.02**2, 1.0 / 0.02**2, 1.0 / 0.01**2])
+    m = MapModel(ROOM)
+    full = refine_pose(m, pts, prior, RefineParams(), prior=prior, prior_information=info)
+    eff = RefineParams(effective_points=20.0)
+    few = refine_pose(m, pts, prior, eff, prior=prior, prior_information=info)
+    off_full = float(np.hypot(*(full.pose[:2] - truth[:2])))
+    off_few = float(np.hypot(*(few.pose[:2] - truth[:2])))
+    assert off_full < 0.01
+    assert off_few > 2.0 * off_full and off_few < 0.05
+    sub = pts[:15]
+    a = refine_pose(m, sub, prior, RefineParams(), prior=prior, prior_information=info)
+    b = refine_pose(m, sub, prior, eff, prior=prior, prior_information=info)
+    np.testing.assert_allclose(a.pose, b.pose, atol=1e-12)
