@@ -285,6 +285,17 @@ class GlobalConfig(BaseModel):
         description="A fix far from the dead-reckoned last pose must have been the best "
         "hypothesis on this many consecutive scans (never on one scan alone).",
     )
+    reacquire_support: float = Field(
+        0.5,
+        ge=0,
+        le=1,
+        description="After a loss with odometry, the tracker is also run from the "
+        "dead-reckoned last pose on every scan; when it accepts reacquire_scans scans in a "
+        "row from there, each fit explaining at least this share of the scan, tracking "
+        "resumes without a search fix (a stretch the map explained too little of is "
+        "behind the robot).",
+    )
+    reacquire_scans: int = Field(3, ge=1, description="See reacquire_support.")
     # --- integrity ---------------------------------------------------------------------------
     collapse_score: float = Field(
         0.5,
@@ -1439,6 +1450,8 @@ class GlobalShapeLocalizer:
         self._episode = 0
         self._anchor: np.ndarray | None = None  # dead-reckoned last tracked pose after a loss
         self._anchor_travel = 0.0
+        self._reacquired = 0  # scans in a row the tracker accepted from the anchor
+        self._speed: np.ndarray | None = None  # the tracker's known speed before the loss
 
     def update(
         self, ranges: np.ndarray, angles: np.ndarray, odom: np.ndarray | None = None
@@ -1473,7 +1486,9 @@ class GlobalShapeLocalizer:
             need = self.tracker.config.lost_after if odometry_prior else 1
             collapsed = self._unfit >= need
             if est.status == "lost" or collapsed:
+                speed = self.tracker.known_speed()
                 self._start_search(est.pose)
+                self._speed = speed
                 est.status = "lost"
                 est.ambiguity = 1.0  # no hypotheses yet: nothing tells the places apart
             return est
@@ -1549,6 +1564,7 @@ class GlobalShapeLocalizer:
         self._history = []
         self._anchor = None
         self._anchor_travel = 0.0
+        self._reacquired = 0
         if last_pose is not None:
             p = np.asarray(last_pose, dtype=np.float64).copy()
             self._anchor = p.copy()
@@ -1561,12 +1577,23 @@ class GlobalShapeLocalizer:
         g = self.gconfig
         self.searches += 1
         self._episode += 1
+        prev_odom = self._last_odom
         delta = self._remember_odom(odom)
+        moved = False  # the anchor already holds this scan's motion (an accepted fit)
+        if self._anchor is not None and delta is not None:
+            # (with odometry only: without it the held anchor is no motion prior the
+            # tracker could be trusted from; tuning seeds 11 and 16 tracked wrong places)
+            before = self._anchor
+            back = self._reacquire(r, a, prev_odom, odom)
+            if back is not None:
+                return back
+            moved = self._anchor is not before
         if delta is not None:
             for t in self._tracks:
                 t.pose = compose(t.pose, delta)
             if self._anchor is not None:
-                self._anchor = compose(self._anchor, delta)
+                if not moved:
+                    self._anchor = compose(self._anchor, delta)
                 self._anchor_travel += float(np.hypot(delta[0], delta[1]))
         rs, as_ = self._composite(r, a)
         P = scan_configuration(rs, as_, self.config.extraction())
@@ -1637,16 +1664,15 @@ class GlobalShapeLocalizer:
             confirmed = best.wins >= g.far_confirm_scans
         informative = res.information >= g.min_information
         max_amb = g.fused_fix_ambiguity if fused else g.max_fix_ambiguity
+        fix_cost = g.fused_fix_cost if fused else g.max_fix_cost
         if near_track is not None:
-            # recovered near the lost track: the motion history rules out the far twins
+            # recovered near the lost track: the motion history rules out the far twins, but
+            # the fit itself must be as good as a single scan's fix (the dead-reckoned pose is
+            # published meanwhile, and is better than a mediocre fit next to it)
             confirmed, informative, amb = True, True, 0.0
+            fix_cost = g.max_fix_cost
             extras["near_track"] = 1.0
-        if (
-            best.hyp.cost <= (g.fused_fix_cost if fused else g.max_fix_cost)
-            and amb <= max_amb
-            and confirmed
-            and informative
-        ):
+        if best.hyp.cost <= fix_cost and amb <= max_amb and confirmed and informative:
             twin = None
             if near_track is None:
                 twin = self_similar(self.index, best.hyp, rs, as_, P, self.config, g)
@@ -1663,6 +1689,8 @@ class GlobalShapeLocalizer:
             # the tracker starts at the fix with this scan's odometry, so the next scan's
             # increment (e.g. the rest of a look-around turn) is its motion prior
             self.tracker.reset(best.pose, self._last_odom)
+            if self._speed is not None:
+                self.tracker.set_speed(self._speed)
             est = self.tracker.update(r, a, self._last_odom)
             close = (
                 np.hypot(*(est.pose[:2] - best.pose[:2])) <= g.confirm_distance
@@ -1682,6 +1710,43 @@ class GlobalShapeLocalizer:
             guess = _Track(self._anchor.copy(), best.costs, best.hyp, best.wins)
             return self._unresolved(guess, amb, extras)
         return self._unresolved(best, amb, extras)
+
+    def _reacquire(
+        self,
+        r: np.ndarray,
+        a: np.ndarray,
+        prev_odom: np.ndarray | None,
+        odom: np.ndarray | None,
+    ) -> Estimate | None:
+        """Run the tracker from the dead-reckoned last pose with this scan's odometry
+        increment as its motion prior. Returns the estimate that
+        resumes tracking after ``reacquire_scans`` accepted scans in a row with support
+        ``>= reacquire_support``; ``None`` meanwhile (the anchor follows the accepted fits)."""
+        g = self.gconfig
+        assert self._anchor is not None
+        self.tracker.reset(self._anchor, prev_odom)
+        est = self.tracker.update(r, a, odom if prev_odom is not None else None)
+        good = (
+            est.status == "tracking"
+            and "rejected" not in est.extras
+            and (est.explained or 0.0) >= g.reacquire_support
+        )
+        self._reacquired = self._reacquired + 1 if good else 0
+        if not good:
+            self.tracker.reset(None)
+            return None
+        if self._reacquired < g.reacquire_scans:
+            # follow the fit; the odometry increment is applied from here on the next scan
+            self._anchor = est.pose.copy()
+            self.tracker.reset(None)
+            return None
+        self._searching = False
+        self._tracks = []
+        self._history = []
+        self._reacquired = 0
+        est.ambiguity = None
+        est.extras["reacquired"] = 1.0
+        return est
 
     def _near_radius(self, odometry: bool) -> float:
         g = self.gconfig

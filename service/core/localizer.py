@@ -304,7 +304,7 @@ class ShapeConfig(BaseModel):
     speed_step_floor: float = Field(
         0.2,
         ge=0,
-        description="Without odometry, once three scans in a row were accepted (the robot's "
+        description="Without odometry, once three scans were accepted (the robot's "
         "speed is known), the step bound is at most this (m) plus speed_step_factor times "
         "that speed per scan (a robot does not triple its speed between two scans), and "
         "never above max_step.",
@@ -454,13 +454,25 @@ class ShapeLocalizer:
         at ``initial_pose`` (the next scan's increment is measured from it)."""
         self._pose = None if initial_pose is None else check_pose3(initial_pose, "initial_pose")
         self._rejected = 0
-        self._streak = 0  # scans accepted in a row (the velocity is known after a few)
+        self._streak = 0  # scans accepted since the reset (the velocity is known after 3)
         self._drift = 0.0  # odometry position variance accumulated while scans are rejected
         self._typical: float | None = None  # recent typical log-likelihood of accepted fits
         self.motion.reset(None if initial_pose is None else odom)
         self._views.clear()
         #: How many scans ran the shape matching (for benchmarks and tests).
         self.shape_runs = 0
+
+    def known_speed(self) -> np.ndarray | None:
+        """The smoothed translation per scan (map frame, m) once three scans were accepted
+        since the last reset, else ``None``."""
+        return self.motion.velocity.velocity if self._streak >= 3 else None
+
+    def set_speed(self, velocity: np.ndarray) -> None:
+        """Carry a speed known from before a :meth:`reset` (losing and finding the track does
+        not change how fast the robot moves): the step bound of ``speed_step_factor`` applies
+        from the first scan."""
+        self.motion.velocity.set_velocity(velocity)
+        self._streak = max(self._streak, 3)
 
     def predict(self, delta: np.ndarray) -> None:
         """Move the current pose by a known relative motion ``delta`` ``[dx, dy, dtheta]``
@@ -749,7 +761,6 @@ class ShapeLocalizer:
     ) -> Estimate:
         """The scan could not be matched well: keep the prior, count towards 'lost'."""
         self._rejected += 1
-        self._streak = 0
         self._pose = pred.pose.copy()
         self.motion.rejected()
         sig = pred.sigma

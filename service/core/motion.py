@@ -224,6 +224,13 @@ class VelocityMotion:
     def reset(self) -> None:
         self._velocity = np.zeros(2)
 
+    def set_velocity(self, velocity: np.ndarray) -> None:
+        """Start from a known translation per scan (map frame, m), e.g. after a relocalisation."""
+        v = np.asarray(velocity, dtype=np.float64).reshape(2)
+        if not np.all(np.isfinite(v)):
+            raise LocalizationError("velocity must be finite")
+        self._velocity = v.copy()
+
     def predict(self, pose: np.ndarray, odom: np.ndarray | None = None) -> Prediction:
         c = self.config
         v = self._velocity if c.extrapolate else np.zeros(2)
