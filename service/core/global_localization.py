@@ -1627,7 +1627,7 @@ class GlobalShapeLocalizer:
         amb = ambiguity([t.hyp for t in new_tracks], g)
         if not new_tracks:
             return Estimate(
-                pose=np.zeros(3),
+                pose=np.zeros(3) if self._anchor is None else self._anchor.copy(),
                 status=self._search_status,
                 score=0.0,
                 explained=0.0,

@@ -438,3 +438,60 @@ def test_near_track_hypothesis_beats_a_slightly_better_far_twin() -> None:
     assert loc._near_track([far, out], odometry=True) is None
     loc._anchor_travel = 0.6 / g.near_growth
     assert loc._near_track([far, out], odometry=True) is out
+
+
+def _room_scans(poses: list[np.ndarray]) -> tuple[np.ndarray, list[np.ndarray]]:
+    from service.core.raycast import RayCaster
+
+    rc = RayCaster(_room_map().segments())
+    ang = np.linspace(-np.pi, np.pi, 360, endpoint=False)
+    rng = np.random.default_rng(21)
+    return ang, [rc.cast(p, ang, 15.0) + rng.normal(0, 0.01, ang.shape) for p in poses]
+
+
+def test_lost_with_odometry_resumes_from_the_dead_reckoned_pose(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """After a loss with odometry, when the global search finds nothing, the published pose
+    is the dead-reckoned one, and tracking resumes from it after reacquire_scans accepted
+    scans; scans from elsewhere (a kidnap) never resume."""
+    from service.core.pose import compose
+
+    poses = [np.array([2.0 + 0.08 * k, 2.4, 0.2]) for k in range(8)]
+    frame = np.array([5.0, -3.0, 1.0])  # the odometry's own frame
+    odom = [compose(frame, p) for p in poses]
+    ang, scans = _room_scans(poses)
+    empty = gl.SearchResult(hypotheses=[], ambiguity=1.0, candidates=0)
+    monkeypatch.setattr(gl, "global_search", lambda *a, **k: empty)
+    loc = create_localizer("shape", _room_map(), poses[0])
+    g = loc.gconfig
+    assert loc.update(scans[0], ang, odom[0]).status == "tracking"
+    loc._start_search(poses[0])  # e.g. a crowd collapsed the track here
+    out = [loc.update(scans[k], ang, odom[k]) for k in range(1, 1 + g.reacquire_scans)]
+    assert [e.status for e in out] == ["lost"] * (g.reacquire_scans - 1) + ["tracking"]
+    for k, e in enumerate(out[:-1], start=1):
+        assert np.hypot(*(e.pose[:2] - poses[k][:2])) < 0.05  # dead-reckoned, not zeros
+    assert out[-1].extras["reacquired"] == 1.0
+    assert np.hypot(*(out[-1].pose[:2] - poses[g.reacquire_scans][:2])) < 0.03
+    # kidnapped: the odometry says the robot is at poses[k], the scans come from elsewhere
+    far = [np.array([4.8, 0.8, 2.5]) for _ in range(6)]
+    _, kid = _room_scans(far)
+    loc2 = create_localizer("shape", _room_map(), poses[0])
+    loc2.update(scans[0], ang, odom[0])
+    loc2._start_search(poses[0])
+    assert all(loc2.update(kid[k], ang, odom[k + 1]).status == "lost" for k in range(6))
+
+
+def test_speed_known_before_a_loss_is_carried_to_the_fix() -> None:
+    """Without odometry the tracker's speed bound holds from the first scan after a
+    relocalisation: the speed was measured before the loss."""
+    loc = create_localizer("shape", _room_map(), np.array([2.0, 2.4, 0.2]))
+    t = loc.tracker
+    assert t.known_speed() is None
+    t.set_speed(np.array([0.1, 0.0]))
+    np.testing.assert_allclose(t.known_speed(), [0.1, 0.0])
+    pred = t.motion.predict(t.pose, None)
+    cfg = t.config
+    assert t._max_step(pred) == pytest.approx(cfg.speed_step_floor + cfg.speed_step_factor * 0.1)
+    with pytest.raises(gl.LocalizationError):
+        t.set_speed(np.array([np.nan, 0.0]))
