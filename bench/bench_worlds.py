@@ -18,6 +18,8 @@ A figure of the worst world of each setup (shape method) goes beside the table.
     python bench/bench_worlds.py                       # held-out seeds 1000-1023, 2 processes
     python bench/bench_worlds.py --split tuning        # seeds 0-19 (for tuning work)
     python bench/bench_worlds.py --odom --people 2     # also with odometry; moving people
+    python bench/bench_worlds.py --methods icp,lines --odom-only --baseline-odom --update
+                                                       # add the baselines' odometry rows
 
 Writes ``docs/worlds/table.md``, ``docs/worlds/results.csv`` and ``docs/worlds/worst_*.png``
 (``--out``). Uses no data outside the repository.
@@ -242,6 +244,7 @@ def main(
     setups: tuple[int, ...] = (1, 2),
     odom_only: bool = False,
     update: bool = False,
+    baseline_odom: bool = False,
 ) -> list[Run]:
     seeds = seeds if seeds is not None else SPLITS[split]
     modes = [True] if odom_only else ([False, True] if odom else [False])
@@ -251,7 +254,8 @@ def main(
         for setup in setups
         for m in methods
         for o in modes
-        if not (o and m != "shape")  # odometry rows: the shape method only (time budget)
+        # odometry rows: the shape method only unless asked (time budget)
+        if not (o and m != "shape" and not baseline_odom)
     ]
     # slow units first so the two processes finish together
     work.sort(key=lambda w: (w[2] != "shape", w[1] != 1))
@@ -353,6 +357,9 @@ def cli(argv: list[str] | None = None) -> None:
         action="store_true",
         help="merge into the existing results.csv: rows not rerun are kept in the table",
     )
+    p.add_argument(
+        "--baseline-odom", action="store_true", help="odometry rows for icp and lines too"
+    )
     a = p.parse_args(argv)
     seeds = [int(x) for x in a.seeds.split(",")] if a.seeds else None
     setups = tuple(int(x) for x in a.setups.split(","))
@@ -368,6 +375,7 @@ def cli(argv: list[str] | None = None) -> None:
         setups,
         a.odom_only,
         a.update,
+        a.baseline_odom,
     )
 
 
