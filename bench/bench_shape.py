@@ -1,7 +1,8 @@
 """Per-scan time of the shape-based localiser, broken down by stage.
 
 Runs a stretch of setup 1 (metric map) and setup 2 (schematic map) on one core (BLAS threads
-pinned to 1) and prints, per setup, p50 / p99 / mean milliseconds per scan of every stage:
+pinned to 1), without and with odometry, and prints, per setup and mode, p50 / p99 / mean
+milliseconds per scan of every stage:
 
 * extraction  — grouping + first-stage DCE of the scan (``scan_configuration``)
 * map view    — abstract sensor reading (ray cast + grouping + DCE; cached, so mostly 0)
@@ -10,6 +11,8 @@ pinned to 1) and prints, per setup, p50 / p99 / mean milliseconds per scan of ev
 * ΔA fits     — induced alignments of candidate pairs (vectorised point-to-line fits)
 * DP          — the eq. 5 dynamic programme itself
 * pose        — least squares over matched pairs (``pose_from_matches``)
+* fit         — the precise point-to-line fit (``refine_pose``), every candidate
+* walls       — beams through map walls per candidate (``ShapeLocalizer._violation``)
 * total       — the whole ``ShapeLocalizer.update``; "other" = total minus the stages
 
 The first updates of the process (loading or compiling the numba kernels) run before the
@@ -29,6 +32,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 os.environ.setdefault("MKL_NUM_THREADS", "1")
 
 import argparse
+import itertools
 import time
 from collections import defaultdict
 from collections.abc import Callable
@@ -42,7 +46,7 @@ import service.core.matching as match_mod
 from service.core._kernels import HAVE_NUMBA
 from sim_publisher.scenario import make_setup
 
-STAGES = ("extraction", "map view", "heading", "S*", "ΔA fits", "DP", "pose")
+STAGES = ("extraction", "map view", "heading", "S*", "ΔA fits", "DP", "pose", "fit", "walls")
 _acc: dict[str, float] = defaultdict(float)
 
 
@@ -62,26 +66,28 @@ def _install() -> None:
     conf_mod.MapViewCache.view = _timed("map view", conf_mod.MapViewCache.view)
     match_mod.heading_hypotheses = _timed("heading", match_mod.heading_hypotheses)
     match_mod.support = _timed("heading", match_mod.support)
-    loc_mod.support = _timed("heading", loc_mod.support)
     match_mod.shape_distance = _timed("S*", match_mod.shape_distance)
     match_mod.prepare = _timed("S*", match_mod.prepare)
     match_mod.fit_pairs = _timed("ΔA fits", match_mod.fit_pairs)
     match_mod.fit_pairs_ranges = _timed("ΔA fits", match_mod.fit_pairs_ranges)
     match_mod.order_preserving_dp = _timed("DP", match_mod.order_preserving_dp)
     match_mod.pose_from_matches = _timed("pose", match_mod.pose_from_matches)
-    loc_mod.pose_from_matches = _timed("pose", loc_mod.pose_from_matches)
+    loc_mod.refine_pose = _timed("fit", loc_mod.refine_pose)
+    if hasattr(loc_mod.ShapeLocalizer, "_violation"):  # (absent before commit 6c1da5b)
+        loc_mod.ShapeLocalizer._violation = _timed("walls", loc_mod.ShapeLocalizer._violation)
 
 
-def bench(setup_id: int, scans: int) -> dict[str, np.ndarray]:
-    """Per-scan seconds of every stage over the first ``scans`` scans of a setup."""
+def bench(setup_id: int, scans: int, odom: bool) -> dict[str, np.ndarray]:
+    """Per-scan seconds of every stage over the first ``scans`` scans of a setup, with the
+    simulated odometry as motion prior or without (the paper's mode)."""
     s = make_setup(setup_id, seed=0, max_scans=scans)
     loc = loc_mod.ShapeLocalizer(s.map_data, s.truth[0])
     rows: dict[str, list[float]] = defaultdict(list)
-    data = [s.scan(i) for i in range(len(s))]
-    for ranges, angles in data:
+    data = [(*s.scan(i), s.odom[i] if odom else None) for i in range(len(s))]
+    for ranges, angles, o in data:
         _acc.clear()
         t0 = time.perf_counter()
-        loc.update(ranges, angles)
+        loc.update(ranges, angles, o)
         total = time.perf_counter() - t0
         for st in STAGES:
             rows[st].append(_acc.get(st, 0.0))
@@ -109,11 +115,12 @@ def main() -> None:
         f"kernels {'numba' if HAVE_NUMBA else 'numpy/Python reference (numba not installed)'}; "
         f"first updates of this process (kernel load or compile): {time.perf_counter() - t0:.2f} s"
     )
-    for setup_id, n in ((1, args.scans1), (2, args.scans2)):
+    for (setup_id, n), odom in itertools.product(((1, args.scans1), (2, args.scans2)), (0, 1)):
         if n <= 0:
             continue
-        res = bench(setup_id, n)
-        print(f"\nsetup {setup_id}: {n} scans   (ms per scan)")
+        res = bench(setup_id, n, bool(odom))
+        mode = "with odometry" if odom else "no odometry (paper)"
+        print(f"\nsetup {setup_id}, {mode}: {n} scans   (ms per scan)")
         print(f"{'stage':<12} {'p50':>8} {'p99':>8} {'mean':>8}")
         for st in (*STAGES, "other", "total"):
             v = 1000.0 * res[st]

@@ -634,7 +634,8 @@ class ShapeLocalizer:
         )
         # the "shape" arbiter stands in for a motion prior the velocity model cannot give;
         # with odometry the likelihood weighed against the prior decides on every map
-        viol = [self._violation(r, a, f.pose) for _n, f in cands]
+        # (one candidate: nothing to weigh, the check is skipped)
+        viol = [self._violation(r, a, f.pose) if len(cands) > 1 else 0.0 for _n, f in cands]
         if (
             cfg.arbiter == "shape"
             and shape_ok
@@ -652,7 +653,8 @@ class ShapeLocalizer:
                 key=lambda t: (-t[0], t[1]),
             )
             _, k_best, name, best = scored[0]
-        extras["violation"] = viol[k_best]
+        if len(cands) > 1:
+            extras["violation"] = viol[k_best]
         fit = best.fit
         sup = fit.inlier_fraction
         score = float(np.clip(sup if explained is None else 0.5 * (sup + explained), 0.0, 1.0))
