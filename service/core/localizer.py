@@ -312,6 +312,14 @@ class ShapeConfig(BaseModel):
     speed_step_factor: float = Field(
         2.0, ge=0, description="See speed_step_floor (0 = bound by max_step only)."
     )
+    odom_step_floor: float = Field(
+        0.2,
+        ge=0,
+        description="With odometry, a fit may move the pose at most this (m, at most "
+        "max_step) plus 3 sigma of the odometry step away from the odometry prediction "
+        "before the scan is rejected and bridged by the odometry (the bound widens with each "
+        "rejection in a row, so a real slip is caught up with); 0 = max_step.",
+    )
     max_turn: float = Field(
         1.3,
         gt=0,
@@ -539,6 +547,8 @@ class ShapeLocalizer:
         if pred.source == "velocity" and cfg.speed_step_factor > 0 and self._streak >= 3:
             speed = float(np.hypot(*self.motion.velocity.velocity))
             m = min(m, cfg.speed_step_floor + cfg.speed_step_factor * speed)
+        if pred.source == "odometry" and cfg.odom_step_floor > 0:
+            m = min(m, cfg.odom_step_floor)
         m *= 1 + self._rejected
         if pred.source == "odometry":
             m += 3.0 * float(max(pred.sigma[0], pred.sigma[1]))

@@ -198,3 +198,23 @@ def test_step_bound_follows_the_robots_own_speed_without_odometry() -> None:
     assert fresh._max_step(fresh.motion.predict(fresh.pose, None)) == cfg.max_step
     # with the bound, the step gate is tighter than max_step at this speed
     assert loc._max_step(pred) < cfg.max_step
+
+
+def test_step_bound_with_odometry_is_odom_step_floor_plus_three_sigma() -> None:
+    """With odometry a fit may move the pose at most odom_step_floor (+ 3 sigma of the
+    odometry step) from the odometry's prediction; each rejection in a row widens it."""
+    start = np.array([3.0, 2.0, 0.2])
+    loc = ShapeLocalizer(ROOM, start)
+    cfg = loc.config
+    assert cfg.odom_step_floor < cfg.max_step
+    loc.update(_scan(start, np.random.default_rng(16)), ANGLES, np.zeros(3))
+    pred = loc.motion.predict(loc.pose, np.array([0.1, 0.0, 0.0]))
+    assert pred.source == "odometry"
+    three = 3.0 * float(max(pred.sigma[0], pred.sigma[1]))
+    assert loc._max_step(pred) == pytest.approx(cfg.odom_step_floor + three)
+    loc._rejected = 1
+    assert loc._max_step(pred) == pytest.approx(2 * cfg.odom_step_floor + three)
+    wide = ShapeLocalizer(ROOM, start, cfg.model_copy(update={"odom_step_floor": 0.0}))
+    wide.update(_scan(start, np.random.default_rng(16)), ANGLES, np.zeros(3))
+    pred = wide.motion.predict(wide.pose, np.array([0.1, 0.0, 0.0]))
+    assert wide._max_step(pred) == pytest.approx(cfg.max_step + three)
