@@ -313,12 +313,15 @@ class ShapeConfig(BaseModel):
         2.0, ge=0, description="See speed_step_floor (0 = bound by max_step only)."
     )
     odom_step_floor: float = Field(
-        0.2,
+        0.0,
         ge=0,
         description="With odometry, a fit may move the pose at most this (m, at most "
         "max_step) plus 3 sigma of the odometry step away from the odometry prediction "
         "before the scan is rejected and bridged by the odometry (the bound widens with each "
-        "rejection in a row, so a real slip is caught up with); 0 = max_step.",
+        "rejection in a row); 0 = max_step. Off by default: 0.2 m cut confident-wrong poses "
+        "on the generated buildings (held-out 0.64 -> 0.54 %) but cost the real logs "
+        "(mit-csail with odometry 100.0 -> 99.8 % < 0.5 m on the metric map, 96.1 -> 95.6 % "
+        "on the schematised one), and real data is the judge.",
     )
     max_turn: float = Field(
         1.3,

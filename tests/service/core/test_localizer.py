@@ -204,9 +204,9 @@ def test_step_bound_with_odometry_is_odom_step_floor_plus_three_sigma() -> None:
     """With odometry a fit may move the pose at most odom_step_floor (+ 3 sigma of the
     odometry step) from the odometry's prediction; each rejection in a row widens it."""
     start = np.array([3.0, 2.0, 0.2])
-    loc = ShapeLocalizer(ROOM, start)
+    loc = ShapeLocalizer(ROOM, start, ShapeConfig(odom_step_floor=0.2))
     cfg = loc.config
-    assert cfg.odom_step_floor < cfg.max_step
+    assert 0 < cfg.odom_step_floor < cfg.max_step
     loc.update(_scan(start, np.random.default_rng(16)), ANGLES, np.zeros(3))
     pred = loc.motion.predict(loc.pose, np.array([0.1, 0.0, 0.0]))
     assert pred.source == "odometry"
@@ -214,7 +214,7 @@ def test_step_bound_with_odometry_is_odom_step_floor_plus_three_sigma() -> None:
     assert loc._max_step(pred) == pytest.approx(cfg.odom_step_floor + three)
     loc._rejected = 1
     assert loc._max_step(pred) == pytest.approx(2 * cfg.odom_step_floor + three)
-    wide = ShapeLocalizer(ROOM, start, cfg.model_copy(update={"odom_step_floor": 0.0}))
+    wide = ShapeLocalizer(ROOM, start)  # the default: max_step
     wide.update(_scan(start, np.random.default_rng(16)), ANGLES, np.zeros(3))
     pred = wide.motion.predict(wide.pose, np.array([0.1, 0.0, 0.0]))
     assert wide._max_step(pred) == pytest.approx(cfg.max_step + three)
