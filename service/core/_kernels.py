@@ -1052,7 +1052,7 @@ def field_scores(
     sigma: float,
     cap: float,
 ) -> np.ndarray:
-    """Kernel of :func:`service.core.global_localization._polish` (same arithmetic): for each
+    """Kernel of :func:`service.core.global_search._polish` (same arithmetic): for each
     pose ``(m, 3)`` the mean over robot-frame ``pts`` ``(k, 2)`` of
     ``exp(-0.5 * (min(d, cap) / sigma) ** 2)``, ``d`` the distance-field value at the point's
     cell (``inf`` outside the field)."""

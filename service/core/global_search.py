@@ -1,0 +1,491 @@
+"""The global search of shape-based localisation: :func:`global_search` ranks pose hypotheses for
+one scan over the whole map (S*-similar unit pairs induce poses, support ranks them, a
+point-to-line fit refines and :func:`verify` checks them beam by beam), :func:`self_similar`
+looks for a twin place, :func:`ambiguity` compares the best with the best distinct
+alternative. See :mod:`service.core.global_localization` for the whole method."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from service.core import _kernels
+from service.core.configuration import (
+    Configuration,
+    scan_configuration,
+)
+from service.core.global_config import GlobalConfig
+from service.core.localizer import ShapeConfig
+from service.core.matching import induced_alignment
+from service.core.pose import fit_pairs, transform_points
+from service.core.similarity import prepare, shape_complexity, shape_distance
+from service.core.types import wrap_angle
+from service.core.view_index import ViewIndex, _anchor, _joined, _nearby_segments
+
+# --------------------------------------------------------------------------------------------
+# Global search
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass
+class Hypothesis:
+    """A pose hypothesis ``[x, y, theta]`` (map frame) with its verification on one scan:
+    ``hit`` fraction of beams returned where the map predicts (within the support tolerance),
+    ``violation`` fraction of beams that passed through a map wall, ``cost`` (lower is
+    better), ``explained`` length fraction of the scan's polylines lying on the map there."""
+
+    pose: np.ndarray
+    cost: float
+    hit: float = 0.0
+    violation: float = 0.0
+    explained: float = 0.0
+    short: float = 0.0
+
+
+@dataclass
+class SearchResult:
+    """Ranked distinct hypotheses (best first) and the best-vs-second ambiguity in [0, 1]
+    (1 = tie, 0 = a single hypothesis). ``candidates`` how many pose hypotheses the shape
+    pairs induced; ``information`` the summed shape complexity (m·rad) of the scan units
+    used — how much distinctive shape the scan holds at all."""
+
+    hypotheses: list[Hypothesis]
+    ambiguity: float
+    candidates: int
+    information: float = 0.0
+
+
+def _scan_units(P: Configuration, threshold: float) -> list[np.ndarray]:
+    """Vertices of each scan feature and of each pair of consecutive ones (robot frame)."""
+    out = [f.vertices for f in P.features]
+    for a, b in zip(P.features[:-1], P.features[1:], strict=True):
+        out.append(_joined(a.vertices, b.vertices, threshold))
+    return out
+
+
+def _subsample(points: np.ndarray, k: int) -> np.ndarray:
+    if len(points) <= k:
+        return points
+    return points[np.linspace(0, len(points) - 1, k).round().astype(int)]
+
+
+def _support_many(index: ViewIndex, poses: np.ndarray, pts: np.ndarray, tol: float) -> np.ndarray:
+    """Fraction of robot-frame ``pts`` within ``tol`` of the map at each of ``poses`` (k, 3)."""
+    c, s = np.cos(poses[:, 2]), np.sin(poses[:, 2])
+    x = c[:, None] * pts[None, :, 0] - s[:, None] * pts[None, :, 1] + poses[:, 0:1]
+    y = s[:, None] * pts[None, :, 0] + c[:, None] * pts[None, :, 1] + poses[:, 1:2]
+    d = index.distance(np.column_stack([x.ravel(), y.ravel()])).reshape(len(poses), -1)
+    return np.mean(d <= tol, axis=1)
+
+
+def _field_scores(index: ViewIndex, poses: np.ndarray, pts: np.ndarray, sigma: float) -> np.ndarray:
+    """Mean of ``exp(-d² / 2 sigma²)`` over robot-frame ``pts`` at each of ``poses`` ``(m, 3)``,
+    ``d`` the distance-field value (capped at 10 m). A numba kernel when available, else the
+    numpy reference (same arithmetic)."""
+    if len(pts) == 0 or len(poses) == 0:
+        return np.zeros(len(poses))
+    if _kernels.HAVE_NUMBA:
+        return _kernels.field_scores(
+            index.dist,
+            float(index.origin[0]),
+            float(index.origin[1]),
+            float(index.resolution),
+            np.ascontiguousarray(poses, dtype=np.float64),
+            np.ascontiguousarray(pts, dtype=np.float64),
+            float(sigma),
+            10.0,
+        )
+    c, s = np.cos(poses[:, 2]), np.sin(poses[:, 2])
+    x = c[:, None] * pts[None, :, 0] - s[:, None] * pts[None, :, 1] + poses[:, 0:1]
+    y = s[:, None] * pts[None, :, 0] + c[:, None] * pts[None, :, 1] + poses[:, 1:2]
+    d = index.distance(np.column_stack([x.ravel(), y.ravel()])).reshape(len(poses), -1)
+    return np.mean(np.exp(-0.5 * (np.minimum(d, 10.0) / sigma) ** 2), axis=1)
+
+
+def _polish(
+    index: ViewIndex,
+    poses: np.ndarray,
+    pts: np.ndarray,
+    sigma: float,
+    stages: tuple[tuple[float, float], ...] = ((0.05, 0.02), (0.015, 0.006)),
+) -> tuple[np.ndarray, np.ndarray]:
+    """Local search around each pose ``(k, 3)`` on the distance field: per stage a 5 x 5 x 5
+    grid of ``(step_xy m, step_theta rad)`` (default +-0.1 m / +-0.04 rad, then +-0.03 m /
+    +-0.012 rad) maximising the mean of ``exp(-d² / 2 s²)`` over the robot-frame ``pts``,
+    ``s = max(sigma, step_xy)``. Unlike the least-squares fit it cannot be dragged by points
+    that have no counterpart in the map. Returns the poses and their final scores ``(k,)``."""
+    out = np.asarray(poses, dtype=np.float64).copy()
+    best_score = np.zeros(len(out))
+    for step_xy, step_th in stages:
+        s_eff = max(sigma, step_xy)
+        o = np.arange(-2, 3)
+        dx, dy, dth = np.meshgrid(o * step_xy, o * step_xy, o * step_th, indexing="ij")
+        delta = np.column_stack([dx.ravel(), dy.ravel(), dth.ravel()])
+        cand = (out[:, None, :] + delta[None, :, :]).reshape(-1, 3)
+        score = _field_scores(index, cand, pts, s_eff).reshape(len(out), -1)
+        best = np.argmax(score, axis=1)
+        best_score = score[np.arange(len(out)), best]
+        out = cand.reshape(len(out), -1, 3)[np.arange(len(out)), best]
+    out[:, 2] = wrap_angle(out[:, 2])
+    return out, best_score
+
+
+def _beam_fractions(
+    r: np.ndarray, pred: np.ndarray, tol: float, gconfig: GlobalConfig
+) -> tuple[float, float, float]:
+    """Fractions of beams (measured ``r``, map-predicted ``pred``, NaN = nothing within range)
+    that hit (within ``tol``), violate (return beyond the predicted wall by more than
+    ``max(tol, gconfig.violation_margin)``) and fall short (something unmapped in front)."""
+    hit = float(np.mean(np.abs(r - pred) <= tol))  # NaN prediction compares False
+    viol = float(np.mean(np.isfinite(pred) & (r > pred + max(tol, gconfig.violation_margin))))
+    short = float(np.mean(r < pred - tol))
+    return hit, viol, short
+
+
+def _beam_costs(
+    index: ViewIndex,
+    poses: np.ndarray,
+    ranges: np.ndarray,
+    angles: np.ndarray,
+    beams: int,
+    config: ShapeConfig,
+    gconfig: GlobalConfig,
+) -> np.ndarray:
+    """The beam part of :func:`verify`'s cost for each of ``poses`` ``(k, 3)`` on ``beams``
+    evenly chosen valid beams: ``1 - hit - short_credit * short + violation_weight *
+    violation``. A quick ranking: unlike the point support it sees beams that pass through a
+    wall, and it does not reward a wrong place for lining up furniture with map walls."""
+    ok = np.nonzero(np.isfinite(ranges))[0]
+    sel = _subsample(ok, beams)
+    out = np.full(len(poses), np.inf)
+    if sel.size == 0:
+        return out
+    r = ranges[sel]
+    ang = angles[sel]
+    tol = config.support_tolerance
+    caster = index.caster
+    for k, pose in enumerate(np.asarray(poses, dtype=np.float64)):
+        pred = caster.cast(pose, ang, config.view_max_range)
+        hit, viol, short = _beam_fractions(r, pred, tol, gconfig)
+        out[k] = 1.0 - hit - gconfig.short_credit * short + gconfig.violation_weight * viol
+    return out
+
+
+def _refine(
+    index: ViewIndex,
+    poses: np.ndarray,
+    sp: np.ndarray,
+    config: ShapeConfig,
+    gconfig: GlobalConfig,
+) -> np.ndarray:
+    """Refine poses ``(k, 3)`` against the map with the robot-frame scan points ``sp``: a
+    point-to-line fit (Cauchy scale of the tracker), a tight second stage on the segments
+    right under the points, a polish on the distance field and a last continuous fit."""
+    poses = np.asarray(poses, dtype=np.float64)
+    n = len(poses)
+    refined, _ = fit_pairs(
+        [sp] * n,
+        [_nearby_segments(index.segments, transform_points(p, sp), 0.5) for p in poses],
+        poses,
+        iterations=gconfig.refine_iterations,
+        robust_scale=config.align_robust_scale,
+        damping=config.align_damping,
+    )
+    # second, tighter stage: only the segments right under the points and a small robust
+    # scale, so returns from unmapped objects (furniture on a floor plan) stop pulling
+    refined, _ = fit_pairs(
+        [sp] * n,
+        [
+            _nearby_segments(index.segments, transform_points(p, sp), 2.0 * gconfig.fine_scale)
+            for p in refined
+        ],
+        refined,
+        iterations=gconfig.refine_iterations,
+        robust_scale=gconfig.fine_scale,
+        damping=config.align_damping,
+    )
+    refined, _ = _polish(index, refined, sp, gconfig.fine_scale)
+    # and a last continuous fit from there (the distance field is quantised to its cells)
+    refined, _ = fit_pairs(
+        [sp] * n,
+        [
+            _nearby_segments(index.segments, transform_points(p, sp), 2.0 * gconfig.fine_scale)
+            for p in refined
+        ],
+        refined,
+        iterations=gconfig.refine_iterations,
+        robust_scale=gconfig.fine_scale,
+        damping=config.align_damping,
+    )
+    return refined
+
+
+def _distinct(a: np.ndarray, b: np.ndarray, gconfig: GlobalConfig) -> bool:
+    return bool(
+        np.hypot(*(a[:2] - b[:2])) > gconfig.distinct_distance
+        or abs(wrap_angle(a[2] - b[2])) > gconfig.distinct_angle
+    )
+
+
+def _near(a: np.ndarray, b: np.ndarray, dist: float = 0.3, ang: float = 0.15) -> bool:
+    return bool(np.hypot(*(a[:2] - b[:2])) < dist and abs(wrap_angle(a[2] - b[2])) < ang)
+
+
+def verify(
+    index: ViewIndex,
+    pose: np.ndarray,
+    ranges: np.ndarray,
+    angles: np.ndarray,
+    P: Configuration,
+    config: ShapeConfig,
+    gconfig: GlobalConfig,
+) -> Hypothesis:
+    """Check a pose against the map beam by beam and feature by feature.
+
+    ``gconfig.verify_beams`` valid beams of the scan are compared with the ranges the map
+    predicts from ``pose``: a *hit* lies within ``config.support_tolerance`` of the predicted
+    range, a *violation* is a return beyond the predicted range plus the tolerance (the beam
+    went through a map wall), a *short* one ends before the predicted wall (something
+    unmapped in front of it). ``explained`` is the length fraction of the scan's polylines with
+    at least half their points within the tolerance of the map. Cost
+    ``1 - hit + violation_weight * violation + cost_floor``.
+    """
+    tol = config.support_tolerance
+    ok = np.isfinite(ranges)
+    idx = np.nonzero(ok)[0]
+    idx = _subsample(idx, gconfig.verify_beams)
+    if idx.size == 0:
+        return Hypothesis(pose=pose.copy(), cost=1.0 + gconfig.cost_floor)
+    r = ranges[idx]
+    pred = index.caster.cast(pose, angles[idx], config.view_max_range)
+    hit, viol, short = _beam_fractions(r, pred, tol, gconfig)
+    total = 0.0
+    good = 0.0
+    for f in P.features:
+        d = index.distance(transform_points(pose, _subsample(f.points, 16)))
+        total += f.length
+        if np.mean(d <= tol) >= 0.5:
+            good += f.length
+    explained = good / total if total > 0 else 0.0
+    cost = (
+        1.0
+        - hit
+        - gconfig.short_credit * short
+        + gconfig.violation_weight * viol
+        + gconfig.cost_floor
+    )
+    return Hypothesis(
+        pose=pose.copy(),
+        cost=cost,
+        hit=hit,
+        violation=viol,
+        explained=explained,
+        short=short,
+    )
+
+
+def global_search(
+    index: ViewIndex,
+    ranges: np.ndarray,
+    angles: np.ndarray,
+    config: ShapeConfig,
+    gconfig: GlobalConfig | None = None,
+    seeds: list[np.ndarray] | tuple[np.ndarray, ...] = (),
+    P: Configuration | None = None,
+) -> SearchResult:
+    """Rank pose hypotheses for one scan over the whole map (no prior pose).
+
+    ``ranges`` metres (NaN = no return), ``angles`` radians (robot frame); ``config`` the
+    tracker's :class:`ShapeConfig` (extraction, S* weights, support tolerance); ``seeds``
+    extra poses to consider (the hypotheses kept from earlier scans, moved by odometry).
+    ``P`` the scan's configuration if already computed.
+
+    Steps: the ``gconfig.scan_units`` most complex scan units (features and consecutive pairs)
+    are compared by S* (:func:`service.core.similarity.shape_distance`, the tracker's weights)
+    with every index unit whose range from its viewpoint is within the grid half-diagonal plus
+    ``gconfig.range_slack`` of the scan unit's range; the most (``gconfig.pairs_budget`` shared)
+    similar pairs (S* <= ``gconfig.max_shape_distance``) each induce a pose
+    (:func:`service.core.matching.induced_alignment`). All poses and the seeds are ranked by
+    support (distance field); the best ``gconfig.refine_top`` distinct ones are refined by a
+    point-to-line fit against the map and verified (:func:`verify`). Returns distinct
+    hypotheses, best (lowest cost) first, and their :func:`ambiguity`.
+    """
+    gconfig = gconfig or GlobalConfig.for_kind(config.kind)
+    r = np.asarray(ranges, dtype=np.float64)
+    a = np.asarray(angles, dtype=np.float64)
+    if P is None:
+        P = scan_configuration(r, a, config.extraction())
+    pts_all = (
+        np.vstack([f.points for f in P.features]) if P.features else np.zeros((0, 2), dtype=float)
+    )
+    poses: list[np.ndarray] = [np.asarray(s, dtype=np.float64) for s in seeds]
+    anchor_poses: list[np.ndarray] = []
+    n_induced = 0
+    information = 0.0
+    if P.features and len(index):
+        units = _scan_units(P, config.dce_threshold)
+        comp = [(shape_complexity(u), k) for k, u in enumerate(units)]
+        comp.sort(key=lambda t: (-t[0], t[1]))
+        chosen = [k for c, k in comp[: gconfig.scan_units] if c >= gconfig.min_unit_complexity]
+        information = float(sum(c for c, _k in comp[: gconfig.scan_units]))
+        gate = 0.5 * np.sqrt(2.0) * gconfig.spacing + gconfig.range_slack
+        ew, sw = config.shape_end_weight, config.shape_skip_weight
+        for k in chosen:
+            pu = units[k]
+            pa = prepare(pu)
+            dp = np.hypot(pu[:, 0], pu[:, 1])
+            cp = shape_complexity(pu)
+            p_anc, p_dir, p_turn = _anchor(pu)
+            cand = np.nonzero(
+                (index.unit_rmin <= dp.max() + gate)
+                & (index.unit_rmax >= dp.min() - gate)
+                & (index.unit_complexity >= gconfig.view_complexity_ratio * cp)
+            )[0]
+            cornered = abs(p_turn) > 0.2
+            if cornered:  # corresponding corners turn alike
+                dturn = np.mod(index.unit_anchor[cand, 3] - p_turn + np.pi, 2.0 * np.pi) - np.pi
+                cand = cand[np.abs(dturn) < gconfig.max_turn_difference]
+            # The same physical corner is seen from many viewpoints (one group): S* is
+            # computed for one view of each group (the first), and a similar group lends its
+            # views' anchors to every view of it; the budget of S*-induced alignments thus
+            # covers many distinct places instead of one corner many times.
+            groups = index.unit_group[cand]
+            _, first = np.unique(groups, return_index=True)
+            scored = []
+            for u in cand[np.sort(first)].tolist():
+                s = shape_distance(
+                    pa,
+                    index.arcs(u),
+                    end_weight=ew,
+                    skip_weight=sw,
+                    upper_bound=gconfig.max_shape_distance,
+                )
+                if s < gconfig.max_shape_distance:
+                    scored.append((s, u))
+            scored.sort()
+            for _s, u in scored[: gconfig.pairs_budget // len(chosen)]:
+                poses.append(induced_alignment(pu, index.verts(u)))
+                n_induced += 1
+            if scored and cornered:
+                # every view of a similar group fixes a pose by the anchors (corner vertex
+                # and leaving edge): vectorised, cheap enough for all of them
+                similar = np.isin(groups, index.unit_group[[u for _s, u in scored]])
+                qa = index.unit_anchor[cand[similar]]
+                phi = np.mod(qa[:, 2] - p_dir + np.pi, 2.0 * np.pi) - np.pi
+                c, s_ = np.cos(phi), np.sin(phi)
+                tx = qa[:, 0] - (c * p_anc[0] - s_ * p_anc[1])
+                ty = qa[:, 1] - (s_ * p_anc[0] + c * p_anc[1])
+                anchor_poses.append(np.column_stack([tx, ty, phi]))
+                n_induced += len(qa)
+    if not poses and not anchor_poses:
+        return SearchResult(hypotheses=[], ambiguity=1.0, candidates=0, information=information)
+    H = np.vstack([np.asarray(poses).reshape(-1, 3), *anchor_poses])
+    sp = _subsample(pts_all, gconfig.support_points)
+    if len(sp) == 0:
+        return SearchResult(
+            hypotheses=[], ambiguity=1.0, candidates=n_induced, information=information
+        )
+    sup = _support_many(index, H, sp, config.support_tolerance)
+    order = np.argsort(-sup, kind="stable")
+    if gconfig.shortlist > 0:
+        # An induced pose near the truth is often 0.2-0.4 m / 5-10 deg off, so its raw support
+        # trails a wrong place's that happens to line up. Keep the best pose per coarse pose
+        # cell, polish the best cells' poses on the distance field (coarse then fine grid) and
+        # rank by the polished score instead.
+        cells = np.column_stack(
+            [
+                np.floor(H[:, 0] / gconfig.shortlist_cell),
+                np.floor(H[:, 1] / gconfig.shortlist_cell),
+                np.floor((wrap_angle(H[:, 2]) + np.pi) / gconfig.shortlist_angle),
+            ]
+        )
+        _, first = np.unique(cells[order], axis=0, return_index=True)
+        short = order[np.sort(first)][: gconfig.shortlist]
+        polished, _score = _polish(
+            index, H[short], sp, gconfig.fine_scale, stages=((0.15, 0.06), (0.05, 0.02))
+        )
+        quick = _beam_costs(index, polished, r, a, gconfig.shortlist_beams, config, gconfig)
+        H = polished
+        order = np.argsort(quick, kind="stable")
+    picked: list[np.ndarray] = []
+    for i in order.tolist():
+        if len(picked) >= gconfig.refine_top:
+            break
+        if any(_near(H[i], p) for p in picked):
+            continue
+        picked.append(H[i])
+    refined = _refine(index, np.vstack(picked), sp, config, gconfig)
+    hyps = [verify(index, refined[k], r, a, P, config, gconfig) for k in range(len(picked))]
+    hyps.sort(key=lambda h: h.cost)
+    out: list[Hypothesis] = []
+    for h in hyps:
+        if all(not _near(h.pose, o.pose) for o in out):
+            out.append(h)
+    return SearchResult(
+        hypotheses=out,
+        ambiguity=ambiguity(out, gconfig),
+        candidates=n_induced,
+        information=information,
+    )
+
+
+def self_similar(
+    index: ViewIndex,
+    best: Hypothesis,
+    ranges: np.ndarray,
+    angles: np.ndarray,
+    P: Configuration,
+    config: ShapeConfig,
+    gconfig: GlobalConfig,
+) -> Hypothesis | None:
+    """The map's own twin of ``best``, verified on the real scan, or ``None``.
+
+    A search can miss the true place altogether (furniture hides its walls) and then crown a
+    congruent room elsewhere with no close rival. So before a fix the map is asked where else
+    it looks the same: the scan the MAP would give at ``best.pose`` (a ray cast over the real
+    scan's beams that have returns) runs through :func:`global_search` itself; every
+    resulting pose distinct from ``best`` is a place the map cannot tell from it, and is
+    verified (:func:`verify`) on the real ``ranges`` / ``angles`` both as found and refined on
+    the real scan's points (:func:`_refine`), whichever fits better. Returns the best verified
+    twin (lowest cost)."""
+    ok = np.isfinite(ranges)
+    pred = index.caster.cast(best.pose, angles, config.view_max_range)
+    pred = np.where(ok, pred, np.nan)
+    if np.count_nonzero(np.isfinite(pred)) < 10:
+        return None
+    res = global_search(index, pred, angles, config, gconfig)
+    cands = [h.pose for h in res.hypotheses if _distinct(h.pose, best.pose, gconfig)]
+    pts = np.vstack([f.points for f in P.features]) if P.features else np.zeros((0, 2))
+    sp = _subsample(pts, gconfig.support_points)
+    if not cands or len(sp) == 0:
+        return None
+    # the map-only search aligned the twins to the map's own view; each is verified as found
+    # and fitted to the real scan, whichever verifies better (furniture can drag the fit off)
+    refined = _refine(index, np.vstack(cands), sp, config, gconfig)
+    out: Hypothesis | None = None
+    for pose in [*cands, *refined]:
+        if not _distinct(pose, best.pose, gconfig):
+            continue
+        v = verify(index, pose, ranges, angles, P, config, gconfig)
+        if out is None or v.cost < out.cost:
+            out = v
+    return out
+
+
+def ambiguity(hyps: list[Hypothesis], gconfig: GlobalConfig) -> float:
+    """Best vs best distinct alternative in [0, 1]: ``1 - (cost_2 - cost_1) / ambiguity_scale``
+    clipped (1 = tie, 0 = the alternative is worse by the scale or more, or there is none);
+    1 with no hypothesis at all (nothing is known).
+
+    A margin rather than a ratio: on a floor plan every hypothesis, the true one included,
+    leaves the furniture unexplained, so costs share a large common part that a ratio would
+    read as ambiguity."""
+    if not hyps:
+        return 1.0
+    best = hyps[0]
+    for h in hyps[1:]:
+        if _distinct(h.pose, best.pose, gconfig):
+            margin = h.cost - best.cost
+            return float(np.clip(1.0 - margin / gconfig.ambiguity_scale, 0.0, 1.0))
+    return 0.0
