@@ -12,7 +12,7 @@ milliseconds per scan of every stage:
 * DP          — the eq. 5 dynamic programme itself
 * pose        — least squares over matched pairs (``pose_from_matches``)
 * fit         — the precise point-to-line fit (``refine_pose``), every candidate
-* walls       — beams through map walls per candidate (``ShapeLocalizer._violation``)
+* walls       — beams through map walls per candidate (``ShapeLocalizer._violations``)
 * total       — the whole ``ShapeLocalizer.update``; "other" = total minus the stages
 
 The first updates of the process (loading or compiling the numba kernels) run before the
@@ -73,8 +73,8 @@ def _install() -> None:
     match_mod.order_preserving_dp = _timed("DP", match_mod.order_preserving_dp)
     match_mod.pose_from_matches = _timed("pose", match_mod.pose_from_matches)
     loc_mod.refine_pose = _timed("fit", loc_mod.refine_pose)
-    if hasattr(loc_mod.ShapeLocalizer, "_violation"):  # (absent before commit 6c1da5b)
-        loc_mod.ShapeLocalizer._violation = _timed("walls", loc_mod.ShapeLocalizer._violation)
+    if hasattr(loc_mod.ShapeLocalizer, "_violations"):  # (absent before commit 6c1da5b)
+        loc_mod.ShapeLocalizer._violations = _timed("walls", loc_mod.ShapeLocalizer._violations)
 
 
 def bench(setup_id: int, scans: int, odom: bool) -> dict[str, np.ndarray]:

@@ -31,7 +31,6 @@ import argparse
 import csv
 import math
 import os
-import subprocess
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
@@ -307,15 +306,9 @@ def main(
             elif (out / name).exists():  # --update without rerunning that row: keep it
                 figs.append(name)
     cmd = "python bench/bench_worlds.py " + " ".join(sys.argv[1:])
-    try:
-        commit = subprocess.run(
-            ["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"],
-            capture_output=True,
-            text=True,
-            check=True,
-        ).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        commit = "unknown"
+    from bench_real import git_commit  # bench/ is on sys.path when run as a script
+
+    commit = git_commit()
     earlier = ""
     if update and (out / "table.md").exists():
         old_lines = (out / "table.md").read_text().splitlines()

@@ -350,22 +350,18 @@ class GlobalShapeLocalizer:
         self._episode += 1
         prev_odom = self._last_odom
         delta = self._remember_odom(odom)
-        moved = False  # the anchor already holds this scan's motion (an accepted fit)
-        if self._anchor is not None and delta is not None:
-            # (with odometry only: without it the held anchor is no motion prior the
-            # tracker could be trusted from; tuning seeds 11 and 16 tracked wrong places)
-            before = self._anchor
-            back = self._reacquire(r, a, prev_odom, odom)
-            if back is not None:
-                return back
-            moved = self._anchor is not before
         if delta is not None:
             for t in self._tracks:
                 t.pose = compose(t.pose, delta)
             if self._anchor is not None:
-                if not moved:
-                    self._anchor = compose(self._anchor, delta)
+                start = self._anchor
+                self._anchor = compose(start, delta)
                 self._anchor_travel += float(np.hypot(delta[0], delta[1]))
+                # (with odometry only: without it the held anchor is no motion prior the
+                # tracker could be trusted from; tuning seeds 11 and 16 tracked wrong places)
+                back = self._reacquire(r, a, start, prev_odom, odom)
+                if back is not None:
+                    return back
         rs, as_ = self._composite(r, a)
         P = scan_configuration(rs, as_, self.config.extraction())
         seeds = self._seeds() + self._anchor_seeds(delta is not None)
@@ -486,17 +482,17 @@ class GlobalShapeLocalizer:
         self,
         r: np.ndarray,
         a: np.ndarray,
+        start: np.ndarray,
         prev_odom: np.ndarray | None,
         odom: np.ndarray | None,
     ) -> Estimate | None:
-        """Run the tracker from the dead-reckoned last pose with this scan's odometry
-        increment as its motion prior. Returns the estimate that
+        """Run the tracker from ``start``, the dead-reckoned pose of the previous scan, with
+        this scan's odometry increment as its motion prior. Returns the estimate that
         resumes tracking after ``reacquire_scans`` accepted scans in a row with support
         ``>= reacquire_support``; ``None`` meanwhile (the anchor follows the accepted fits)."""
         g = self.gconfig
-        assert self._anchor is not None
-        self.tracker.reset(self._anchor, prev_odom)
-        est = self.tracker.update(r, a, odom if prev_odom is not None else None)
+        self.tracker.reset(start, prev_odom)
+        est = self.tracker.update(r, a, odom)
         good = (
             est.status == "tracking"
             and "rejected" not in est.extras

@@ -41,7 +41,7 @@ from service.core.configuration import (
 )
 from service.core.dce import DCE_NOISE_THRESHOLD
 from service.core.mapmodel import MapModel
-from service.core.matching import two_step_match
+from service.core.matching import TwoStepResult, two_step_match
 from service.core.motion import Motion, MotionConfig, Prediction, check_pose3
 from service.core.pose import compose
 from service.core.refine import Refined, RefineParams, refine_pose, scan_normals
@@ -557,18 +557,25 @@ class ShapeLocalizer:
             m += 3.0 * float(max(pred.sigma[0], pred.sigma[1]))
         return m
 
-    def _violation(self, r: np.ndarray, a: np.ndarray, pose: np.ndarray) -> float:
-        """Share of ``violation_beams`` evenly chosen valid beams whose return lies more than
-        ``violation_margin`` beyond the range the map predicts from ``pose`` (through a wall)."""
+    def _violations(self, r: np.ndarray, a: np.ndarray, poses: list[np.ndarray]) -> list[float]:
+        """Per pose, the share of ``violation_beams`` evenly chosen valid beams whose return
+        lies more than ``violation_margin`` beyond the range the map predicts from that pose
+        (through a wall); the same beams for every pose."""
         cfg = self.config
-        if cfg.violation_beams == 0:
-            return 0.0
         ok = np.nonzero(np.isfinite(r) & (r > 0.0))[0]
-        if ok.size == 0:
-            return 0.0
+        if cfg.violation_beams == 0 or ok.size == 0:
+            return [0.0] * len(poses)
         sel = ok[np.linspace(0, ok.size - 1, min(cfg.violation_beams, ok.size)).astype(np.intp)]
-        expect = self._views.caster.cast(pose, a[sel], cfg.view_max_range)
-        return float(np.mean(np.isfinite(expect) & (r[sel] > expect + cfg.violation_margin)))
+        rs, ang = r[sel], a[sel]
+        out = []
+        for pose in poses:
+            expect = self._views.caster.cast(pose, ang, cfg.view_max_range)
+            out.append(float(np.mean(np.isfinite(expect) & (rs > expect + cfg.violation_margin))))
+        return out
+
+    def _violation(self, r: np.ndarray, a: np.ndarray, pose: np.ndarray) -> float:
+        """:meth:`_violations` of one pose."""
+        return self._violations(r, a, [pose])[0]
 
     def _doubtful(self, f: Refined, pred: Prediction) -> bool:
         cfg = self.config
@@ -623,19 +630,10 @@ class ShapeLocalizer:
             self.shape_runs += 1
             Q = self._views.view(pred.pose)
             if len(Q):
-                scan_pts = np.vstack([f.points for f in P.features])
-                two = two_step_match(P, Q, pred.pose, cfg, scan_pts, max_step=self._max_step(pred))
-                matches = tuple(two.match.matches)
-                total = sum(f.length for f in P.features)
-                done = sum(P.features[i].length for m in matches for i in m.scan)
-                explained = done / total if total > 0 else 0.0
+                two, matches, explained, weights = self._shape_match(P, Q, own, pred, cfg)
                 ambiguity = two.ambiguity
                 extras["step1_hypotheses"] = float(two.hypotheses)
                 extras["eq5_cost"] = two.match.cost
-                if matches and cfg.unmatched_weight < 1.0:
-                    matched = np.zeros(len(P.features), dtype=bool)
-                    matched[[i for m in matches for i in m.scan]] = True
-                    weights = np.where(matched[own], 1.0, cfg.unmatched_weight)
                 if weights is not None:
                     # the prior's fit again, now without the pull of unmatched structures
                     cands[0] = ("prior", self._refine(pts, nrm, pred.pose, pred, weights))
@@ -648,7 +646,7 @@ class ShapeLocalizer:
         # the "shape" arbiter stands in for a motion prior the velocity model cannot give;
         # with odometry the likelihood weighed against the prior decides on every map
         # (one candidate: nothing to weigh, the check is skipped)
-        viol = [self._violation(r, a, f.pose) if len(cands) > 1 else 0.0 for _n, f in cands]
+        viol = self._violations(r, a, [f.pose for _n, f in cands]) if len(cands) > 1 else [0.0]
         if (
             cfg.arbiter == "shape"
             and shape_ok
@@ -722,6 +720,32 @@ class ShapeLocalizer:
             extras=extras,
         )
 
+    def _shape_match(
+        self,
+        P: Configuration,
+        Q: Configuration,
+        own: np.ndarray,
+        pred: Prediction,
+        config: ShapeConfig,
+    ) -> tuple[TwoStepResult, tuple[Match, ...], float, np.ndarray | None]:
+        """The two-step matching (§5.3) of scan ``P`` with map view ``Q`` from the prior, with
+        ``config``'s hypotheses. Returns the result, its matches, the matched length share of
+        the scan, and the precise fit's point weights (points of unmatched polylines at
+        ``unmatched_weight``; ``None`` when that is 1 or nothing matched); ``own`` maps each
+        fit point to its polyline."""
+        scan_pts = np.vstack([f.points for f in P.features])
+        two = two_step_match(P, Q, pred.pose, config, scan_pts, max_step=self._max_step(pred))
+        matches = tuple(two.match.matches)
+        total = sum(f.length for f in P.features)
+        done = sum(P.features[i].length for m in matches for i in m.scan)
+        explained = done / total if total > 0 else 0.0
+        weights = None
+        if matches and self.config.unmatched_weight < 1.0:
+            matched = np.zeros(len(P.features), dtype=bool)
+            matched[[i for m in matches for i in m.scan]] = True
+            weights = np.where(matched[own], 1.0, self.config.unmatched_weight)
+        return two, matches, explained, weights
+
     def _recover(
         self,
         P: Configuration,
@@ -741,18 +765,9 @@ class ShapeLocalizer:
         if not len(Q):
             return None
         self.shape_runs += 1
-        scan_pts = np.vstack([f.points for f in P.features])
-        two = two_step_match(P, Q, pred.pose, self._wide, scan_pts, max_step=self._max_step(pred))
-        matches = tuple(two.match.matches)
-        total = sum(f.length for f in P.features)
-        explained = sum(P.features[i].length for m in matches for i in m.scan) / max(total, 1e-9)
+        two, matches, explained, weights = self._shape_match(P, Q, own, pred, self._wide)
         if len(matches) < cfg.min_matches or explained < cfg.min_explained:
             return None
-        weights = None
-        if cfg.unmatched_weight < 1.0:
-            matched = np.zeros(len(P.features), dtype=bool)
-            matched[[i for m in matches for i in m.scan]] = True
-            weights = np.where(matched[own], 1.0, cfg.unmatched_weight)
         info = pred.information.copy()
         info[2, :] = 0.0
         info[:, 2] = 0.0
