@@ -40,3 +40,6 @@ MAX_FOV: float = 2.0 * math.pi + 1e-6
 
 #: Largest integer counter (seq, health counters): what msgpack can carry (uint64).
 MAX_UINT: int = 2**64 - 1
+
+#: Most pose candidates in one PoseMsg (the best few hypotheses of a global search).
+MAX_CANDIDATES: int = 16

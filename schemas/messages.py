@@ -36,6 +36,7 @@ from schemas.limits import (
     ID_CHARS,
     ID_MAX_LEN,
     MAX_BEAMS,
+    MAX_CANDIDATES,
     MAX_FOV,
     MAX_KEY_LEN,
     MAX_MAP_POINTS,
@@ -277,6 +278,24 @@ def _covariance(v: object) -> np.ndarray:
         raise _FieldError(f"must be 9 numbers (row-major 3x3), got {len(items)} elements")
     vals = [_finite(items[i], f"[{i}]") for i in range(9)]
     return _readonly(np.array(vals, dtype=np.float64).reshape(3, 3))
+
+
+def _candidates(v: object) -> np.ndarray:
+    items = _seq_items(v, "", "a list of [x, y, theta, cost] rows")
+    if isinstance(items, np.ndarray):
+        if items.ndim != 2 or items.shape[1:] != (4,):
+            raise _FieldError(f"must have shape (k, 4), got {items.shape}")
+        items = list(_numeric_array(items, ""))
+    if len(items) > MAX_CANDIDATES:
+        raise _FieldError(f"{len(items)} rows exceeds limit {MAX_CANDIDATES}")
+    rows = []
+    for i, row in enumerate(items):
+        vals = _seq_items(row, f"[{i}]", "a row [x, y, theta, cost]")
+        if len(vals) != 4:
+            raise _FieldError(f"must be [x, y, theta, cost] (4 numbers), got {len(vals)}", f"[{i}]")
+        x, y, th, c = (_finite(vals[j], f"[{i}][{j}]") for j in range(4))
+        rows.append([x, y, wrap_pi(th), c])
+    return _readonly(np.array(rows, dtype=np.float64).reshape(-1, 4))
 
 
 def _ranges(v: object) -> np.ndarray:
@@ -647,7 +666,8 @@ class PoseMsg(WireModel):
     """A pose estimate: published on ``<prefix>/robots/<robot_id>/pose`` after every scan.
 
     ``seq``/``stamp`` are those of the scan it answers; ``pose`` is in the map frame.
-    ``covariance``, ``explained`` and ``ambiguity`` are project additions (optional).
+    ``covariance``, ``explained``, ``ambiguity``, ``hypotheses`` and ``candidates`` are
+    project additions (optional).
     """
 
     schema_name: ClassVar[str] = "pose"
@@ -683,6 +703,38 @@ class PoseMsg(WireModel):
     ambiguity: UnitFloat = Field(
         default=None,
         description="Project addition: best vs second-best hypothesis cost ratio, [0, 1].",
+    )
+    hypotheses: Annotated[
+        int | None,
+        PlainValidator(_v(_optional(_count))),
+        WithJsonSchema(_nullable({"type": "integer", "minimum": 0, "maximum": MAX_UINT})),
+    ] = Field(
+        default=None,
+        description="Project addition: live pose hypotheses of a global search (initializing "
+        "or lost); absent while tracking.",
+    )
+    candidates: Annotated[
+        np.ndarray | None,
+        PlainValidator(_v(_optional(_candidates))),
+        WithJsonSchema(
+            _nullable(
+                {
+                    "type": "array",
+                    "maxItems": MAX_CANDIDATES,
+                    "items": {
+                        "type": "array",
+                        "items": {"type": "number"},
+                        "minItems": 4,
+                        "maxItems": 4,
+                    },
+                    "description": "Best hypotheses first: [x, y, theta, cost] (map frame; "
+                    "lower cost is better).",
+                }
+            )
+        ),
+    ] = Field(
+        default=None,
+        description="Project addition: the best few pose hypotheses of a global search.",
     )
 
 

@@ -151,9 +151,10 @@ class ServiceNode(ControlPlane):
         """A fresh worker for link ``index`` (in-process with ``--workers 0``)."""
         # Global localisation caches each map's view index here (rebuilt when the map changes).
         cache_dir = Path(self.settings.state_dir) / VIEW_CACHE_DIR
+        budget = self.settings.search_budget_ms or None  # 0: a whole search per scan
         if self.settings.workers == 0:
-            return InlineWorker(index, cache_dir)
-        return ProcessWorker(index, self.settings.log_level, cache_dir)
+            return InlineWorker(index, cache_dir, budget)
+        return ProcessWorker(index, self.settings.log_level, cache_dir, budget)
 
     def start(self) -> None:
         """Open and restore the state, start workers and threads, then declare the Zenoh
@@ -523,6 +524,8 @@ class ServiceNode(ControlPlane):
                 covariance=out["covariance"],
                 explained=_clip01(out["explained"]),
                 ambiguity=_clip01(out["ambiguity"]),
+                hypotheses=out.get("hypotheses"),
+                candidates=out.get("candidates") or None,
             )
             payload = codec.encode(pose_msg)
         except ShapelocError as e:

@@ -21,8 +21,9 @@ Requests (all picklable):
 * ``("forget", robot_id)``.
 
 Replies are ``("ok", payload)`` or ``("err", reason)``; a scan's payload is a dict with
-``pose`` (list of 3 floats, map frame), ``status``, ``score``, ``explained``, ``ambiguity``
-and ``covariance`` (9 floats row-major, or ``None``).
+``pose`` (list of 3 floats, map frame), ``status``, ``score``, ``explained``, ``ambiguity``,
+``covariance`` (9 floats row-major, or ``None``), ``hypotheses`` (int or ``None``) and
+``candidates`` (rows ``[x, y, theta, cost]``, or ``None``).
 """
 
 from __future__ import annotations
@@ -115,10 +116,13 @@ def _opt_float(v: Any) -> float | None:
 class WorkerCore:
     """Maps and per-robot localisers of one worker. Not thread-safe: one caller at a time."""
 
-    def __init__(self, cache_dir: Path | None = None) -> None:
+    def __init__(
+        self, cache_dir: Path | None = None, search_budget_ms: float | None = None
+    ) -> None:
         self.maps: dict[str, MapData] = {}
         self.robots: dict[str, _Robot] = {}
         self.cache_dir = cache_dir  # per-map view index cache of global localisation
+        self.search_budget_ms = search_budget_ms  # per-scan work of a global search
 
     def handle(self, req: tuple[Any, ...]) -> Reply:
         """Execute one request; never raises (errors come back as ``("err", reason)``)."""
@@ -184,7 +188,9 @@ class WorkerCore:
     ) -> Localizer:
         """A localiser at ``start`` (map frame); with ``odom`` (the odometry pose at
         ``start``), the next scan's odometry increment is measured from it."""
-        loc = create_localizer(method, md, start, cache_dir=self.cache_dir)
+        loc = create_localizer(
+            method, md, start, cache_dir=self.cache_dir, search_budget_ms=self.search_budget_ms
+        )
         if start is not None and odom is not None:
             loc.reset(start, odom)
         return loc
@@ -231,7 +237,18 @@ class WorkerCore:
             "explained": _opt_float(est.explained),
             "ambiguity": _opt_float(est.ambiguity),
             "covariance": cov,
+            "hypotheses": None if est.hypotheses is None else int(est.hypotheses),
+            "candidates": _candidate_rows(est.candidates),
         }
+
+
+def _candidate_rows(c: np.ndarray | None, k: int = 8) -> list[list[float]] | None:
+    """The best ``k`` candidate rows ``[x, y, theta, cost]`` with finite values (or ``None``)."""
+    if c is None:
+        return None
+    a = np.asarray(c, dtype=np.float64).reshape(-1, 4)[:k]
+    a = a[np.all(np.isfinite(a), axis=1)]
+    return [[float(v) for v in row] for row in a]
 
 
 class WorkerDiedError(ShapelocError):
@@ -241,9 +258,11 @@ class WorkerDiedError(ShapelocError):
 class InlineWorker:
     """A :class:`WorkerCore` called directly in the service process (``--workers 0``)."""
 
-    def __init__(self, index: int = 0, cache_dir: Path | None = None) -> None:
+    def __init__(
+        self, index: int = 0, cache_dir: Path | None = None, search_budget_ms: float | None = None
+    ) -> None:
         self.index = index
-        self.core = WorkerCore(cache_dir)
+        self.core = WorkerCore(cache_dir, search_budget_ms)
 
     def call(self, req: tuple[Any, ...], timeout_s: float | None = None) -> Reply:
         """Run one request synchronously (``timeout_s`` is ignored in-process)."""
@@ -257,14 +276,19 @@ class InlineWorker:
         """Nothing to release."""
 
 
-def _worker_main(conn: Connection, log_level: str, cache_dir: Path | None = None) -> None:
+def _worker_main(
+    conn: Connection,
+    log_level: str,
+    cache_dir: Path | None = None,
+    search_budget_ms: float | None = None,
+) -> None:
     """Entry point of a worker process: serve requests until EOF or ``("stop",)``."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent owns shutdown
     logging.basicConfig(
         level=getattr(logging, log_level.upper(), logging.INFO),
         format="%(asctime)s %(levelname)s %(name)s[%(process)d]: %(message)s",
     )
-    core = WorkerCore(cache_dir)
+    core = WorkerCore(cache_dir, search_budget_ms)
     while True:
         try:
             req = conn.recv()
@@ -283,14 +307,20 @@ class ProcessWorker:
     kills the child) if a reply takes longer than ``timeout_s`` seconds.
     """
 
-    def __init__(self, index: int, log_level: str = "info", cache_dir: Path | None = None) -> None:
+    def __init__(
+        self,
+        index: int,
+        log_level: str = "info",
+        cache_dir: Path | None = None,
+        search_budget_ms: float | None = None,
+    ) -> None:
         self.index = index
         self._log_level = log_level
         ctx = mp.get_context("spawn")
         self._conn, child = ctx.Pipe(duplex=True)
         self._proc = ctx.Process(
             target=_worker_main,
-            args=(child, log_level, cache_dir),
+            args=(child, log_level, cache_dir, search_budget_ms),
             name=f"shapeloc-worker-{index}",
             daemon=True,
         )

@@ -18,6 +18,7 @@ def create_localizer(
     config: Any | None = None,
     *,
     cache_dir: Path | None = None,
+    search_budget_ms: float | None = None,
 ) -> Localizer:
     """Return a fresh localiser for one robot.
 
@@ -28,12 +29,18 @@ def create_localizer(
     ``shape`` returns a :class:`service.core.global_localization.GlobalShapeLocalizer`: the
     shape tracker plus global search when the pose is unknown or lost. ``cache_dir`` is where
     its per-map view index is cached across restarts (``None``: built in memory on the first
-    global search).
+    global search). ``search_budget_ms`` spreads its global search over scans within that
+    per-scan work budget (``GlobalConfig.search_budget_ms``; ``None``: a whole search per
+    scan).
     """
     if method == "shape":
+        from service.core.global_config import GlobalConfig
         from service.core.global_localization import GlobalShapeLocalizer
 
-        return GlobalShapeLocalizer(map_data, initial_pose, config, cache_dir=cache_dir)
+        g = GlobalConfig.for_kind(map_data.kind)
+        if search_budget_ms is not None:
+            g = g.model_copy(update={"search_budget_ms": float(search_budget_ms)})
+        return GlobalShapeLocalizer(map_data, initial_pose, config, gconfig=g, cache_dir=cache_dir)
     if method == "icp":
         from service.core.baselines.icp import ICPLocalizer
 

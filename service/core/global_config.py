@@ -227,6 +227,38 @@ class GlobalConfig(BaseModel):
         "behind the robot).",
     )
     reacquire_scans: int = Field(3, ge=1, description="See reacquire_support.")
+    # --- budget -----------------------------------------------------------------------------
+    search_budget_ms: float | None = Field(
+        None,
+        gt=0,
+        description="Per-scan work budget of a search (reference ms, a deterministic work "
+        "model: ``global_search.WORK_MS``). ``None``: every searching scan runs a whole "
+        "search (offline runs, the paper's experiment). With a budget the search is spread "
+        "over scans: the kept hypotheses are moved by odometry and re-scored on every scan, "
+        "and a search started on one scan delivers its hypotheses some scans later. The "
+        "service sets it (``ServiceSettings.search_budget_ms``) so that one searching robot "
+        "cannot hold a worker much longer than a tracked scan takes.",
+    )
+    twin_shortlist: int = Field(
+        48,
+        ge=0,
+        description="With a budget, the self-similarity check's search keeps at most this "
+        "many coarse cells (``shortlist``, where the map kind uses one): it matches the map's "
+        "own view, whose twins rank near the top, so a third of the full search's work finds "
+        "them.",
+    )
+    twin_refine_top: int = Field(
+        12,
+        ge=1,
+        description="With a budget, at most this ``refine_top`` in the self-similarity check.",
+    )
+    rescore_share: float = Field(
+        0.5,
+        gt=0,
+        le=1,
+        description="With a budget, at most this share of it re-scores the kept hypotheses "
+        "on the scan (best first); the rest advances the search.",
+    )
     # --- integrity ---------------------------------------------------------------------------
     collapse_score: float = Field(
         0.5,

@@ -39,14 +39,15 @@ points in the robot frame (x forward, y left).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from service.core import _kernels
+from service.core import hypotheses as hyp_mod
 from service.core.composite import composite_scan
 from service.core.configuration import (
+    Configuration,
     scan_configuration,
 )
 from service.core.global_config import GlobalConfig
@@ -57,7 +58,10 @@ from service.core.global_search import (
     _near,
     ambiguity,
     global_search,
+    scan_information,
+    search_steps,
     self_similar,
+    self_similar_steps,
     verify,
 )
 from service.core.localizer import ShapeConfig, ShapeLocalizer
@@ -110,22 +114,10 @@ __all__ = [
 # --------------------------------------------------------------------------------------------
 
 
-#: A hypothesis of this scan continues a track of the last one within this distance (m) and
-#: heading change (rad): between two scans a robot may move a few decimetres and turn a lot.
-_ASSOCIATE = (0.6, 1.0)
 #: Heading offsets (rad) under which a kept hypothesis seeds the next scan's search.
 _SEED_TURNS = (0.0, -0.4, 0.4, -0.8, 0.8)
-
-
-@dataclass
-class _Track:
-    """A hypothesis followed across scans: its pose and the costs of the last scans (1.0
-    stands for a scan on which it was not among the verified hypotheses)."""
-
-    pose: np.ndarray
-    costs: list[float]
-    hyp: Hypothesis
-    wins: int = 0
+_ASSOCIATE = hyp_mod.ASSOCIATE
+_Track = hyp_mod.Track
 
 
 class GlobalShapeLocalizer:
@@ -223,6 +215,12 @@ class GlobalShapeLocalizer:
         self._anchor_travel = 0.0
         self._reacquired = 0  # scans in a row the tracker accepted from the anchor
         self._speed: np.ndarray | None = None  # the tracker's known speed before the loss
+        self._job: hyp_mod.Job | None = None  # budgeted search in progress
+        self._twin_job: hyp_mod.Job | None = None  # budgeted self-similarity check
+        self._confirm_next = False  # budgeted: the tracker confirms a winner on the next scan
+        self._candidates = 0  # poses the last finished search induced
+        #: reference ms of search work spent on the last scan (budgeted search; benchmarks)
+        self.work_ms = 0.0
 
     def update(
         self, ranges: np.ndarray, angles: np.ndarray, odom: np.ndarray | None = None
@@ -336,6 +334,9 @@ class GlobalShapeLocalizer:
         self._anchor = None
         self._anchor_travel = 0.0
         self._reacquired = 0
+        self._job = None
+        self._twin_job = None
+        self._confirm_next = False
         if last_pose is not None:
             p = np.asarray(last_pose, dtype=np.float64).copy()
             self._anchor = p.copy()
@@ -364,6 +365,8 @@ class GlobalShapeLocalizer:
                     return back
         rs, as_ = self._composite(r, a)
         P = scan_configuration(rs, as_, self.config.extraction())
+        if g.search_budget_ms is not None:
+            return self._search_budgeted(r, a, rs, as_, P, delta is not None)
         seeds = self._seeds() + self._anchor_seeds(delta is not None)
         res = global_search(self.index, rs, as_, self.config, g, seeds=seeds, P=P)
         # associate this scan's hypotheses with the tracks
@@ -393,14 +396,7 @@ class GlobalShapeLocalizer:
         self._tracks = new_tracks
         amb = ambiguity([t.hyp for t in new_tracks], g)
         if not new_tracks:
-            return Estimate(
-                pose=np.zeros(3) if self._anchor is None else self._anchor.copy(),
-                status=self._search_status,
-                score=0.0,
-                explained=0.0,
-                ambiguity=1.0,
-                extras={"hypotheses": 0.0, "candidates": float(res.candidates)},
-            )
+            return self._no_hypothesis({"hypotheses": 0.0, "candidates": float(res.candidates)})
         best = new_tracks[0]
         near_track = self._near_track(new_tracks, delta is not None)
         if near_track is not None:
@@ -453,30 +449,214 @@ class GlobalShapeLocalizer:
                     amb = max(amb, twin_amb)
                     extras["twin_rejected"] = 1.0
                     return self._unresolved(best, amb, extras)
-            # the tracker starts at the fix with this scan's odometry, so the next scan's
-            # increment (e.g. the rest of a look-around turn) is its motion prior
-            self.tracker.reset(best.pose, self._last_odom)
-            if self._speed is not None:
-                self.tracker.set_speed(self._speed)
-            est = self.tracker.update(r, a, self._last_odom)
-            close = (
-                np.hypot(*(est.pose[:2] - best.pose[:2])) <= g.confirm_distance
-                and abs(float(wrap_angle(est.pose[2] - best.pose[2]))) <= g.confirm_angle
-            )
-            if est.status == "tracking" and "rejected" not in est.extras and close:
-                self._searching = False
-                self._tracks = []
-                est.ambiguity = amb
-                est.extras.update({"global_fix": 1.0, **extras})
+            est = self._confirm(best, r, a, amb, extras)
+            if est is not None:
                 return est
-            self.tracker.reset(None)
-            extras["confirm_rejected"] = 1.0
         if far and self._anchor is not None and best.wins < g.far_confirm_scans:
             # the best guess to publish is still the dead-reckoned track, not a far place
             # that has not yet proven itself
             guess = _Track(self._anchor.copy(), best.costs, best.hyp, best.wins)
             return self._unresolved(guess, amb, extras)
         return self._unresolved(best, amb, extras)
+
+    def _confirm(
+        self, best: _Track, r: np.ndarray, a: np.ndarray, amb: float, extras: dict[str, float]
+    ) -> Estimate | None:
+        """The tracker, reset to the winner with this scan's odometry, must accept this scan
+        within ``confirm_distance`` / ``confirm_angle`` of it: then tracking starts (the fix
+        is returned); ``None`` otherwise (``extras`` records the refusal)."""
+        g = self.gconfig
+        # the tracker starts at the fix with this scan's odometry, so the next scan's
+        # increment (e.g. the rest of a look-around turn) is its motion prior
+        self.tracker.reset(best.pose, self._last_odom)
+        if self._speed is not None:
+            self.tracker.set_speed(self._speed)
+        est = self.tracker.update(r, a, self._last_odom)
+        close = (
+            np.hypot(*(est.pose[:2] - best.pose[:2])) <= g.confirm_distance
+            and abs(float(wrap_angle(est.pose[2] - best.pose[2]))) <= g.confirm_angle
+        )
+        if est.status == "tracking" and "rejected" not in est.extras and close:
+            self._searching = False
+            self._tracks = []
+            self._job = None
+            self._twin_job = None
+            est.ambiguity = amb
+            est.extras.update({"global_fix": 1.0, **extras})
+            return est
+        self.tracker.reset(None)
+        extras["confirm_rejected"] = 1.0
+        return None
+
+    def _search_budgeted(
+        self,
+        r: np.ndarray,
+        a: np.ndarray,
+        rs: np.ndarray,
+        as_: np.ndarray,
+        P: Configuration,
+        odometry: bool,
+    ) -> Estimate:
+        """One scan of the search spread over scans (``gconfig.search_budget_ms``).
+
+        1. The kept hypotheses (already moved by this scan's odometry) are fitted to this
+           scan and verified, best first, within ``rescore_share`` of the budget
+           (:func:`service.core.hypotheses.rescore`).
+        2. A pending self-similarity check, then the pending search (or a new one, seeded
+           by the hypotheses, on this scan) advance by what is left of the budget; a
+           finished search's hypotheses are moved by the odometry since its scan and join
+           the kept ones (:func:`~service.core.hypotheses.merge`), the best ``keep`` stay.
+        3. The decision is the one of the unbudgeted search, on the re-scored hypotheses:
+           windowed cost, ambiguity against the best distinct alternative (hypotheses not
+           yet re-scored count as alternatives), best on two scans or clear on one,
+           information, near or far from the lost track. A would-be winner's twin check
+           runs as a job of its own; the winner is fixed when the check has passed and the
+           tracker confirms it on the scan at hand.
+        """
+        g = self.gconfig
+        budget = float(g.search_budget_ms or 0.0)
+        fused = len(self._history) > 1
+        spent = hyp_mod.rescore(
+            self.index, self._tracks, rs, as_, P, self.config, g, budget * g.rescore_share, odometry
+        )
+        extras: dict[str, float] = {}
+        twin_done, twin = False, None
+        confirming = self._confirm_next
+        self._confirm_next = False
+        if self._twin_job is not None and not confirming:
+            spent, twin_done, twin = hyp_mod.advance(self._twin_job, spent, budget)
+        if (self._twin_job is None or twin_done) and spent < budget and not confirming:
+            if self._job is None:
+                seeds = self._seeds() + self._anchor_seeds(odometry)
+                steps = search_steps(self.index, rs, as_, self.config, g, seeds=seeds, P=P)
+                self._job = hyp_mod.Job(steps, self._odom_copy())
+            spent, done, res = hyp_mod.advance(self._job, spent, budget)
+            if done:
+                move = hyp_mod.odometry_move(self._job.odom, self._last_odom)
+                self._tracks = hyp_mod.merge(self._tracks, res.hypotheses, move, g.keep)
+                self._candidates = res.candidates
+                self._job = None
+                extras["search_done"] = 1.0
+        self.work_ms = spent
+        max_amb = g.fused_fix_ambiguity if fused else g.max_fix_ambiguity
+        if twin_done:
+            self._twin_result(twin, max_amb, extras)
+        for t in self._tracks:
+            t.costs = t.costs[-g.window :]
+            t.hyp.cost = t.costs[-1] if fused else float(np.mean(t.costs))
+        self._tracks = hyp_mod.prune(self._tracks, g.keep)
+        rated = [t for t in self._tracks if t.age >= 1]
+        for k, t in enumerate(rated):
+            t.wins = t.wins + 1 if k == 0 else 0
+        amb = ambiguity([t.hyp for t in self._tracks], g)
+        extras.update({"hypotheses": float(len(self._tracks)), "work_ms": spent})
+        if not rated:
+            return self._no_hypothesis(extras)
+        best = rated[0]
+        near_track = self._near_track(rated, odometry)
+        if near_track is not None:
+            best = near_track
+        far = self._anchor is not None and near_track is None
+        information = scan_information(P, self.config, g)
+        extras.update(
+            {
+                "candidates": float(self._candidates),
+                "search_cost": best.hyp.cost,
+                "hit": best.hyp.hit,
+                "violation": best.hyp.violation,
+                "information": information,
+            }
+        )
+        steady = best.wins >= 2 and (fused or best.age >= min(self._episode, g.window))
+        if fused:
+            single = amb < g.fused_single_ambiguity and best.hyp.cost <= g.max_fix_cost
+        else:
+            single = amb < g.single_scan_ambiguity
+        confirmed = steady or single
+        if far:
+            confirmed = best.wins >= g.far_confirm_scans
+        informative = information >= g.min_information
+        fix_cost = g.fused_fix_cost if fused else g.max_fix_cost
+        if near_track is not None:
+            confirmed, informative, amb = True, True, 0.0
+            fix_cost = g.max_fix_cost
+            best.twin_ok = True  # the motion history rules out the far twins
+            extras["near_track"] = 1.0
+        if (
+            best.twin_ok is None
+            and self._twin_job is None
+            and best.hyp.cost <= fix_cost
+            and informative
+        ):
+            # the best hypothesis' twin check starts as soon as it leads (not when it has
+            # won): it takes a search's work, which then overlaps the evidence the drive
+            # gathers meanwhile
+            tg = g.model_copy(
+                update={
+                    "shortlist": min(g.shortlist, g.twin_shortlist),
+                    "refine_top": min(g.refine_top, g.twin_refine_top),
+                }
+            )
+            steps = self_similar_steps(self.index, best.hyp, rs, as_, P, self.config, tg)
+            self._twin_job = hyp_mod.Job(steps, self._odom_copy(), track=best, cost=best.hyp.cost)
+        if best.hyp.cost <= fix_cost and amb <= max_amb and confirmed and informative:
+            if best.twin_ok is None:
+                extras["twin_pending"] = 1.0
+            elif best.twin_ok and spent + hyp_mod.CONFIRM_MS > budget and not confirming:
+                # the tracker's confirmation would overrun this scan's budget: it runs
+                # first on the next scan, which then advances no search
+                self._confirm_next = True
+                extras["confirm_next"] = 1.0
+            elif best.twin_ok:
+                self.work_ms = spent + hyp_mod.CONFIRM_MS
+                est = self._confirm(best, r, a, amb, extras)
+                if est is not None:
+                    return est
+        if far and self._anchor is not None and best.wins < g.far_confirm_scans:
+            guess = _Track(self._anchor.copy(), best.costs, best.hyp, best.wins)
+            return self._unresolved(guess, amb, extras)
+        return self._unresolved(best, amb, extras)
+
+    def _twin_result(
+        self, twin: Hypothesis | None, max_amb: float, extras: dict[str, float]
+    ) -> None:
+        """A finished self-similarity check: the track passes it, or the twin joins the
+        hypotheses (moved by the odometry since the check's scan) and the track must win
+        against it and be checked again."""
+        job = self._twin_job
+        self._twin_job = None
+        if job is None or job.track is None or job.track not in self._tracks:
+            return
+        track = job.track
+        if twin is None:
+            track.twin_ok = True
+            return
+        twin_amb = ambiguity([Hypothesis(pose=track.pose, cost=job.cost), twin], self.gconfig)
+        extras["twin_ambiguity"] = twin_amb
+        if twin_amb <= max_amb:
+            track.twin_ok = True
+            return
+        extras["twin_rejected"] = 1.0
+        track.twin_ok = None
+        move = hyp_mod.odometry_move(job.odom, self._last_odom)
+        self._tracks = hyp_mod.merge(self._tracks, [twin], move, 1)
+
+    def _odom_copy(self) -> np.ndarray | None:
+        return None if self._last_odom is None else self._last_odom.copy()
+
+    def _no_hypothesis(self, extras: dict[str, float]) -> Estimate:
+        """The estimate while no hypothesis is known (yet): the dead-reckoned last pose after
+        a loss, else the origin; ambiguity 1."""
+        return Estimate(
+            pose=np.zeros(3) if self._anchor is None else self._anchor.copy(),
+            status=self._search_status,
+            score=0.0,
+            explained=0.0,
+            ambiguity=1.0,
+            extras=extras,
+            hypotheses=len(self._tracks),
+            candidates=hyp_mod.candidates(self._tracks),
+        )
 
     def _reacquire(
         self,
@@ -559,4 +739,6 @@ class GlobalShapeLocalizer:
             explained=float(best.hyp.explained),
             ambiguity=float(amb),
             extras=extras,
+            hypotheses=len(self._tracks),
+            candidates=hyp_mod.candidates(self._tracks),
         )

@@ -6,7 +6,9 @@ alternative. See :mod:`service.core.global_localization` for the whole method.""
 
 from __future__ import annotations
 
+from collections.abc import Generator
 from dataclasses import dataclass
+from typing import TypeVar
 
 import numpy as np
 
@@ -22,6 +24,8 @@ from service.core.pose import fit_pairs, transform_points
 from service.core.similarity import prepare, shape_complexity, shape_distance
 from service.core.types import wrap_angle
 from service.core.view_index import ViewIndex, _anchor, _joined, _nearby_segments
+
+T = TypeVar("T")
 
 # --------------------------------------------------------------------------------------------
 # Global search
@@ -62,6 +66,25 @@ def _scan_units(P: Configuration, threshold: float) -> list[np.ndarray]:
     for a, b in zip(P.features[:-1], P.features[1:], strict=True):
         out.append(_joined(a.vertices, b.vertices, threshold))
     return out
+
+
+def _ranked_units(
+    P: Configuration, config: ShapeConfig, gconfig: GlobalConfig
+) -> tuple[list[np.ndarray], list[tuple[float, int]]]:
+    """The scan's units and ``(shape complexity, unit index)`` most complex first."""
+    units = _scan_units(P, config.dce_threshold)
+    comp = [(shape_complexity(u), k) for k, u in enumerate(units)]
+    comp.sort(key=lambda t: (-t[0], t[1]))
+    return units, comp
+
+
+def scan_information(P: Configuration, config: ShapeConfig, gconfig: GlobalConfig) -> float:
+    """How much distinctive shape a scan holds: the summed shape complexity (m·rad) of its
+    ``gconfig.scan_units`` most complex units (:attr:`SearchResult.information`)."""
+    if not P.features:
+        return 0.0
+    _units, comp = _ranked_units(P, config, gconfig)
+    return float(sum(c for c, _k in comp[: gconfig.scan_units]))
 
 
 def _subsample(points: np.ndarray, k: int) -> np.ndarray:
@@ -294,7 +317,59 @@ def global_search(
     seeds: list[np.ndarray] | tuple[np.ndarray, ...] = (),
     P: Configuration | None = None,
 ) -> SearchResult:
-    """Rank pose hypotheses for one scan over the whole map (no prior pose).
+    """Rank pose hypotheses for one scan over the whole map (no prior pose): runs
+    :func:`search_steps` to the end (see there)."""
+    return run_steps(search_steps(index, ranges, angles, config, gconfig, seeds, P))
+
+
+#: Work model of the search, in milliseconds of one core of the reference machine (the 2-core
+#: build VM) per item: a deterministic stand-in for wall time, so that a search spread over
+#: scans by a budget (:class:`service.core.global_localization.GlobalShapeLocalizer`) takes
+#: the same steps, and gives the same poses, on any machine and under any load. Measured with
+#: ``bench/bench_global.py --work-model``.
+WORK_MS = {
+    "sstar": 0.007,  # one S* comparison (shape_distance with an upper bound)
+    "induced": 0.065,  # one S*-induced alignment
+    "support": 0.000092,  # one pose x one point of the support ranking
+    "polish": 0.000026,  # one pose x grid cell x point of a distance-field polish
+    "beam": 0.0045,  # one pose x one beam of a ray cast check
+    "refine": 1.7,  # one pose through the four refinement stages
+    "verify": 1.0,  # one verification's fixed part (the feature check) ...
+    "verify_beam": 0.0009,  # ... and per beam
+}
+
+_CHUNK_SSTAR = 96  # S* comparisons between two yields
+_CHUNK_POSES = 800  # poses of the support ranking between two yields
+_CHUNK_POLISH = 12  # poses polished between two yields
+_CHUNK_REFINE = 2  # poses refined / verified between two yields
+
+
+def _verify_ms(gconfig: GlobalConfig) -> float:
+    return WORK_MS["verify"] + gconfig.verify_beams * WORK_MS["verify_beam"]
+
+
+def run_steps(steps: Generator[float, None, T]) -> T:
+    """Run a step generator (:func:`search_steps`, :func:`self_similar_steps`) to the end and
+    return its result."""
+    while True:
+        try:
+            next(steps)
+        except StopIteration as stop:
+            return stop.value
+
+
+def search_steps(
+    index: ViewIndex,
+    ranges: np.ndarray,
+    angles: np.ndarray,
+    config: ShapeConfig,
+    gconfig: GlobalConfig | None = None,
+    seeds: list[np.ndarray] | tuple[np.ndarray, ...] = (),
+    P: Configuration | None = None,
+) -> Generator[float, None, SearchResult]:
+    """The global search as steps: a generator that yields, after each bounded chunk of work,
+    that chunk's cost in reference milliseconds (:data:`WORK_MS`), and returns the
+    :class:`SearchResult`. A caller with a per-scan budget runs it across scans.
 
     ``ranges`` metres (NaN = no return), ``angles`` radians (robot frame); ``config`` the
     tracker's :class:`ShapeConfig` (extraction, S* weights, support tolerance); ``seeds``
@@ -324,9 +399,7 @@ def global_search(
     n_induced = 0
     information = 0.0
     if P.features and len(index):
-        units = _scan_units(P, config.dce_threshold)
-        comp = [(shape_complexity(u), k) for k, u in enumerate(units)]
-        comp.sort(key=lambda t: (-t[0], t[1]))
+        units, comp = _ranked_units(P, config, gconfig)
         chosen = [k for c, k in comp[: gconfig.scan_units] if c >= gconfig.min_unit_complexity]
         information = float(sum(c for c, _k in comp[: gconfig.scan_units]))
         gate = 0.5 * np.sqrt(2.0) * gconfig.spacing + gconfig.range_slack
@@ -353,7 +426,7 @@ def global_search(
             groups = index.unit_group[cand]
             _, first = np.unique(groups, return_index=True)
             scored = []
-            for u in cand[np.sort(first)].tolist():
+            for j, u in enumerate(cand[np.sort(first)].tolist()):
                 s = shape_distance(
                     pa,
                     index.arcs(u),
@@ -363,8 +436,11 @@ def global_search(
                 )
                 if s < gconfig.max_shape_distance:
                     scored.append((s, u))
+                if (j + 1) % _CHUNK_SSTAR == 0:
+                    yield _CHUNK_SSTAR * WORK_MS["sstar"]
             scored.sort()
-            for _s, u in scored[: gconfig.pairs_budget // len(chosen)]:
+            top = scored[: gconfig.pairs_budget // len(chosen)]
+            for _s, u in top:
                 poses.append(induced_alignment(pu, index.verts(u)))
                 n_induced += 1
             if scored and cornered:
@@ -378,6 +454,7 @@ def global_search(
                 ty = qa[:, 1] - (s_ * p_anc[0] + c * p_anc[1])
                 anchor_poses.append(np.column_stack([tx, ty, phi]))
                 n_induced += len(qa)
+            yield len(top) * WORK_MS["induced"] + (len(first) % _CHUNK_SSTAR) * WORK_MS["sstar"]
     if not poses and not anchor_poses:
         return SearchResult(hypotheses=[], ambiguity=1.0, candidates=0, information=information)
     H = np.vstack([np.asarray(poses).reshape(-1, 3), *anchor_poses])
@@ -386,7 +463,12 @@ def global_search(
         return SearchResult(
             hypotheses=[], ambiguity=1.0, candidates=n_induced, information=information
         )
-    sup = _support_many(index, H, sp, config.support_tolerance)
+    parts = []
+    for i in range(0, len(H), _CHUNK_POSES):
+        block = H[i : i + _CHUNK_POSES]
+        parts.append(_support_many(index, block, sp, config.support_tolerance))
+        yield len(block) * len(sp) * WORK_MS["support"]
+    sup = np.concatenate(parts)
     order = np.argsort(-sup, kind="stable")
     if gconfig.shortlist > 0:
         # An induced pose near the truth is often 0.2-0.4 m / 5-10 deg off, so its raw support
@@ -402,11 +484,22 @@ def global_search(
         )
         _, first = np.unique(cells[order], axis=0, return_index=True)
         short = order[np.sort(first)][: gconfig.shortlist]
-        polished, _score = _polish(
-            index, H[short], sp, gconfig.fine_scale, stages=((0.15, 0.06), (0.05, 0.02))
-        )
-        quick = _beam_costs(index, polished, r, a, gconfig.shortlist_beams, config, gconfig)
-        H = polished
+        polished_parts = []
+        quick_parts = []
+        for i in range(0, len(short), _CHUNK_POLISH):
+            block = H[short[i : i + _CHUNK_POLISH]]
+            pol, _score = _polish(
+                index, block, sp, gconfig.fine_scale, stages=((0.15, 0.06), (0.05, 0.02))
+            )
+            polished_parts.append(pol)
+            quick_parts.append(
+                _beam_costs(index, pol, r, a, gconfig.shortlist_beams, config, gconfig)
+            )
+            yield len(block) * (
+                250 * len(sp) * WORK_MS["polish"] + gconfig.shortlist_beams * WORK_MS["beam"]
+            )
+        H = np.vstack(polished_parts)
+        quick = np.concatenate(quick_parts)
         order = np.argsort(quick, kind="stable")
     picked: list[np.ndarray] = []
     for i in order.tolist():
@@ -415,8 +508,12 @@ def global_search(
         if any(_near(H[i], p) for p in picked):
             continue
         picked.append(H[i])
-    refined = _refine(index, np.vstack(picked), sp, config, gconfig)
-    hyps = [verify(index, refined[k], r, a, P, config, gconfig) for k in range(len(picked))]
+    hyps: list[Hypothesis] = []
+    for i in range(0, len(picked), _CHUNK_REFINE):
+        block = np.vstack(picked[i : i + _CHUNK_REFINE])
+        refined = _refine(index, block, sp, config, gconfig)
+        hyps.extend(verify(index, p, r, a, P, config, gconfig) for p in refined)
+        yield len(block) * (WORK_MS["refine"] + _verify_ms(gconfig))
     hyps.sort(key=lambda h: h.cost)
     out: list[Hypothesis] = []
     for h in hyps:
@@ -439,7 +536,22 @@ def self_similar(
     config: ShapeConfig,
     gconfig: GlobalConfig,
 ) -> Hypothesis | None:
-    """The map's own twin of ``best``, verified on the real scan, or ``None``.
+    """The map's own twin of ``best`` (runs :func:`self_similar_steps` to the end)."""
+    return run_steps(self_similar_steps(index, best, ranges, angles, P, config, gconfig))
+
+
+def self_similar_steps(
+    index: ViewIndex,
+    best: Hypothesis,
+    ranges: np.ndarray,
+    angles: np.ndarray,
+    P: Configuration,
+    config: ShapeConfig,
+    gconfig: GlobalConfig,
+) -> Generator[float, None, Hypothesis | None]:
+    """:func:`self_similar` as steps (yields work in reference ms, like :func:`search_steps`).
+
+    The map's own twin of ``best``, verified on the real scan, or ``None``.
 
     A search can miss the true place altogether (furniture hides its walls) and then crown a
     congruent room elsewhere with no close rival. So before a fix the map is asked where else
@@ -454,7 +566,7 @@ def self_similar(
     pred = np.where(ok, pred, np.nan)
     if np.count_nonzero(np.isfinite(pred)) < 10:
         return None
-    res = global_search(index, pred, angles, config, gconfig)
+    res = yield from search_steps(index, pred, angles, config, gconfig)
     cands = [h.pose for h in res.hypotheses if _distinct(h.pose, best.pose, gconfig)]
     pts = np.vstack([f.points for f in P.features]) if P.features else np.zeros((0, 2))
     sp = _subsample(pts, gconfig.support_points)
@@ -462,14 +574,17 @@ def self_similar(
         return None
     # the map-only search aligned the twins to the map's own view; each is verified as found
     # and fitted to the real scan, whichever verifies better (furniture can drag the fit off)
-    refined = _refine(index, np.vstack(cands), sp, config, gconfig)
     out: Hypothesis | None = None
-    for pose in [*cands, *refined]:
-        if not _distinct(pose, best.pose, gconfig):
-            continue
-        v = verify(index, pose, ranges, angles, P, config, gconfig)
-        if out is None or v.cost < out.cost:
-            out = v
+    for i in range(0, len(cands), _CHUNK_REFINE):
+        block = np.vstack(cands[i : i + _CHUNK_REFINE])
+        refined = _refine(index, block, sp, config, gconfig)
+        for pose in [*block, *refined]:
+            if not _distinct(pose, best.pose, gconfig):
+                continue
+            v = verify(index, pose, ranges, angles, P, config, gconfig)
+            if out is None or v.cost < out.cost:
+                out = v
+        yield len(block) * (WORK_MS["refine"] + 2.0 * _verify_ms(gconfig))
     return out
 
 

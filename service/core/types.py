@@ -92,7 +92,9 @@ class Estimate:
     pose (the shape tracker: scan points within ``inlier_tolerance`` of the map; the global
     search: polyline length matched); ``ambiguity`` is best-vs-second-best hypothesis cost
     ratio in [0, 1] (1: tie), both ``None`` where a method does not compute them.
-    ``covariance`` is 3x3 or ``None``.
+    ``covariance`` is 3x3 or ``None``. While a global search runs, ``hypotheses`` is the
+    number of live pose hypotheses and ``candidates`` the best few, ``(k, 4)`` rows
+    ``[x, y, theta, cost]`` best first (lower cost is better); both ``None`` otherwise.
     """
 
     pose: np.ndarray
@@ -103,6 +105,8 @@ class Estimate:
     ambiguity: float | None = None
     covariance: np.ndarray | None = None
     extras: dict[str, float] = field(default_factory=dict)
+    hypotheses: int | None = None
+    candidates: np.ndarray | None = None
 
 
 class Localizer(Protocol):

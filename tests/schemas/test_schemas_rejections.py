@@ -157,6 +157,12 @@ def test_nan_and_inf_in_json_tokens_are_rejected_in_poses() -> None:
         ({"explained": 1.5}, "explained: must be in [0, 1], got 1.5"),
         ({"ambiguity": -0.1}, "ambiguity: must be in [0, 1], got -0.1"),
         ({"ambiguity": math.nan}, "ambiguity: must be finite"),
+        ({"hypotheses": -1}, "hypotheses: must be >= 0"),
+        ({"hypotheses": 2.5}, "hypotheses: must be an integer"),
+        ({"candidates": [[0.0, 0.0, 0.0]]}, "candidates[0]: must be [x, y, theta, cost]"),
+        ({"candidates": [[0.0, 0.0, 0.0, math.nan]]}, "candidates[0][3]: must be finite"),
+        ({"candidates": [[0.0] * 4] * 17}, "candidates: 17 rows exceeds limit 16"),
+        ({"candidates": "abc"}, "candidates: must be a list of [x, y, theta, cost] rows"),
     ],
 )
 def test_pose_message_rejections(over: dict[str, Any], reason: str) -> None:

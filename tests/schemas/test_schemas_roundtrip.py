@@ -166,6 +166,30 @@ def test_covariance_is_nine_row_major_floats_on_the_wire() -> None:
     np.testing.assert_array_equal(back.covariance, cov)
 
 
+def test_hypotheses_and_candidates_round_trip_and_are_optional() -> None:
+    rows = [[1.0, 2.0, 0.5, 0.12], [7.0, 2.0, -3.0, 0.15]]
+    fields = dict(
+        robot_id="r",
+        seq=1,
+        stamp=1.0,
+        pose=[1.0, 2.0, 0.5],
+        status="initializing",
+        score=0.8,
+        method="shape",
+        map_id="m",
+        latency_ms=1.0,
+    )
+    msg = PoseMsg(**fields, hypotheses=5, candidates=rows)
+    wire = msgpack.unpackb(encode(msg))
+    assert wire["hypotheses"] == 5 and wire["candidates"] == rows
+    back = decode(PoseMsg, encode(msg))
+    assert back.hypotheses == 5
+    assert back.candidates is not None and back.candidates.shape == (2, 4)
+    np.testing.assert_array_equal(back.candidates, np.array(rows))
+    plain = msgpack.unpackb(encode(PoseMsg(**fields)))
+    assert "hypotheses" not in plain and "candidates" not in plain
+
+
 def test_float32_bytes_ranges_round_trip() -> None:
     ranges = np.array([0.5, 1.25, np.nan, np.inf, 20.0, 3.1], dtype=np.float64)
     scan = _scan(ranges=ranges, angle_increment=0.01)

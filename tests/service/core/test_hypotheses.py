@@ -1,0 +1,159 @@
+"""The budgeted multi-hypothesis search: the search as bounded steps, hypotheses moved by
+odometry and re-scored on every scan, a fix on the move within the per-scan work budget."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from service.core import global_search as gs
+from service.core import hypotheses as hy
+from service.core.configuration import scan_configuration
+from service.core.factory import create_localizer
+from service.core.global_config import GlobalConfig
+from service.core.global_localization import GlobalShapeLocalizer, load_or_build_index
+from service.core.localizer import ShapeConfig
+from service.core.types import MapData, wrap_angle
+from sim_publisher.laser import LaserSimulator
+from sim_publisher.scenario import make_setup
+from sim_publisher.trajectory import simulate_odometry
+
+
+def _ok(pose: np.ndarray, truth: np.ndarray) -> bool:
+    return bool(
+        np.hypot(*(pose[:2] - truth[:2])) < 0.5
+        and abs(wrap_angle(float(pose[2] - truth[2]))) < np.deg2rad(10.0)
+    )
+
+
+def _budgeted(md: MapData, budget: float) -> GlobalShapeLocalizer:
+    g = GlobalConfig.for_kind(md.kind).model_copy(update={"search_budget_ms": budget})
+    return GlobalShapeLocalizer(md, None, gconfig=g)
+
+
+def test_search_steps_bound_each_step_and_give_the_whole_search_result() -> None:
+    su = make_setup(1, max_scans=2000)
+    loc = create_localizer("shape", su.map_data, None)
+    r, a = su.scan(1500)
+    steps = gs.search_steps(loc.index, r, a, loc.config, loc.gconfig)
+    work = []
+    while True:
+        try:
+            work.append(next(steps))
+        except StopIteration as stop:
+            res = stop.value
+            break
+    assert len(work) > 5, "the search is not split into steps"
+    assert max(work) <= 15.0, f"a step of {max(work):.1f} reference ms"
+    whole = gs.global_search(loc.index, r, a, loc.config, loc.gconfig)
+    assert len(res.hypotheses) == len(whole.hypotheses) > 0
+    for h, w in zip(res.hypotheses, whole.hypotheses, strict=True):
+        np.testing.assert_array_equal(h.pose, w.pose)
+        assert h.cost == w.cost
+
+
+def test_merge_moves_a_finished_search_by_the_odometry_since_its_scan() -> None:
+    h = gs.Hypothesis(pose=np.array([1.0, 1.0, 0.0]), cost=0.1)
+    move = np.array([1.0, 0.0, np.pi / 2])  # 1 m forward, then a quarter turn left
+    tracks = hy.merge([], [h], move, keep=4)
+    assert len(tracks) == 1 and tracks[0].age == 0
+    np.testing.assert_allclose(tracks[0].pose, [2.0, 1.0, np.pi / 2], atol=1e-12)
+    # a hypothesis already held is not added twice
+    again = hy.merge(tracks, [gs.Hypothesis(pose=np.array([2.05, 1.0, 1.6]), cost=0.2)], None, 4)
+    assert len(again) == 1
+
+
+def test_rescore_fits_each_track_to_the_scan_and_ranks_the_true_pose_first() -> None:
+    su = make_setup(1, max_scans=2000)
+    md = su.map_data
+    cfg = ShapeConfig.for_kind("metric")
+    g = GlobalConfig.for_kind("metric")
+    idx = load_or_build_index(md, cfg, g)
+    truth = su.truth[1200]
+    r, a = su.scan(1200)
+    P = scan_configuration(r, a, cfg.extraction())
+    near = truth + np.array([0.06, -0.04, 0.02])  # a dead-reckoned pose, a few cm off
+    wrong = truth + np.array([2.0, 1.0, 0.5])
+    tracks = [
+        hy.Track(near.copy(), [], gs.Hypothesis(pose=near.copy(), cost=0.5)),
+        hy.Track(wrong.copy(), [], gs.Hypothesis(pose=wrong.copy(), cost=0.4)),
+    ]
+    spent = hy.rescore(idx, tracks, r, a, P, cfg, g, limit=100.0, odometry=True)
+    assert spent > 0
+    assert all(t.age == 1 and len(t.costs) == 1 for t in tracks)
+    assert tracks[0].costs[0] < tracks[1].costs[0] - 0.3
+    assert np.hypot(*(tracks[0].pose[:2] - truth[:2])) < 0.03
+    # a limit that affords one track re-scores the best one and records a miss for the other
+    t2 = [
+        hy.Track(near.copy(), [], gs.Hypothesis(pose=near.copy(), cost=0.2)),
+        hy.Track(wrong.copy(), [], gs.Hypothesis(pose=wrong.copy(), cost=0.4)),
+    ]
+    hy.rescore(idx, t2, r, a, P, cfg, g, limit=1.0, odometry=True)
+    assert t2[0].age == 1 and t2[1].age == 0 and t2[1].costs == [1.0]
+
+
+def _drive(loc: GlobalShapeLocalizer, su, start: int, n: int) -> list:  # type: ignore[no-untyped-def]
+    out = []
+    for i in range(start, start + n):
+        r, a = su.scan(i)
+        est = loc.update(r, a, su.odom[i])
+        out.append((i, est, loc.work_ms))
+        if est.status == "tracking":
+            break
+    return out
+
+
+def test_budgeted_search_fixes_on_the_move_within_the_budget() -> None:
+    """Floor plan, a start in the corridor, odometry: no searching scan works much beyond the
+    budget (one step at most), the hypotheses are published while initializing, and the fix
+    comes on the move, correct."""
+    su = make_setup(2)
+    budget = 25.0
+    loc = _budgeted(su.map_data, budget)
+    run = _drive(loc, su, 250, 90)
+    i, last, _ = run[-1]
+    assert last.status == "tracking", f"no fix in {len(run)} scans"
+    assert _ok(last.pose, su.truth[i])
+    searching = [(j, e, w) for j, e, w in run if e.status != "tracking"]
+    assert len(searching) >= 5  # a floor-plan search does not fit in one scan's budget
+    assert max(w for _j, _e, w in searching) <= budget + 15.0
+    assert all(e.status == "initializing" for _j, e, _w in searching)
+    later = [e for _j, e, _w in searching if e.hypotheses]
+    assert later, "no hypotheses reported"
+    for e in later:
+        assert e.candidates is not None and e.candidates.shape[1] == 4
+        assert 1 <= len(e.candidates) <= e.hypotheses
+        assert np.all(np.diff(e.candidates[:, 3]) >= 0)  # best first
+
+
+def test_budgeted_search_is_deterministic() -> None:
+    su = make_setup(1, max_scans=2100)
+    poses = []
+    for _ in range(2):
+        loc = _budgeted(su.map_data, 25.0)
+        poses.append(np.array([e.pose for _i, e, _w in _drive(loc, su, 2000, 40)]))
+    assert poses[0].shape == poses[1].shape
+    np.testing.assert_array_equal(poses[0], poses[1])
+
+
+def test_congruent_rooms_never_fix_with_a_budget() -> None:
+    room = np.array([[0, 0], [5, 0], [5, 2], [3, 2], [3, 3.5], [0, 3.5], [0, 0]], dtype=float)
+    md = MapData.from_lists("twins", "metric", [room, room + np.array([7.0, 0.0])])
+    laser = LaserSimulator(md.segments(), seed=8)
+    loc = _budgeted(md, 25.0)
+    truth = np.array([[1.2 + 0.02 * s, 1.0, wrap_angle(0.3 + s * 0.5)] for s in range(30)])
+    odom = simulate_odometry(truth, seed=9)
+    seen = 0
+    for s in range(len(truth)):
+        r, a = laser.scan(truth[s], s)
+        est = loc.update(r, a, odom[s])
+        assert est.status == "initializing", f"scan {s}: {est.status} at {est.pose}"
+        seen = max(seen, est.hypotheses or 0)
+    assert seen >= 2  # both rooms are held as hypotheses
+
+
+def test_the_factory_passes_the_budget_to_the_global_search() -> None:
+    su = make_setup(1, max_scans=2)
+    loc = create_localizer("shape", su.map_data, None, search_budget_ms=12.5)
+    assert isinstance(loc, GlobalShapeLocalizer)
+    assert loc.gconfig.search_budget_ms == 12.5
+    assert create_localizer("shape", su.map_data, None).gconfig.search_budget_ms is None
