@@ -1,0 +1,111 @@
+"""The pure helpers of ``bench/bench_global.py --drive``: travel accounting, start choice, the
+trial's end and the found / within-limit / confident-wrong classification."""
+
+from __future__ import annotations
+
+import importlib
+import math
+import sys
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+BENCH = Path(__file__).resolve().parents[2] / "bench"
+
+
+@pytest.fixture(scope="module")
+def bg():
+    sys.path.insert(0, str(BENCH))
+    try:
+        return importlib.import_module("bench_global")
+    finally:
+        sys.path.remove(str(BENCH))
+
+
+def test_cumulative_travel_counts_translation_only(bg) -> None:
+    xy = np.array([[0.0, 0.0], [3.0, 4.0], [3.0, 4.0], [3.0, 5.0], [np.nan, np.nan]])
+    np.testing.assert_allclose(bg.cumulative_travel(xy), [0.0, 5.0, 5.0, 6.0, 6.0])
+    assert bg.cumulative_travel(np.zeros((0, 2))).size == 0
+
+
+def test_trial_end_feeds_the_first_scan_beyond_the_need(bg) -> None:
+    travel = np.arange(10.0)  # 1 m per scan
+    # from scan 2, travel 3 m is reached at scan 5 and exceeded at scan 6: scans 2..6 are fed
+    assert bg.trial_end(travel, 2, 3.0) == 7
+    assert bg.trial_end(travel, 2, 2.5) == 7 - 1
+    # not enough tour left: up to the last scan
+    assert bg.trial_end(travel, 8, 5.0) == 10
+
+
+def test_choose_starts_leaves_the_need_and_respects_eligibility(bg) -> None:
+    travel = np.arange(30) * 0.5  # 14.5 m tour
+    rng = np.random.default_rng(0)
+    s = bg.choose_starts(travel, 10.0, 5, rng)
+    assert len(s) == 5 and len(set(s.tolist())) == 5 and np.all(np.diff(s) > 0)
+    assert np.all(travel[-1] - travel[s] >= 10.0)
+    # more asked than qualify: every qualifying scan once
+    assert bg.choose_starts(travel, 10.0, 100, rng).tolist() == list(range(10))
+    eligible = np.zeros(30, dtype=bool)
+    eligible[[3, 7, 20]] = True  # 20 leaves only 5 m
+    assert bg.choose_starts(travel, 10.0, 10, rng, eligible).tolist() == [3, 7]
+    assert bg.choose_starts(travel, 20.0, 3, rng).size == 0  # tour too short: skipped
+
+
+def test_choose_starts_is_seeded(bg) -> None:
+    travel = np.arange(500) * 0.1
+    a = bg.choose_starts(travel, 20.0, 10, np.random.default_rng([1, 0, 0, 1]))
+    b = bg.choose_starts(travel, 20.0, 10, np.random.default_rng([1, 0, 0, 1]))
+    assert a.tolist() == b.tolist()
+
+
+def test_spread_sums_to_the_total(bg) -> None:
+    assert bg.spread(200, 8) == [25] * 8
+    assert bg.spread(10, 3) == [4, 3, 3]
+    assert sum(bg.spread(7, 8)) == 7
+
+
+def test_classify_found_late_after_a_wrong_fix(bg) -> None:
+    status = ["initializing", "tracking", "lost", "tracking", "tracking", "tracking", "tracking"]
+    close = [False, False, False, True, True, False, None]  # scan 6 not scored
+    after = [False, False, False, True, True, False, None]
+    travel = [0.0, 1.0, 2.0, 6.0, 7.0, 8.0, 9.0]
+    out = bg.classify(status, close, after, travel, limit=5.0)
+    assert out.found and not out.within_limit
+    assert out.fix == 3 and out.fix_travel == 6.0
+    assert out.first_fix_wrong and out.wrong_before_fix == 1
+    # after the fix: scans 4 and 5 scored and tracking, 5 fails; 6 is not scored
+    assert (out.tracking_after_fix, out.wrong_after_fix) == (2, 1)
+    assert bg.classify(status, close, after, travel, limit=6.0).within_limit
+
+
+def test_classify_unscored_tracking_is_not_a_fix_nor_wrong(bg) -> None:
+    status = ["tracking", "tracking", "tracking"]
+    close = [None, None, True]
+    out = bg.classify(status, close, [None, None, True], [0.0, 0.5, 1.0], limit=15.0)
+    assert out.found and out.within_limit and out.fix == 2 and not out.first_fix_wrong
+    none = bg.classify(["initializing"] * 3, [False] * 3, [False] * 3, [0, 1, 2], 15.0)
+    assert not none.found and not none.first_fix_wrong and math.isnan(none.fix_travel)
+
+
+def test_fix_ok_needs_position_and_heading(bg) -> None:
+    t = np.array([1.0, 2.0, 3.1])
+    assert bg.fix_ok(np.array([1.3, 2.3, 3.1 + np.deg2rad(9.0)]), t)
+    assert not bg.fix_ok(np.array([1.4, 2.4, 3.1]), t)  # 0.57 m
+    assert not bg.fix_ok(np.array([1.0, 2.0, 3.1 + np.deg2rad(11.0)]), t)
+    # heading wraps around pi
+    assert bg.fix_ok(np.array([1.0, 2.0, -np.pi + 0.01]), np.array([1.0, 2.0, np.pi - 0.01]))
+
+
+def test_percentile_counts_not_found_as_infinite(bg) -> None:
+    assert bg._pct_inf([1.0, 2.0, 3.0], 50) == 2.0
+    assert math.isinf(bg._pct_inf([1.0, math.nan], 50))
+    assert bg._pct_inf([1.0, 2.0, 3.0, math.nan], 50) == 2.5
+
+
+def test_hypotheses_read_defensively(bg) -> None:
+    assert bg.hypotheses_of(SimpleNamespace(hypotheses=[1, 2, 3], extras={})) == 3.0
+    assert bg.hypotheses_of(SimpleNamespace(hypotheses=None, extras={"hypotheses": 4.0})) == 4.0
+    assert bg.hypotheses_of(SimpleNamespace(extras={})) is None
+    assert bg.hypotheses_of(SimpleNamespace(hypotheses=2)) == 2.0
