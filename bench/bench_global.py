@@ -23,8 +23,10 @@ Drive trials (``--drive``, issue 13): global localisation WHILE THE ROBOT DRIVES
 [--worlds 8] [--real-starts 10] [--logs intel,fr079,mit-csail] [--data DIR] [--jobs 2]
 [--quick N] [--stride1 1] [--seed 1] [--cache build/bench_global/index] [--out docs/global]``
 
-A trial picks a random start scan on a tour, creates ``create_localizer("shape", map, None)``
-(no initial pose) and feeds that scan and every following one WITH its odometry
+A trial picks a random start scan on a tour, creates ``create_localizer("shape", map, None,
+search_budget_ms=--budget-ms)`` (no initial pose; the service's default budget of 25 reference
+ms per scan, 0 = a whole search per scan as offline) and feeds that scan and every
+following one WITH its odometry
 (``update(ranges, angles, odom)``) until the travel since the start exceeds the map's travel
 limit + 5 m (the margin; the first scan beyond it is the trial's last) or the tour ends.
 
@@ -81,6 +83,9 @@ Definitions:
   localiser was searching (``GlobalShapeLocalizer.searching`` before the call; for a
   localiser without that flag: the previous status was not ``tracking``), i.e. how long one
   scan's search blocks a worker. Max and p99 pooled over all trials of the row.
+- search work max: the largest deterministic work (``GlobalShapeLocalizer.work_ms``,
+  reference ms of ``global_search.WORK_MS``) one searching scan spent: what the budget bounds,
+  independent of the machine's load.
 - hypotheses: the live hypotheses the estimate reports, read as ``est.hypotheses`` when the
   core has that field, else ``est.extras["hypotheses"]`` (a count, or the length of a list);
   mean over the search scans that report it; "–" when none does.
@@ -105,7 +110,6 @@ from __future__ import annotations
 
 import argparse
 import csv
-import inspect
 import math
 import multiprocessing
 import os
@@ -346,6 +350,7 @@ class DriveTask:
     data: str
     cache: str
     stride1: int
+    budget: float | None = 25.0
 
 
 @dataclass
@@ -381,6 +386,7 @@ class DriveTrial:
     search_scans: int
     search_ms_max: float
     search_ms_p99: float
+    work_max: float
     hyp_sum: float
     hyp_scans: int
     wall_s: float
@@ -567,12 +573,12 @@ def drive_source(m: DriveMap, data: Path, stride1: int = 1) -> DriveSource:
     return src
 
 
-def _localizer(md: MapData, cache: str | None) -> Any:
-    """``create_localizer("shape", md, None)``, with the index cache dir when the factory
-    takes one."""
-    if cache and "cache_dir" in inspect.signature(create_localizer).parameters:
-        return create_localizer("shape", md, None, cache_dir=Path(cache))
-    return create_localizer("shape", md, None)
+def _localizer(md: MapData, cache: str | None, budget: float | None = None) -> Any:
+    """``create_localizer("shape", md, None)``, with the index cache dir and the per-scan
+    search budget (reference ms; ``None``: a whole search per scan)."""
+    return create_localizer(
+        "shape", md, None, cache_dir=Path(cache) if cache else None, search_budget_ms=budget
+    )
 
 
 def prepare_drive_map(m: DriveMap, data: str, cache: str, stride1: int) -> dict[str, Any]:
@@ -635,8 +641,9 @@ def run_drive_trial(task: DriveTask) -> DriveTrial:
     idx = list(range(task.start, end, src.stride))
     if idx[-1] != end - 1:
         idx.append(end - 1)  # the scan beyond the limit + margin is always fed
-    loc = _localizer(src.map_data, task.cache)
+    loc = _localizer(src.map_data, task.cache, task.budget)
     status: list[str] = []
+    work: list[float] = []
     close: list[bool | None] = []
     after: list[bool | None] = []
     travel: list[float] = []
@@ -667,6 +674,7 @@ def run_drive_trial(task: DriveTask) -> DriveTrial:
         flags.append(searching)
         if searching:
             search_ms.append(1e3 * (w1 - w0))
+            work.append(float(getattr(loc, "work_ms", math.nan)))
             h = hypotheses_of(est)
             if h is not None:
                 hyps.append(h)
@@ -704,6 +712,7 @@ def run_drive_trial(task: DriveTask) -> DriveTrial:
         search_scans=int(sm.size),
         search_ms_max=float(sm.max()) if sm.size else math.nan,
         search_ms_p99=float(np.percentile(sm, 99)) if sm.size else math.nan,
+        work_max=float(np.nanmax(work)) if work and not np.all(np.isnan(work)) else math.nan,
         hyp_sum=float(sum(hyps)),
         hyp_scans=len(hyps),
         wall_s=wall,
@@ -750,6 +759,9 @@ def summarise_drive(trials: Sequence[DriveTrial]) -> dict[str, Any]:
         "ms_max": float(ms.max()) if ms.size else math.nan,
         "ms_p99": float(np.percentile(ms, 99)) if ms.size else math.nan,
         "hyp": sum(t.hyp_sum for t in trials) / hyp_n if hyp_n else math.nan,
+        "work_max": max(
+            (t.work_max for t in trials if not math.isnan(t.work_max)), default=math.nan
+        ),
         "wall": float(np.mean([t.wall_s for t in trials])) if n else math.nan,
         "truncated": sum(t.truncated for t in trials),
     }
@@ -767,8 +779,8 @@ DRIVE_HEAD = (
     "| group | map | limit m | trials | found <= limit | found at all "
     "| travel to fix p50 / p90 m | CPU to fix p50 / p95 s | confident wrong: first fix "
     "| after fix: trials (% of tracking) | searching again after fix | search scan ms "
-    "max / p99 | hypotheses | s / trial |\n"
-    "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n"
+    "max / p99 | search work max (ref. ms) | hypotheses | s / trial |\n"
+    "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n"
 )
 
 
@@ -783,7 +795,7 @@ def drive_row(group: str, name: str, r: dict[str, Any]) -> str:
         f"| {r['ffw']} ({_cell(100.0 * r['ffw'] / max(r['trials'], 1), '.1f')} %) "
         f"| {r['afw_trials']} ({_cell(r['afw_pct'], '.2f')} %) | {r['relost']} "
         f"| {_cell(r['ms_max'], '.0f')} / {_cell(r['ms_p99'], '.0f')} "
-        f"| {_cell(r['hyp'], '.1f')} | {_cell(r['wall'], '.1f')} |"
+        f"| {_cell(r['work_max'], '.0f')} | {_cell(r['hyp'], '.1f')} | {_cell(r['wall'], '.1f')} |"
     )
 
 
@@ -978,7 +990,10 @@ def drive_main(args: argparse.Namespace, argv: Sequence[str]) -> int:
             )
         elif starts.size < want:
             notes.append(f"{m.label()}: only {starts.size} distinct start scans (of {want})")
-        tasks += [DriveTask(m, int(s), k, data, cache, args.stride1) for k, s in enumerate(starts)]
+        budget = args.budget_ms if args.budget_ms > 0 else None
+        tasks += [
+            DriveTask(m, int(s), k, data, cache, args.stride1, budget) for k, s in enumerate(starts)
+        ]
     for n in notes:
         print(n)
 
@@ -1103,6 +1118,12 @@ def main(argv: list[str] | None = None) -> int:
         "--quick", type=int, default=None, help="smoke run: at most N starts per map and world"
     )
     drive.add_argument("--stride1", type=int, default=1, help="feed every k-th setup-1 scan")
+    drive.add_argument(
+        "--budget-ms",
+        type=float,
+        default=25.0,
+        help="per-scan search budget, reference ms (the service's default 25; 0: whole search)",
+    )
     drive.add_argument(
         "--cache",
         type=Path,

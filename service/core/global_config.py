@@ -252,6 +252,22 @@ class GlobalConfig(BaseModel):
         ge=1,
         description="With a budget, at most this ``refine_top`` in the self-similarity check.",
     )
+    drive_scans: int = Field(
+        10,
+        ge=1,
+        description="Drive rule (budgeted search with odometry): a hypothesis re-scored on at "
+        "least this many scans, best on the last drive_wins of them, whose mean cost over "
+        "its last drive_scans scans is below drive_max_cost and below every distinct "
+        "alternative's mean by drive_margin, after drive_travel metres driven since it "
+        "appeared, wins (after the twin check and the tracker's confirmation) even where no "
+        "single scan's cost meets max_fix_cost: a real laser in a furnished building rarely "
+        "verifies as well as a simulated one, but the true place stays the best explanation "
+        "scan after scan while the robot drives.",
+    )
+    drive_wins: int = Field(6, ge=1, description="See drive_scans.")
+    drive_travel: float = Field(1.0, ge=0, description="See drive_scans (m).")
+    drive_margin: float = Field(0.15, gt=0, description="See drive_scans.")
+    drive_max_cost: float = Field(0.7, gt=0, description="See drive_scans.")
     rescore_share: float = Field(
         0.5,
         gt=0,

@@ -218,6 +218,7 @@ class GlobalShapeLocalizer:
         self._job: hyp_mod.Job | None = None  # budgeted search in progress
         self._twin_job: hyp_mod.Job | None = None  # budgeted self-similarity check
         self._confirm_next = False  # budgeted: the tracker confirms a winner on the next scan
+        self._travel = 0.0  # odometry travel (m) since the search started
         self._candidates = 0  # poses the last finished search induced
         #: reference ms of search work spent on the last scan (budgeted search; benchmarks)
         self.work_ms = 0.0
@@ -337,6 +338,7 @@ class GlobalShapeLocalizer:
         self._job = None
         self._twin_job = None
         self._confirm_next = False
+        self._travel = 0.0
         if last_pose is not None:
             p = np.asarray(last_pose, dtype=np.float64).copy()
             self._anchor = p.copy()
@@ -352,6 +354,7 @@ class GlobalShapeLocalizer:
         prev_odom = self._last_odom
         delta = self._remember_odom(odom)
         if delta is not None:
+            self._travel += float(np.hypot(delta[0], delta[1]))
             for t in self._tracks:
                 t.pose = compose(t.pose, delta)
             if self._anchor is not None:
@@ -533,7 +536,9 @@ class GlobalShapeLocalizer:
             spent, done, res = hyp_mod.advance(self._job, spent, budget)
             if done:
                 move = hyp_mod.odometry_move(self._job.odom, self._last_odom)
-                self._tracks = hyp_mod.merge(self._tracks, res.hypotheses, move, g.keep)
+                self._tracks = hyp_mod.merge(
+                    self._tracks, res.hypotheses, move, g.keep, self._travel
+                )
                 self._candidates = res.candidates
                 self._job = None
                 extras["search_done"] = 1.0
@@ -582,11 +587,18 @@ class GlobalShapeLocalizer:
             fix_cost = g.max_fix_cost
             best.twin_ok = True  # the motion history rules out the far twins
             extras["near_track"] = 1.0
+        elif odometry and self._drive_won(best, extras):
+            # the drive rule: the best explanation of the last drive_scans scans by a clear
+            # margin while the robot drove; it stands in for the single-scan bars
+            confirmed, informative, amb = True, True, 0.0
+            fix_cost = max(fix_cost, g.drive_max_cost)
+            extras["drive_rule"] = 1.0
+        lead_cost = max(fix_cost, g.drive_max_cost) if odometry else fix_cost
         if (
             best.twin_ok is None
             and self._twin_job is None
-            and best.hyp.cost <= fix_cost
-            and informative
+            and best.hyp.cost <= lead_cost
+            and (informative or odometry)
         ):
             # the best hypothesis' twin check starts as soon as it leads (not when it has
             # won): it takes a search's work, which then overlaps the evidence the drive
@@ -617,6 +629,19 @@ class GlobalShapeLocalizer:
             return self._unresolved(guess, amb, extras)
         return self._unresolved(best, amb, extras)
 
+    def _drive_won(self, best: _Track, extras: dict[str, float]) -> bool:
+        """The drive rule (``GlobalConfig.drive_scans``) for the best re-scored hypothesis."""
+        g = self.gconfig
+        if len(best.hist) < g.drive_scans or best.wins < g.drive_wins:
+            return False
+        if self._travel - best.born < g.drive_travel:
+            return False
+        mean = float(np.mean(best.hist[-g.drive_scans :]))
+        margin = hyp_mod.drive_margin(best, self._tracks, g.drive_scans, g)
+        extras["drive_cost"] = mean
+        extras["drive_margin"] = min(margin, 9.0)
+        return mean <= g.drive_max_cost and margin >= g.drive_margin
+
     def _twin_result(
         self, twin: Hypothesis | None, max_amb: float, extras: dict[str, float]
     ) -> None:
@@ -639,7 +664,7 @@ class GlobalShapeLocalizer:
         extras["twin_rejected"] = 1.0
         track.twin_ok = None
         move = hyp_mod.odometry_move(job.odom, self._last_odom)
-        self._tracks = hyp_mod.merge(self._tracks, [twin], move, 1)
+        self._tracks = hyp_mod.merge(self._tracks, [twin], move, 1, self._travel)
 
     def _odom_copy(self) -> np.ndarray | None:
         return None if self._last_odom is None else self._last_odom.copy()

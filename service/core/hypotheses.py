@@ -31,6 +31,7 @@ from service.core.global_config import GlobalConfig
 from service.core.global_search import (
     WORK_MS,
     Hypothesis,
+    _distinct,
     _near,
     _polish,
     _refine,
@@ -48,6 +49,8 @@ ASSOCIATE = (0.6, 1.0)
 #: Work (reference ms) of the tracker's confirmation of a winner: a tracker update from a
 #: fresh reset, measured 10 / 21 ms median on the office's metric / schematic map.
 CONFIRM_MS = 20.0
+#: Re-scored costs a track keeps for the drive rule.
+HISTORY = 64
 
 
 @dataclass(eq=False)
@@ -56,7 +59,9 @@ class Track:
     stands for a scan on which it was not among the verified hypotheses). ``hyp`` is its
     latest verification with ``cost`` replaced by the decision's (windowed) cost; ``wins``
     consecutive scans it was the best; ``age`` scans it was re-scored on (budgeted search);
-    ``twin_ok`` the outcome of its self-similarity check (``None``: not checked)."""
+    ``twin_ok`` the outcome of its self-similarity check (``None``: not checked); ``hist``
+    its re-scored costs (the last :data:`HISTORY`) and ``born`` the search's odometry travel
+    (m) when it appeared: the evidence of the drive rule."""
 
     pose: np.ndarray
     costs: list[float]
@@ -64,6 +69,8 @@ class Track:
     wins: int = 0
     age: int = 0
     twin_ok: bool | None = None
+    hist: list[float] = field(default_factory=list)
+    born: float = 0.0
 
 
 @dataclass(eq=False)
@@ -142,17 +149,23 @@ def rescore(
         t.pose = h.pose.copy()
         t.hyp = h
         t.costs.append(h.cost)
+        t.hist = [*t.hist[-(HISTORY - 1) :], h.cost]
         t.age += 1
     return n * each
 
 
 def merge(
-    tracks: list[Track], hyps: list[Hypothesis], move: np.ndarray | None, keep: int
+    tracks: list[Track],
+    hyps: list[Hypothesis],
+    move: np.ndarray | None,
+    keep: int,
+    travel: float = 0.0,
 ) -> list[Track]:
     """Add the best ``keep`` of a finished search's hypotheses (found on an earlier scan;
     ``move`` the robot-frame odometry motion since, or ``None``) to ``tracks`` unless one
     already holds that pose. New tracks carry the search's cost and age 0: they are decided
-    on only after a re-scoring on a scan of their own."""
+    on only after a re-scoring on a scan of their own. ``travel``: the search's odometry
+    travel now (the new tracks' ``born``)."""
     out = list(tracks)
     for h in hyps[:keep]:
         pose = compose(h.pose, move) if move is not None else np.asarray(h.pose, dtype=float)
@@ -166,7 +179,7 @@ def merge(
             explained=h.explained,
             short=h.short,
         )
-        out.append(Track(pose.copy(), [h.cost], hyp))
+        out.append(Track(pose.copy(), [h.cost], hyp, born=travel))
     return out
 
 
@@ -187,3 +200,17 @@ def candidates(tracks: list[Track], k: int = 5) -> np.ndarray:
     """The best ``k`` tracks as ``(k, 4)`` rows ``[x, y, theta, cost]`` (for the wire)."""
     rows = [[*map(float, t.pose), float(t.hyp.cost)] for t in tracks[:k]]
     return np.array(rows, dtype=np.float64).reshape(-1, 4)
+
+
+def drive_margin(best: Track, tracks: list[Track], window: int, gconfig: GlobalConfig) -> float:
+    """How much better ``best`` explained the drive than any distinct alternative: the mean of
+    each alternative's last ``window`` re-scored costs (its search cost if it has none yet)
+    minus ``best``'s, the smallest over the alternatives (``inf`` with none)."""
+    mine = float(np.mean(best.hist[-window:])) if best.hist else best.hyp.cost
+    out = float("inf")
+    for t in tracks:
+        if t is best or not _distinct(t.pose, best.pose, gconfig):
+            continue
+        theirs = float(np.mean(t.hist[-window:])) if t.hist else t.hyp.cost
+        out = min(out, theirs - mine)
+    return out
