@@ -647,7 +647,7 @@ class PoseMsg(WireModel):
     """A pose estimate: published on ``<prefix>/robots/<robot_id>/pose`` after every scan.
 
     ``seq``/``stamp`` are those of the scan it answers; ``pose`` is in the map frame.
-    ``covariance``, ``explained`` and ``ambiguity`` are project additions (optional).
+    ``covariance``, ``explained``, ``ambiguity`` and ``odom`` are project additions (optional).
     """
 
     schema_name: ClassVar[str] = "pose"
@@ -683,6 +683,13 @@ class PoseMsg(WireModel):
     ambiguity: UnitFloat = Field(
         default=None,
         description="Project addition: best vs second-best hypothesis cost ratio, [0, 1].",
+    )
+    odom: OptPose3 = Field(
+        default=None,
+        description=(
+            "Project addition: the odometry pose of the scan this estimate answers (absent "
+            "if it carried none), so that another service instance can take the robot over."
+        ),
     )
 
 
