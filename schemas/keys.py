@@ -6,6 +6,7 @@ Layout below a configurable prefix (default ``shapeloc``)::
     <prefix>/robots/<robot_id>/{config,scan,pose,truth}
     <prefix>/service/health
     <prefix>/service/alive/<instance_id>
+    <prefix>/service/state/<instance_id>/{config,pose}/<robot_id>   (project addition)
     <prefix>/errors
 
 Identifiers are 1-64 characters of ``[A-Za-z0-9_.-]``; a prefix is one or more such chunks
@@ -24,6 +25,8 @@ from service.errors import InvalidMessage
 DEFAULT_PREFIX: Final[str] = "shapeloc"
 
 RobotLeaf = Literal["config", "scan", "pose", "truth"]
+StateKind = Literal["config", "pose"]
+STATE_KINDS: Final[tuple[str, ...]] = get_args(StateKind)
 ROBOT_LEAVES: Final[tuple[str, ...]] = get_args(RobotLeaf)
 
 _ID_RE = re.compile(rf"[{ID_CHARS}]{{{ID_MIN_LEN},{ID_MAX_LEN}}}")
@@ -103,6 +106,34 @@ def alive_key(prefix: str, instance_id: str) -> str:
 def alive_wildcard(prefix: str) -> str:
     """``<prefix>/service/alive/*``: liveliness of every service instance."""
     return f"{validate_prefix(prefix)}/service/alive/*"
+
+
+def state_key(prefix: str, instance_id: str, kind: str, robot_id: str) -> str:
+    """``<prefix>/service/state/<instance_id>/<kind>/<robot_id>``: a robot's configuration or
+    last pose as one instance knows it (kind ``config`` or ``pose``), answered to the instances
+    of a cluster catching up (docs/cluster.md)."""
+    if kind not in STATE_KINDS:
+        raise InvalidMessage(f"kind: {kind!r} is not one of {', '.join(STATE_KINDS)}")
+    return (
+        f"{validate_prefix(prefix)}/service/state/{validate_id(instance_id, 'instance_id')}"
+        f"/{kind}/{validate_id(robot_id, 'robot_id')}"
+    )
+
+
+def state_selector(prefix: str, instance_id: str = "*") -> str:
+    """``<prefix>/service/state/<instance_id>/**`` (``*``: every instance's state)."""
+    inst = instance_id if instance_id == "*" else validate_id(instance_id, "instance_id")
+    return f"{validate_prefix(prefix)}/service/state/{inst}/**"
+
+
+def parse_state_key(prefix: str, key: str) -> tuple[str, str, str]:
+    """``(instance_id, kind, robot_id)`` of a ``<prefix>/service/state/...`` key."""
+    rest = _rest(prefix, key, "service/state")
+    if len(rest) != 3 or rest[1] not in STATE_KINDS:
+        raise InvalidMessage(
+            f"key: {key[:200]!r} is not {prefix}/service/state/<instance_id>/<kind>/<robot_id>"
+        )
+    return validate_id(rest[0], "instance_id"), rest[1], validate_id(rest[2], "robot_id")
 
 
 def _rest(prefix: str, key: object, section: str) -> list[str]:

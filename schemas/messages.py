@@ -666,8 +666,8 @@ class PoseMsg(WireModel):
     """A pose estimate: published on ``<prefix>/robots/<robot_id>/pose`` after every scan.
 
     ``seq``/``stamp`` are those of the scan it answers; ``pose`` is in the map frame.
-    ``covariance``, ``explained``, ``ambiguity``, ``hypotheses`` and ``candidates`` are
-    project additions (optional).
+    ``covariance``, ``explained``, ``ambiguity``, ``hypotheses``, ``candidates`` and ``odom``
+    are project additions (optional).
     """
 
     schema_name: ClassVar[str] = "pose"
@@ -735,6 +735,13 @@ class PoseMsg(WireModel):
     ] = Field(
         default=None,
         description="Project addition: the best few pose hypotheses of a global search.",
+    )
+    odom: OptPose3 = Field(
+        default=None,
+        description=(
+            "Project addition: the odometry pose of the scan this estimate answers (absent "
+            "if it carried none), so that another service instance can take the robot over."
+        ),
     )
 
 

@@ -36,6 +36,7 @@ from service.state import SavedPose, StateStore
 from service.workers import Assignment
 
 if TYPE_CHECKING:
+    from service.cluster import Mirror
     from service.scheduler import WorkerLink
     from service.settings import ServiceSettings
 
@@ -115,6 +116,8 @@ class ControlPlane:
     assignment: Assignment
     intake: ScanIntake
     _dirty: set[str]
+    mirror: Mirror
+    _control_mutex: threading.RLock
     _control_q: queue.Queue[Inbound | None]
     _control_overflow: int
     _control_bytes: int
@@ -129,6 +132,12 @@ class ControlPlane:
     def _link_of(self, robot_id: str) -> WorkerLink:
         raise NotImplementedError
 
+    def serves(self, robot_id: str) -> bool:
+        raise NotImplementedError
+
+    def mirror_config(self, robot_id: str, cfg: RobotConfig | None) -> None:
+        raise NotImplementedError
+
     def _control_loop(self) -> None:
         next_save = time.monotonic() + self.settings.pose_save_interval_s
         while not self.stopping.is_set():
@@ -141,7 +150,8 @@ class ControlPlane:
                 with self.lock:
                     self._control_bytes -= 0 if item.payload is None else len(item.payload)
                 try:
-                    self.handle_control(item)
+                    with self._control_mutex:
+                        self.handle_control(item)
                 except Exception:
                     log.exception("unexpected error on %s", item.key)
                 finally:
@@ -220,6 +230,16 @@ class ControlPlane:
     def _handle_config(self, item: Inbound) -> None:
         assert self.state is not None
         robot_id, _leaf = keys.parse_robot_key(self.prefix, item.key)
+        if not self.serves(robot_id):  # another instance's robot: mirrored, never a notice
+            cfg_other = None
+            if not item.delete:
+                assert item.payload is not None
+                try:
+                    cfg_other = codec.decode(RobotConfig, item.payload, item.encoding)
+                except ShapelocError:
+                    return  # the owner rejects it
+            self.mirror_config(robot_id, cfg_other)
+            return
         if item.delete:
             with self.lock:
                 known = robot_id in self.configs
@@ -274,7 +294,8 @@ class ControlPlane:
 
     def save_poses(self) -> int:
         """Write the poses that changed since the last save in one transaction; returns how
-        many, each with the robot's last odometry pose. After a failed write the poses stay
+        many, each with the robot's last odometry pose (also the last poses other instances
+        published for the robots this one mirrors). After a failed write the poses stay
         marked for the next save."""
         with self.lock:
             dirty = {
@@ -283,29 +304,21 @@ class ControlPlane:
                 if rid in self.poses
             }
             self._dirty.clear()
-        if not dirty or self.state is None:
+        mirrored = self.mirror.saves()
+        if (not dirty and not mirrored) or self.state is None:
             return 0
+        rows = dict(mirrored)
+        for rid, (p, odom) in dirty.items():
+            x, y, th = (float(v) for v in p.pose)
+            rows[rid] = SavedPose(p.map_id, x, y, th, p.seq, p.stamp, p.status, odom)
         try:
-            self.state.save_poses(
-                {
-                    rid: SavedPose(
-                        p.map_id,
-                        float(p.pose[0]),
-                        float(p.pose[1]),
-                        float(p.pose[2]),
-                        p.seq,
-                        p.stamp,
-                        p.status,
-                        odom,
-                    )
-                    for rid, (p, odom) in dirty.items()
-                }
-            )
+            self.state.save_poses(rows)
         except StateError:
             with self.lock:
                 self._dirty.update(rid for rid in dirty if rid in self.poses)
+            self.mirror.mark_dirty(mirrored)
             raise
-        return len(dirty)
+        return len(rows)
 
 
 def as_list(a: Any) -> list[float] | None:

@@ -33,6 +33,7 @@ from schemas import codec, keys
 from schemas.limits import MAX_PAYLOAD_BYTES
 from schemas.messages import ErrorNotice, Health, Map, PoseMsg, RobotConfig
 from service import queries
+from service.cluster import ClusterPlane
 from service.control import ControlPlane, Restored, as_list, load_state
 from service.core.types import MapData
 from service.errors import (
@@ -92,13 +93,14 @@ class RejectLog:
             return False, 0
 
 
-class ServiceNode(ControlPlane):
+class ServiceNode(ClusterPlane, ControlPlane):
     """The running service on an open Zenoh session.
 
     Use as ``node = ServiceNode(settings, session); node.start(); ...; node.stop()``; the
     caller owns (and closes) the session. ``start`` restores the state (raising
     :class:`StateError` if it is unreadable, unless ``settings.reset_state``) before
-    declaring anything on the network.
+    declaring its queryables and liveliness token; one of several instances
+    (:mod:`service.cluster`) first catches up with the live ones.
     """
 
     def __init__(self, settings: ServiceSettings, session: Any) -> None:
@@ -110,9 +112,10 @@ class ServiceNode(ControlPlane):
         self.prefix = settings.prefix
         self.instance_id = settings.effective_instance_id()
         self.worker_timeout_s = settings.worker_timeout_s
-        self._robots_ke = zenoh.KeyExpr(settings.robots)
-        self._shard_cache: dict[str, bool] = {}
         self.lock = threading.RLock()
+        # held while a map/config message or an ownership change is applied
+        self._control_mutex = threading.RLock()
+        self._ready = False  # scans are taken only once the state is restored
         self.stopping = threading.Event()
         self._started = time.monotonic()
         self.maps: dict[str, tuple[Map, MapData]] = {}
@@ -145,6 +148,7 @@ class ServiceNode(ControlPlane):
         self.state: StateStore | None = None
         self.links: list[WorkerLink] = []
         self.assignment = Assignment(1)
+        self._init_cluster()
 
     # ------------------------------------------------------------------ lifecycle
     def new_worker(self, index: int) -> Worker:
@@ -158,13 +162,23 @@ class ServiceNode(ControlPlane):
 
     def start(self) -> None:
         """Open and restore the state, start workers and threads, then declare the Zenoh
-        entities (nothing is visible on the network before the state is restored)."""
+        entities. Only the subscriber exists before the state is restored (so that a map or
+        config put while an instance catches up is queued, not lost); queryables and the
+        liveliness token come after."""
         restored = self._open_state()
         n = max(1, self.settings.workers)
         cap = self.settings.max_robots + 64
         self.links = [WorkerLink(self, i, cap) for i in range(n)]
         self.assignment = Assignment(n)
+        # One subscriber for maps, configs, scans and (mirrored) poses: its callback sees them
+        # in arrival order, which keeps "put map, put config, put scan" from one client causal.
+        self._entities.append(self.session.declare_subscriber(f"{self.prefix}/**", self._on_sample))
+        peers = self._catch_up()
+        if peers:
+            restored = self._reload_state(restored)
+        self._init_view(peers)
         self._restore(restored)
+        self._warm_workers()
         for link in self.links:
             link.thread.start()
         self.intake.start()
@@ -174,14 +188,19 @@ class ServiceNode(ControlPlane):
         ]
         for t in self._threads:
             t.start()
+        self._ready = True
         self._declare()
+        self._declare_membership()
         log.info(
-            "service %s serving prefix %r, robots %r: %d maps, %d robots restored, %d workers",
+            "service %s serving prefix %r, robots %r, shard %s: %d maps, %d robots restored "
+            "(%d of other instances mirrored), %d workers",
             self.instance_id,
             self.prefix,
             self.settings.robots,
+            self.settings.shard,
             len(self.maps),
             len(self.configs),
+            len(self.mirror),
             self.settings.workers,
         )
 
@@ -194,13 +213,11 @@ class ServiceNode(ControlPlane):
         p = self.prefix
         self._errors_pub = s.declare_publisher(keys.errors_key(p))
         self._entities.append(self._errors_pub)
-        # One subscriber for maps, configs and scans: its callback sees them in arrival order,
-        # which keeps "put map, put config, put scan" from one client causal.
-        self._entities.append(s.declare_subscriber(f"{p}/**", self._on_sample))
         for ke in (
             keys.maps_wildcard(p),
             keys.robots_wildcard(p, "pose"),
             keys.health_key(p),
+            keys.state_selector(p, self.instance_id),
         ):
             self._entities.append(s.declare_queryable(ke, self._on_query))
         self._token = s.liveliness().declare_token(keys.alive_key(p, self.instance_id))
@@ -261,20 +278,31 @@ class ServiceNode(ControlPlane):
             )
         return restored
 
+    def _reload_state(self, before: Restored) -> Restored:
+        """The store again after catching up (what the live instances told us is in it)."""
+        assert self.state is not None
+        try:
+            return load_state(self.state)
+        except StateError as e:
+            log.error("state after catching up is unreadable (%s); using the own state", e)
+            return before
+
     def _restore(self, r: Restored) -> None:
-        """Hand the restored maps and this shard's robots (in id order) to the workers; a
-        restored robot resumes from its saved pose and the odometry pose saved with it."""
+        """Hand the restored maps and this instance's robots (in id order) to the workers; a
+        restored robot resumes from its saved pose and the odometry pose saved with it. The
+        robots of other instances are mirrored (:mod:`service.cluster`)."""
         t = self.settings.worker_timeout_s
         for map_id, (msg, md) in r.maps.items():
             self.maps[map_id] = (msg, md)
             for link in self.links:
                 link.worker.call(("map", md), t)
         for robot_id, cfg in r.configs.items():
-            if not self.serves(robot_id):
-                continue
             pm = r.poses.get(robot_id)
             start = None if pm is None else as_list(pm.pose)
             odom = None if pm is None else r.odoms.get(robot_id)
+            if not self.serves(robot_id):
+                self.mirror.put(robot_id, cfg, pm, odom)
+                continue
             if pm is not None:
                 self.poses[robot_id] = pm
             if odom is not None:
@@ -288,19 +316,7 @@ class ServiceNode(ControlPlane):
             if st != "ok":
                 log.error("restored robot %s could not be set up: %s", robot_id, why)
 
-    # ------------------------------------------------------------------ sharding
-    def serves(self, robot_id: str) -> bool:
-        """Whether this instance's ``--robots`` key expression covers ``robot_id``."""
-        hit = self._shard_cache.get(robot_id)
-        if hit is None:
-            try:
-                hit = bool(self._robots_ke.intersects(self.zenoh.KeyExpr(robot_id)))
-            except Exception:
-                hit = True  # invalid ids are rejected (with a notice) further on
-            if len(self._shard_cache) < 100_000:
-                self._shard_cache[robot_id] = hit
-        return hit
-
+    # ------------------------------------------------------------------ workers
     def _link_of(self, robot_id: str) -> WorkerLink:
         return self.links[self.assignment.index_of(robot_id)]
 
@@ -352,21 +368,30 @@ class ServiceNode(ControlPlane):
                 return ("scan", parts[1])
             if parts[2] == "config":
                 return ("control", parts[1])
+            if parts[2] == "pose":
+                return ("pose", parts[1])
         return ("other", "")
 
     def _on_sample(self, sample: Any) -> None:
         """Zenoh callback of ``<prefix>/**``: route scans to the intake, maps/configs to the
-        control queue, ignore the rest (poses, errors, truth). No decoding, no compute."""
+        control queue, other instances' poses to the mirror, ignore the rest (errors, truth).
+        No decoding, no compute."""
         kind, robot_id = self.classify(str(sample.key_expr))
         if kind == "scan":
             self._on_scan(sample, robot_id)
         elif kind == "control":
             self._on_control(sample)
+        elif kind == "pose":
+            self._on_pose_sample(sample, robot_id)
 
     def _on_scan(self, sample: Any, robot_id: str) -> None:
         """Copy a scan sample into the intake queue after O(1) checks (no decoding here)."""
         t = time.monotonic()
-        if not self.serves(robot_id):
+        if not self._ready or not self.serves(robot_id):
+            return
+        if robot_id not in self.configs and self.mirror.known(robot_id):
+            with self.lock:  # ours now, being taken over from the mirror: not an unknown robot
+                self.errors["scan.HandedOver"] += 1
             return
         key = str(sample.key_expr)
         size = len(sample.payload)
@@ -391,16 +416,17 @@ class ServiceNode(ControlPlane):
         self.intake.put(item)
 
     def control_item(self, sample: Any) -> Inbound | None:
-        """Copy a map/config sample into an :class:`Inbound` (``None``: another shard's robot)."""
+        """Copy a map/config sample into an :class:`Inbound` (configs of robots another
+        instance serves too: they are mirrored, :meth:`mirror_config`; ``None``: an oversize
+        config of such a robot, which its owner rejects)."""
         t = time.monotonic()
         key = str(sample.key_expr)
-        if "/robots/" in key:
-            parts = key.rsplit("/", 2)
-            if len(parts) == 3 and not self.serves(parts[-2]):
-                return None
         delete = sample.kind == self.zenoh.SampleKind.DELETE
         size = len(sample.payload)
         if size > MAX_PAYLOAD_BYTES:
+            parts = key.rsplit("/", 2)
+            if "/robots/" in key and len(parts) == 3 and not self.serves(parts[-2]):
+                return None
             return Inbound(
                 key, None, None, t, reject=f"payload of {size} bytes exceeds {MAX_PAYLOAD_BYTES}"
             )
@@ -472,6 +498,12 @@ class ServiceNode(ControlPlane):
     # ------------------------------------------------------------------ scans
     def _offer_scan(self, scan: ValidScan) -> None:
         """Intake sink: a valid scan enters its robot's latest-wins slot."""
+        if not self.serves(scan.robot_id):
+            return  # handed over to another instance since it arrived
+        if scan.robot_id in self.suspended:  # back from being cut off: see ClusterPlane
+            with self.lock:
+                self.errors["scan.Suspended"] += 1
+            return
         if not self._link_of(scan.robot_id).slots.offer(scan.robot_id, scan):
             self.reject(
                 scan.key,
@@ -484,6 +516,8 @@ class ServiceNode(ControlPlane):
     def process_scan(self, link: WorkerLink, scan: ValidScan) -> None:
         """Localise one valid scan on ``link``'s worker and publish the pose."""
         robot_id, key = scan.robot_id, scan.key
+        if not self.serves(robot_id):
+            return  # handed over to another instance since it arrived
         owner = self._link_of(robot_id)
         if owner is not link:  # assigned to another worker after the scan was queued here
             owner.slots.offer(robot_id, scan)
@@ -526,6 +560,7 @@ class ServiceNode(ControlPlane):
                 ambiguity=_clip01(out["ambiguity"]),
                 hypotheses=out.get("hypotheses"),
                 candidates=out.get("candidates") or None,
+                odom=None if scan.odom is None else [float(v) for v in scan.odom],
             )
             payload = codec.encode(pose_msg)
         except ShapelocError as e:

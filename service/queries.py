@@ -11,7 +11,7 @@ from collections import Counter
 from typing import TYPE_CHECKING, Any
 
 from schemas import codec, keys
-from schemas.messages import Health
+from schemas.messages import Health, PoseMsg
 from service import __version__
 
 if TYPE_CHECKING:
@@ -21,7 +21,7 @@ _MSGPACK = codec.MSGPACK_ENCODING
 
 
 def answer(node: ServiceNode, query: Any) -> None:
-    """Reply to one ``get`` on maps, a robot pose or the health key."""
+    """Reply to one ``get`` on maps, a robot pose, the health key or this instance's state."""
     z = node.zenoh
     ke = query.key_expr
     p = node.prefix
@@ -56,8 +56,37 @@ def answer(node: ServiceNode, query: Any) -> None:
                 return  # another shard answers for this robot
             if rid in robots:
                 query.reply_err(f"robot {rid!r} has no estimate yet".encode())
+            elif node.mirror.known(rid):
+                query.reply_err(
+                    f"robot {rid!r} is being handed over to this instance; retry".encode()
+                )
             else:
                 query.reply_err(f"unknown robot {rid!r}".encode())
+    if ke.intersects(z.KeyExpr(keys.state_selector(p, node.instance_id))):
+        answer_state(node, query)
+
+
+def answer_state(node: ServiceNode, query: Any) -> None:
+    """``get <prefix>/service/state/<this instance>/...``: the configuration and last pose
+    (with the odometry reading of its scan) of every robot this instance knows, served or
+    mirrored, for instances catching up (:mod:`service.cluster`)."""
+    z = node.zenoh
+    ke = query.key_expr
+    p, me = node.prefix, node.instance_id
+    with node.lock:
+        served = [
+            (rid, cfg, node.poses.get(rid), node.odoms.get(rid))
+            for rid, cfg in node.configs.items()
+        ]
+    for rid, cfg, pm, odom in [*served, *node.mirror.snapshot()]:
+        k = keys.state_key(p, me, "config", rid)
+        if ke.intersects(z.KeyExpr(k)):
+            query.reply(k, codec.encode(cfg), encoding=_MSGPACK)
+        k = keys.state_key(p, me, "pose", rid)
+        if pm is not None and ke.intersects(z.KeyExpr(k)):
+            if pm.odom is None and odom is not None:
+                pm = PoseMsg.parse({**pm.to_wire(), "odom": list(odom)})
+            query.reply(k, codec.encode(pm), encoding=_MSGPACK)
 
 
 def health(node: ServiceNode) -> Health:

@@ -16,7 +16,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from service.errors import InvalidMessage
 
@@ -41,6 +41,9 @@ class ServiceSettings(BaseModel):
     Zenoh key expression over a single robot-id chunk selecting the robots this instance serves
     (``**``: all; ``a$*``: ids starting with ``a``); others are ignored silently. ``workers`` is
     the number of localisation worker processes; 0 computes in the service process itself.
+    ``shard`` ``"hash"`` spreads the robots over the live instances of the prefix by
+    rendezvous hashing of the robot id (membership from the instances' liveliness tokens,
+    docs/cluster.md); ``"static"`` serves what ``robots`` matches.
     ``search_budget_ms`` is the per-scan work (reference ms) a robot's global search may take
     before the worker moves on (the search goes on with its next scan; 0: a whole search per
     scan). Default 25: with the tracker's own few ms and the decision's overhead a searching
@@ -73,6 +76,10 @@ class ServiceSettings(BaseModel):
     worker_timeout_s: float = Field(default=30.0, gt=0.0)
     search_budget_ms: float = Field(default=25.0, ge=0.0, le=10_000.0)
     log_level: Literal["debug", "info", "warning", "error"] = "info"
+    shard: Literal["static", "hash"] = "static"
+    takeover_grace_s: float = Field(default=0.25, ge=0.0, le=30.0)
+    handover_delay_s: float = Field(default=0.2, ge=0.0, le=30.0)
+    catchup_timeout_s: float = Field(default=2.0, gt=0.0, le=60.0)
 
     @field_validator("prefix")
     @classmethod
@@ -111,6 +118,15 @@ class ServiceSettings(BaseModel):
             if "/" not in e or not e.split("/", 1)[1]:
                 raise ValueError(f"endpoint {e!r} must look like 'tcp/127.0.0.1:7447'")
         return v
+
+    @model_validator(mode="after")
+    def _check_shard(self) -> ServiceSettings:
+        if self.shard == "hash" and self.robots != "**":
+            raise ValueError(
+                f"shard 'hash' spreads every robot over the instances; robots must stay '**' "
+                f"(got {self.robots!r})"
+            )
+        return self
 
     def effective_instance_id(self) -> str:
         """The liveliness id: ``instance_id`` or ``<hostname>-<pid>`` made key-safe."""
@@ -198,6 +214,20 @@ def build_parser() -> argparse.ArgumentParser:
         const=True,
         help="if the state file is unreadable or invalid, move it aside "
         "(shapeloc.sqlite3.bad-<time>) and start with no maps and no robots",
+    )
+    p.add_argument(
+        "--shard",
+        choices=["static", "hash"],
+        help="static: serve the robots --robots matches; hash: spread the robots over the "
+        "live instances of the prefix (rendezvous hash of the robot id, docs/cluster.md)",
+    )
+    p.add_argument(
+        "--takeover-grace",
+        dest="takeover_grace_s",
+        type=float,
+        metavar="S",
+        help="with --shard hash: seconds between an instance's liveliness token vanishing "
+        "and taking over its robots (default 0.25)",
     )
     p.add_argument("--max-robots", dest="max_robots", type=int)
     p.add_argument(
