@@ -183,6 +183,14 @@ class GlobalConfig(BaseModel):
         description="... and turned less than this from it (rad): a tracker fit that swings the "
         "heading away from the verified pose is not a confirmation.",
     )
+    confirm_sigma: float = Field(
+        0.05,
+        gt=0,
+        description="... and the confirming fit must pin the position down: the largest "
+        "standard deviation of its xy covariance at most this (m). A corridor's parallel "
+        "walls verify equally well 0.8 m further along (tuning log intel, schematised map: a "
+        "fix 0.8 m off with a 0.19 m sigma along the corridor; correct fixes 0.004-0.01 m).",
+    )
     # --- recovery near the lost track ------------------------------------------------------
     near_radius: float = Field(
         1.0,

@@ -120,6 +120,16 @@ _ASSOCIATE = hyp_mod.ASSOCIATE
 _Track = hyp_mod.Track
 
 
+def _position_sigma(est: Estimate) -> float:
+    """Largest standard deviation (m) of an estimate's xy covariance (0 without one)."""
+    if est.covariance is None:
+        return 0.0
+    c = np.asarray(est.covariance, dtype=np.float64).reshape(3, 3)[:2, :2]
+    if not np.all(np.isfinite(c)):
+        return float("inf")
+    return float(np.sqrt(max(0.0, float(np.linalg.eigvalsh(0.5 * (c + c.T))[-1]))))
+
+
 class GlobalShapeLocalizer:
     """Shape-based localisation with global search (implements
     :class:`service.core.types.Localizer`, method ``shape``).
@@ -466,8 +476,9 @@ class GlobalShapeLocalizer:
         self, best: _Track, r: np.ndarray, a: np.ndarray, amb: float, extras: dict[str, float]
     ) -> Estimate | None:
         """The tracker, reset to the winner with this scan's odometry, must accept this scan
-        within ``confirm_distance`` / ``confirm_angle`` of it: then tracking starts (the fix
-        is returned); ``None`` otherwise (``extras`` records the refusal)."""
+        within ``confirm_distance`` / ``confirm_angle`` of it, with a position standard
+        deviation of at most ``confirm_sigma``: then tracking starts (the fix is returned);
+        ``None`` otherwise (``extras`` records the refusal)."""
         g = self.gconfig
         # the tracker starts at the fix with this scan's odometry, so the next scan's
         # increment (e.g. the rest of a look-around turn) is its motion prior
@@ -478,6 +489,7 @@ class GlobalShapeLocalizer:
         close = (
             np.hypot(*(est.pose[:2] - best.pose[:2])) <= g.confirm_distance
             and abs(float(wrap_angle(est.pose[2] - best.pose[2]))) <= g.confirm_angle
+            and _position_sigma(est) <= g.confirm_sigma
         )
         if est.status == "tracking" and "rejected" not in est.extras and close:
             self._searching = False
