@@ -252,10 +252,11 @@ class ControlPlane:
                 self.poses.pop(robot_id, None)
                 self.odoms.pop(robot_id, None)
                 self._dirty.discard(robot_id)
-            link = self._link_of(robot_id)
-            link.slots.discard(robot_id)
-            link.submit(("forget", robot_id)).result()
-            self.assignment.release(robot_id)
+            with self.migrate_lock:
+                link = self._link_of(robot_id)
+                link.slots.discard(robot_id)
+                link.submit(("forget", robot_id)).result()
+                self.assignment.release(robot_id)
             return
         assert item.payload is not None
         cfg = codec.decode(RobotConfig, item.payload, item.encoding)
@@ -270,13 +271,14 @@ class ControlPlane:
                     f"robot limit reached ({self.settings.max_robots}); {robot_id!r} refused"
                 )
         new = robot_id not in self.configs
-        link = self.links[self.assignment.assign(robot_id)]
-        status, why = link.submit(
-            ("config", robot_id, cfg.method, cfg.map_id, as_list(cfg.initial_pose), None, None)
-        ).result(timeout=self.settings.worker_timeout_s * 2 + 5)
-        if status != "ok":
-            if new:
+        with self.migrate_lock:  # no move between workers while the config is applied
+            link = self.links[self.assignment.assign(robot_id)]
+            status, why = link.submit(
+                ("config", robot_id, cfg.method, cfg.map_id, as_list(cfg.initial_pose), None, None)
+            ).result(timeout=self.settings.worker_timeout_s * 2 + 5)
+            if status != "ok" and new:
                 self.assignment.release(robot_id)
+        if status != "ok":
             raise LocalizationError(f"robot {robot_id!r}: {why}")
         self.state.put_robot(robot_id, cfg.to_wire())
         log.info(

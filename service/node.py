@@ -148,6 +148,10 @@ class ServiceNode(ClusterPlane, ControlPlane):
         self.state: StateStore | None = None
         self.links: list[WorkerLink] = []
         self.assignment = Assignment(1)
+        self.search_link: WorkerLink | None = None
+        #: held by the control thread while it applies a configuration, and by a link thread
+        #: while it moves a robot between workers (never both)
+        self.migrate_lock = threading.Lock()
         self._init_cluster()
 
     # ------------------------------------------------------------------ lifecycle
@@ -158,7 +162,8 @@ class ServiceNode(ClusterPlane, ControlPlane):
         budget = self.settings.search_budget_ms or None  # 0: a whole search per scan
         if self.settings.workers == 0:
             return InlineWorker(index, cache_dir, budget)
-        return ProcessWorker(index, self.settings.log_level, cache_dir, budget)
+        nice = self.settings.search_worker_nice if index >= self.settings.workers else 0
+        return ProcessWorker(index, self.settings.log_level, cache_dir, budget, nice)
 
     def start(self) -> None:
         """Open and restore the state, start workers and threads, then declare the Zenoh
@@ -168,8 +173,12 @@ class ServiceNode(ClusterPlane, ControlPlane):
         restored = self._open_state()
         n = max(1, self.settings.workers)
         cap = self.settings.max_robots + 64
-        self.links = [WorkerLink(self, i, cap) for i in range(n)]
-        self.assignment = Assignment(n)
+        # with worker processes, one more (at a lower priority) takes the robots that search:
+        # a search then never holds a worker that tracked robots wait for
+        extra = 1 if self.settings.workers > 0 and self.settings.search_worker else 0
+        self.links = [WorkerLink(self, i, cap) for i in range(n + extra)]
+        self.search_link = self.links[n] if extra else None
+        self.assignment = Assignment(n, extra)
         # One subscriber for maps, configs, scans and (mirrored) poses: its callback sees them
         # in arrival order, which keeps "put map, put config, put scan" from one client causal.
         self._entities.append(self.session.declare_subscriber(f"{self.prefix}/**", self._on_sample))
@@ -579,6 +588,33 @@ class ServiceNode(ClusterPlane, ControlPlane):
             self._dirty.add(robot_id)
             self.scans_processed += 1
         self.session.put(keys.robot_key(self.prefix, robot_id, "pose"), payload, encoding=_MSGPACK)
+        if self.search_link is not None and bool(out.get("searching")) != (
+            link is self.search_link
+        ):
+            self._migrate(link, robot_id, to_search=bool(out.get("searching")))
+
+    def _migrate(self, link: WorkerLink, robot_id: str, to_search: bool) -> None:
+        """Move a robot that started searching to the search worker, or one that tracks again
+        back to the least-loaded tracking worker, with its localiser's state (runs on
+        ``link``'s thread, the robot's current owner). Skipped while a configuration is being
+        applied (the control thread holds ``migrate_lock``); the next scan tries again."""
+        if not self.migrate_lock.acquire(blocking=False):
+            return
+        try:
+            if self._link_of(robot_id) is not link:
+                return
+            assert self.search_link is not None
+            idx = self.search_link.index if to_search else self.assignment.least_loaded()
+            status, robot = link.call(("export", robot_id))
+            if status != "ok":
+                log.warning("robot %s not moved: %s", robot_id, robot)
+                return
+            self.links[idx].submit(("import", robot_id, robot))
+            self.assignment.move(robot_id, idx)
+            with self.lock:
+                self.errors["worker.MovedToSearch" if to_search else "worker.MovedBack"] += 1
+        finally:
+            self.migrate_lock.release()
 
     # ------------------------------------------------------------------ queries
     def _query_loop(self) -> None:

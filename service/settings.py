@@ -49,7 +49,11 @@ class ServiceSettings(BaseModel):
     scan). Default 25: with the tracker's own few ms and the decision's overhead a searching
     robot's scan stays within ~40 ms of one core, so a robot queued behind it on the same
     worker waits less than 50 ms (issue 13), while a whole search (~100 ms on a metric map,
-    ~300 ms on a floor plan) still finishes within 4-12 scans.
+    ~300 ms on a floor plan) still finishes within 4-12 scans. ``search_worker`` (with
+    ``workers`` >= 1) adds one worker process, niced by ``search_worker_nice``, that takes
+    every robot while it searches (moved there with its localiser's state after the scan
+    that started the search, and back to the least-loaded worker once it tracks again): a
+    searching robot then never holds a worker that tracked robots wait for.
     """
 
     model_config = ConfigDict(extra="forbid", validate_assignment=True)
@@ -75,6 +79,8 @@ class ServiceSettings(BaseModel):
     max_robots: int = Field(default=1000, ge=1)
     worker_timeout_s: float = Field(default=30.0, gt=0.0)
     search_budget_ms: float = Field(default=25.0, ge=0.0, le=10_000.0)
+    search_worker: bool = True
+    search_worker_nice: int = Field(default=10, ge=0, le=19)
     log_level: Literal["debug", "info", "warning", "error"] = "info"
     shard: Literal["static", "hash"] = "static"
     takeover_grace_s: float = Field(default=0.25, ge=0.0, le=30.0)
@@ -230,6 +236,13 @@ def build_parser() -> argparse.ArgumentParser:
         "and taking over its robots (default 0.25)",
     )
     p.add_argument("--max-robots", dest="max_robots", type=int)
+    p.add_argument(
+        "--no-search-worker",
+        dest="search_worker",
+        action="store_false",
+        default=None,
+        help="searching robots stay on their worker (no extra, lower-priority search worker)",
+    )
     p.add_argument(
         "--search-budget-ms",
         dest="search_budget_ms",

@@ -32,7 +32,9 @@ import contextlib
 import hashlib
 import logging
 import multiprocessing as mp
+import os
 import signal
+import threading
 import traceback
 from dataclasses import dataclass
 from multiprocessing.connection import Connection
@@ -65,25 +67,46 @@ class Assignment:
     (the control thread assigns); readers may call :meth:`index_of` from any thread.
     """
 
-    def __init__(self, n: int) -> None:
+    def __init__(self, n: int, extra: int = 0) -> None:
         self.n = max(1, n)
         self._owner: dict[str, int] = {}
-        self._load = [0] * self.n
+        self._load = [0] * (self.n + max(0, extra))
+        self._lock = threading.Lock()
 
     def assign(self, robot_id: str) -> int:
-        """Owner of ``robot_id``, choosing the least-loaded worker on first assignment."""
-        idx = self._owner.get(robot_id)
-        if idx is None:
-            idx = min(range(self.n), key=lambda i: (self._load[i], i))
+        """Owner of ``robot_id``, choosing the least-loaded worker on first assignment (among
+        the first ``n``: the ``extra`` ones, e.g. the search worker, are only moved to)."""
+        with self._lock:
+            idx = self._owner.get(robot_id)
+            if idx is None:
+                idx = self._least()
+                self._load[idx] += 1
+                self._owner[robot_id] = idx
+            return idx
+
+    def _least(self) -> int:
+        return min(range(self.n), key=lambda i: (self._load[i], i))
+
+    def least_loaded(self) -> int:
+        """The least-loaded of the first ``n`` workers."""
+        with self._lock:
+            return self._least()
+
+    def move(self, robot_id: str, idx: int) -> None:
+        """Make worker ``idx`` (any, extra ones included) the robot's owner."""
+        with self._lock:
+            old = self._owner.get(robot_id)
+            if old is not None:
+                self._load[old] -= 1
             self._load[idx] += 1
             self._owner[robot_id] = idx
-        return idx
 
     def release(self, robot_id: str) -> None:
         """Forget the robot's owner."""
-        idx = self._owner.pop(robot_id, None)
-        if idx is not None:
-            self._load[idx] -= 1
+        with self._lock:
+            idx = self._owner.pop(robot_id, None)
+            if idx is not None:
+                self._load[idx] -= 1
 
     def index_of(self, robot_id: str) -> int:
         """Assigned owner, else the hash index."""
@@ -142,6 +165,11 @@ class WorkerCore:
             if kind == "forget":
                 self.robots.pop(req[1], None)
                 return ("ok", None)
+            if kind == "export":
+                return ("ok", self._export(req[1]))
+            if kind == "import":
+                self._import(req[1], req[2])
+                return ("ok", None)
             if kind == "ping":
                 return ("ok", "pong")
             return ("err", f"unknown worker request {kind!r}")
@@ -156,6 +184,28 @@ class WorkerCore:
         for r in self.robots.values():
             if r.map_id == md.map_id:
                 r.localizer = None  # rebuilt on the next scan from its last pose
+
+    def _export(self, robot_id: str) -> _Robot:
+        """Hand a robot (configuration, last pose and odometry, localiser with its state)
+        over to another worker: removed here, returned picklable."""
+        r = self.robots.pop(robot_id, None)
+        if r is None:
+            raise LocalizationError(f"robot {robot_id!r} has no configuration in this worker")
+        return r
+
+    def _import(self, robot_id: str, robot: _Robot) -> None:
+        """Take over a robot exported by another worker; its localiser is re-pointed at this
+        worker's copy of the map (or rebuilt from the last pose when the map changed)."""
+        if not isinstance(robot, _Robot):
+            raise LocalizationError(f"import of {robot_id!r}: not a robot state")
+        md = self.maps.get(robot.map_id)
+        loc = robot.localizer
+        if loc is not None and (md is None or loc.map_data.map_id != md.map_id):
+            loc = None
+        if loc is not None and md is not None:
+            loc.map_data = md
+        robot.localizer = loc
+        self.robots[robot_id] = robot
 
     def _map_delete(self, map_id: str) -> None:
         self.maps.pop(map_id, None)
@@ -237,6 +287,7 @@ class WorkerCore:
             "explained": _opt_float(est.explained),
             "ambiguity": _opt_float(est.ambiguity),
             "covariance": cov,
+            "searching": bool(getattr(r.localizer, "searching", False)),
             "hypotheses": None if est.hypotheses is None else int(est.hypotheses),
             "candidates": _candidate_rows(est.candidates),
         }
@@ -281,6 +332,7 @@ def _worker_main(
     log_level: str,
     cache_dir: Path | None = None,
     search_budget_ms: float | None = None,
+    nice: int = 0,
 ) -> None:
     """Entry point of a worker process: serve requests until EOF or ``("stop",)``."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent owns shutdown
@@ -288,6 +340,9 @@ def _worker_main(
         level=getattr(logging, log_level.upper(), logging.INFO),
         format="%(asctime)s %(levelname)s %(name)s[%(process)d]: %(message)s",
     )
+    if nice:
+        with contextlib.suppress(OSError):
+            os.nice(nice)  # a search worker yields the cores to the tracking workers
     core = WorkerCore(cache_dir, search_budget_ms)
     while True:
         try:
@@ -313,6 +368,7 @@ class ProcessWorker:
         log_level: str = "info",
         cache_dir: Path | None = None,
         search_budget_ms: float | None = None,
+        nice: int = 0,
     ) -> None:
         self.index = index
         self._log_level = log_level
@@ -320,7 +376,7 @@ class ProcessWorker:
         self._conn, child = ctx.Pipe(duplex=True)
         self._proc = ctx.Process(
             target=_worker_main,
-            args=(child, log_level, cache_dir, search_budget_ms),
+            args=(child, log_level, cache_dir, search_budget_ms, nice),
             name=f"shapeloc-worker-{index}",
             daemon=True,
         )

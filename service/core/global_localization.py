@@ -189,6 +189,17 @@ class GlobalShapeLocalizer:
         self.searches = 0
         self.reset(initial_pose)
 
+    def __getstate__(self) -> dict[str, object]:
+        """Picklable state (a robot moved to another worker process): the view index is
+        left out (the new process loads it from its cache on first use) and so is a search
+        in progress (a generator; the search starts again on the next scan)."""
+        state = dict(self.__dict__)
+        state["_index"] = None
+        state["_job"] = None
+        state["_twin_job"] = None
+        state["_confirm_next"] = False
+        return state
+
     @property
     def index(self) -> ViewIndex:
         """The map's view index (loaded or built on first use)."""
@@ -229,6 +240,7 @@ class GlobalShapeLocalizer:
         self._twin_job: hyp_mod.Job | None = None  # budgeted self-similarity check
         self._confirm_next = False  # budgeted: the tracker confirms a winner on the next scan
         self._travel = 0.0  # odometry travel (m) since the search started
+        self._since_search = 0  # scans since the last budgeted search finished
         self._candidates = 0  # poses the last finished search induced
         #: reference ms of search work spent on the last scan (budgeted search; benchmarks)
         self.work_ms = 0.0
@@ -349,6 +361,7 @@ class GlobalShapeLocalizer:
         self._twin_job = None
         self._confirm_next = False
         self._travel = 0.0
+        self._since_search = 0
         if last_pose is not None:
             p = np.asarray(last_pose, dtype=np.float64).copy()
             self._anchor = p.copy()
@@ -540,7 +553,12 @@ class GlobalShapeLocalizer:
         self._confirm_next = False
         if self._twin_job is not None and not confirming:
             spent, twin_done, twin = hyp_mod.advance(self._twin_job, spent, budget)
-        if (self._twin_job is None or twin_done) and spent < budget and not confirming:
+        idle = self._job is None and any(t.age >= 1 for t in self._tracks)
+        if idle and self._since_search < g.search_pause:
+            # hypotheses are held and re-scored: the next sweep over the map can wait a few
+            # scans (it looks for places the last one missed, e.g. after the view changed)
+            self._since_search += 1
+        elif (self._twin_job is None or twin_done) and spent < budget and not confirming:
             if self._job is None:
                 seeds = self._seeds() + self._anchor_seeds(odometry)
                 steps = search_steps(self.index, rs, as_, self.config, g, seeds=seeds, P=P)
@@ -553,6 +571,7 @@ class GlobalShapeLocalizer:
                 )
                 self._candidates = res.candidates
                 self._job = None
+                self._since_search = 0
                 extras["search_done"] = 1.0
         self.work_ms = spent
         max_amb = g.fused_fix_ambiguity if fused else g.max_fix_ambiguity
