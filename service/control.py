@@ -114,6 +114,8 @@ class ControlPlane:
     state: StateStore | None
     links: list[WorkerLink]
     assignment: Assignment
+    search_link: WorkerLink | None
+    migrate_lock: threading.Lock
     intake: ScanIntake
     _dirty: set[str]
     mirror: Mirror
@@ -272,7 +274,18 @@ class ControlPlane:
                 )
         new = robot_id not in self.configs
         with self.migrate_lock:  # no move between workers while the config is applied
-            link = self.links[self.assignment.assign(robot_id)]
+            idx = self.assignment.assign(robot_id)
+            search = self.search_link
+            if cfg.initial_pose is None and search is not None and idx != search.index:
+                # global localisation starts on the search worker (never on a tracking one)
+                if not new:
+                    self.links[idx].slots.discard(robot_id)
+                    self.links[idx].submit(("forget", robot_id)).result(
+                        timeout=self.settings.worker_timeout_s * 2 + 5
+                    )
+                self.assignment.move(robot_id, search.index)
+                idx = search.index
+            link = self.links[idx]
             status, why = link.submit(
                 ("config", robot_id, cfg.method, cfg.map_id, as_list(cfg.initial_pose), None, None)
             ).result(timeout=self.settings.worker_timeout_s * 2 + 5)

@@ -9,12 +9,14 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+import msgpack
 import numpy as np
 
 from service.core.global_localization import GlobalShapeLocalizer
+from service.core.raycast import RayCaster
 from service.workers import Assignment, WorkerCore
 from sim_publisher.scenario import make_setup
-from tests.service.test_node import START, Harness
+from tests.service.test_node import ANGLES, START, Harness
 
 
 def _wait(cond: Callable[[], bool], timeout: float = 20.0) -> None:
@@ -95,11 +97,32 @@ def test_node_moves_a_searching_robot_to_the_search_worker(tmp_path: Path) -> No
         from schemas.messages import RobotConfig
 
         h.put(cfg_key, encode(RobotConfig(map_id="room", method="shape", initial_pose=None)))
-        assert node.assignment.index_of("r1") == 0
+        # global localisation starts on the search worker
+        assert node.assignment.index_of("r1") == node.search_link.index
         h.put_scan("r1", 0, START)
         _wait(lambda: len(h.poses()) == 1)
         assert h.poses()[0].status == "initializing"
-        _wait(lambda: node.assignment.index_of("r1") == node.search_link.index)
+        # a robot that loses its track while on a tracking worker is moved there
+        h.put(
+            "shapeloc/robots/r3/config",
+            encode(RobotConfig(map_id="room", method="shape", initial_pose=list(START))),
+        )
+        assert node.assignment.index_of("r3") == 0
+        h.put_scan("r3", 0, START)
+        _wait(lambda: len(h.poses("r3")) == 1)
+        assert h.poses("r3")[0].status == "tracking"
+        # kidnapped into a long hall: the scans no longer fit the map at all
+        hall = RayCaster(np.array([[0, 0, 20, 0], [20, 0, 20, 2.5], [20, 2.5, 0, 2.5]], float))
+        for k in range(1, 8):
+            wire = h.scan_msg(k, START)
+            wire["ranges"] = [float(v) for v in hall.cast(np.array([10.0, 1.2, 0.0]), ANGLES, 15)]
+            h.put("shapeloc/robots/r3/scan", msgpack.packb(wire))
+            _wait(lambda k=k: len(h.poses("r3")) == k + 1)
+            if node.assignment.index_of("r3") == node.search_link.index:
+                break
+        assert node.assignment.index_of("r3") == node.search_link.index, [
+            p.status for p in h.poses("r3")
+        ]
         assert node.errors["worker.MovedToSearch"] == 1
         # the robot's next scans are served by the search worker
         h.put_scan("r1", 1, START)
