@@ -138,19 +138,38 @@ def validate_scan(raw: RawScan) -> ValidScan:
 
 class ControlClock:
     """Counts control messages (maps, configs) received and applied, so that a scan waits
-    until every control message received before it has been applied (causality of "put map,
-    put config, put scan" from one client). ``received`` is written by the callback thread
-    only; ``applied`` by the control thread; readers need no lock for a snapshot."""
+    until every map and every configuration of its robot received before it has been applied
+    (causality of "put map, put config, put scan" from one client). ``received`` is written
+    by the callback thread only; ``applied`` by the control thread; readers need no lock for
+    a snapshot."""
 
     def __init__(self) -> None:
         self.received = 0
         self.applied = 0
         self._cond = threading.Condition()
+        #: number of the last control message about each robot (its config), and of the last
+        #: one about anything else (maps): a scan waits only for those (callback thread only)
+        self._robot: dict[str, int] = {}
+        self._other = 0
 
-    def next(self) -> int:
-        """Number the next control message (callback thread only)."""
+    def next(self, robot_id: str = "") -> int:
+        """Number the next control message, about ``robot_id`` ("": a map or anything not
+        about one robot) (callback thread only)."""
         self.received += 1
+        if robot_id:
+            if len(self._robot) > 4096:  # forget what is applied (bounds the memory)
+                done = self.applied
+                self._robot = {r: n for r, n in self._robot.items() if n > done}
+            self._robot[robot_id] = self.received
+        else:
+            self._other = self.received
         return self.received
+
+    def needed(self, robot_id: str) -> int:
+        """The control message a scan of ``robot_id`` received now must wait for: the last
+        one about that robot or about a map, not another robot's configuration (a slow
+        worker applying it must not hold every robot's scans)."""
+        return max(self._robot.get(robot_id, 0), self._other)
 
     def mark_applied(self, ctl: int) -> None:
         """Control message ``ctl`` (and every one before it) has been applied."""

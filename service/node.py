@@ -404,7 +404,7 @@ class ServiceNode(ClusterPlane, ControlPlane):
             return
         key = str(sample.key_expr)
         size = len(sample.payload)
-        ctl = self.clock.received
+        ctl = self.clock.needed(robot_id)
         reject: ShapelocError | None = None
         if sample.kind == self.zenoh.SampleKind.DELETE:
             reject = InvalidMessage("a scan cannot be deleted")
@@ -455,7 +455,8 @@ class ServiceNode(ClusterPlane, ControlPlane):
                     raise queue.Full
                 self._control_bytes += size
             self._control_q.put_nowait(dataclasses.replace(item, ctl=self.clock.received + 1))
-            self.clock.next()  # only this callback thread numbers control messages
+            # only this callback thread numbers control messages
+            self.clock.next(self.classify(item.key)[1])
         except queue.Full:
             with self.lock:
                 self._control_overflow += 1
