@@ -80,7 +80,7 @@ class ServiceSettings(BaseModel):
     worker_timeout_s: float = Field(default=30.0, gt=0.0)
     search_budget_ms: float = Field(default=25.0, ge=0.0, le=10_000.0)
     search_worker: bool = True
-    search_worker_nice: int = Field(default=10, ge=0, le=19)
+    search_worker_nice: int = Field(default=19, ge=0, le=19)
     log_level: Literal["debug", "info", "warning", "error"] = "info"
     shard: Literal["static", "hash"] = "static"
     takeover_grace_s: float = Field(default=0.25, ge=0.0, le=30.0)

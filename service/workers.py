@@ -327,34 +327,6 @@ class InlineWorker:
         """Nothing to release."""
 
 
-class _Policy:
-    """The search worker's scheduling: scans run in the idle class (``SCHED_IDLE``: only when
-    a core has nothing else to do, so a search never delays a tracked robot's scan); other
-    requests (maps, configs, moves) in the normal class at the worker's nice level, since
-    every robot's next scan waits until a configuration is applied. Without ``SCHED_IDLE``
-    (not Linux) the nice level alone lowers the worker's priority."""
-
-    def __init__(self, idle_scans: bool) -> None:
-        self.enabled = (
-            idle_scans and hasattr(os, "sched_setscheduler") and hasattr(os, "SCHED_IDLE")
-        )
-        self.idle = False
-
-    def enter(self, kind: str) -> None:
-        if not self.enabled:
-            return
-        want = kind == "scan"
-        if want == self.idle:
-            return
-        try:
-            policy = os.SCHED_IDLE if want else os.SCHED_OTHER
-            os.sched_setscheduler(0, policy, os.sched_param(0))
-            self.idle = want
-        except OSError as e:  # e.g. a container that forbids it: stay as is
-            log.warning("search worker scheduling class not changed: %s", e)
-            self.enabled = False
-
-
 def _worker_main(
     conn: Connection,
     log_level: str,
@@ -369,9 +341,14 @@ def _worker_main(
         format="%(asctime)s %(levelname)s %(name)s[%(process)d]: %(message)s",
     )
     if nice:
+        # the search worker: the lowest priority, and the batch scheduling class (it never
+        # preempts a tracking worker when it wakes); unlike the idle class it is never
+        # starved outright, so a saturated machine still answers searching robots (slowly)
         with contextlib.suppress(OSError):
             os.nice(nice)
-    policy = _Policy(idle_scans=bool(nice))
+        if hasattr(os, "sched_setscheduler") and hasattr(os, "SCHED_BATCH"):
+            with contextlib.suppress(OSError):
+                os.sched_setscheduler(0, os.SCHED_BATCH, os.sched_param(0))
     core = WorkerCore(cache_dir, search_budget_ms)
     while True:
         try:
@@ -380,7 +357,6 @@ def _worker_main(
             break
         if req[0] == "stop":
             break
-        policy.enter(req[0])
         conn.send(core.handle(req))
     conn.close()
 
