@@ -47,9 +47,9 @@ from service.core import _kernels
 from service.core import hypotheses as hyp_mod
 from service.core.composite import composite_scan
 from service.core.configuration import (
-    Configuration,
     scan_configuration,
 )
+from service.core.drive_search import DriveSearch
 from service.core.global_config import GlobalConfig
 from service.core.global_search import (
     Hypothesis,
@@ -58,10 +58,7 @@ from service.core.global_search import (
     _near,
     ambiguity,
     global_search,
-    scan_information,
-    search_steps,
     self_similar,
-    self_similar_steps,
     verify,
 )
 from service.core.localizer import ShapeConfig, ShapeLocalizer
@@ -130,7 +127,7 @@ def _position_sigma(est: Estimate) -> float:
     return float(np.sqrt(max(0.0, float(np.linalg.eigvalsh(0.5 * (c + c.T))[-1]))))
 
 
-class GlobalShapeLocalizer:
+class GlobalShapeLocalizer(DriveSearch):
     """Shape-based localisation with global search (implements
     :class:`service.core.types.Localizer`, method ``shape``).
 
@@ -515,190 +512,6 @@ class GlobalShapeLocalizer:
         self.tracker.reset(None)
         extras["confirm_rejected"] = 1.0
         return None
-
-    def _search_budgeted(
-        self,
-        r: np.ndarray,
-        a: np.ndarray,
-        rs: np.ndarray,
-        as_: np.ndarray,
-        P: Configuration,
-        odometry: bool,
-    ) -> Estimate:
-        """One scan of the search spread over scans (``gconfig.search_budget_ms``).
-
-        1. The kept hypotheses (already moved by this scan's odometry) are fitted to this
-           scan and verified, best first, within ``rescore_share`` of the budget
-           (:func:`service.core.hypotheses.rescore`).
-        2. A pending self-similarity check, then the pending search (or a new one, seeded
-           by the hypotheses, on this scan) advance by what is left of the budget; a
-           finished search's hypotheses are moved by the odometry since its scan and join
-           the kept ones (:func:`~service.core.hypotheses.merge`), the best ``keep`` stay.
-        3. The decision is the one of the unbudgeted search, on the re-scored hypotheses:
-           windowed cost, ambiguity against the best distinct alternative (hypotheses not
-           yet re-scored count as alternatives), best on two scans or clear on one,
-           information, near or far from the lost track. A would-be winner's twin check
-           runs as a job of its own; the winner is fixed when the check has passed and the
-           tracker confirms it on the scan at hand.
-        """
-        g = self.gconfig
-        budget = float(g.search_budget_ms or 0.0)
-        fused = len(self._history) > 1
-        spent = hyp_mod.rescore(
-            self.index, self._tracks, rs, as_, P, self.config, g, budget * g.rescore_share, odometry
-        )
-        extras: dict[str, float] = {}
-        twin_done, twin = False, None
-        confirming = self._confirm_next
-        self._confirm_next = False
-        if self._twin_job is not None and not confirming:
-            spent, twin_done, twin = hyp_mod.advance(self._twin_job, spent, budget)
-        idle = self._job is None and any(t.age >= 1 for t in self._tracks)
-        if idle and self._since_search < g.search_pause:
-            # hypotheses are held and re-scored: the next sweep over the map can wait a few
-            # scans (it looks for places the last one missed, e.g. after the view changed)
-            self._since_search += 1
-        elif (self._twin_job is None or twin_done) and spent < budget and not confirming:
-            if self._job is None:
-                seeds = self._seeds() + self._anchor_seeds(odometry)
-                steps = search_steps(self.index, rs, as_, self.config, g, seeds=seeds, P=P)
-                self._job = hyp_mod.Job(steps, self._odom_copy())
-            spent, done, res = hyp_mod.advance(self._job, spent, budget)
-            if done:
-                move = hyp_mod.odometry_move(self._job.odom, self._last_odom)
-                self._tracks = hyp_mod.merge(
-                    self._tracks, res.hypotheses, move, g.keep, self._travel
-                )
-                self._candidates = res.candidates
-                self._job = None
-                self._since_search = 0
-                extras["search_done"] = 1.0
-        self.work_ms = spent
-        max_amb = g.fused_fix_ambiguity if fused else g.max_fix_ambiguity
-        if twin_done:
-            self._twin_result(twin, max_amb, extras)
-        for t in self._tracks:
-            t.costs = t.costs[-g.window :]
-            t.hyp.cost = t.costs[-1] if fused else float(np.mean(t.costs))
-        self._tracks = hyp_mod.prune(self._tracks, g.keep)
-        rated = [t for t in self._tracks if t.age >= 1]
-        for k, t in enumerate(rated):
-            t.wins = t.wins + 1 if k == 0 else 0
-        amb = ambiguity([t.hyp for t in self._tracks], g)
-        extras.update({"hypotheses": float(len(self._tracks)), "work_ms": spent})
-        if not rated:
-            return self._no_hypothesis(extras)
-        best = rated[0]
-        near_track = self._near_track(rated, odometry)
-        if near_track is not None:
-            best = near_track
-        far = self._anchor is not None and near_track is None
-        information = scan_information(P, self.config, g)
-        extras.update(
-            {
-                "candidates": float(self._candidates),
-                "search_cost": best.hyp.cost,
-                "hit": best.hyp.hit,
-                "violation": best.hyp.violation,
-                "information": information,
-            }
-        )
-        steady = best.wins >= 2 and (fused or best.age >= min(self._episode, g.window))
-        if fused:
-            single = amb < g.fused_single_ambiguity and best.hyp.cost <= g.max_fix_cost
-        else:
-            single = amb < g.single_scan_ambiguity
-        confirmed = steady or single
-        if far:
-            confirmed = best.wins >= g.far_confirm_scans
-        informative = information >= g.min_information
-        fix_cost = g.fused_fix_cost if fused else g.max_fix_cost
-        if near_track is not None:
-            confirmed, informative, amb = True, True, 0.0
-            fix_cost = g.max_fix_cost
-            best.twin_ok = True  # the motion history rules out the far twins
-            extras["near_track"] = 1.0
-        elif odometry and self._drive_won(best, extras):
-            # the drive rule: the best explanation of the last drive_scans scans by a clear
-            # margin while the robot drove; it stands in for the single-scan bars
-            confirmed, informative, amb = True, True, 0.0
-            fix_cost = max(fix_cost, g.drive_max_cost)
-            extras["drive_rule"] = 1.0
-        lead_cost = max(fix_cost, g.drive_max_cost) if odometry else fix_cost
-        if (
-            best.twin_ok is None
-            and self._twin_job is None
-            and best.hyp.cost <= lead_cost
-            and (informative or odometry)
-        ):
-            # the best hypothesis' twin check starts as soon as it leads (not when it has
-            # won): it takes a search's work, which then overlaps the evidence the drive
-            # gathers meanwhile
-            tg = g.model_copy(
-                update={
-                    "shortlist": min(g.shortlist, g.twin_shortlist),
-                    "refine_top": min(g.refine_top, g.twin_refine_top),
-                }
-            )
-            steps = self_similar_steps(self.index, best.hyp, rs, as_, P, self.config, tg)
-            self._twin_job = hyp_mod.Job(steps, self._odom_copy(), track=best, cost=best.hyp.cost)
-        if best.hyp.cost <= fix_cost and amb <= max_amb and confirmed and informative:
-            if best.twin_ok is None:
-                extras["twin_pending"] = 1.0
-            elif best.twin_ok and spent + hyp_mod.CONFIRM_MS > budget and not confirming:
-                # the tracker's confirmation would overrun this scan's budget: it runs
-                # first on the next scan, which then advances no search
-                self._confirm_next = True
-                extras["confirm_next"] = 1.0
-            elif best.twin_ok:
-                self.work_ms = spent + hyp_mod.CONFIRM_MS
-                est = self._confirm(best, r, a, amb, extras)
-                if est is not None:
-                    return est
-        if far and self._anchor is not None and best.wins < g.far_confirm_scans:
-            guess = _Track(self._anchor.copy(), best.costs, best.hyp, best.wins)
-            return self._unresolved(guess, amb, extras)
-        return self._unresolved(best, amb, extras)
-
-    def _drive_won(self, best: _Track, extras: dict[str, float]) -> bool:
-        """The drive rule (``GlobalConfig.drive_scans``) for the best re-scored hypothesis."""
-        g = self.gconfig
-        if len(best.hist) < g.drive_scans or best.wins < g.drive_wins:
-            return False
-        if self._travel - best.born < g.drive_travel:
-            return False
-        mean = float(np.mean(best.hist[-g.drive_scans :]))
-        margin = hyp_mod.drive_margin(best, self._tracks, g.drive_scans, g)
-        extras["drive_cost"] = mean
-        extras["drive_margin"] = min(margin, 9.0)
-        return mean <= g.drive_max_cost and margin >= g.drive_margin
-
-    def _twin_result(
-        self, twin: Hypothesis | None, max_amb: float, extras: dict[str, float]
-    ) -> None:
-        """A finished self-similarity check: the track passes it, or the twin joins the
-        hypotheses (moved by the odometry since the check's scan) and the track must win
-        against it and be checked again."""
-        job = self._twin_job
-        self._twin_job = None
-        if job is None or job.track is None or job.track not in self._tracks:
-            return
-        track = job.track
-        if twin is None:
-            track.twin_ok = True
-            return
-        twin_amb = ambiguity([Hypothesis(pose=track.pose, cost=job.cost), twin], self.gconfig)
-        extras["twin_ambiguity"] = twin_amb
-        if twin_amb <= max_amb:
-            track.twin_ok = True
-            return
-        extras["twin_rejected"] = 1.0
-        track.twin_ok = None
-        move = hyp_mod.odometry_move(job.odom, self._last_odom)
-        self._tracks = hyp_mod.merge(self._tracks, [twin], move, 1, self._travel)
-
-    def _odom_copy(self) -> np.ndarray | None:
-        return None if self._last_odom is None else self._last_odom.copy()
 
     def _no_hypothesis(self, extras: dict[str, float]) -> Estimate:
         """The estimate while no hypothesis is known (yet): the dead-reckoned last pose after
