@@ -589,14 +589,16 @@ class ServiceNode(ClusterPlane, ControlPlane):
             self._dirty.add(robot_id)
             self.scans_processed += 1
         self.session.put(keys.robot_key(self.prefix, robot_id, "pose"), payload, encoding=_MSGPACK)
-        if self.search_link is not None and bool(out.get("searching")) != (
+        if self.search_link is not None and bool(out.get("unsettled")) != (
             link is self.search_link
         ):
-            self._migrate(link, robot_id, to_search=bool(out.get("searching")))
+            self._migrate(link, robot_id, to_search=bool(out.get("unsettled")))
 
     def _migrate(self, link: WorkerLink, robot_id: str, to_search: bool) -> None:
-        """Move a robot that started searching to the search worker, or one that tracks again
-        back to the least-loaded tracking worker, with its localiser's state (runs on
+        """Move a robot that started searching to the search worker, or one that has tracked
+        ``settle_scans`` scans since its fix back to the least-loaded tracking worker (a wrong
+        or early fix that is lost again then stays on the search worker), with its
+        localiser's state (runs on
         ``link``'s thread, the robot's current owner). Skipped while a configuration is being
         applied (the control thread holds ``migrate_lock``); the next scan tries again."""
         if not self.migrate_lock.acquire(blocking=False):

@@ -22,8 +22,9 @@ Requests (all picklable):
 
 Replies are ``("ok", payload)`` or ``("err", reason)``; a scan's payload is a dict with
 ``pose`` (list of 3 floats, map frame), ``status``, ``score``, ``explained``, ``ambiguity``,
-``covariance`` (9 floats row-major, or ``None``), ``hypotheses`` (int or ``None``) and
-``candidates`` (rows ``[x, y, theta, cost]``, or ``None``).
+``covariance`` (9 floats row-major, or ``None``), ``hypotheses`` (int or ``None``),
+``candidates`` (rows ``[x, y, theta, cost]``, or ``None``) and ``unsettled`` (the robot
+searches or was fixed by a search a few scans ago: the node keeps it on the search worker).
 """
 
 from __future__ import annotations
@@ -287,7 +288,8 @@ class WorkerCore:
             "explained": _opt_float(est.explained),
             "ambiguity": _opt_float(est.ambiguity),
             "covariance": cov,
-            "searching": bool(getattr(r.localizer, "searching", False)),
+            # searching or just fixed: the node keeps such a robot on the search worker
+            "unsettled": bool(getattr(r.localizer, "unsettled", False)),
             "hypotheses": None if est.hypotheses is None else int(est.hypotheses),
             "candidates": _candidate_rows(est.candidates),
         }

@@ -283,6 +283,13 @@ class GlobalConfig(BaseModel):
         "next while hypotheses are held (re-scored on every scan meanwhile). 5 was tried on "
         "the tuning maps: the same travel to a fix and no less CPU, so none by default.",
     )
+    settle_scans: int = Field(
+        20,
+        ge=0,
+        description="After a fix by the search, the localiser counts as unsettled for this "
+        "many tracked scans (``GlobalShapeLocalizer.unsettled``): a service keeps it on its "
+        "search worker meanwhile.",
+    )
     rescore_share: float = Field(
         0.5,
         gt=0,

@@ -212,6 +212,13 @@ class GlobalShapeLocalizer(DriveSearch):
         return None if self._searching else self.tracker.pose
 
     @property
+    def unsettled(self) -> bool:
+        """Searching, or fixed by a search fewer than ``gconfig.settle_scans`` scans ago: where
+        a service keeps the robot on its search worker (a wrong or early fix that is lost again
+        then costs no tracking worker a search)."""
+        return self._searching or self._since_fix < self.gconfig.settle_scans
+
+    @property
     def searching(self) -> bool:
         """``True`` while the pose is unknown (global search on every scan)."""
         return self._searching
@@ -226,6 +233,7 @@ class GlobalShapeLocalizer(DriveSearch):
             None if initial_pose is None or odom is None else check_pose3(odom, "odom")
         )
         self._searching = initial_pose is None
+        self._since_fix = self.gconfig.settle_scans  # a given pose needs no settling
         self._search_status = "initializing"
         self._unfit = 0  # consecutive tracked scans that did not fit the map at all
         self._episode = 0
@@ -249,6 +257,7 @@ class GlobalShapeLocalizer(DriveSearch):
         ``angles`` radians robot frame, ``odom`` optional odometry pose (own frame; only used
         to move the kept hypotheses between scans)."""
         if not self._searching:
+            self._since_fix += 1
             delta = self._remember_odom(odom)
             if (
                 delta is not None
@@ -502,6 +511,7 @@ class GlobalShapeLocalizer(DriveSearch):
             and _position_sigma(est) <= g.confirm_sigma
         )
         if est.status == "tracking" and "rejected" not in est.extras and close:
+            self._since_fix = 0
             self._searching = False
             self._tracks = []
             self._job = None
@@ -557,6 +567,7 @@ class GlobalShapeLocalizer(DriveSearch):
             self.tracker.reset(None)
             return None
         self._searching = False
+        self._since_fix = 0
         self._tracks = []
         self._history = []
         self._reacquired = 0

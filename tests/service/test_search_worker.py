@@ -79,11 +79,11 @@ def test_export_import_carries_the_localiser_state() -> None:
         core = c if i < 2003 else d
         out = core.handle(("scan", "s", r, ang, su.odom[i]))[1]
         if i < 2003:
-            assert out["searching"]
+            assert out["unsettled"]
         if out["status"] == "tracking":
             assert np.hypot(*(np.array(out["pose"][:2]) - su.truth[i][:2])) < 0.5
             break
-    assert out is not None and out["status"] == "tracking" and not out["searching"]
+    assert out is not None and out["status"] == "tracking" and out["unsettled"]  # just fixed
 
 
 def test_node_moves_a_searching_robot_to_the_search_worker(tmp_path: Path) -> None:

@@ -157,3 +157,21 @@ def test_the_factory_passes_the_budget_to_the_global_search() -> None:
     assert isinstance(loc, GlobalShapeLocalizer)
     assert loc.gconfig.search_budget_ms == 12.5
     assert create_localizer("shape", su.map_data, None).gconfig.search_budget_ms is None
+
+
+def test_a_fixed_robot_stays_unsettled_for_settle_scans() -> None:
+    """A robot configured with a pose is settled at once; one found by the search counts as
+    unsettled (the service keeps it on its search worker) until it has tracked settle_scans
+    scans."""
+    su = make_setup(1, max_scans=2100)
+    assert not create_localizer("shape", su.map_data, su.truth[0]).unsettled
+    loc = _budgeted(su.map_data, 25.0)
+    assert loc.unsettled
+    run = _drive(loc, su, 2000, 60)
+    i, est, _w = run[-1]
+    assert est.status == "tracking" and loc.unsettled
+    n = loc.gconfig.settle_scans
+    for k in range(i + 1, i + 1 + n):
+        assert loc.unsettled, k
+        loc.update(*su.scan(k), su.odom[k])
+    assert not loc.unsettled
