@@ -43,7 +43,6 @@ class DriveSearch:
     _confirm_next: bool
     _candidates: int
     _travel: float
-    _since_search: int
     _episode: int
     _anchor: np.ndarray | None
     _last_odom: np.ndarray | None
@@ -87,12 +86,7 @@ class DriveSearch:
         self._confirm_next = False
         if self._twin_job is not None and not confirming:
             spent, twin_done, twin = hyp_mod.advance(self._twin_job, spent, budget)
-        idle = self._job is None and any(t.age >= 1 for t in self._tracks)
-        if idle and self._since_search < g.search_pause:
-            # hypotheses are held and re-scored: the next sweep over the map can wait a few
-            # scans (it looks for places the last one missed, e.g. after the view changed)
-            self._since_search += 1
-        elif (self._twin_job is None or twin_done) and spent < budget and not confirming:
+        if (self._twin_job is None or twin_done) and spent < budget and not confirming:
             if self._job is None:
                 seeds = self._seeds() + self._anchor_seeds(odometry)
                 steps = search_steps(self.index, rs, as_, self.config, g, seeds=seeds, P=P)
@@ -105,7 +99,6 @@ class DriveSearch:
                 )
                 self._candidates = res.candidates
                 self._job = None
-                self._since_search = 0
                 extras["search_done"] = 1.0
         self.work_ms = spent
         max_amb = g.fused_fix_ambiguity if fused else g.max_fix_ambiguity

@@ -276,13 +276,6 @@ class GlobalConfig(BaseModel):
     drive_travel: float = Field(1.0, ge=0, description="See drive_scans (m).")
     drive_margin: float = Field(0.15, gt=0, description="See drive_scans.")
     drive_max_cost: float = Field(0.7, gt=0, description="See drive_scans.")
-    search_pause: int = Field(
-        0,
-        ge=0,
-        description="With a budget, scans between the end of one search and the start of the "
-        "next while hypotheses are held (re-scored on every scan meanwhile). 5 was tried on "
-        "the tuning maps: the same travel to a fix and no less CPU, so none by default.",
-    )
     settle_scans: int = Field(
         20,
         ge=0,

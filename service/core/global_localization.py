@@ -245,7 +245,6 @@ class GlobalShapeLocalizer(DriveSearch):
         self._twin_job: hyp_mod.Job | None = None  # budgeted self-similarity check
         self._confirm_next = False  # budgeted: the tracker confirms a winner on the next scan
         self._travel = 0.0  # odometry travel (m) since the search started
-        self._since_search = 0  # scans since the last budgeted search finished
         self._candidates = 0  # poses the last finished search induced
         #: reference ms of search work spent on the last scan (budgeted search; benchmarks)
         self.work_ms = 0.0
@@ -367,7 +366,6 @@ class GlobalShapeLocalizer(DriveSearch):
         self._twin_job = None
         self._confirm_next = False
         self._travel = 0.0
-        self._since_search = 0
         if last_pose is not None:
             p = np.asarray(last_pose, dtype=np.float64).copy()
             self._anchor = p.copy()

@@ -215,33 +215,27 @@ def _refine(
         robust_scale=config.align_robust_scale,
         damping=config.align_damping,
     )
-    # second, tighter stage: only the segments right under the points and a small robust
-    # scale, so returns from unmapped objects (furniture on a floor plan) stop pulling
-    refined, _ = fit_pairs(
-        [sp] * n,
-        [
-            _nearby_segments(index.segments, transform_points(p, sp), 2.0 * gconfig.fine_scale)
-            for p in refined
-        ],
-        refined,
-        iterations=gconfig.refine_iterations,
-        robust_scale=gconfig.fine_scale,
-        damping=config.align_damping,
-    )
+
+    def fine(start: np.ndarray) -> np.ndarray:
+        # only the segments right under the points and a small robust scale, so returns from
+        # unmapped objects (furniture on a floor plan) stop pulling
+        out, _ = fit_pairs(
+            [sp] * n,
+            [
+                _nearby_segments(index.segments, transform_points(p, sp), 2.0 * gconfig.fine_scale)
+                for p in start
+            ],
+            start,
+            iterations=gconfig.refine_iterations,
+            robust_scale=gconfig.fine_scale,
+            damping=config.align_damping,
+        )
+        return out
+
+    refined = fine(refined)
     refined, _ = _polish(index, refined, sp, gconfig.fine_scale)
     # and a last continuous fit from there (the distance field is quantised to its cells)
-    refined, _ = fit_pairs(
-        [sp] * n,
-        [
-            _nearby_segments(index.segments, transform_points(p, sp), 2.0 * gconfig.fine_scale)
-            for p in refined
-        ],
-        refined,
-        iterations=gconfig.refine_iterations,
-        robust_scale=gconfig.fine_scale,
-        damping=config.align_damping,
-    )
-    return refined
+    return fine(refined)
 
 
 def _distinct(a: np.ndarray, b: np.ndarray, gconfig: GlobalConfig) -> bool:
@@ -342,6 +336,11 @@ _CHUNK_SSTAR = 96  # S* comparisons between two yields
 _CHUNK_POSES = 800  # poses of the support ranking between two yields
 _CHUNK_POLISH = 12  # poses polished between two yields
 _CHUNK_REFINE = 2  # poses refined / verified between two yields
+
+
+def polish_ms(points: int) -> float:
+    """Work (reference ms) of one pose's :func:`_polish` (two 5 x 5 x 5 grids) on ``points``."""
+    return 250 * max(points, 1) * WORK_MS["polish"]
 
 
 def _verify_ms(gconfig: GlobalConfig) -> float:
@@ -495,9 +494,7 @@ def search_steps(
             quick_parts.append(
                 _beam_costs(index, pol, r, a, gconfig.shortlist_beams, config, gconfig)
             )
-            yield len(block) * (
-                250 * len(sp) * WORK_MS["polish"] + gconfig.shortlist_beams * WORK_MS["beam"]
-            )
+            yield len(block) * (polish_ms(len(sp)) + gconfig.shortlist_beams * WORK_MS["beam"])
         H = np.vstack(polished_parts)
         quick = np.concatenate(quick_parts)
         order = np.argsort(quick, kind="stable")

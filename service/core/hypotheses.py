@@ -37,6 +37,7 @@ from service.core.global_search import (
     _refine,
     _subsample,
     _verify_ms,
+    polish_ms,
     verify,
 )
 from service.core.localizer import ShapeConfig
@@ -83,7 +84,6 @@ class Job:
     odom: np.ndarray | None
     track: Track | None = None
     cost: float = 0.0
-    work: float = field(default=0.0)
 
 
 def advance(job: Job, spent: float, budget: float) -> tuple[float, bool, Any]:
@@ -95,7 +95,6 @@ def advance(job: Job, spent: float, budget: float) -> tuple[float, bool, Any]:
         except StopIteration as stop:
             return spent, True, stop.value
         spent += w
-        job.work += w
         if spent >= budget:
             return spent, False, None
 
@@ -127,7 +126,7 @@ def rescore(
         return 0.0
     pts = np.vstack([f.points for f in P.features]) if P.features else np.zeros((0, 2))
     sp = _subsample(pts, gconfig.support_points)
-    fit_ms = 250 * max(len(sp), 1) * WORK_MS["polish"] if odometry else WORK_MS["refine"]
+    fit_ms = polish_ms(len(sp)) if odometry else WORK_MS["refine"]
     each = fit_ms + _verify_ms(gconfig)
     n = max(1, min(len(tracks), int(limit // each)))
     order = sorted(range(len(tracks)), key=lambda k: tracks[k].hyp.cost)

@@ -22,6 +22,9 @@ from service.core.raycast import RayCaster
 from service.errors import InvalidMessage
 from service.node import ServiceNode
 from service.settings import ServiceSettings, load_settings
+from tests.service.test_node import FakeQuery as Query
+from tests.service.test_node import FakeSample as Sample
+from tests.service.test_node import wait_for
 
 ROOM = [[[0.0, 0.0], [6.0, 0.0], [6.0, 4.0], [0.0, 4.0], [0.0, 0.0]], [[2.0, 1.0], [3.0, 1.0]]]
 ANGLES = np.linspace(-np.pi / 2, np.pi / 2, 181)
@@ -147,41 +150,10 @@ class FakeSession:
         return [decode(PoseMsg, p) for k, p in self.puts if k == f"{P}/robots/{robot}/pose"]
 
 
-class Sample:
-    def __init__(self, key: str, payload: bytes, delete: bool = False) -> None:
-        self.key_expr = zenoh.KeyExpr(key)
-        self.payload = zenoh.ZBytes(payload)
-        self.encoding = zenoh.Encoding("application/msgpack")
-        self.kind = zenoh.SampleKind.DELETE if delete else zenoh.SampleKind.PUT
-
-
 class Reply:
     def __init__(self, key: str, payload: bytes) -> None:
         self.ok = Sample(key, payload)
         self.err = None
-
-
-class Query:
-    def __init__(self, key: str) -> None:
-        self.key_expr = zenoh.KeyExpr(key)
-        self.replies: list[tuple[str, bytes]] = []
-        self.errors: list[bytes] = []
-
-    def reply(self, key: str, payload: bytes, encoding: Any = None) -> None:
-        self.replies.append((str(key), bytes(payload)))
-
-    def reply_err(self, payload: bytes) -> None:
-        self.errors.append(bytes(payload))
-
-    def drop(self) -> None:
-        pass
-
-
-def wait_for(pred: Callable[[], bool], timeout_s: float = 10.0) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not pred():
-        assert time.monotonic() < deadline, "condition not met in time"
-        time.sleep(0.005)
 
 
 class Node:
