@@ -561,7 +561,7 @@ def drive_source(m: DriveMap, data: Path, stride1: int = 1) -> DriveSource:
         src = DriveSource(
             map_data=su.map_data,
             travel=cumulative_travel(su.truth[:, :2]),
-            truth=su.truth,
+            truth=su.reference,
             stride=stride1 if setup == 1 else 1,
             scan=su.scan,
             odom=lambda i: su.odom[i],
@@ -890,11 +890,16 @@ def parse_worlds(text: str) -> list[int]:
     return list(range(HELD_OUT_FIRST_SEED, HELD_OUT_FIRST_SEED + int(text)))
 
 
-def drive_maps(groups: Sequence[str], seeds: Sequence[int], logs: Sequence[str]) -> list[DriveMap]:
-    """The maps of the selected groups, in table order."""
+def drive_maps(
+    groups: Sequence[str],
+    seeds: Sequence[int],
+    logs: Sequence[str],
+    kinds: Sequence[str] = ("metric", "schematic"),
+) -> list[DriveMap]:
+    """The maps of the selected groups and map kinds, in table order."""
     out: list[DriveMap] = []
     for g in groups:
-        for kind in ("metric", "schematic"):
+        for kind in (k for k in ("metric", "schematic") if k in kinds):
             if g == "office":
                 out.append(DriveMap("office", "office", kind))
             elif g == "worlds":
@@ -940,7 +945,10 @@ def drive_main(args: argparse.Namespace, argv: Sequence[str]) -> int:
     if "real" in groups and not Path(args.data).is_dir():
         raise SystemExit(f"{args.data}: no real-log directory (--data, or drop group 'real')")
     seeds = parse_worlds(args.worlds)
-    maps = drive_maps(groups, seeds, logs)
+    kinds = [k.strip() for k in args.kinds.split(",") if k.strip()]
+    if not kinds or any(k not in ("metric", "schematic") for k in kinds):
+        raise SystemExit(f"--kinds: metric and/or schematic, got {args.kinds!r}")
+    maps = drive_maps(groups, seeds, logs, kinds)
     cap = args.quick if args.quick is not None else 1 << 30
     cache = str(Path(args.cache).resolve())
     data = str(Path(args.data).resolve())
@@ -1109,6 +1117,9 @@ def main(argv: list[str] | None = None) -> int:
     )
     drive.add_argument(
         "--worlds", default="8", help="held-out worlds: a count N (seeds 1000..999+N), a-b or a,b"
+    )
+    drive.add_argument(
+        "--kinds", default="metric,schematic", help="map kinds: metric and/or schematic"
     )
     drive.add_argument("--real-starts", type=int, default=10, help="starts per real log and map")
     drive.add_argument("--logs", default=",".join(REAL_LOGS), help="real logs")

@@ -86,7 +86,7 @@ def run_one(
 
     b = _building(seed, people)
     s = building_setup(b, setup, seed=0, max_scans=max_scans)
-    loc = create_localizer(method, s.map_data, s.truth[0])
+    loc = create_localizer(method, s.map_data, s.reference[0])
     n = len(s)
     err = np.empty(n)
     deg = np.empty(n)
@@ -100,7 +100,7 @@ def run_one(
         t0 = time.perf_counter()
         est = loc.update(r, a, s.odom[i] if odom else None)
         ms[i] = 1e3 * (time.perf_counter() - t0)
-        t = s.truth[i]
+        t = s.reference[i]
         poses[i] = est.pose
         err[i] = 1e3 * math.hypot(est.pose[0] - t[0], est.pose[1] - t[1])
         deg[i] = math.degrees(abs((est.pose[2] - t[2] + math.pi) % (2 * math.pi) - math.pi))
@@ -217,7 +217,7 @@ def figure(run: Run, poses: np.ndarray, people: int, max_scans: int | None, path
     fig, ax = plt.subplots(figsize=(8, 8))
     for p in s.map_data.polylines:
         ax.plot(p[:, 0], p[:, 1], "k-", lw=0.6)
-    ax.plot(s.truth[:, 0], s.truth[:, 1], "g-", lw=1.0, label="true path")
+    ax.plot(s.reference[:, 0], s.reference[:, 1], "g-", lw=1.0, label="true path")
     ax.plot(poses[:, 0], poses[:, 1], "r.", ms=1.5, label="shape estimates")
     ax.set_aspect("equal")
     ax.legend(loc="upper right", fontsize=8)

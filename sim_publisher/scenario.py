@@ -61,6 +61,17 @@ class Setup:
     times: np.ndarray | None = field(default=None, repr=False)
     #: Moving obstacles: time (s) -> circles ``(k, 3)`` ``[x, y, r]`` (m) seen by the laser.
     dynamic: Callable[[float], np.ndarray] | None = field(default=None, repr=False)
+    #: The true poses in the map's own frame, when it differs from the world's: a schematic
+    #: map drawn with a global scale error ``s`` about a centre ``c`` puts the robot at world
+    #: point ``p`` on the map at ``c + (1 + s) (p - c)`` (heading unchanged). ``None``: the
+    #: map frame is the world frame.
+    map_truth: np.ndarray | None = field(default=None, repr=False)
+
+    @property
+    def reference(self) -> np.ndarray:
+        """The true poses ``(n, 3)`` a localiser's map-frame estimates are judged against:
+        ``map_truth`` when set, else ``truth``. The scans are simulated at ``truth``."""
+        return self.truth if self.map_truth is None else self.map_truth
 
     def __len__(self) -> int:
         return int(self.truth.shape[0])
@@ -79,8 +90,9 @@ class Setup:
         return self.laser.scan(self.truth[i], i, self.circles(i))
 
     def passed(self, i: int, pose: np.ndarray) -> bool:
-        """The paper's proximity test for an estimate of pose ``i``."""
-        t = self.truth[i]
+        """The paper's proximity test for an estimate of pose ``i`` (against the map-frame
+        :attr:`reference`)."""
+        t = self.reference[i]
         d = float(np.hypot(pose[0] - t[0], pose[1] - t[1]))
         dth = abs((pose[2] - t[2] + np.pi) % (2 * np.pi) - np.pi)
         return d * 1000.0 < self.proximity_mm and np.rad2deg(dth) < self.proximity_deg
@@ -139,7 +151,9 @@ def building_setup(
 
     ``seed`` drives the laser noise and the odometry (``odometry`` overrides its noise model);
     ``schematic`` the schematic map's parameters (setup 2); ``people=False`` hides the moving
-    people. Scan ``i`` is taken at time ``s_i / robot_speed`` (``s_i`` its arc length).
+    people. Setup 2's ``map_truth`` holds the true poses on the schematic map (its scale error
+    applied): the proximity test and the benchmarks judge estimates against them. Scan ``i``
+    is taken at time ``s_i / robot_speed`` (``s_i`` its arc length).
     """
     if setup not in (1, 2):
         raise InvalidMessage(f"setup must be 1 or 2, got {setup!r}")
@@ -152,7 +166,14 @@ def building_setup(
     stream = seed * 10 + setup
     odom = simulate_odometry(truth, seed=stream, noise=odometry)
     sim = LaserSimulator(world.segments(), laser or LaserConfig(), seed=stream)
-    map_data = building.metric_map() if setup == 1 else building.schematic(schematic).map_data
+    map_truth = None
+    if setup == 1:
+        map_data = building.metric_map()
+    else:
+        plan = building.schematic(schematic)
+        map_data = plan.map_data
+        map_truth = truth.copy()
+        map_truth[:, :2] = plan.center + plan.scale * (truth[:, :2] - plan.center)
     dynamic = building.people_at if people and building.people else None
     return Setup(
         name=f"{building.name}-setup{setup}-{'metric' if setup == 1 else 'schematic'}",
@@ -165,4 +186,5 @@ def building_setup(
         world=world,
         times=building.times(s),
         dynamic=dynamic,
+        map_truth=map_truth,
     )

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from service.errors import InvalidMessage
-from sim_publisher.generator import Building, BuildingParams, generate_building
+from sim_publisher.generator import Building, BuildingParams, SchematicParams, generate_building
 from sim_publisher.generator.layout import DOOR_APPROACH
 from sim_publisher.generator.tours import _inside, _Planners, _tour_doors, room_loop
 from sim_publisher.scenario import building_setup
@@ -119,6 +119,29 @@ def test_setup_scans_see_the_true_world_and_carry_odometry() -> None:
         building_setup(b, 3)
     with pytest.raises(IndexError):
         s.scan(40)
+
+
+def test_setup2_judges_poses_on_the_schematic_map_with_its_scale_error() -> None:
+    b = building(4)
+    params = SchematicParams(scale_error=0.02)
+    s = building_setup(b, 2, seed=3, max_scans=60, schematic=params)
+    plan = b.schematic(params)
+    want = s.truth.copy()
+    want[:, :2] = plan.center + 1.02 * (s.truth[:, :2] - plan.center)
+    np.testing.assert_allclose(s.reference, want, atol=1e-12)
+    # the proximity test follows the map frame: a pose 0.45 m from the map-frame truth,
+    # away from the world truth, passes although it is > 0.5 m from the world truth
+    off = s.reference[:, :2] - s.truth[:, :2]
+    i = int(np.argmax(np.hypot(*off.T)))
+    assert np.hypot(*off[i]) > 0.1
+    pose = s.reference[i].copy()
+    pose[:2] += 0.45 * off[i] / np.hypot(*off[i])
+    assert np.hypot(*(pose - s.truth[i])[:2]) > 0.5
+    assert s.passed(i, pose) and s.passed(i, s.reference[i])
+    assert not s.passed(i, s.reference[i] + np.array([0.0, 0.6, 0.0]))
+    # setup 1's map is the world itself
+    s1 = building_setup(b, 1, seed=3, max_scans=20)
+    assert s1.map_truth is None and s1.reference is s1.truth
 
 
 def test_moving_people_show_up_in_scans_at_the_right_time() -> None:
