@@ -84,9 +84,19 @@ class DriveSearch:
         twin_done, twin = False, None
         confirming = self._confirm_next
         self._confirm_next = False
-        if self._twin_job is not None and not confirming:
+        run_twin = self._twin_job is not None and not confirming
+        twin_track = None if self._twin_job is None else self._twin_job.track
+        if run_twin and twin_track is not None and twin_track.found < 2:
+            # the check of a leader that only one search has found takes turns with the
+            # search, scan by scan: that search may have missed the true place, and the next
+            # one must not wait for the whole check (on a floor plan a leader could otherwise
+            # go unchallenged for the ~40 scans its check takes). Once a second search has
+            # found the leader again, the check runs first.
+            run_twin = not self._search_turn
+            self._search_turn = not self._search_turn
+        if run_twin:
             spent, twin_done, twin = hyp_mod.advance(self._twin_job, spent, budget)
-        if (self._twin_job is None or twin_done) and spent < budget and not confirming:
+        if (not run_twin or twin_done) and spent < budget and not confirming:
             if self._job is None:
                 seeds = self._seeds() + self._anchor_seeds(odometry)
                 steps = search_steps(self.index, rs, as_, self.config, g, seeds=seeds, P=P)

@@ -244,6 +244,7 @@ class GlobalShapeLocalizer(DriveSearch):
         self._job: hyp_mod.Job | None = None  # budgeted search in progress
         self._twin_job: hyp_mod.Job | None = None  # budgeted self-similarity check
         self._confirm_next = False  # budgeted: the tracker confirms a winner on the next scan
+        self._search_turn = False  # budgeted: a pending search's turn before a twin check's
         self._travel = 0.0  # odometry travel (m) since the search started
         self._candidates = 0  # poses the last finished search induced
         #: reference ms of search work spent on the last scan (budgeted search; benchmarks)
@@ -365,6 +366,7 @@ class GlobalShapeLocalizer(DriveSearch):
         self._job = None
         self._twin_job = None
         self._confirm_next = False
+        self._search_turn = False
         self._travel = 0.0
         if last_pose is not None:
             p = np.asarray(last_pose, dtype=np.float64).copy()

@@ -126,19 +126,27 @@ def _field_scores(index: ViewIndex, poses: np.ndarray, pts: np.ndarray, sigma: f
     return np.mean(np.exp(-0.5 * (np.minimum(d, 10.0) / sigma) ** 2), axis=1)
 
 
+#: Scales (m, rad) of the polish's motion prior (:func:`_polish`).
+_PRIOR_XY, _PRIOR_TH = 0.1, 0.04
+
+
 def _polish(
     index: ViewIndex,
     poses: np.ndarray,
     pts: np.ndarray,
     sigma: float,
     stages: tuple[tuple[float, float], ...] = ((0.05, 0.02), (0.015, 0.006)),
+    prior: float = 0.0,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Local search around each pose ``(k, 3)`` on the distance field: per stage a 5 x 5 x 5
     grid of ``(step_xy m, step_theta rad)`` (default +-0.1 m / +-0.04 rad, then +-0.03 m /
     +-0.012 rad) maximising the mean of ``exp(-d² / 2 s²)`` over the robot-frame ``pts``,
     ``s = max(sigma, step_xy)``. Unlike the least-squares fit it cannot be dragged by points
-    that have no counterpart in the map. Returns the poses and their final scores ``(k,)``."""
+    that have no counterpart in the map. ``prior`` > 0 makes the given poses a motion prior:
+    the objective is the score less ``prior`` x ((offset / 0.1 m)² + (turn / 0.04 rad)²) from
+    them. Returns the poses and their final scores ``(k,)`` (without the prior's term)."""
     out = np.asarray(poses, dtype=np.float64).copy()
+    start = out.copy()
     best_score = np.zeros(len(out))
     for step_xy, step_th in stages:
         s_eff = max(sigma, step_xy)
@@ -147,7 +155,14 @@ def _polish(
         delta = np.column_stack([dx.ravel(), dy.ravel(), dth.ravel()])
         cand = (out[:, None, :] + delta[None, :, :]).reshape(-1, 3)
         score = _field_scores(index, cand, pts, s_eff).reshape(len(out), -1)
-        best = np.argmax(score, axis=1)
+        obj = score
+        if prior > 0.0:
+            off = cand.reshape(len(out), -1, 3) - start[:, None, :]
+            obj = score - prior * (
+                (off[..., 0] ** 2 + off[..., 1] ** 2) / _PRIOR_XY**2
+                + (off[..., 2] / _PRIOR_TH) ** 2
+            )
+        best = np.argmax(obj, axis=1)
         best_score = score[np.arange(len(out)), best]
         out = cand.reshape(len(out), -1, 3)[np.arange(len(out)), best]
     out[:, 2] = wrap_angle(out[:, 2])

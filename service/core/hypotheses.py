@@ -62,7 +62,8 @@ class Track:
     consecutive scans it was the best; ``age`` scans it was re-scored on (budgeted search);
     ``twin_ok`` the outcome of its self-similarity check (``None``: not checked); ``hist``
     its re-scored costs (the last :data:`HISTORY`) and ``born`` the search's odometry travel
-    (m) when it appeared: the evidence of the drive rule."""
+    (m) when it appeared: the evidence of the drive rule; ``found`` how many searches found
+    it (the one it came from, and later ones that found it again)."""
 
     pose: np.ndarray
     costs: list[float]
@@ -72,6 +73,7 @@ class Track:
     twin_ok: bool | None = None
     hist: list[float] = field(default_factory=list)
     born: float = 0.0
+    found: int = 1
 
 
 @dataclass(eq=False)
@@ -121,7 +123,8 @@ def rescore(
     ``limit`` (reference ms); a track left out this scan records a miss (cost 1.0). With
     odometry the tracks were moved by it and a polish on the distance field (+-0.1 m,
     +-0.04 rad) absorbs its error; without, the point-to-line refinement (wider basin) has to
-    follow the robot's motion. Returns the work spent."""
+    follow the robot's motion. With odometry the moved pose is the polish's motion prior
+    (``gconfig.rescore_prior``). Returns the work spent."""
     if not tracks:
         return 0.0
     pts = np.vstack([f.points for f in P.features]) if P.features else np.zeros((0, 2))
@@ -140,7 +143,7 @@ def rescore(
         return n * each
     poses = np.vstack([t.pose for t in chosen])
     if odometry:
-        fitted, _ = _polish(index, poses, sp, gconfig.fine_scale)
+        fitted, _ = _polish(index, poses, sp, gconfig.fine_scale, prior=gconfig.rescore_prior)
     else:
         fitted = _refine(index, poses, sp, config, gconfig)
     for t, p in zip(chosen, fitted, strict=True):
@@ -163,12 +166,18 @@ def merge(
     """Add the best ``keep`` of a finished search's hypotheses (found on an earlier scan;
     ``move`` the robot-frame odometry motion since, or ``None``) to ``tracks`` unless one
     already holds that pose. New tracks carry the search's cost and age 0: they are decided
-    on only after a re-scoring on a scan of their own. ``travel``: the search's odometry
-    travel now (the new tracks' ``born``)."""
+    on only after a re-scoring on a scan of their own; a track the search found again counts
+    it in ``found``. ``travel``: the search's odometry travel now (the new tracks' ``born``)."""
     out = list(tracks)
+    found: list[Track] = []
     for h in hyps[:keep]:
         pose = compose(h.pose, move) if move is not None else np.asarray(h.pose, dtype=float)
-        if any(_near(t.pose, pose) for t in out):
+        held = [t for t in out if _near(t.pose, pose)]
+        if held:
+            for t in held:
+                if t not in found:
+                    t.found += 1
+                    found.append(t)
             continue
         hyp = Hypothesis(
             pose=pose.copy(),

@@ -13,6 +13,7 @@ from service.core.global_config import GlobalConfig
 from service.core.global_localization import GlobalShapeLocalizer, load_or_build_index
 from service.core.localizer import ShapeConfig
 from service.core.types import MapData, wrap_angle
+from service.core.view_index import build_index
 from sim_publisher.laser import LaserSimulator
 from sim_publisher.scenario import make_setup
 from sim_publisher.trajectory import simulate_odometry
@@ -57,9 +58,11 @@ def test_merge_moves_a_finished_search_by_the_odometry_since_its_scan() -> None:
     tracks = hy.merge([], [h], move, keep=4)
     assert len(tracks) == 1 and tracks[0].age == 0
     np.testing.assert_allclose(tracks[0].pose, [2.0, 1.0, np.pi / 2], atol=1e-12)
-    # a hypothesis already held is not added twice
-    again = hy.merge(tracks, [gs.Hypothesis(pose=np.array([2.05, 1.0, 1.6]), cost=0.2)], None, 4)
-    assert len(again) == 1
+    # a hypothesis already held is not added twice, and counts as found again
+    assert tracks[0].found == 1
+    near = [gs.Hypothesis(pose=np.array([2.05, 1.0, 1.6]), cost=0.2)] * 2
+    again = hy.merge(tracks, near, None, 4)
+    assert len(again) == 1 and again[0].found == 2  # once per search, however often it is hit
 
 
 def test_rescore_fits_each_track_to_the_scan_and_ranks_the_true_pose_first() -> None:
@@ -175,3 +178,62 @@ def test_a_fixed_robot_stays_unsettled_for_settle_scans() -> None:
         assert loc.unsettled, k
         loc.update(*su.scan(k), su.odom[k])
     assert not loc.unsettled
+
+
+def test_the_rescoring_polish_holds_a_hypothesis_to_its_odometry_pose_in_a_corridor() -> None:
+    # a straight 20 m corridor, 2 m wide, closed at both ends: along its axis the field
+    # score is flat, so the unconstrained polish may slide a hypothesis anywhere along it
+    md = MapData.from_lists(
+        "corridor",
+        "schematic",
+        [[[0.0, 0.0], [20.0, 0.0], [20.0, 2.0], [0.0, 2.0], [0.0, 0.0]]],
+    )
+    index = build_index(md)
+    wall = np.linspace(-3.0, 3.0, 61)
+    pts = np.vstack(
+        [
+            np.column_stack([wall, np.full_like(wall, -1.0)]),
+            np.column_stack([wall, np.full_like(wall, 1.0)]),
+        ]
+    )
+    start = np.array([[10.0, 1.0, 0.0]])
+    free, _ = gs._polish(index, start, pts, 0.05)
+    held, _ = gs._polish(index, start, pts, 0.05, prior=GlobalConfig().rescore_prior)
+    assert abs(free[0, 0] - 10.0) > 0.1, "the corridor was expected to leave the axis free"
+    np.testing.assert_allclose(held[0], start[0], atol=1e-9)
+    # across the corridor the walls still correct an odometry error of 12 cm, to within
+    # the distance field's cell (its score is flat inside one)
+    for y in (1.12, 0.88):
+        fixed, _ = gs._polish(index, np.array([[10.0, y, 0.0]]), pts, 0.05, prior=0.02)
+        assert abs(fixed[0, 1] - 1.0) <= index.resolution + 1e-9, fixed
+
+
+def test_a_pending_twin_check_and_the_search_take_turns(monkeypatch) -> None:
+    """While the self-similarity check of a leader only one search has found is pending, the
+    search still advances every other scan: the check must not stop the search that may find
+    a better place."""
+    room = np.array([[0, 0], [5, 0], [5, 2], [3, 2], [3, 3.5], [0, 3.5], [0, 0]], dtype=float)
+    md = MapData.from_lists("twins", "metric", [room, room + np.array([7.0, 0.0])])
+    laser = LaserSimulator(md.segments(), seed=8)
+    loc = _budgeted(md, 25.0)
+    truth = np.array([[1.2 + 0.02 * s, 1.0, wrap_angle(0.3 + s * 0.5)] for s in range(40)])
+    odom = simulate_odometry(truth, seed=9)
+    calls: list[str] = []
+    real = hy.advance
+
+    def spy(job: hy.Job, spent: float, budget: float) -> tuple[float, bool, object]:
+        calls.append("twin" if job.track is not None else "search")
+        return real(job, spent, budget)
+
+    monkeypatch.setattr(hy, "advance", spy)
+    turns = []
+    for s in range(len(truth)):
+        job = loc._twin_job
+        pending = job is not None and job.track is not None and job.track.found < 2
+        calls.clear()
+        loc.update(*laser.scan(truth[s], s), odom[s])
+        if pending:
+            turns.append(set(calls))
+    assert len(turns) >= 6, "no twin check was pending long enough to test"
+    assert sum("search" in t for t in turns) >= len(turns) // 2 - 1
+    assert sum("twin" in t for t in turns) >= len(turns) // 2 - 1
