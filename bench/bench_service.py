@@ -689,6 +689,7 @@ def summarise_row(
             "starved": bool(np.any(frac == 0) or np.any(frac < 0.5 * frac.mean())),
             "p50": _pct(lat, 50),
             "p99": _pct(lat, 99),
+            "max": float(np.max(lat)) if np.size(lat) else math.nan,
             "worst_robot_p99": max(per_robot_p99) if per_robot_p99 else math.nan,
             "poses": int(ok.size),
             "correct": float(ok.mean()) if ok.size else math.nan,
@@ -775,6 +776,8 @@ def search_pairs(results: list[dict[str, Any]]) -> list[dict[str, Any]]:
                 "adds_p99": r["tracked"]["p99"] - b["tracked"]["p99"],
                 "worst_with": r["tracked"]["worst_robot_p99"],
                 "worst_without": b["tracked"]["worst_robot_p99"],
+                "max_with": r["tracked"].get("max", math.nan),
+                "max_without": b["tracked"].get("max", math.nan),
                 "ok": r["tracked"]["p99"] - b["tracked"]["p99"] <= ACCEPT_SEARCH_ADDS_MS,
             }
         )
@@ -858,6 +861,7 @@ PAIR_HEAD = (
     "p99 without / with",
     "a searching robot adds (p99)",
     "worst robot p99 without / with",
+    "max without / with",
 )
 
 
@@ -869,6 +873,7 @@ def pair_cells(p: dict[str, Any]) -> list[str]:
         f"{_f(p['p99_without'])} / {_f(p['p99_with'])}",
         f"{p['adds_p99']:+.1f} ms",
         f"{_f(p['worst_without'])} / {_f(p['worst_with'])}",
+        f"{_f(p['max_without'])} / {_f(p['max_with'])}",
     ]
 
 

@@ -114,6 +114,7 @@ def test_summarise_row_counts_window_answers_correctness_and_fixes(bs) -> None:
     assert not t["starved"]  # 0.5 is not below half of the mean 0.75
     assert t["confident_wrong"] == 1 and t["correct"] == pytest.approx(11 / 12)
     assert t["p50"] == pytest.approx(10.0, abs=1e-6)
+    assert t["max"] == pytest.approx(30.0, abs=1e-6)  # the slowest tracked pose (r1's)
     s = r["searchers"]
     assert s["robots"] == 1 and s["answered_mean"] == 1.0
     assert s["fixes"] == 1 and s["fixes_correct"] == 1  # the 2 tracking poses are one fix
@@ -159,6 +160,8 @@ def test_acceptance_lines_and_search_pairs(bs) -> None:
     (pair,) = bs.search_pairs(results)
     assert pair["p99_without"] == 31.0  # the nearest K=0 row of the same world/map/N/rate
     assert pair["adds_p99"] == pytest.approx(3.0)
+    results[-1]["tracked"]["max"] = 48.0
+    assert bs.pair_cells(bs.search_pairs(results)[0])[-1] == "nan / 48.0"
     results[-1]["tracked"]["p99"] = 37.0
     assert not bs.search_pairs(results)[0]["ok"]
 
