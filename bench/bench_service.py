@@ -200,7 +200,9 @@ def make_pool(world: str, map_kind: str, stride: int, seed: int = 7) -> Pool:
     # The mirror image needs a field of view symmetric about the robot's x axis.
     fov_end = info["angle_min"] + (lz.config.beams - 1) * info["angle_increment"]
     assert math.isclose(fov_end, -info["angle_min"], abs_tol=1e-9), "asymmetric laser"
-    truth = setup.truth[idx]
+    # the poses on the map's own frame (a generated plan's scale error applied; docs/worlds.md):
+    # the robots start there, their odometry walks along them and the answers are judged on them
+    truth = setup.reference[idx]
     m = len(idx)
     return Pool(
         world=world,
