@@ -47,7 +47,9 @@ class DriveSearch:
     _anchor: np.ndarray | None
     _last_odom: np.ndarray | None
     work_ms: float
-    # and the methods _seeds, _anchor_seeds, _near_track, _confirm, _unresolved, _no_hypothesis
+    _search_turn: bool
+    # and the methods _seeds, _anchor_seeds, _near_track, _confirmed, _confirm, _unresolved,
+    # _no_hypothesis
 
     def _search_budgeted(
         self,
@@ -140,14 +142,7 @@ class DriveSearch:
                 "information": information,
             }
         )
-        steady = best.wins >= 2 and (fused or best.age >= min(self._episode, g.window))
-        if fused:
-            single = amb < g.fused_single_ambiguity and best.hyp.cost <= g.max_fix_cost
-        else:
-            single = amb < g.single_scan_ambiguity
-        confirmed = steady or single
-        if far:
-            confirmed = best.wins >= g.far_confirm_scans
+        confirmed = self._confirmed(best, amb, fused, far, best.age)
         informative = information >= g.min_information
         fix_cost = g.fused_fix_cost if fused else g.max_fix_cost
         if near_track is not None:

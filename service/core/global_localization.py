@@ -442,21 +442,7 @@ class GlobalShapeLocalizer(DriveSearch):
             "violation": best.hyp.violation,
             "information": res.information,
         }
-        # confirmed: best on two consecutive scans and seen on every scan of the window (a
-        # hypothesis that just appeared may be a twin the true one briefly lost to), or clear
-        # enough on one scan -- which on a composite also needs the plain (not the composite)
-        # cost bar: a lone mediocre fit far ahead of the rest can mean the true place was not
-        # found at all
-        steady = best.wins >= 2 and (fused or len(best.costs) >= min(self._episode, g.window))
-        if fused:
-            single = amb < g.fused_single_ambiguity and best.hyp.cost <= g.max_fix_cost
-        else:
-            single = amb < g.single_scan_ambiguity
-        confirmed = steady or single
-        if far:
-            # a fix far from where the track was lost moves the estimate across the building:
-            # it must win scan after scan first
-            confirmed = best.wins >= g.far_confirm_scans
+        confirmed = self._confirmed(best, amb, fused, far, len(best.costs))
         informative = res.information >= g.min_information
         max_amb = g.fused_fix_ambiguity if fused else g.max_fix_ambiguity
         fix_cost = g.fused_fix_cost if fused else g.max_fix_cost
@@ -581,6 +567,23 @@ class GlobalShapeLocalizer(DriveSearch):
             return g.near_radius + g.near_growth * self._anchor_travel
         speed = float(np.hypot(*self.tracker.motion.velocity.velocity))
         return g.near_radius + 2.0 * speed * self._episode
+
+    def _confirmed(self, best: _Track, amb: float, fused: bool, far: bool, seen: int) -> bool:
+        """The decision's confirmation of the best hypothesis (``seen``: the scans it was
+        scored on): best on two consecutive scans and seen on every scan of the window (a
+        hypothesis that just appeared may be a twin the true one briefly lost to), or clear
+        enough on one scan -- which on a composite also needs the plain (not the composite)
+        cost bar: a lone mediocre fit far ahead of the rest can mean the true place was not
+        found at all. Far from where the track was lost (``far``) the fix moves the estimate
+        across the building: it must win scan after scan first."""
+        g = self.gconfig
+        if far:
+            return best.wins >= g.far_confirm_scans
+        if best.wins >= 2 and (fused or seen >= min(self._episode, g.window)):
+            return True
+        if fused:
+            return amb < g.fused_single_ambiguity and best.hyp.cost <= g.max_fix_cost
+        return amb < g.single_scan_ambiguity
 
     def _anchor_seeds(self, odometry: bool) -> list[np.ndarray]:
         """The dead-reckoned last pose as seeds: turned by the usual offsets with odometry,

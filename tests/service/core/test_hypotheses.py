@@ -138,13 +138,19 @@ def test_budgeted_search_is_deterministic() -> None:
     np.testing.assert_array_equal(poses[0], poses[1])
 
 
-def test_congruent_rooms_never_fix_with_a_budget() -> None:
+def _twin_rooms(scans: int) -> tuple[MapData, LaserSimulator, np.ndarray, np.ndarray]:
+    """Two congruent rooms 7 m apart, and a robot creeping and turning in the first: the
+    map, its laser, the true poses and their odometry."""
     room = np.array([[0, 0], [5, 0], [5, 2], [3, 2], [3, 3.5], [0, 3.5], [0, 0]], dtype=float)
     md = MapData.from_lists("twins", "metric", [room, room + np.array([7.0, 0.0])])
     laser = LaserSimulator(md.segments(), seed=8)
+    truth = np.array([[1.2 + 0.02 * s, 1.0, wrap_angle(0.3 + s * 0.5)] for s in range(scans)])
+    return md, laser, truth, simulate_odometry(truth, seed=9)
+
+
+def test_congruent_rooms_never_fix_with_a_budget() -> None:
+    md, laser, truth, odom = _twin_rooms(30)
     loc = _budgeted(md, 25.0)
-    truth = np.array([[1.2 + 0.02 * s, 1.0, wrap_angle(0.3 + s * 0.5)] for s in range(30)])
-    odom = simulate_odometry(truth, seed=9)
     seen = 0
     for s in range(len(truth)):
         r, a = laser.scan(truth[s], s)
@@ -212,12 +218,8 @@ def test_a_pending_twin_check_and_the_search_take_turns(monkeypatch) -> None:
     """While the self-similarity check of a leader only one search has found is pending, the
     search still advances every other scan: the check must not stop the search that may find
     a better place."""
-    room = np.array([[0, 0], [5, 0], [5, 2], [3, 2], [3, 3.5], [0, 3.5], [0, 0]], dtype=float)
-    md = MapData.from_lists("twins", "metric", [room, room + np.array([7.0, 0.0])])
-    laser = LaserSimulator(md.segments(), seed=8)
+    md, laser, truth, odom = _twin_rooms(40)
     loc = _budgeted(md, 25.0)
-    truth = np.array([[1.2 + 0.02 * s, 1.0, wrap_angle(0.3 + s * 0.5)] for s in range(40)])
-    odom = simulate_odometry(truth, seed=9)
     calls: list[str] = []
     real = hy.advance
 
