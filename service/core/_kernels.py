@@ -1052,8 +1052,8 @@ def field_scores(
     sigma: float,
     cap: float,
 ) -> np.ndarray:
-    """Kernel of :func:`service.core.global_search._polish` (same arithmetic): for each
-    pose ``(m, 3)`` the mean over robot-frame ``pts`` ``(k, 2)`` of
+    """Kernel of :func:`service.core.global_search._field_scores` (same arithmetic; the
+    polish's inner loop): for each pose ``(m, 3)`` the mean over robot-frame ``pts`` ``(k, 2)`` of
     ``exp(-0.5 * (min(d, cap) / sigma) ** 2)``, ``d`` the distance-field value at the point's
     cell (``inf`` outside the field)."""
     m = poses.shape[0]
