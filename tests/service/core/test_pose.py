@@ -187,6 +187,7 @@ def test_compiled_fit_pairs_agrees_with_the_numpy_reference() -> None:
 @pytest.mark.skipif(not _kernels.HAVE_NUMBA, reason="numba kernels not installed")
 def test_compiled_pose_from_matches_agrees_with_the_numpy_reference() -> None:
     rng = np.random.default_rng(12)
+    well_posed = 0
     for trial in range(20):
         pairs = _random_pairs(rng, int(rng.integers(1, 8)))
         start = rng.normal(0, 0.05, size=3)
@@ -198,6 +199,15 @@ def test_compiled_pose_from_matches_agrees_with_the_numpy_reference() -> None:
         assert abs(got.rms - ref.rms) < 1e-9
         assert (got.covariance is None) == (ref.covariance is None)
         if ref.covariance is not None:
-            # (a lone straight wall leaves H near-singular: compare relative to the norm)
-            scale = float(np.abs(ref.covariance).max())
-            assert np.allclose(got.covariance, ref.covariance, rtol=0, atol=1e-6 * scale)
+            # A lone straight wall leaves H singular to rounding (condition ~1e15): its
+            # inverse along the unconstrained direction is noise (numba and numpy inverting
+            # equal H differed by 50 % there, at 1e11 m^2). Well-posed fits must agree;
+            # degenerate ones must both report the unconstrained direction as such.
+            if np.linalg.cond(ref.covariance) < 1e8:
+                scale = float(np.abs(ref.covariance).max())
+                assert np.allclose(got.covariance, ref.covariance, rtol=0, atol=1e-6 * scale)
+                well_posed += 1
+            else:
+                assert np.linalg.eigvalsh(0.5 * (got.covariance + got.covariance.T))[-1] > 1e6
+                assert np.linalg.eigvalsh(0.5 * (ref.covariance + ref.covariance.T))[-1] > 1e6
+    assert well_posed >= 10
