@@ -260,22 +260,78 @@ class GlobalConfig(BaseModel):
         ge=1,
         description="With a budget, at most this ``refine_top`` in the self-similarity check.",
     )
-    drive_scans: int = Field(
-        10,
-        ge=1,
-        description="Drive rule (budgeted search with odometry): a hypothesis re-scored on at "
-        "least this many scans, best on the last drive_wins of them, whose mean cost over "
-        "its last drive_scans scans is below drive_max_cost and below every distinct "
-        "alternative's mean by drive_margin, after drive_travel metres driven since it "
-        "appeared, wins (after the twin check and the tracker's confirmation) even where no "
-        "single scan's cost meets max_fix_cost: a real laser in a furnished building rarely "
-        "verifies as well as a simulated one, but the true place stays the best explanation "
-        "scan after scan while the robot drives.",
+    evidence_spacing: float = Field(
+        0.3,
+        gt=0,
+        description="Budgeted search with odometry: a scan becomes a keyframe of the drive's "
+        "evidence when the robot has driven this far (m) since the last one "
+        "(:mod:`service.core.evidence`).",
     )
-    drive_wins: int = Field(6, ge=1, description="See drive_scans.")
-    drive_travel: float = Field(1.0, ge=0, description="See drive_scans (m).")
-    drive_margin: float = Field(0.15, gt=0, description="See drive_scans.")
-    drive_max_cost: float = Field(0.7, gt=0, description="See drive_scans.")
+    evidence_turn: float = Field(
+        0.3, gt=0, description="... or turned this far (rad) since the last keyframe."
+    )
+    evidence_span: float = Field(
+        6.0,
+        gt=0,
+        description="The evidence window: keyframes within this travel (m) of the newest.",
+    )
+    evidence_frames: int = Field(20, ge=1, description="At most this many keyframes.")
+    evidence_min_frames: int = Field(
+        5,
+        ge=1,
+        description="Evidence rule: a hypothesis scored on at least this many keyframes "
+        "(and every distinct alternative on as many of the same), spanning drive_travel "
+        "metres, whose mean cost over the window is at most drive_max_cost and lower than "
+        "every distinct alternative's on the same keyframes by drive_margin, wins (after its "
+        "self-similarity check and the tracker's confirmation) even where no single scan's "
+        "cost meets max_fix_cost: a real laser in a furnished building rarely verifies as "
+        "well as a simulated one, but the true place stays the best explanation of the drive.",
+    )
+    evidence_share: float = Field(
+        0.3,
+        gt=0,
+        le=1,
+        description="With a budget, at most this share of it scores the hypotheses on the "
+        "keyframes they lack (after the re-scoring; the search gets the rest).",
+    )
+    evidence_clip: float = Field(
+        1.0,
+        gt=0,
+        description="A keyframe's cost counts at most this much (one bad keyframe, e.g. a "
+        "person in front of the laser, must not outweigh the rest of the drive).",
+    )
+    evidence_drop: float = Field(
+        0.3,
+        gt=0,
+        description="A hypothesis whose mean over at least evidence_drop_frames keyframes is "
+        "worse than the best fully scored one's by this much is not scored further, and "
+        "pruned.",
+    )
+    evidence_drop_frames: int = Field(3, ge=1, description="See evidence_drop.")
+    evidence_junk: float = Field(
+        0.95,
+        gt=0,
+        description="A hypothesis whose mean over at least evidence_drop_frames keyframes is "
+        "at least this explains nearly nothing of the drive: it is not scored further, and "
+        "pruned (its scoring would take the search's budget).",
+    )
+    drive_travel: float = Field(
+        1.0, ge=0, description="Evidence rule: the window spans at least this travel (m)."
+    )
+    drive_margin: float = Field(
+        0.15, gt=0, description="Evidence rule: the margin over every alternative."
+    )
+    drive_max_cost: float = Field(
+        0.85,
+        gt=0,
+        description="Evidence rule: the winner's mean and median cost over the window (keyframe "
+        "costs "
+        "clipped at evidence_clip). On the tuning log fr079's metric map, drawn from a "
+        "cluttered office, the true place scored 0.74-0.88 over the window (the single "
+        "scans of a 180-degree laser), the best alternatives 0.95-1.0: the margin, not this "
+        "bar, tells them apart; the bar only refuses a leader that explains the drive no "
+        "better than a wrong place does.",
+    )
     settle_scans: int = Field(
         20,
         ge=0,

@@ -43,7 +43,7 @@ from pathlib import Path
 
 import numpy as np
 
-from service.core import _kernels
+from service.core import _kernels, evidence
 from service.core import hypotheses as hyp_mod
 from service.core.composite import composite_scan
 from service.core.configuration import (
@@ -246,6 +246,8 @@ class GlobalShapeLocalizer(DriveSearch):
         self._confirm_next = False  # budgeted: the tracker confirms a winner on the next scan
         self._search_turn = False  # budgeted: a pending search's turn before a twin check's
         self._travel = 0.0  # odometry travel (m) since the search started
+        self._frames: list[evidence.Keyframe] = []  # budgeted: the drive's keyframes
+        self._frame_key = 0
         self._candidates = 0  # poses the last finished search induced
         #: reference ms of search work spent on the last scan (budgeted search; benchmarks)
         self.work_ms = 0.0
@@ -368,6 +370,7 @@ class GlobalShapeLocalizer(DriveSearch):
         self._confirm_next = False
         self._search_turn = False
         self._travel = 0.0
+        self._frames = []
         if last_pose is not None:
             p = np.asarray(last_pose, dtype=np.float64).copy()
             self._anchor = p.copy()

@@ -31,7 +31,6 @@ from service.core.global_config import GlobalConfig
 from service.core.global_search import (
     WORK_MS,
     Hypothesis,
-    _distinct,
     _near,
     _polish,
     _refine,
@@ -74,6 +73,10 @@ class Track:
     hist: list[float] = field(default_factory=list)
     born: float = 0.0
     found: int = 1
+    ev: dict[int, float] = field(default_factory=dict)
+    ev_pose: dict[int, np.ndarray] = field(default_factory=dict)
+    ev_odom: dict[int, np.ndarray] = field(default_factory=dict)
+    twin_held: bool = False
 
 
 @dataclass(eq=False)
@@ -208,17 +211,3 @@ def candidates(tracks: list[Track], k: int = 5) -> np.ndarray:
     """The best ``k`` tracks as ``(k, 4)`` rows ``[x, y, theta, cost]`` (for the wire)."""
     rows = [[*map(float, t.pose), float(t.hyp.cost)] for t in tracks[:k]]
     return np.array(rows, dtype=np.float64).reshape(-1, 4)
-
-
-def drive_margin(best: Track, tracks: list[Track], window: int, gconfig: GlobalConfig) -> float:
-    """How much better ``best`` explained the drive than any distinct alternative: the mean of
-    each alternative's last ``window`` re-scored costs (its search cost if it has none yet)
-    minus ``best``'s, the smallest over the alternatives (``inf`` with none)."""
-    mine = float(np.mean(best.hist[-window:])) if best.hist else best.hyp.cost
-    out = float("inf")
-    for t in tracks:
-        if t is best or not _distinct(t.pose, best.pose, gconfig):
-            continue
-        theirs = float(np.mean(t.hist[-window:])) if t.hist else t.hyp.cost
-        out = min(out, theirs - mine)
-    return out

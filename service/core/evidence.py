@@ -1,0 +1,305 @@
+"""Evidence over a drive for the budgeted multi-hypothesis search (global localisation with
+odometry): every kept hypothesis is judged on the same scans of the last metres driven,
+including the scans taken before a search found it.
+
+Why. A search runs on the scan at hand, so a hypothesis it finds is good *now*; a place along
+a corridor with a repeating pattern of doors, or the twin of a room, can be as good now as the
+true place while the drive so far tells them apart. Re-scoring only from the scan a hypothesis
+appeared on (the rule before this module: the last 10 re-scored scans) compared an old true
+hypothesis with a young alias on the alias' terms; on the tuning log fr079 (schematised map)
+a true hypothesis that had explained 40 scans lost its lead to an alias 4.4 m along the
+corridor that fitted the last 10 scans better, and was pruned. With odometry the hypothesis'
+pose implies where the robot stood on every earlier scan, so it can be scored there
+(*back-scored*): 16 keyframes over the last 4.9 m gave the true place a mean cost of 0.39 and
+the alias 0.55 (a margin of 0.16 per keyframe), where the last scans ranked the alias first.
+
+What.
+
+* :class:`Keyframe` — a scan kept while searching, when the robot has moved
+  ``GlobalConfig.evidence_spacing`` or turned ``evidence_turn`` since the last one: its beams
+  (the verification's subsample), a subsample of its points (for the polish) and its odometry
+  pose. The window holds the keyframes within ``evidence_span`` metres of travel of the newest
+  (at most ``evidence_frames``).
+* :func:`backfill` — scores each track on the window's keyframes it has no score for, newest
+  first: its pose there is the pose at the next newer keyframe (or its current pose) moved
+  back by the odometry between them, polished on the distance field with that pose as the
+  motion prior (as the re-scoring does, so odometry drift over the window is absorbed a
+  keyframe at a time), and verified beam by beam (the cost of
+  :func:`service.core.global_search.verify`, clipped at ``evidence_clip``). Work is counted
+  in reference ms and bounded per scan. A track whose evidence is already clearly worse than
+  the best complete one (``evidence_drop``) is not scored further.
+* :func:`evidence` / :func:`evidence_margin` — a track's mean cost over the window and how
+  much better the best track explains the window than every distinct alternative, on the
+  same keyframes.
+
+Units: metres, radians; poses ``[x, y, theta]`` in the map frame, odometry poses in the
+odometry frame.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from service.core.global_config import GlobalConfig
+from service.core.global_search import (
+    WORK_MS,
+    _beam_fractions,
+    _distinct,
+    _polish,
+    _subsample,
+    polish_ms,
+)
+from service.core.hypotheses import Track
+from service.core.localizer import ShapeConfig
+from service.core.pose import compose, invert
+from service.core.types import wrap_angle
+from service.core.view_index import ViewIndex
+
+
+@dataclass(eq=False)
+class Keyframe:
+    """A scan kept as evidence: ``key`` its serial number; ``ranges`` / ``angles`` the
+    verification's beams (valid returns only); ``points`` robot-frame return points for the
+    polish; ``odom`` the odometry pose; ``travel`` the search's odometry travel (m) there."""
+
+    key: int
+    ranges: np.ndarray
+    angles: np.ndarray
+    points: np.ndarray
+    odom: np.ndarray
+    travel: float
+
+
+def make_keyframe(
+    key: int,
+    ranges: np.ndarray,
+    angles: np.ndarray,
+    odom: np.ndarray,
+    travel: float,
+    gconfig: GlobalConfig,
+) -> Keyframe:
+    """A :class:`Keyframe` of one scan (``ranges`` metres, NaN = no return; ``angles`` radians
+    in the robot frame; ``odom`` its odometry pose)."""
+    r = np.asarray(ranges, dtype=np.float64)
+    a = np.asarray(angles, dtype=np.float64)
+    ok = np.nonzero(np.isfinite(r))[0]
+    sel = _subsample(ok, gconfig.verify_beams)
+    rr, aa = r[sel].copy(), a[sel].copy()
+    pts = np.column_stack([rr * np.cos(aa), rr * np.sin(aa)])
+    return Keyframe(
+        key=key,
+        ranges=rr,
+        angles=aa,
+        points=_subsample(pts, gconfig.support_points).copy(),
+        odom=np.asarray(odom, dtype=np.float64).copy(),
+        travel=float(travel),
+    )
+
+
+def keyframe_due(frames: list[Keyframe], odom: np.ndarray, travel: float, g: GlobalConfig) -> bool:
+    """Whether a scan at odometry pose ``odom`` and search travel ``travel`` becomes a
+    keyframe: the first one, or ``evidence_spacing`` metres driven or ``evidence_turn``
+    radians turned since the last one."""
+    if not frames:
+        return True
+    last = frames[-1]
+    if travel - last.travel >= g.evidence_spacing:
+        return True
+    return abs(float(wrap_angle(float(odom[2]) - float(last.odom[2])))) >= g.evidence_turn
+
+
+def window(frames: list[Keyframe], g: GlobalConfig) -> list[Keyframe]:
+    """The keyframes within ``evidence_span`` metres of travel of the newest, at most
+    ``evidence_frames`` (oldest first)."""
+    if not frames:
+        return []
+    newest = frames[-1].travel
+    out = [f for f in frames if newest - f.travel <= g.evidence_span]
+    return out[-g.evidence_frames :]
+
+
+def pair_ms(g: GlobalConfig) -> float:
+    """Work (reference ms) of scoring one track on one keyframe: a polish and the beams."""
+    return polish_ms(g.support_points) + g.verify_beams * WORK_MS["verify_beam"]
+
+
+def frame_cost(
+    index: ViewIndex, pose: np.ndarray, kf: Keyframe, config: ShapeConfig, g: GlobalConfig
+) -> float:
+    """:func:`service.core.global_search.verify`'s cost of ``pose`` on keyframe ``kf``'s
+    beams, clipped at ``evidence_clip`` (one bad keyframe, e.g. a person in front of the
+    laser, must not outweigh the rest of the drive)."""
+    if kf.ranges.size == 0:
+        return g.evidence_clip
+    pred = index.caster.cast(pose, kf.angles, config.view_max_range)
+    hit, viol, short = _beam_fractions(kf.ranges, pred, config.support_tolerance, g)
+    cost = 1.0 - hit - g.short_credit * short + g.violation_weight * viol + g.cost_floor
+    return float(min(cost, g.evidence_clip))
+
+
+def median(track: Track, frames: list[Keyframe]) -> float:
+    """A track's median cost over the keyframes of ``frames`` it has been scored on."""
+    costs = [track.ev[f.key] for f in frames if f.key in track.ev]
+    return float(np.median(costs)) if costs else float("inf")
+
+
+def evidence(track: Track, frames: list[Keyframe]) -> tuple[float, int]:
+    """A track's mean cost over ``frames`` it has been scored on, and how many those are
+    (``(inf, 0)`` for none)."""
+    costs = [track.ev[f.key] for f in frames if f.key in track.ev]
+    if not costs:
+        return float("inf"), 0
+    return float(np.mean(costs)), len(costs)
+
+
+def dropped(track: Track, frames: list[Keyframe], best: float, g: GlobalConfig) -> bool:
+    """Whether ``track`` has been judged on enough keyframes (``evidence_drop_frames``) to
+    be let go: worse than the ``best`` fully scored track's mean by ``evidence_drop``, or
+    explaining nearly nothing (a mean of at least ``evidence_junk``)."""
+    mean, n = evidence(track, frames)
+    if n < g.evidence_drop_frames:
+        return False
+    return mean > best + g.evidence_drop or mean >= g.evidence_junk
+
+
+def complete(track: Track, frames: list[Keyframe]) -> bool:
+    """Whether ``track`` has a score on every keyframe of ``frames``."""
+    return all(f.key in track.ev for f in frames)
+
+
+def _start_pose(track: Track, kf: Keyframe, odom_now: np.ndarray) -> np.ndarray:
+    """Where ``track`` puts the robot at keyframe ``kf``: from its polished pose at the
+    nearest newer keyframe it has one for, else from its current pose, moved back by the
+    odometry in between."""
+    newer = [k for k in track.ev_pose if k > kf.key]
+    if newer:
+        k = min(newer)
+        base, base_odom = track.ev_pose[k], track.ev_odom[k]
+    else:
+        base, base_odom = track.pose, odom_now
+    return compose(base, compose(invert(base_odom), kf.odom))
+
+
+def backfill(
+    index: ViewIndex,
+    tracks: list[Track],
+    frames: list[Keyframe],
+    odom_now: np.ndarray,
+    config: ShapeConfig,
+    g: GlobalConfig,
+    limit: float,
+) -> float:
+    """Score tracks on the keyframes of ``frames`` (the window) they have no score for,
+    newest keyframe first, within ``limit`` reference ms (at least one keyframe of one track
+    when anything is missing, so the work always progresses). Breadth first: the newest
+    keyframe for every track (in order of their evidence so far, tracks with none by their
+    cost), then the next older one, and so on; a track whose mean is worse by
+    ``evidence_drop`` than the best complete track's after ``evidence_drop_frames`` keyframes
+    is skipped (the caller prunes it). Scores older than the window are forgotten. Returns
+    the work spent."""
+    keys = {f.key for f in frames}
+    for t in tracks:
+        for k in [k for k in t.ev if k not in keys]:
+            del t.ev[k]
+            t.ev_pose.pop(k, None)
+            t.ev_odom.pop(k, None)
+    if not frames:
+        return 0.0
+    best = min(
+        (evidence(t, frames)[0] for t in tracks if complete(t, frames)), default=float("inf")
+    )
+    each = pair_ms(g)
+    spent = 0.0
+
+    def order(t: Track) -> tuple[int, float]:
+        mean, n = evidence(t, frames)
+        return (0, mean) if n else (1, t.hyp.cost)
+
+    ranked = sorted(tracks, key=order)
+    # breadth first, newest keyframe first: every track gets its recent keyframes before any
+    # gets old ones, so a clearly worse newcomer is dropped after evidence_drop_frames
+    for kf in reversed(frames):
+        for t in ranked:
+            if kf.key in t.ev:
+                continue
+            if dropped(t, frames, best, g):
+                continue
+            if spent >= limit:
+                return spent
+            start = _start_pose(t, kf, odom_now)
+            fitted, _ = _polish(
+                index, start[None, :], kf.points, g.fine_scale, prior=g.rescore_prior
+            )
+            pose = fitted[0]
+            t.ev[kf.key] = frame_cost(index, pose, kf, config, g)
+            t.ev_pose[kf.key] = pose.copy()
+            t.ev_odom[kf.key] = kf.odom
+            spent += each
+    return spent
+
+
+def evidence_margin(
+    best: Track, tracks: list[Track], frames: list[Keyframe], g: GlobalConfig
+) -> float:
+    """How much better ``best`` explains ``frames`` than any distinct alternative: the
+    smallest difference of mean costs over the keyframes both were scored on (``inf`` with
+    no alternative; ``-inf`` if an alternative has fewer than ``evidence_drop_frames`` of
+    them scored: it is not known yet; :func:`backfill` scores every track's newest keyframes
+    first)."""
+    out = float("inf")
+    for t in tracks:
+        if t is best or not _distinct(t.pose, best.pose, g):
+            continue
+        common = [f.key for f in frames if f.key in t.ev and f.key in best.ev]
+        if len(common) < min(g.evidence_drop_frames, len(frames)):
+            return float("-inf")
+        mine = float(np.mean([best.ev[k] for k in common]))
+        theirs = float(np.mean([t.ev[k] for k in common]))
+        out = min(out, theirs - mine)
+    return out
+
+
+def leader(tracks: list[Track], frames: list[Keyframe], g: GlobalConfig) -> Track | None:
+    """The track with the lowest mean cost over the window among those scored on every
+    keyframe of it, once the window holds ``evidence_min_frames`` keyframes (``None``
+    before, or when no track is complete)."""
+    if len(frames) < g.evidence_min_frames:
+        return None
+    full = [t for t in tracks if complete(t, frames)]
+    if not full:
+        return None
+    return min(full, key=lambda t: evidence(t, frames)[0])
+
+
+def prune(tracks: list[Track], frames: list[Keyframe], keep: int, g: GlobalConfig) -> list[Track]:
+    """The tracks to keep, by the drive's evidence: a track clearly worse than the best fully
+    scored one (``evidence_drop`` after ``evidence_drop_frames`` keyframes) goes; of the rest
+    at most ``keep`` fully scored ones (best evidence first) and ``keep`` still being scored
+    (best evidence so far, or best cost), one per pose. A young hypothesis thus never pushes
+    out an old one before it has been judged on the same drive. Returns them ordered by
+    decision cost (as :func:`service.core.hypotheses.prune`)."""
+    from service.core.global_search import _near
+
+    full = [t for t in tracks if frames and complete(t, frames)]
+    best = min((evidence(t, frames)[0] for t in full), default=float("inf"))
+    live = [t for t in tracks if not dropped(t, frames, best, g)]
+    done = sorted((t for t in live if t in full), key=lambda t: evidence(t, frames)[0])
+
+    def partial(t: Track) -> tuple[int, float]:
+        mean, n = evidence(t, frames)
+        return (0, mean) if n else (1, t.hyp.cost)
+
+    pending = sorted((t for t in live if t not in full), key=partial)
+    out: list[Track] = []
+    for group in (done, pending):
+        taken = 0
+        for t in group:
+            if taken >= keep:
+                break
+            if any(_near(t.pose, o.pose) for o in out):
+                continue
+            out.append(t)
+            taken += 1
+    return sorted(out, key=lambda t: (t.hyp.cost, -t.age))
