@@ -181,13 +181,12 @@ class DriveSearch:
                 confirmed, informative, amb = True, True, 0.0
                 fix_cost = max(fix_cost, g.drive_max_cost)
                 extras["drive_rule"] = 1.0
-            elif lead is not None and lead.twin_ok is None and not lead.twin_held:
+            elif lead is not None and lead.twin_ok is None:
                 # the drive's best explanation is the one whose twins must be held
                 target = lead
         lead_cost = max(fix_cost, g.drive_max_cost) if odometry else fix_cost
         if (
             target.twin_ok is None
-            and not target.twin_held
             and self._twin_job is None
             and target.hyp.cost <= lead_cost
             and (informative or odometry)
@@ -206,9 +205,7 @@ class DriveSearch:
                 steps, self._odom_copy(), track=target, cost=target.hyp.cost
             )
         if best.hyp.cost <= fix_cost and amb <= max_amb and confirmed and informative:
-            # a track whose check found a twin may win by the drive's evidence over it (the
-            # twin is among the hypotheses the evidence rule compares), not on one scan
-            checked = bool(best.twin_ok) or (best.twin_held and "drive_rule" in extras)
+            checked = bool(best.twin_ok)
             if best.twin_ok is None and not checked:
                 extras["twin_pending"] = 1.0
             elif checked and spent + hyp_mod.CONFIRM_MS > budget and not confirming:
@@ -265,7 +262,6 @@ class DriveSearch:
             return
         extras["twin_rejected"] = 1.0
         track.twin_ok = None
-        track.twin_held = True
         move = hyp_mod.odometry_move(job.odom, self._last_odom)
         self._tracks = hyp_mod.merge(self._tracks, [twin], move, 1, self._travel)
 

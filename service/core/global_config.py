@@ -288,7 +288,7 @@ class GlobalConfig(BaseModel):
         "well as a simulated one, but the true place stays the best explanation of the drive.",
     )
     evidence_share: float = Field(
-        0.3,
+        0.2,
         gt=0,
         le=1,
         description="With a budget, at most this share of it scores the hypotheses on the "
@@ -340,11 +340,14 @@ class GlobalConfig(BaseModel):
         "search worker meanwhile.",
     )
     rescore_share: float = Field(
-        0.5,
+        0.3,
         gt=0,
         le=1,
         description="With a budget, at most this share of it re-scores the kept hypotheses "
-        "on the scan (best first); the rest advances the search.",
+        "on the scan (best first); then evidence_share scores them on the keyframes they "
+        "lack, and the search gets the rest. 0.3 / 0.2 against 0.5 / 0.3 on the tuning "
+        "split (worlds 0-19, floor plans, 200 drive starts): 96.0 against 93.0 % fixed "
+        "within 15 m, no wrong fix in either (the search finds the true place sooner).",
     )
     rescore_prior: float = Field(
         0.02,

@@ -76,7 +76,6 @@ class Track:
     ev: dict[int, float] = field(default_factory=dict)
     ev_pose: dict[int, np.ndarray] = field(default_factory=dict)
     ev_odom: dict[int, np.ndarray] = field(default_factory=dict)
-    twin_held: bool = False
 
 
 @dataclass(eq=False)

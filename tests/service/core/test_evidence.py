@@ -1,0 +1,145 @@
+"""Evidence over a drive (service/core/evidence.py): keyframes, back-scoring of hypotheses on
+the scans before a search found them, the evidence margin and the pruning that keeps a judged
+hypothesis before unjudged newcomers."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from service.core import evidence as ev
+from service.core import global_search as gs
+from service.core import hypotheses as hy
+from service.core.global_config import GlobalConfig
+from service.core.global_localization import load_or_build_index
+from service.core.localizer import ShapeConfig
+from service.core.pose import compose, invert
+from sim_publisher.scenario import make_setup
+
+
+def _track(pose: np.ndarray, cost: float = 0.5) -> hy.Track:
+    p = np.asarray(pose, dtype=float)
+    return hy.Track(p.copy(), [cost], gs.Hypothesis(pose=p.copy(), cost=cost))
+
+
+def _frame(key: int, travel: float, heading: float = 0.0) -> ev.Keyframe:
+    return ev.Keyframe(
+        key=key,
+        ranges=np.ones(4),
+        angles=np.linspace(-1.0, 1.0, 4),
+        points=np.ones((4, 2)),
+        odom=np.array([travel, 0.0, heading]),
+        travel=travel,
+    )
+
+
+def test_keyframes_every_spacing_or_turn_and_a_bounded_window() -> None:
+    g = GlobalConfig(evidence_spacing=0.3, evidence_turn=0.3, evidence_span=1.0, evidence_frames=4)
+    frames: list[ev.Keyframe] = []
+    assert ev.keyframe_due(frames, np.zeros(3), 0.0, g)  # the first scan always
+    frames.append(_frame(0, 0.0))
+    assert not ev.keyframe_due(frames, np.array([0.2, 0.0, 0.1]), 0.2, g)
+    assert ev.keyframe_due(frames, np.array([0.3, 0.0, 0.0]), 0.3, g)  # driven
+    assert ev.keyframe_due(frames, np.array([0.0, 0.0, -0.35]), 0.0, g)  # turned in place
+    many = [_frame(k, 0.3 * k) for k in range(10)]
+    win = ev.window(many, g)
+    assert [f.key for f in win] == [6, 7, 8, 9]  # within 1 m of the newest, at most 4
+    assert ev.window([], g) == []
+
+
+def test_backfill_judges_a_hypothesis_on_the_scans_before_it_was_found() -> None:
+    """Office floor plan, odometry: a hypothesis at the true pose of the last scan explains
+    the keyframes of the last metres (it is moved back by the odometry); one 1.5 m off along
+    the robot's heading, which a search could have found on the last scan alone, does not.
+    Every track ends up scored on every keyframe, newest first."""
+    su = make_setup(2)
+    md = su.map_data
+    cfg = ShapeConfig.for_kind(md.kind)
+    g = GlobalConfig.for_kind(md.kind)
+    idx = load_or_build_index(md, cfg, g)
+    frames: list[ev.Keyframe] = []
+    travel = 0.0
+    last = 300
+    for i in range(270, last + 1):
+        if i > 270:
+            d = compose(invert(su.odom[i - 1]), su.odom[i])
+            travel += float(np.hypot(d[0], d[1]))
+        if ev.keyframe_due(frames, su.odom[i], travel, g):
+            r, a = su.scan(i)
+            frames.append(ev.make_keyframe(len(frames), r, a, su.odom[i], travel, g))
+    frames = ev.window(frames, g)
+    assert len(frames) >= 6
+    truth = su.truth[last]
+    off = compose(truth, np.array([1.5, 0.0, 0.0]))
+    true_t, off_t = _track(truth), _track(off)
+    tracks = [off_t, true_t]
+    spent = 0.0
+
+    def pending() -> bool:
+        best = ev.evidence(true_t, frames)[0] if ev.complete(true_t, frames) else float("inf")
+        return not all(ev.complete(t, frames) or ev.dropped(t, frames, best, g) for t in tracks)
+
+    while pending():
+        step = ev.backfill(idx, tracks, frames, su.odom[last], cfg, g, limit=5.0)
+        assert step > 0
+        spent += step
+        # breadth first: no track holds an older keyframe while another lacks a newer one
+        for k in range(len(frames) - 1):
+            older, newer = frames[k].key, frames[k + 1].key
+            if any(older in t.ev for t in tracks):
+                assert all(newer in t.ev or ev.dropped(t, frames, 0.0, g) for t in tracks)
+    mean_true, n_true = ev.evidence(true_t, frames)
+    mean_off, _ = ev.evidence(off_t, frames)
+    assert n_true == len(frames)
+    assert mean_true < 0.45, mean_true
+    assert mean_off > mean_true + g.drive_margin
+    assert ev.median(true_t, frames) <= g.drive_max_cost
+    # a second pass has nothing left to score for the complete track
+    assert ev.backfill(idx, [true_t], frames, su.odom[last], cfg, g, 100.0) == 0.0
+    # the poses it was judged at follow the tour: within 0.3 m of the truth on every keyframe
+    for f in frames:
+        i = int(np.argmin(np.linalg.norm(su.odom[:, :2] - f.odom[:2], axis=1)))
+        assert np.hypot(*(true_t.ev_pose[f.key][:2] - su.truth[i][:2])) < 0.3
+
+
+def test_evidence_margin_compares_the_same_keyframes_of_distinct_alternatives() -> None:
+    g = GlobalConfig(evidence_drop_frames=3)
+    frames = [_frame(k, 0.3 * k) for k in range(6)]
+    best = _track(np.array([0.0, 0.0, 0.0]))
+    best.ev = {k: 0.3 for k in range(6)}
+    same = _track(np.array([0.1, 0.0, 0.0]))  # not distinct from best: ignored
+    same.ev = {k: 0.1 for k in range(6)}
+    far = _track(np.array([5.0, 0.0, 0.0]))
+    far.ev = {k: 0.6 for k in range(3, 6)}  # scored on the 3 newest only
+    assert abs(ev.evidence_margin(best, [best, same, far], frames, g) - 0.3) < 1e-12
+    young = _track(np.array([0.0, 5.0, 0.0]))
+    young.ev = {5: 0.9}  # not judged on enough keyframes yet: the margin is unknown
+    assert ev.evidence_margin(best, [best, far, young], frames, g) == float("-inf")
+    assert ev.evidence_margin(best, [best], frames, g) == float("inf")
+    assert (
+        ev.leader([best, far, young], frames, g.model_copy(update={"evidence_min_frames": 5}))
+        is best
+    )
+    assert ev.leader([best], frames, g.model_copy(update={"evidence_min_frames": 7})) is None
+
+
+def test_prune_keeps_a_judged_track_before_unjudged_newcomers() -> None:
+    """A search delivers ten newcomers with better single-scan costs than the track that has
+    explained the whole window; the old track stays, the newcomers are kept apart until
+    judged, and tracks that explain nearly nothing or are clearly worse go."""
+    g = GlobalConfig(evidence_drop=0.3, evidence_junk=0.95, evidence_drop_frames=3)
+    frames = [_frame(k, 0.3 * k) for k in range(6)]
+    old = _track(np.array([0.0, 0.0, 0.0]), cost=0.6)
+    old.ev = {k: 0.45 for k in range(6)}
+    worse = _track(np.array([3.0, 0.0, 0.0]), cost=0.3)
+    worse.ev = {k: 0.8 for k in range(6)}  # 0.35 worse than old
+    junk = _track(np.array([6.0, 0.0, 0.0]), cost=0.3)
+    junk.ev = {5: 1.0, 4: 1.0, 3: 0.97}
+    fresh = [_track(np.array([10.0 + k, 0.0, 0.0]), cost=0.2) for k in range(10)]
+    kept = ev.prune([old, worse, junk, *fresh], frames, keep=8, g=g)
+    assert old in kept
+    assert worse not in kept and junk not in kept
+    assert sum(t in kept for t in fresh) == 8
+    assert kept == sorted(kept, key=lambda t: (t.hyp.cost, -t.age))
+    # one per pose: a newcomer on the old track's pose is not kept beside it
+    twin = _track(np.array([0.05, 0.0, 0.0]), cost=0.1)
+    assert twin not in ev.prune([old, twin], frames, keep=8, g=g)
