@@ -1,8 +1,10 @@
 """The budgeted multi-hypothesis search of
 :class:`service.core.global_localization.GlobalShapeLocalizer` (``GlobalConfig.search_budget_ms``),
 as a mixin: one scan of the search spread over scans (:meth:`DriveSearch._search_budgeted`),
-the drive rule and the outcome of a twin check. The pieces it drives (re-scoring, merging,
-jobs) are in :mod:`service.core.hypotheses`; docs/global.md, "Search over a drive"."""
+the evidence rule and the outcome of a twin check. The pieces it drives are in
+:mod:`service.core.hypotheses` (re-scoring, merging, jobs) and :mod:`service.core.evidence`
+(keyframes, back-scoring, pruning by the drive's evidence); docs/global.md, "Search over a
+drive"."""
 
 from __future__ import annotations
 
@@ -65,17 +67,23 @@ class DriveSearch:
     ) -> Estimate:
         """One scan of the search spread over scans (``gconfig.search_budget_ms``).
 
-        1. The kept hypotheses (already moved by this scan's odometry) are fitted to this
+        1. With odometry the scan may become a keyframe of the drive's evidence
+           (:func:`service.core.evidence.keyframe_due`).
+        2. The kept hypotheses (already moved by this scan's odometry) are fitted to this
            scan and verified, best first, within ``rescore_share`` of the budget
-           (:func:`service.core.hypotheses.rescore`).
-        2. A pending self-similarity check, then the pending search (or a new one, seeded
+           (:func:`service.core.hypotheses.rescore`); then scored on the keyframes they
+           lack within ``evidence_share`` (:func:`service.core.evidence.backfill`).
+        3. A pending self-similarity check, then the pending search (or a new one, seeded
            by the hypotheses, on this scan) advance by what is left of the budget; a
            finished search's hypotheses are moved by the odometry since its scan and join
-           the kept ones (:func:`~service.core.hypotheses.merge`), the best ``keep`` stay.
-        3. The decision is the one of the unbudgeted search, on the re-scored hypotheses:
+           the kept ones (:func:`~service.core.hypotheses.merge`); pruning keeps the best
+           judged ones apart from those still being judged
+           (:func:`service.core.evidence.prune`).
+        4. The decision is the one of the unbudgeted search, on the re-scored hypotheses:
            windowed cost, ambiguity against the best distinct alternative (hypotheses not
            yet re-scored count as alternatives), best on two scans or clear on one,
-           information, near or far from the lost track. A would-be winner's twin check
+           information, near or far from the lost track; and, with odometry, the evidence
+           rule (:meth:`_evidence_won`). A would-be winner's twin check
            runs as a job of its own; the winner is fixed when the check has passed and the
            tracker confirms it on the scan at hand.
         """
@@ -124,9 +132,7 @@ class DriveSearch:
             spent, done, res = hyp_mod.advance(self._job, spent, budget)
             if done:
                 move = hyp_mod.odometry_move(self._job.odom, self._last_odom)
-                self._tracks = hyp_mod.merge(
-                    self._tracks, res.hypotheses, move, g.keep, self._travel
-                )
+                self._tracks = hyp_mod.merge(self._tracks, res.hypotheses, move, g.keep)
                 self._candidates = res.candidates
                 self._job = None
                 extras["search_done"] = 1.0
@@ -263,7 +269,7 @@ class DriveSearch:
         extras["twin_rejected"] = 1.0
         track.twin_ok = None
         move = hyp_mod.odometry_move(job.odom, self._last_odom)
-        self._tracks = hyp_mod.merge(self._tracks, [twin], move, 1, self._travel)
+        self._tracks = hyp_mod.merge(self._tracks, [twin], move, 1)
 
     def _odom_copy(self) -> np.ndarray | None:
         return None if self._last_odom is None else self._last_odom.copy()

@@ -49,8 +49,6 @@ ASSOCIATE = (0.6, 1.0)
 #: Work (reference ms) of the tracker's confirmation of a winner: a tracker update from a
 #: fresh reset, measured 10 / 21 ms median on the office's metric / schematic map.
 CONFIRM_MS = 20.0
-#: Re-scored costs a track keeps for the drive rule.
-HISTORY = 64
 
 
 @dataclass(eq=False)
@@ -59,10 +57,8 @@ class Track:
     stands for a scan on which it was not among the verified hypotheses). ``hyp`` is its
     latest verification with ``cost`` replaced by the decision's (windowed) cost; ``wins``
     consecutive scans it was the best; ``age`` scans it was re-scored on (budgeted search);
-    ``twin_ok`` the outcome of its self-similarity check (``None``: not checked); ``hist``
-    its re-scored costs (the last :data:`HISTORY`) and ``born`` the search's odometry travel
-    (m) when it appeared: the evidence of the drive rule; ``found`` how many searches found
-    it (the one it came from, and later ones that found it again)."""
+    ``twin_ok`` the outcome of its self-similarity check (``None``: not checked); ``found``
+    how many searches found it (the one it came from, and later ones that found it again)."""
 
     pose: np.ndarray
     costs: list[float]
@@ -70,8 +66,6 @@ class Track:
     wins: int = 0
     age: int = 0
     twin_ok: bool | None = None
-    hist: list[float] = field(default_factory=list)
-    born: float = 0.0
     found: int = 1
     ev: dict[int, float] = field(default_factory=dict)
     ev_pose: dict[int, np.ndarray] = field(default_factory=dict)
@@ -153,7 +147,6 @@ def rescore(
         t.pose = h.pose.copy()
         t.hyp = h
         t.costs.append(h.cost)
-        t.hist = [*t.hist[-(HISTORY - 1) :], h.cost]
         t.age += 1
     return n * each
 
@@ -163,13 +156,12 @@ def merge(
     hyps: list[Hypothesis],
     move: np.ndarray | None,
     keep: int,
-    travel: float = 0.0,
 ) -> list[Track]:
     """Add the best ``keep`` of a finished search's hypotheses (found on an earlier scan;
     ``move`` the robot-frame odometry motion since, or ``None``) to ``tracks`` unless one
     already holds that pose. New tracks carry the search's cost and age 0: they are decided
     on only after a re-scoring on a scan of their own; a track the search found again counts
-    it in ``found``. ``travel``: the search's odometry travel now (the new tracks' ``born``)."""
+    it in ``found``."""
     out = list(tracks)
     found: list[Track] = []
     for h in hyps[:keep]:
@@ -189,7 +181,7 @@ def merge(
             explained=h.explained,
             short=h.short,
         )
-        out.append(Track(pose.copy(), [h.cost], hyp, born=travel))
+        out.append(Track(pose.copy(), [h.cost], hyp))
     return out
 
 
