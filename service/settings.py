@@ -49,10 +49,11 @@ class ServiceSettings(BaseModel):
     scan). Default 25: with the tracker's own few ms and the decision's overhead a searching
     robot's scan stays within ~40 ms of one core, so a robot queued behind it on the same
     worker waits less than 50 ms (issue 13), while a whole search (~100 ms on a metric map,
-    ~300 ms on a floor plan) still finishes within 4-12 scans. The budget is also what a
-    searching robot costs the others on a 2-core machine: with 20 tracked robots at 10 Hz,
-    one robot searching back to back added +14 / +16 ms to their p99 at 25 and +5 ms at 12
-    (``bench/bench_service.py --robots 20 --searching 0,1 --search-budget-ms 12``); a lower
+    ~300 ms on a floor plan) still finishes within 4-12 scans. With 20 tracked robots at
+    10 Hz on a 2-core machine, one robot searching back to back added +14 / +16 ms to their
+    p99 at 25 and +5 ms at 12 on the previous session's machine, and +2.5 to +6.6 ms (median
+    +3.4) at 25 and +3.5 to +4.4 ms at 15 on the ~1.6x faster one of 2026-11-24
+    (``bench/bench_service.py --robots 20 --searching 0,1 --search-budget-ms 15``); a lower
     budget needs about twice the scans to a fix. ``search_worker`` (with
     ``workers`` >= 1) adds one worker process, niced by ``search_worker_nice``, that takes
     every robot while it searches (moved there with its localiser's state after the scan
