@@ -211,15 +211,14 @@ class DriveSearch:
                 steps, self._odom_copy(), track=target, cost=target.hyp.cost
             )
         if best.hyp.cost <= fix_cost and amb <= max_amb and confirmed and informative:
-            checked = bool(best.twin_ok)
-            if best.twin_ok is None and not checked:
+            if best.twin_ok is None:
                 extras["twin_pending"] = 1.0
-            elif checked and spent + hyp_mod.CONFIRM_MS > budget and not confirming:
+            elif best.twin_ok and spent + hyp_mod.CONFIRM_MS > budget and not confirming:
                 # the tracker's confirmation would overrun this scan's budget: it runs
                 # first on the next scan, which then advances no search
                 self._confirm_next = True
                 extras["confirm_next"] = 1.0
-            elif checked:
+            elif best.twin_ok:
                 self.work_ms = spent + hyp_mod.CONFIRM_MS
                 est = self._confirm(best, r, a, amb, extras)
                 if est is not None:

@@ -45,8 +45,10 @@ import numpy as np
 from service.core.global_config import GlobalConfig
 from service.core.global_search import (
     WORK_MS,
+    _beam_cost,
     _beam_fractions,
     _distinct,
+    _near,
     _polish,
     _subsample,
     polish_ms,
@@ -138,7 +140,7 @@ def frame_cost(
         return g.evidence_clip
     pred = index.caster.cast(pose, kf.angles, config.view_max_range)
     hit, viol, short = _beam_fractions(kf.ranges, pred, config.support_tolerance, g)
-    cost = 1.0 - hit - g.short_credit * short + g.violation_weight * viol + g.cost_floor
+    cost = _beam_cost(hit, viol, short, g) + g.cost_floor
     return float(min(cost, g.evidence_clip))
 
 
@@ -165,6 +167,13 @@ def dropped(track: Track, frames: list[Keyframe], best: float, g: GlobalConfig) 
     if n < g.evidence_drop_frames:
         return False
     return mean > best + g.evidence_drop or mean >= g.evidence_junk
+
+
+def _rank(track: Track, frames: list[Keyframe]) -> tuple[int, float]:
+    """Order of tracks still being judged: by their evidence so far, those with none after
+    them by their cost."""
+    mean, n = evidence(track, frames)
+    return (0, mean) if n else (1, track.hyp.cost)
 
 
 def complete(track: Track, frames: list[Keyframe]) -> bool:
@@ -215,12 +224,7 @@ def backfill(
     )
     each = pair_ms(g)
     spent = 0.0
-
-    def order(t: Track) -> tuple[int, float]:
-        mean, n = evidence(t, frames)
-        return (0, mean) if n else (1, t.hyp.cost)
-
-    ranked = sorted(tracks, key=order)
+    ranked = sorted(tracks, key=lambda t: _rank(t, frames))
     # breadth first, newest keyframe first: every track gets its recent keyframes before any
     # gets old ones, so a clearly worse newcomer is dropped after evidence_drop_frames
     for kf in reversed(frames):
@@ -298,18 +302,12 @@ def prune(tracks: list[Track], frames: list[Keyframe], keep: int, g: GlobalConfi
     (best evidence so far, or best cost), one per pose. A young hypothesis thus never pushes
     out an old one before it has been judged on the same drive. Returns them ordered by
     decision cost (as :func:`service.core.hypotheses.prune`)."""
-    from service.core.global_search import _near
-
     full = [t for t in tracks if frames and complete(t, frames)]
     best = min((evidence(t, frames)[0] for t in full), default=float("inf"))
     live = [t for t in tracks if not dropped(t, frames, best, g)]
     done = sorted((t for t in live if t in full), key=lambda t: evidence(t, frames)[0])
 
-    def partial(t: Track) -> tuple[int, float]:
-        mean, n = evidence(t, frames)
-        return (0, mean) if n else (1, t.hyp.cost)
-
-    pending = sorted((t for t in live if t not in full), key=partial)
+    pending = sorted((t for t in live if t not in full), key=lambda t: _rank(t, frames))
     out: list[Track] = []
     for group in (done, pending):
         taken = 0

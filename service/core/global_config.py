@@ -324,13 +324,12 @@ class GlobalConfig(BaseModel):
     drive_max_cost: float = Field(
         0.85,
         gt=0,
-        description="Evidence rule: the winner's mean and median cost over the window (keyframe "
-        "costs "
-        "clipped at evidence_clip). On the tuning log fr079's metric map, drawn from a "
-        "cluttered office, the true place scored 0.74-0.88 over the window (the single "
-        "scans of a 180-degree laser), the best alternatives 0.95-1.0: the margin, not this "
-        "bar, tells them apart; the bar only refuses a leader that explains the drive no "
-        "better than a wrong place does.",
+        description="Evidence rule: the winner's mean and median cost over the window "
+        "(keyframe costs clipped at evidence_clip). On the tuning log fr079's metric map, "
+        "drawn from a cluttered office, the true place scored 0.74-0.88 over the window "
+        "(the single scans of a 180-degree laser), the best alternatives 0.95-1.0: the "
+        "margin, not this bar, tells them apart; the bar only refuses a leader that "
+        "explains the drive no better than a wrong place does.",
     )
     settle_scans: int = Field(
         20,

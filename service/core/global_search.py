@@ -181,6 +181,12 @@ def _beam_fractions(
     return hit, viol, short
 
 
+def _beam_cost(hit: float, viol: float, short: float, gconfig: GlobalConfig) -> float:
+    """The beam part of :func:`verify`'s cost from its beam fractions:
+    ``1 - hit - short_credit * short + violation_weight * violation``."""
+    return 1.0 - hit - gconfig.short_credit * short + gconfig.violation_weight * viol
+
+
 def _beam_costs(
     index: ViewIndex,
     poses: np.ndarray,
@@ -206,7 +212,7 @@ def _beam_costs(
     for k, pose in enumerate(np.asarray(poses, dtype=np.float64)):
         pred = caster.cast(pose, ang, config.view_max_range)
         hit, viol, short = _beam_fractions(r, pred, tol, gconfig)
-        out[k] = 1.0 - hit - gconfig.short_credit * short + gconfig.violation_weight * viol
+        out[k] = _beam_cost(hit, viol, short, gconfig)
     return out
 
 
@@ -300,13 +306,7 @@ def verify(
         if np.mean(d <= tol) >= 0.5:
             good += f.length
     explained = good / total if total > 0 else 0.0
-    cost = (
-        1.0
-        - hit
-        - gconfig.short_credit * short
-        + gconfig.violation_weight * viol
-        + gconfig.cost_floor
-    )
+    cost = _beam_cost(hit, viol, short, gconfig) + gconfig.cost_floor
     return Hypothesis(
         pose=pose.copy(),
         cost=cost,
