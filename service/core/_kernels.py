@@ -46,6 +46,13 @@ def _solve3(A: np.ndarray, b: np.ndarray) -> np.ndarray:
     """``A x = b`` for a 3x3 ``A``: LU with partial pivoting in LAPACK's order (dgetf2 +
     dgetrs), without the per-call overhead of ``np.linalg.solve``. ``A`` is overwritten."""
     x = b.copy()
+    _solve3_into(A, x)
+    return x
+
+
+@njit(cache=True, nogil=True)
+def _solve3_into(A: np.ndarray, x: np.ndarray) -> None:
+    """:func:`_solve3` in place: ``x`` holds ``b`` on entry and the solution on return."""
     for j in range(3):
         p = j
         big = abs(A[j, j])
@@ -77,10 +84,11 @@ def _solve3(A: np.ndarray, b: np.ndarray) -> np.ndarray:
             x[k] /= A[k, k]
             for i in range(k):
                 x[i] -= x[k] * A[i, k]
-    return x
 
 
-@njit(cache=True, nogil=True)
+# error_model="numpy": no zero-division checks, so the point loops vectorise; no divisor here
+# can be zero (see >= 1e-18, robust_scale > 0, 1 + z^2 >= 1, rn > 1e-12).
+@njit(cache=True, nogil=True, error_model="numpy")
 def fit_blocks(
     P: np.ndarray,
     pt_order: np.ndarray,
@@ -100,6 +108,12 @@ def fit_blocks(
     (in increasing row order, as numpy's ``bincount`` sums them) and its
     segments rows ``seg_start[k] .. seg_start[k] + seg_len[k] - 1`` of ``segs`` ``(S, 4)``;
     ``init`` ``(K, 3)``. Returns ``(poses (K, 3) unwrapped, rms (K,))``.
+
+    Per pair and iteration the points are moved, then every segment is tried for all points
+    (segments in order, a point keeps the first nearest: the same choice as trying a point's
+    segments in order), then the residuals and weights are formed and summed in point order:
+    each number is computed by the same operations as the reference, in loops over points
+    that the compiler can vectorise.
     """
     K = init.shape[0]
     poses = init.copy()
@@ -126,14 +140,93 @@ def fit_blocks(
         sny[s] = ex / sq
     A = np.empty((3, 3))
     b = np.empty(3)
+    most = 0
+    for k in range(K):
+        most = max(most, pt_end[k] - pt_beg[k])
+    # per point of the current pair: robot-frame and moved point, nearest segment (index,
+    # squared distance, parameter, residual vector), normal, residual, weight, Jacobian
+    px = np.empty(most)
+    py = np.empty(most)
+    qx = np.empty(most)
+    qy = np.empty(most)
+    best = np.empty(most)
+    bj = np.empty(most, dtype=np.intp)
+    bt = np.empty(most)
+    brx = np.empty(most)
+    bry = np.empty(most)
+    nx = np.zeros(most)
+    ny = np.zeros(most)
+    rr = np.empty(most)
+    ww = np.empty(most)
+    jj = np.empty(most)
     for k in range(K):
         s0 = seg_start[k]
         s1 = s0 + seg_len[k]
+        t0 = pt_beg[k]
+        npt = pt_end[k] - t0
+        for t in range(npt):
+            i = pt_order[t0 + t]
+            px[t] = P[i, 0]
+            py[t] = P[i, 1]
         for _ in range(iterations):
             px0 = poses[k, 0]
             py0 = poses[k, 1]
             c = math.cos(poses[k, 2])
             sn = math.sin(poses[k, 2])
+            for t in range(npt):
+                x = px[t]
+                y = py[t]
+                qx[t] = c * x - sn * y + px0
+                qy[t] = sn * x + c * y + py0
+                best[t] = np.inf
+                bj[t] = -1
+                bt[t] = 0.0
+                brx[t] = 0.0
+                bry[t] = 0.0
+            for s in range(s0, s1):
+                ex = sex[s]
+                ey = sey[s]
+                ax = sax[s]
+                ay = say[s]
+                ee = see[s]
+                for t in range(npt):
+                    dx = qx[t] - ax
+                    dy = qy[t] - ay
+                    u = (dx * ex + dy * ey) / ee
+                    u = 0.0 if u < 0.0 else (1.0 if u > 1.0 else u)
+                    rx = dx - u * ex
+                    ry = dy - u * ey
+                    d2 = rx * rx + ry * ry
+                    nearer = d2 < best[t]
+                    best[t] = d2 if nearer else best[t]
+                    bj[t] = s if nearer else bj[t]
+                    bt[t] = u if nearer else bt[t]
+                    brx[t] = rx if nearer else brx[t]
+                    bry[t] = ry if nearer else bry[t]
+            for t in range(npt):
+                j = bj[t]
+                if j < 0:
+                    continue
+                mx = snx[j]
+                my = sny[j]
+                u = bt[t]
+                if u <= 0.0 or u >= 1.0:
+                    rx = brx[t]
+                    ry = bry[t]
+                    rn = math.hypot(rx, ry)
+                    if rn > 1e-12:
+                        mx = rx / rn
+                        my = ry / rn
+                nx[t] = mx
+                ny[t] = my
+            for t in range(npt):
+                mx = nx[t]
+                my = ny[t]
+                r = brx[t] * mx + bry[t] * my
+                z = r / robust_scale
+                rr[t] = r
+                ww[t] = 1.0 / (1.0 + z * z)
+                jj[t] = my * (qx[t] - px0) - mx * (qy[t] - py0)
             h00 = 0.0
             h01 = 0.0
             h02 = 0.0
@@ -145,61 +238,24 @@ def fit_blocks(
             g2 = 0.0
             wsum = 0.0
             wrr = 0.0
-            for t in range(pt_beg[k], pt_end[k]):
-                i = pt_order[t]
-                px = P[i, 0]
-                py = P[i, 1]
-                qx = c * px - sn * py + px0
-                qy = sn * px + c * py + py0
-                best = np.inf
-                bj = -1
-                bt = 0.0
-                brx = 0.0
-                bry = 0.0
-                for s in range(s0, s1):
-                    ex = sex[s]
-                    ey = sey[s]
-                    dx = qx - sax[s]
-                    dy = qy - say[s]
-                    u = (dx * ex + dy * ey) / see[s]
-                    if u < 0.0:
-                        u = 0.0
-                    elif u > 1.0:
-                        u = 1.0
-                    rx = dx - u * ex
-                    ry = dy - u * ey
-                    d2 = rx * rx + ry * ry
-                    if d2 < best:
-                        best = d2
-                        bj = s
-                        bt = u
-                        brx = rx
-                        bry = ry
-                if bj < 0:
+            for t in range(npt):
+                if bj[t] < 0:
                     continue
-                nx = snx[bj]
-                ny = sny[bj]
-                if bt <= 0.0 or bt >= 1.0:
-                    rn = math.hypot(brx, bry)
-                    if rn > 1e-12:
-                        nx = brx / rn
-                        ny = bry / rn
-                r = brx * nx + bry * ny
-                z = r / robust_scale
-                w = 1.0 / (1.0 + z * z)
-                lx = qx - px0
-                ly = qy - py0
-                j2 = ny * lx - nx * ly
-                w0 = nx * w
-                w1 = ny * w
+                mx = nx[t]
+                my = ny[t]
+                j2 = jj[t]
+                r = rr[t]
+                w = ww[t]
+                w0 = mx * w
+                w1 = my * w
                 w2 = j2 * w
                 g0 += w0 * r
                 g1 += w1 * r
                 g2 += w2 * r
-                h00 += w0 * nx
-                h01 += w0 * ny
+                h00 += w0 * mx
+                h01 += w0 * my
                 h02 += w0 * j2
-                h11 += w1 * ny
+                h11 += w1 * my
                 h12 += w1 * j2
                 h22 += w2 * j2
                 wsum += w
@@ -220,10 +276,10 @@ def fit_blocks(
             b[0] = g0
             b[1] = g1
             b[2] = g2
-            d = _solve3(A, b)
-            poses[k, 0] = px0 - d[0]
-            poses[k, 1] = py0 - d[1]
-            poses[k, 2] = poses[k, 2] - d[2]
+            _solve3_into(A, b)
+            poses[k, 0] = px0 - b[0]
+            poses[k, 1] = py0 - b[1]
+            poses[k, 2] = poses[k, 2] - b[2]
             rms[k] = math.sqrt(wrr / (wsum if wsum > 1e-12 else 1e-12))
     return poses, rms
 
@@ -898,6 +954,12 @@ def warm_up() -> float:
     angular_intervals(p, np.array([0, 4], dtype=np.intp), np.zeros(3))
     _, _, _, cum, tab = arc_tables(p, 4)
     shape_dp(cum, tab, cum, tab, 4, 4, 0.1, 0.5, np.inf)
+    # the batch kernels of the shape matching (service.core._shape_kernels imports this module)
+    from service.core import _shape_kernels
+
+    whole = np.array([[0, -1]], dtype=np.intp)
+    off = np.array([0, 4], dtype=np.intp)
+    _shape_kernels.shape_distances(p, off, whole, p, off, whole, 4, 0.1, 0.5, 1.0)
     dce_kept(p, 0.04)
     cell = np.array([0, 0, 1], dtype=np.intp)
     order_dp(np.ones(1), np.ones(1), cell, z, z, np.ones(1))

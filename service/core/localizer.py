@@ -501,8 +501,9 @@ class ShapeLocalizer:
         if not P.features:
             return np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0, dtype=np.intp)
         pts = np.vstack([f.points for f in P.features])
-        nrm = np.vstack([scan_normals(f.points) for f in P.features])
-        own = np.repeat(np.arange(len(P.features)), [len(f.points) for f in P.features])
+        counts = [len(f.points) for f in P.features]
+        nrm = scan_normals(pts, starts=np.cumsum(counts)[:-1])
+        own = np.repeat(np.arange(len(P.features)), counts)
         keep = np.hypot(pts[:, 0], pts[:, 1]) <= cfg.fit_max_range
         pts, nrm, own = pts[keep], nrm[keep], own[keep]
         if len(pts) > cfg.fit_points:
@@ -577,9 +578,13 @@ class ShapeLocalizer:
         """:meth:`_violations` of one pose."""
         return self._violations(r, a, [pose])[0]
 
+    def _always_doubtful(self, pred: Prediction) -> bool:
+        """The shape matching runs whatever the prior's fit: set so, or no odometry."""
+        return self.config.shape_search == "always" or pred.source != "odometry"
+
     def _doubtful(self, f: Refined, pred: Prediction) -> bool:
         cfg = self.config
-        if cfg.shape_search == "always" or pred.source != "odometry":
+        if self._always_doubtful(pred):
             return True
         e = f.pose - pred.pose
         e[2] = wrap_angle(float(e[2]))
@@ -620,13 +625,17 @@ class ShapeLocalizer:
         pts, nrm, own = self._fit_points(P)
         if len(pts) < 3:
             return self._reject(pred, 0.0, (), 0.0, None, reason=1.0)
-        cands: list[tuple[str, Refined]] = [("prior", self._refine(pts, nrm, pred.pose, pred))]
+        # The prior's fit decides whether the shape matching runs; when it runs anyway and
+        # weights its points, only the weighted fit below is used, so the plain one waits.
+        always = self._always_doubtful(pred)
+        prior_fit = None if always else self._refine(pts, nrm, pred.pose, pred)
+        shape_fit: Refined | None = None
         matches: tuple[Match, ...] = ()
         explained: float | None = None
         ambiguity: float | None = None
         weights: np.ndarray | None = None
         extras: dict[str, float] = {}
-        if self._doubtful(cands[0][1], pred):
+        if always or (prior_fit is not None and self._doubtful(prior_fit, pred)):
             self.shape_runs += 1
             Q = self._views.view(pred.pose)
             if len(Q):
@@ -636,8 +645,13 @@ class ShapeLocalizer:
                 extras["eq5_cost"] = two.match.cost
                 if weights is not None:
                     # the prior's fit again, now without the pull of unmatched structures
-                    cands[0] = ("prior", self._refine(pts, nrm, pred.pose, pred, weights))
-                cands.append(("shape", self._refine(pts, nrm, two.estimate, pred, weights)))
+                    prior_fit = self._refine(pts, nrm, pred.pose, pred, weights)
+                shape_fit = self._refine(pts, nrm, two.estimate, pred, weights)
+        if prior_fit is None:
+            prior_fit = self._refine(pts, nrm, pred.pose, pred)
+        cands: list[tuple[str, Refined]] = [("prior", prior_fit)]
+        if shape_fit is not None:
+            cands.append(("shape", shape_fit))
         shape_ok = (
             len(cands) > 1
             and len(matches) >= cfg.min_matches

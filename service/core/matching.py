@@ -23,6 +23,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -36,7 +37,13 @@ from service.core.pose import (
     pose_from_matches,
     transform_points,
 )
-from service.core.similarity import prepare, shape_alignment, shape_complexity, shape_distance
+from service.core.similarity import (
+    prepare,
+    shape_alignment,
+    shape_complexity,
+    shape_distance,
+    shape_distances,
+)
 from service.core.types import Match, wrap_angle
 
 if TYPE_CHECKING:
@@ -298,11 +305,25 @@ def _concat(feats: Sequence[Feature], attr: str) -> np.ndarray:
     return np.vstack([getattr(f, attr) for f in feats])
 
 
+_SAMPLE_ROWS: dict[tuple[int, int], np.ndarray] = {}
+
+
+def _sample_rows(n: int, k: int) -> np.ndarray:
+    """``k`` evenly spaced rows of ``n`` (``np.linspace`` rounded), memoised per ``(n, k)``."""
+    idx = _SAMPLE_ROWS.get((n, k))
+    if idx is None:
+        if len(_SAMPLE_ROWS) >= 4096:
+            _SAMPLE_ROWS.clear()
+        idx = np.linspace(0, n - 1, k).round().astype(int)
+        idx.setflags(write=False)
+        _SAMPLE_ROWS[(n, k)] = idx
+    return idx
+
+
 def _subsample(points: np.ndarray, k: int) -> np.ndarray:
     if len(points) <= k:
         return points
-    idx = np.linspace(0, len(points) - 1, k).round().astype(int)
-    return points[idx]
+    return points[_sample_rows(len(points), k)]
 
 
 def _shape_arcs(
@@ -327,6 +348,18 @@ def _stacked_points(C: Configuration) -> tuple[np.ndarray, np.ndarray]:
         off = np.concatenate(([0], np.cumsum([len(f.points) for f in C.features])))
         got = (pts, off.astype(np.intp))
         C.__dict__["_stacked"] = got
+    return got
+
+
+def _stacked_vertices(C: Configuration) -> tuple[np.ndarray, np.ndarray]:
+    """All feature vertices of ``C`` stacked ``(N, 2)`` and the row offsets per feature
+    (cached on the configuration)."""
+    got = C.__dict__.get("_stacked_vertices")
+    if got is None:
+        v = np.ascontiguousarray(np.vstack([f.vertices for f in C.features]), dtype=np.float64)
+        off = np.concatenate(([0], np.cumsum([len(f.vertices) for f in C.features])))
+        got = (v, off.astype(np.intp))
+        C.__dict__["_stacked_vertices"] = got
     return got
 
 
@@ -377,6 +410,34 @@ def _feature_sample(f: Feature, k: int) -> np.ndarray:
     return pts
 
 
+def _scan_samples(P: Configuration, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """Every scan feature's points subsampled to at most ``k``, stacked ``(N, 2)``, and the
+    row offsets per feature (cached on the configuration)."""
+    key = ("_samples", k)
+    got = P.__dict__.get(key)
+    if got is None:
+        samples = [_feature_sample(f, k) for f in P.features]
+        off = np.concatenate(([0], np.cumsum([len(x) for x in samples])))
+        got = (np.vstack(samples), off)
+        P.__dict__[key] = got
+    return got
+
+
+def _view_segments(Q: Configuration, order: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The map segments of the view's features in ``order``, stacked ``(S, 4)``, and the row
+    offsets per position in the order (cached on the view per order)."""
+    store = Q.__dict__.setdefault("_segments_by_order", {})
+    key = order.tobytes()
+    got = store.get(key)
+    if got is None:
+        segs = [Q.features[j].segments for j in order.tolist()]
+        segs = [x if x is not None else np.zeros((0, 4)) for x in segs]
+        off = np.concatenate(([0], np.cumsum([len(x) for x in segs])))
+        got = (np.vstack(segs), off)
+        store[key] = got
+    return got
+
+
 def _single_overlaps(piv: np.ndarray, qiv: np.ndarray, tol: float) -> np.ndarray:
     """``(n, m)`` bool: scan interval i and map interval j (``(start, span)`` rows, rad)
     overlap within ``tol`` radians (map intervals tested at 0 and +-2 pi)."""
@@ -410,7 +471,6 @@ def match_with_cost(
     q_ord, q_iv = _map_order_arrays(Q, est)
     q_order = q_ord.tolist()
     m = len(q_order)
-    Qf = [Q.features[j] for j in q_order]
     Qiv = q_iv[q_ord].reshape(-1, 2)
     fov = P.fov
     # Penalties R (angular size inside the scan's field of view, seen from the estimate).
@@ -450,13 +510,8 @@ def match_with_cost(
     # is cheap for all blocks at once, S* only for the survivors. Blocks are runs of
     # consecutive features, so their points / segments are contiguous rows of the stacked
     # per-feature arrays.
-    k_pts = max(3, config.align_points // 2)
-    samples = [_feature_sample(f, k_pts) for f in P.features]
-    p_off = np.concatenate(([0], np.cumsum([len(x) for x in samples])))
-    p_all = np.vstack(samples)
-    q_segs = [f.segments if f.segments is not None else np.zeros((0, 4)) for f in Qf]
-    q_off = np.concatenate(([0], np.cumsum([len(x) for x in q_segs])))
-    q_all = np.vstack(q_segs)
+    p_all, p_off = _scan_samples(P, max(3, config.align_points // 2))
+    q_all, q_off = _view_segments(Q, q_ord)
     p_beg, p_end = p_off[ca[:, 0]], p_off[ca[:, 1] + 1]
     s_start, s_len = q_off[ca[:, 2]], q_off[ca[:, 3] + 1] - q_off[ca[:, 2]]
     smax = int(s_len.max()) if len(s_len) else 0
@@ -503,18 +558,41 @@ def match_with_cost(
     # is identified by its features' indices in Q, independent of the cut of the order).
     surv = np.nonzero(dA <= config.max_consistency)[0]
     cs = ca[surv]
-    o = np.asarray(q_order, dtype=np.int64)
+    # the features of every block (-1 padded): scan features i_s.., view features (by index
+    # in Q) in the cut order j_s..
+    steps = np.arange(K)
+    p_pieces = np.where(steps <= cs[:, 1:2] - cs[:, 0:1], cs[:, 0:1] + steps, -1)
+    q_pieces = np.where(
+        steps <= cs[:, 3:4] - cs[:, 2:3], q_ord[np.minimum(cs[:, 2:3] + steps, m - 1)], -1
+    )
     M = len(Q.features) + 1
-    qkey = np.zeros(len(cs), dtype=np.int64)
-    for b in range(K):
-        jb = np.minimum(cs[:, 2] + b, m - 1)
-        qkey += np.where(cs[:, 3] - cs[:, 2] >= b, o[jb] + 1, 0) * (M**b)
+    qkey = (q_pieces.astype(np.int64) + 1) @ (M ** steps.astype(np.int64))
     keys = ((cs[:, 0] * K + (cs[:, 1] - cs[:, 0])) * (M**K) + qkey).tolist()
     sstore = cache.setdefault(("S2", id(P), id(Q)), {})
     get = sstore.get
     svals = [get(kk) for kk in keys]
+    if None in svals and shape_cost is None and _kernels.HAVE_NUMBA:
+        # every missing pair in one compiled call (the same S* as the loop below computes)
+        miss = [r for r, v in enumerate(svals) if v is None]
+        pv, pvo = _stacked_vertices(P)
+        qv, qvo = _stacked_vertices(Q)
+        got = shape_distances(
+            pv,
+            pvo,
+            p_pieces[miss],
+            qv,
+            qvo,
+            q_pieces[miss],
+            end_weight=config.shape_end_weight,
+            skip_weight=config.shape_skip_weight,
+            upper_bound=math.nextafter(config.max_shape_distance, math.inf),
+        ).tolist()
+        for r, v in zip(miss, got, strict=True):
+            sstore[keys[r]] = v
+            svals[r] = v
     if None in svals:
         pid = id(P)
+        Qf = [Q.features[j] for j in q_order]
         qid = [id(f) for f in Qf]
         for r, kk in enumerate(keys):
             if svals[r] is not None:
@@ -554,10 +632,12 @@ def match_with_cost(
     total, path = order_preserving_dp(skip_p, skip_q, blocks)
     matches = []
     induced = []
-    row_of = {tuple(r): k for k, r in enumerate(cb.tolist())}
+    # the row of each block on the path (rows coded as one integer; the last of equal rows)
+    code = ((cb[:, 0] * n + cb[:, 1]) * m + cb[:, 2]) * m + cb[:, 3]
+    row_of = dict(zip(code.tolist(), range(len(cb)), strict=True))
     for key in path:
         i_s, i_e, j_s, j_e = key
-        r = row_of[key]
+        r = row_of[((i_s * n + i_e) * m + j_s) * m + j_e]
         matches.append(
             Match(
                 scan=tuple(range(i_s, i_e + 1)),
@@ -683,34 +763,50 @@ def support(Q: Configuration, scan_points: np.ndarray, pose: np.ndarray, tol: fl
     return float(np.mean(_near(Q, q[:, 0], q[:, 1], tol)))
 
 
-@dataclass(eq=False)
 class _Unit:
-    """A feature or two consecutive features joined, as used by step 1."""
+    """A feature or two consecutive features joined, as used by step 1: ``pieces`` their
+    indices in the configuration, ``key`` their identity; the joined arrays are stacked on
+    first use."""
 
-    vertices: np.ndarray
-    points: np.ndarray
-    segments: np.ndarray | None
-    key: tuple
+    def __init__(self, feats: tuple[Feature, ...], pieces: tuple[int, ...]) -> None:
+        self.feats = feats
+        self.pieces = pieces
+        self.key = ("u", *(id(f) for f in feats))
+
+    def _joined(self, attr: str) -> np.ndarray:
+        arrs = [getattr(f, attr) for f in self.feats]
+        return arrs[0] if len(arrs) == 1 else np.vstack(arrs)
+
+    @cached_property
+    def vertices(self) -> np.ndarray:
+        return self._joined("vertices")
+
+    @cached_property
+    def points(self) -> np.ndarray:
+        return self._joined("points")
+
+    @cached_property
+    def has_segments(self) -> bool:
+        return all(f.segments is not None for f in self.feats)
+
+    @cached_property
+    def segments(self) -> np.ndarray | None:
+        return self._joined("segments") if self.has_segments else None
 
 
 def _units(C: Configuration, cyclic: bool) -> list[_Unit]:
-    out = [_Unit(f.vertices, f.points, f.segments, ("u", id(f))) for f in C.features]
+    out = [_Unit((f,), (i,)) for i, f in enumerate(C.features)]
     n = len(C.features)
     last = n if (cyclic and n > 2) else n - 1
     for i in range(max(last, 0)):
-        a, b = C.features[i], C.features[(i + 1) % n]
-        segs = None
-        if a.segments is not None and b.segments is not None:
-            segs = np.vstack([a.segments, b.segments])
-        out.append(
-            _Unit(
-                np.vstack([a.vertices, b.vertices]),
-                np.vstack([a.points, b.points]),
-                segs,
-                ("u", id(a), id(b)),
-            )
-        )
+        j = (i + 1) % n
+        out.append(_Unit((C.features[i], C.features[j]), (i, j)))
     return out
+
+
+def _unit_pieces(units: Sequence[_Unit]) -> np.ndarray:
+    """``(len(units), 2)`` feature indices of each unit, ``-1`` padded."""
+    return np.array([(*u.pieces, -1)[:2] for u in units], dtype=np.intp).reshape(-1, 2)
 
 
 def step1_hypotheses(
@@ -744,38 +840,64 @@ def step1_hypotheses(
         return []
     got = Q.__dict__.get("_step1_units")
     if got is None:
-        q_units = [u for u in _units(Q, Q.cyclic) if u.segments is not None]
+        q_units = [u for u in _units(Q, Q.cyclic) if u.has_segments]
         q_mean = np.array([u.points.mean(axis=0) for u in q_units]).reshape(-1, 2)
-        got = (q_units, q_mean)
+        got = (q_units, q_mean, _unit_pieces(q_units))
         Q.__dict__["_step1_units"] = got
-    q_units, q_mean = got
+    q_units, q_mean, q_pieces = got
     q_rng = np.hypot(q_mean[:, 0] - prior[0], q_mean[:, 1] - prior[1])
-    sd = _gated_shape_cost(config, config.step1_max_shape_distance)
-    out: list[tuple[np.ndarray, float]] = []
-    pair_pts: list[np.ndarray] = []
-    pair_segs: list[np.ndarray] = []
+    gate = config.step1_max_shape_distance
+    cand = []
     for k in chosen:
         pu = p_units[k]
         r = float(np.hypot(*pu.points.mean(axis=0)))
-        js = np.nonzero(np.abs(q_rng - r) <= config.step1_range_gate)[0]
+        cand.append((k, np.nonzero(np.abs(q_rng - r) <= config.step1_range_gate)[0]))
+    if _kernels.HAVE_NUMBA:
+        # every pair of step 1 in one compiled call (the same S* as the loop below computes)
+        ks = np.repeat([k for k, _ in cand], [len(js) for _, js in cand])
+        js_all = np.concatenate([js for _, js in cand])
+        pv, pvo = _stacked_vertices(P)
+        qv, qvo = _stacked_vertices(Q)
+        vals = shape_distances(
+            pv,
+            pvo,
+            _unit_pieces(p_units)[ks],
+            qv,
+            qvo,
+            q_pieces[js_all],
+            end_weight=config.shape_end_weight,
+            skip_weight=config.shape_skip_weight,
+            upper_bound=math.nextafter(gate, math.inf),
+        ).tolist()
+        pos = 0
+        svals = []
+        for _, js in cand:
+            svals.append(vals[pos : pos + len(js)])
+            pos += len(js)
+    else:
+        sd = _gated_shape_cost(config, gate)
+        svals = [
+            [
+                float(sd(_shape_arcs(p_units[k].key, p_units[k].vertices, cache), qa))
+                for qa in (_shape_arcs(q_units[j].key, q_units[j].vertices, cache) for j in js)
+            ]
+            for k, js in cand
+        ]
+    out: list[tuple[np.ndarray, float]] = []
+    pair_pts: list[np.ndarray] = []
+    pair_segs: list[np.ndarray] = []
+    for (k, js), vals_k in zip(cand, svals, strict=True):
+        pu = p_units[k]
+        scored = sorted((s, int(j)) for s, j in zip(vals_k, js.tolist(), strict=True) if s <= gate)
+        if not scored:
+            continue
         pa = _shape_arcs(pu.key, pu.vertices, cache)
-        scored = []
-        for j in js:
-            qu = q_units[j]
-            qa = _shape_arcs(qu.key, qu.vertices, cache)
-            skey = ("S", id(pa), id(qa))
-            s = cache.get(skey)
-            if s is None:
-                s = float(sd(pa, qa))
-                cache[skey] = s
-            if s <= config.step1_max_shape_distance:
-                scored.append((s, int(j)))
-        scored.sort()
+        pts = _subsample(pu.points, config.align_points)
         for s, j in scored[: config.step1_pairs_per_feature]:
             qu = q_units[j]
-            qa = _shape_arcs(qu.key, qu.vertices, cache)  # prepared above
+            qa = _shape_arcs(qu.key, qu.vertices, cache)
             out.append((induced_alignment(pa, qa), s))
-            pair_pts.append(_subsample(pu.points, config.align_points))
+            pair_pts.append(pts)
             pair_segs.append(qu.segments)  # type: ignore[arg-type]
     if out and config.step1_refine_iterations > 0:
         # Refine each induced alignment on its own pair (point-to-line, from the S* alignment).

@@ -101,12 +101,20 @@ def _point_loglik(residuals: np.ndarray, params: RefineParams) -> np.ndarray:
     return np.log(params.likelihood_floor + np.exp(-0.5 * r * r))
 
 
-def scan_normals(points: np.ndarray, max_gap: float = 0.25, gap_factor: float = 0.05) -> np.ndarray:
+def scan_normals(
+    points: np.ndarray,
+    max_gap: float = 0.25,
+    gap_factor: float = 0.05,
+    *,
+    starts: np.ndarray | None = None,
+) -> np.ndarray:
     """Unit surface normals ``(n, 2)`` of beam-ordered scan points (robot frame).
 
     The tangent at a point is the chord between its two neighbours (or the one neighbour it
     has) when they lie within ``max_gap + gap_factor * range`` metres; a point with no close
-    neighbour gets a NaN normal (no orientation constraint).
+    neighbour gets a NaN normal (no orientation constraint). ``starts``: rows where a new
+    polyline begins, for several polylines stacked (neighbours are taken within a polyline
+    only; the same normals as for each polyline alone).
     """
     p = np.asarray(points, dtype=np.float64).reshape(-1, 2)
     n = len(p)
@@ -120,6 +128,11 @@ def scan_normals(points: np.ndarray, max_gap: float = 0.25, gap_factor: float = 
     next_ok = np.zeros(n, dtype=bool)
     prev_ok[1:] = gap <= lim[1:]
     next_ok[:-1] = gap <= lim[:-1]
+    if starts is not None:
+        cut = np.asarray(starts, dtype=np.intp)
+        cut = cut[(cut > 0) & (cut < n)]
+        prev_ok[cut] = False
+        next_ok[cut - 1] = False
     a = np.where(prev_ok[:, None], np.vstack([p[:1], p[:-1]]), p)
     b = np.where(next_ok[:, None], np.vstack([p[1:], p[-1:]]), p)
     t = b - a

@@ -50,7 +50,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from service.core import _kernels
+from service.core import _kernels, _shape_kernels
 from service.core.dce import DCE_NOISE_THRESHOLD, CurveEvolution, dce
 from service.errors import LocalizationError
 
@@ -407,6 +407,67 @@ def shape_distance(
     Q = prepare(q, max_merge)
     d, _ = _dp(P, Q, max_merge, end_weight, skip_weight, False, upper_bound)
     return d
+
+
+def shape_distances(
+    p_verts: np.ndarray,
+    p_off: np.ndarray,
+    p_pieces: np.ndarray,
+    q_verts: np.ndarray,
+    q_off: np.ndarray,
+    q_pieces: np.ndarray,
+    *,
+    max_merge: int = MAX_MERGE,
+    end_weight: float = END_WEIGHT,
+    skip_weight: float = SKIP_WEIGHT,
+    upper_bound: float = math.inf,
+) -> np.ndarray:
+    """:func:`shape_distance` of many pairs of polylines that are joined pieces, in one call.
+
+    Piece ``f`` of a side is the vertex rows ``verts[off[f] : off[f + 1]]`` (``(N, 2)``
+    metres); row ``r`` of ``pieces`` ``(R, k)`` lists the pieces joined (in that order, as
+    ``np.vstack``; ``-1`` = none) into pair ``r``'s polyline. Returns the ``(R,)`` distances,
+    each exactly :func:`shape_distance` of the joined polylines (``inf`` at or above
+    ``upper_bound``). One compiled call (:func:`service.core._shape_kernels.shape_distances`)
+    with numba, else a loop over :func:`shape_distance` (the reference).
+    """
+    pp = np.asarray(p_pieces, dtype=np.intp)
+    qp = np.asarray(q_pieces, dtype=np.intp)
+    if pp.ndim != 2 or qp.ndim != 2 or len(pp) != len(qp):
+        raise LocalizationError(f"pieces: expected (R, k) and (R, l), got {pp.shape}, {qp.shape}")
+    if max_merge < 1:
+        raise LocalizationError(f"max_merge must be >= 1, got {max_merge}")
+    if not _kernels.HAVE_NUMBA:
+        pv, qv = np.asarray(p_verts, dtype=np.float64), np.asarray(q_verts, dtype=np.float64)
+
+        def joined(v: np.ndarray, off: np.ndarray, row: np.ndarray) -> np.ndarray:
+            return np.vstack([v[off[f] : off[f + 1]] for f in row if f >= 0] or [v[:0]])
+
+        kw = {"end_weight": end_weight, "skip_weight": skip_weight, "upper_bound": upper_bound}
+        out = [
+            shape_distance(joined(pv, p_off, a), joined(qv, q_off, b), max_merge=max_merge, **kw)
+            for a, b in zip(pp, qp, strict=True)
+        ]
+        return np.array(out, dtype=np.float64).reshape(-1)
+    status, _, out = _shape_kernels.shape_distances(
+        np.ascontiguousarray(p_verts, dtype=np.float64),
+        np.ascontiguousarray(p_off, dtype=np.intp),
+        np.ascontiguousarray(pp),
+        np.ascontiguousarray(q_verts, dtype=np.float64),
+        np.ascontiguousarray(q_off, dtype=np.intp),
+        np.ascontiguousarray(qp),
+        int(max_merge),
+        float(end_weight),
+        float(skip_weight),
+        float(upper_bound),
+    )
+    if status != 0:
+        raise LocalizationError(
+            {1: "polyline has non-finite coordinates", 2: "polyline has zero length"}.get(
+                status, "expected (k >= 2, 2) points"
+            )
+        )
+    return out
 
 
 def _alignment(

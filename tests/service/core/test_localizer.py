@@ -218,3 +218,45 @@ def test_step_bound_with_odometry_is_odom_step_floor_plus_three_sigma() -> None:
     wide.update(_scan(start, np.random.default_rng(16)), ANGLES, np.zeros(3))
     pred = wide.motion.predict(wide.pose, np.array([0.1, 0.0, 0.0]))
     assert wide._max_step(pred) == pytest.approx(cfg.max_step + three)
+
+
+def test_plain_prior_fit_is_left_out_only_where_nothing_uses_it(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Without odometry on a floor plan the shape matching runs on every scan and weights the
+    fit's points, so only the weighted fits of the prior and of the shape estimate are made
+    (2 per scan, not 3). Forcing the plain prior fit up front as well (the shape matching
+    still running on every scan) changes no estimate. With odometry the plain prior fit
+    decides whether the shape matching runs, and is made first."""
+    from service.core import localizer as loc_mod
+    from sim_publisher.scenario import make_setup
+
+    s = make_setup(2, seed=0, max_scans=12)
+    calls: list[int] = []
+    real_refine = loc_mod.refine_pose
+
+    def counting(*args, **kwargs):  # type: ignore[no-untyped-def]
+        calls.append(0 if kwargs.get("weights") is None else 1)
+        return real_refine(*args, **kwargs)
+
+    monkeypatch.setattr(loc_mod, "refine_pose", counting)
+
+    def run(odom: bool) -> list:
+        loc = ShapeLocalizer(s.map_data, s.truth[0])
+        return [loc.update(*s.scan(i), s.odom[i] if odom else None) for i in range(len(s))]
+
+    lazy = run(False)
+    assert ShapeConfig.for_kind(s.map_data.kind).unmatched_weight < 1.0
+    assert len(calls) == 2 * len(s) and calls.count(0) == 0
+    # the eager order: the plain prior fit first, then "doubtful" as before
+    with monkeypatch.context() as m:
+        m.setattr(ShapeLocalizer, "_always_doubtful", lambda self, pred: False)
+        m.setattr(ShapeLocalizer, "_doubtful", lambda self, f, pred: pred.source != "odometry")
+        calls.clear()
+        eager = run(False)
+        assert calls.count(0) == len(s)
+    for a, b in zip(lazy, eager, strict=True):
+        assert np.array_equal(a.pose, b.pose) and a.score == b.score and a.status == b.status
+    calls.clear()
+    run(True)
+    assert calls[:1] == [0]  # with odometry the plain prior fit comes first

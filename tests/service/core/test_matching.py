@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import itertools
 import math
+from collections.abc import Callable
 
 import numpy as np
 import pytest
@@ -24,6 +25,7 @@ from service.core.matching import (
     pose_consistency,
 )
 from service.core.pose import invert, transform_points
+from service.core.similarity import shape_distance
 
 # --------------------------------------------------------------------------------------------
 # eq. 4 and R
@@ -275,3 +277,65 @@ def test_grid_near_agrees_with_a_kd_tree() -> None:
         got = matching._near(Q, q[:, 0], q[:, 1], tol)
         assert np.array_equal(got, np.isfinite(d))
         assert 0 < got.sum() < len(q)
+
+
+# --------------------------------------------------------------------------------------------
+# The matcher on real views: batched S* and cached per-scan / per-view arrays change nothing
+# --------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(("setup_id", "scan"), [(2, 30), (2, 120), (1, 50)])
+def test_batched_shape_distances_give_the_per_pair_match(
+    setup_id: int, scan: int, real_scene: Callable
+) -> None:
+    """match_with_cost's one batched S* call (the default) and its per-pair loop (taken for
+    an explicit shape cost, here the same gated S*) store the same S* for every block pair
+    and return the same matches, eq. 5 cost and induced poses, bit for bit, from the truth,
+    from the previous pose and from an estimate 0.2 m / 0.15 rad off."""
+    sc = real_scene(setup_id, scan)
+    P, Q, cfg, truth = sc.P, sc.Q, sc.config, sc.truth
+    loop_cost = matching._gated_shape_cost(cfg, cfg.max_shape_distance)
+    off = truth[scan] + np.array([0.2, -0.1, 0.15])
+    c1: dict = {}  # one cache over the estimates, as two_step_match keeps it for a scan
+    c2: dict = {}
+    for k, est in enumerate((truth[scan], truth[scan - 1], off)):
+        got = match_with_cost(P, Q, est, cfg, cache=c1)
+        ref = match_with_cost(P, Q, est, cfg, shape_cost=loop_cost, cache=c2)
+        assert c1[("S2", id(P), id(Q))] == c2[("S2", id(P), id(Q))]
+        assert got.cost == ref.cost
+        assert got.matches == ref.matches and (k > 0 or len(got.matches) >= 3)
+        assert all(np.array_equal(a, b) for a, b in zip(got.induced, ref.induced, strict=True))
+    assert len(c1[("S2", id(P), id(Q))]) > 50  # block pairs whose S* was computed
+
+
+def test_step1_batched_shape_distances_equal_the_per_pair_distances(
+    monkeypatch: pytest.MonkeyPatch, real_scene: Callable
+) -> None:
+    """Step 1 computes all its S* in one call; replacing that call by per-pair S* of the
+    joined units gives the same hypotheses and distances, bit for bit (schematic map)."""
+    sc = real_scene(2, 60)
+    P, Q, cfg, prior = sc.P, sc.Q, sc.config, sc.truth[59]
+    got = matching.step1_hypotheses(P, Q, prior, cfg, {})
+
+    def per_pair(pv, po, pp, qv, qo, qp, **kw):  # type: ignore[no-untyped-def]
+        def join(v, o, row):  # type: ignore[no-untyped-def]
+            return np.vstack([v[o[f] : o[f + 1]] for f in row if f >= 0])
+
+        pairs = zip(pp, qp, strict=True)
+        return np.array([shape_distance(join(pv, po, a), join(qv, qo, b), **kw) for a, b in pairs])
+
+    monkeypatch.setattr(matching, "shape_distances", per_pair)
+    Q.__dict__.pop("_step1_units", None)
+    ref = matching.step1_hypotheses(P, Q, prior, cfg, {})
+    assert len(got) == len(ref) >= 4
+    for (pg, sg), (pr, sr) in zip(got, ref, strict=True):
+        assert sg == sr and np.array_equal(pg, pr)
+
+
+def test_subsample_takes_the_rounded_linspace_rows() -> None:
+    for n in range(1, 300, 7):
+        pts = np.column_stack([np.arange(n), -np.arange(n)]).astype(float)
+        for k in (12, 24, 120):
+            want = pts if n <= k else pts[np.linspace(0, n - 1, k).round().astype(int)]
+            assert np.array_equal(matching._subsample(pts, k), want)
+            assert np.array_equal(matching._subsample(pts, k), want)  # memoised rows

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import itertools
+from collections.abc import Callable
 
 import numpy as np
 import pytest
@@ -10,7 +11,7 @@ import pytest
 from service.core import _kernels
 from service.core.mapmodel import MapModel
 from service.core.pose import invert, transform_points
-from service.core.refine import RefineParams, refine_pose
+from service.core.refine import RefineParams, refine_pose, scan_normals
 from service.core.types import MapData
 
 ROOM = MapData.from_lists(
@@ -114,3 +115,20 @@ def test_effective_points_let_the_prior_weigh_against_many_correlated_points() -
     a = refine_pose(m, sub, prior, RefineParams(), prior=prior, prior_information=info)
     b = refine_pose(m, sub, prior, eff, prior=prior, prior_information=info)
     np.testing.assert_allclose(a.pose, b.pose, atol=1e-12)
+
+
+def test_scan_normals_of_stacked_polylines_are_each_polylines_own(real_scene: Callable) -> None:
+    """Normals of a scan's polylines stacked with their starts given are, bit for bit, the
+    normals of each polyline alone (no neighbour is taken across a polyline's end), including
+    polylines of one and two points."""
+    sc = real_scene(2, 30)
+    parts = [f.points for f in sc.P.features]
+    parts += [parts[0][:1], parts[1][:2], parts[2][::40]]  # short ones, and sparse points
+    stacked = np.vstack(parts)
+    starts = np.cumsum([len(p) for p in parts])[:-1]
+    got = scan_normals(stacked, starts=starts)
+    want = np.vstack([scan_normals(p) for p in parts])
+    assert np.array_equal(got, want, equal_nan=True)
+    assert np.isnan(got[starts[-3]]).all()  # the lone point has no normal
+    # without the starts the ends of neighbouring polylines would pair up
+    assert not np.array_equal(scan_normals(stacked), want, equal_nan=True)

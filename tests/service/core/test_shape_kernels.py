@@ -1,0 +1,125 @@
+"""Batched S* (service/core/_shape_kernels.py behind similarity.shape_distances): many pairs
+of joined polylines in one call give exactly the per-pair S*, on the real scan and map-view
+polylines of the schematic floor plan (setup 2) and of the metric map (setup 1).
+
+Runs in a few seconds.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections.abc import Callable
+
+import numpy as np
+import pytest
+
+from service.core import _kernels
+from service.core import similarity as sim
+from service.core.configuration import Configuration
+from service.core.similarity import shape_distance, shape_distances
+from service.errors import LocalizationError
+
+
+def _stack(C: Configuration) -> tuple[np.ndarray, np.ndarray]:
+    v = np.vstack([f.vertices for f in C.features])
+    off = np.concatenate(([0], np.cumsum([len(f.vertices) for f in C.features])))
+    return v, off
+
+
+def _runs(n: int, k: int, cyclic: bool) -> list[tuple[int, ...]]:
+    """Every run of 1..k consecutive features (wrapping round when ``cyclic``)."""
+    last = n if cyclic else n - k + 1
+    out = [tuple(range(i, i + 1)) for i in range(n)]
+    for w in range(2, k + 1):
+        out += [tuple((i + t) % n for t in range(w)) for i in range(max(last, 0))]
+    return out
+
+
+def _pieces(runs: list[tuple[int, ...]], k: int) -> np.ndarray:
+    return np.array([(*r, *([-1] * (k - len(r)))) for r in runs], dtype=np.intp)
+
+
+def _joined(C: Configuration, run: tuple[int, ...]) -> np.ndarray:
+    return np.vstack([C.features[i].vertices for i in run])
+
+
+@pytest.mark.parametrize(("setup_id", "scan"), [(2, 5), (2, 100), (1, 10)])
+def test_batched_shape_distances_equal_the_per_pair_distance(
+    setup_id: int, scan: int, real_scene: Callable
+) -> None:
+    """All runs of up to 3 scan features against all runs of up to 3 view features (view runs
+    wrapping round the 360-degree view; 660-2400 pairs), with the configuration's
+    partial-matching weights, unbounded, at the matcher's gate and at a tight bound that
+    prunes: every batched value is the per-pair S* to the bit."""
+    sc = real_scene(setup_id, scan)
+    P, Q, cfg = sc.P, sc.Q, sc.config
+    assert len(P) >= 5 and len(Q) >= 10
+    pr, qr = _runs(len(P), 3, False), _runs(len(Q), 3, True)
+    pairs = list(itertools.product(range(len(pr)), range(len(qr))))
+    pp = _pieces([pr[a] for a, _ in pairs], 3)
+    qp = _pieces([qr[b] for _, b in pairs], 3)
+    pv, po = _stack(P)
+    qv, qo = _stack(Q)
+    kw = {"end_weight": cfg.shape_end_weight, "skip_weight": cfg.shape_skip_weight}
+    for bound in (math.inf, math.nextafter(cfg.max_shape_distance, math.inf), 0.3):
+        got = shape_distances(pv, po, pp, qv, qo, qp, upper_bound=bound, **kw)
+        ref = np.array(
+            [
+                shape_distance(_joined(P, pr[a]), _joined(Q, qr[b]), upper_bound=bound, **kw)
+                for a, b in pairs
+            ]
+        )
+        assert got.shape == (len(pairs),)
+        assert np.array_equal(got, ref)
+        finite = np.isfinite(ref)
+        assert finite.all() if bound == math.inf else np.all(ref[finite] < bound)
+        if bound == 0.3:  # pruned: some pairs come back as inf, some below the bound
+            assert 0 < finite.sum() < len(ref)
+
+
+def test_batched_shape_distances_reference_agrees_with_the_kernel(
+    monkeypatch: pytest.MonkeyPatch, real_scene: Callable
+) -> None:
+    """The numpy / Python reference (what runs without numba) gives the same distances as
+    the compiled call, to rounding (the Python S* uses CPython's math, the kernel libm)."""
+    sc = real_scene(2, 20)
+    P, Q, cfg = sc.P, sc.Q, sc.config
+    pr, qr = _runs(len(P), 2, False), _runs(len(Q), 2, True)
+    pairs = list(itertools.product(range(len(pr)), range(len(qr))))[::3]
+    pp = _pieces([pr[a] for a, _ in pairs], 2)
+    qp = _pieces([qr[b] for _, b in pairs], 2)
+    pv, po = _stack(P)
+    qv, qo = _stack(Q)
+    kw = {"end_weight": cfg.shape_end_weight, "skip_weight": cfg.shape_skip_weight}
+    compiled = shape_distances(pv, po, pp, qv, qo, qp, **kw)
+    monkeypatch.setattr(sim._kernels, "HAVE_NUMBA", False)
+    ref = shape_distances(pv, po, pp, qv, qo, qp, **kw)
+    assert ref.shape == compiled.shape == (len(pairs),)
+    assert np.allclose(ref, compiled, rtol=1e-12, atol=1e-12)
+    assert np.all(ref > 0.0) and np.ptp(ref) > 0.3  # real, varied distances
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+def test_batched_shape_distances_check_their_polylines(
+    compiled: bool, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    if compiled and not _kernels.HAVE_NUMBA:
+        pytest.skip("numba kernels not installed")
+    monkeypatch.setattr(sim._kernels, "HAVE_NUMBA", compiled)
+    v = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [5.0, 5.0], [5.0, 5.0], [0.0, np.nan]])
+    off = np.array([0, 3, 5, 6])  # piece 0 a corner, 1 two equal points, 2 one non-finite
+    one = np.array([[0]])
+    # the corner against itself and against itself joined with a repeated vertex
+    got = shape_distances(v, off, np.array([[0, -1], [0, -1]]), v, off, np.array([[0, -1], [0, 1]]))
+    assert got[0] == 0.0 and got[1] == pytest.approx(shape_distance(v[:5], v[:3]))
+    with pytest.raises(LocalizationError, match="zero length"):
+        shape_distances(v, off, np.array([[1]]), v, off, one)
+    with pytest.raises(LocalizationError, match="non-finite"):
+        shape_distances(v, off, one, v, off, np.array([[0, 2]]))
+    with pytest.raises(LocalizationError, match="k >= 2"):
+        shape_distances(v, off, np.array([[-1]]), v, off, one)
+    with pytest.raises(LocalizationError, match="pieces"):
+        shape_distances(v, off, np.array([0]), v, off, one)
+    empty = np.zeros((0, 2), dtype=np.intp)
+    assert shape_distances(v, off, empty, v, off, empty).shape == (0,)
