@@ -626,92 +626,82 @@ def shape_dp(
 
 
 @njit(cache=True, nogil=True)
-def _heap_less(hr: np.ndarray, hi: np.ndarray, a: int, b: int) -> bool:
-    return hr[a] < hr[b] or (hr[a] == hr[b] and hi[a] < hi[b])
+def _rel_less(rel: np.ndarray, a: int, b: int) -> bool:
+    """DCE's removal order: lower relevance first, ties by lower vertex index."""
+    return rel[a] < rel[b] or (rel[a] == rel[b] and a < b)
 
 
 @njit(cache=True, nogil=True)
-def _heap_swap(hr: np.ndarray, hi: np.ndarray, a: int, b: int) -> None:
-    t = hr[a]
-    hr[a] = hr[b]
-    hr[b] = t
-    u = hi[a]
-    hi[a] = hi[b]
-    hi[b] = u
-
-
-@njit(cache=True, nogil=True)
-def _heap_push(hr: np.ndarray, hi: np.ndarray, n: int, r: float, i: int) -> int:
-    hr[n] = r
-    hi[n] = i
-    c = n
+def _sift_up(heap: np.ndarray, pos: np.ndarray, rel: np.ndarray, c: int) -> None:
+    v = heap[c]
     while c > 0:
         par = (c - 1) // 2
-        if _heap_less(hr, hi, c, par):
-            _heap_swap(hr, hi, c, par)
-            c = par
-        else:
+        pv = heap[par]
+        if not _rel_less(rel, v, pv):
             break
-    return n + 1
+        heap[c] = pv
+        pos[pv] = c
+        c = par
+    heap[c] = v
+    pos[v] = c
 
 
 @njit(cache=True, nogil=True)
-def _heap_pop(hr: np.ndarray, hi: np.ndarray, n: int) -> int:
-    n -= 1
-    hr[0] = hr[n]
-    hi[0] = hi[n]
-    c = 0
+def _sift_down(heap: np.ndarray, pos: np.ndarray, rel: np.ndarray, c: int, n: int) -> None:
+    v = heap[c]
     while True:
-        left = 2 * c + 1
-        if left >= n:
+        m = 2 * c + 1
+        if m >= n:
             break
-        m = left
-        if left + 1 < n and _heap_less(hr, hi, left + 1, left):
-            m = left + 1
-        if _heap_less(hr, hi, m, c):
-            _heap_swap(hr, hi, m, c)
-            c = m
-        else:
+        if m + 1 < n and _rel_less(rel, heap[m + 1], heap[m]):
+            m += 1
+        mv = heap[m]
+        if not _rel_less(rel, mv, v):
             break
-    return n
+        heap[c] = mv
+        pos[mv] = c
+        c = m
+    heap[c] = v
+    pos[v] = c
 
 
 @njit(cache=True, nogil=True)
 def dce_kept(p: np.ndarray, threshold: float) -> np.ndarray:
     """Kernel of :func:`service.core.dce.dce`: fixed-threshold DCE (eq. 2) of ``p`` ``(k, 2)``
     with the same removal order as :class:`service.core.dce.CurveEvolution` (least relevance
-    first, ties by lower index). Returns the kept vertex indices, sorted."""
+    first, ties by lower index). Returns the kept vertex indices, sorted.
+
+    The interior vertices sit in a binary heap indexed by vertex (a neighbour's new
+    relevance moves it in place); ``el[v]`` keeps the length of the edge from ``v`` to its
+    next kept vertex, computed once as ``hypot(x[next] - x[v], y[next] - y[v])``, the same
+    expression each relevance uses."""
     k = p.shape[0]
     x = p[:, 0]
     y = p[:, 1]
     prev = np.arange(-1, k - 1)
     nxt = np.arange(1, k + 1)
-    alive = np.ones(k, dtype=np.bool_)
     rel = np.full(k, np.inf)
-    cap = 3 * k + 3
-    hr = np.empty(cap)
-    hi = np.empty(cap, dtype=np.intp)
+    el = np.empty(k)
+    for i in range(k - 1):
+        el[i] = math.hypot(x[i + 1] - x[i], y[i + 1] - y[i])
+    heap = np.empty(k, dtype=np.intp)
+    pos = np.full(k, -1, dtype=np.intp)
     n = 0
     for i in range(1, k - 1):
-        r = (
-            np.hypot(x[i] - x[i - 1], y[i] - y[i - 1])
-            + np.hypot(x[i + 1] - x[i], y[i + 1] - y[i])
-            - np.hypot(x[i + 1] - x[i - 1], y[i + 1] - y[i - 1])
-        )
-        rel[i] = r
-        n = _heap_push(hr, hi, n, r, i)
+        rel[i] = el[i - 1] + el[i] - math.hypot(x[i + 1] - x[i - 1], y[i + 1] - y[i - 1])
+        heap[n] = i
+        n += 1
+        _sift_up(heap, pos, rel, n - 1)
     last = k - 1
     removed = 0
     while n > 0:
-        r = hr[0]
-        i = hi[0]
-        if not alive[i] or r != rel[i]:
-            n = _heap_pop(hr, hi, n)
-            continue
-        if r >= threshold:
+        i = heap[0]
+        if rel[i] >= threshold:
             break
-        n = _heap_pop(hr, hi, n)
-        alive[i] = False
+        n -= 1
+        if n > 0:
+            heap[0] = heap[n]
+            _sift_down(heap, pos, rel, 0, n)
         removed += 1
         u = prev[i]
         w = nxt[i]
@@ -722,16 +712,23 @@ def dce_kept(p: np.ndarray, threshold: float) -> np.ndarray:
         xw = x[w]
         yw = y[w]
         duw = math.hypot(xw - xu, yw - yu)
+        el[u] = duw
         if u > 0:
+            old = rel[u]
             uu = prev[u]
-            r2 = math.hypot(xu - x[uu], yu - y[uu]) + duw - math.hypot(xw - x[uu], yw - y[uu])
-            rel[u] = r2
-            n = _heap_push(hr, hi, n, r2, u)
+            rel[u] = el[uu] + duw - math.hypot(xw - x[uu], yw - y[uu])
+            if rel[u] < old:
+                _sift_up(heap, pos, rel, pos[u])
+            else:
+                _sift_down(heap, pos, rel, pos[u], n)
         if w < last:
+            old = rel[w]
             ww = nxt[w]
-            r2 = duw + math.hypot(x[ww] - xw, y[ww] - yw) - math.hypot(x[ww] - xu, y[ww] - yu)
-            rel[w] = r2
-            n = _heap_push(hr, hi, n, r2, w)
+            rel[w] = duw + el[w] - math.hypot(x[ww] - xu, y[ww] - yu)
+            if rel[w] < old:
+                _sift_up(heap, pos, rel, pos[w])
+            else:
+                _sift_down(heap, pos, rel, pos[w], n)
     out = np.empty(k - removed, dtype=np.intp)
     j = 0
     i = 0
@@ -954,12 +951,19 @@ def warm_up() -> float:
     angular_intervals(p, np.array([0, 4], dtype=np.intp), np.zeros(3))
     _, _, _, cum, tab = arc_tables(p, 4)
     shape_dp(cum, tab, cum, tab, 4, 4, 0.1, 0.5, np.inf)
-    # the batch kernels of the shape matching (service.core._shape_kernels imports this module)
+    # the batch kernels of the shape matching and the extraction (their modules import this one)
     from service.core import _shape_kernels
 
     whole = np.array([[0, -1]], dtype=np.intp)
     off = np.array([0, 4], dtype=np.intp)
     _shape_kernels.shape_distances(p, off, whole, p, off, whole, 4, 0.1, 0.5, 1.0)
+    _shape_kernels.piece_means(p, off, whole)
+    _shape_kernels.interval_gates(np.zeros((1, 2)), np.ones((2, 2)), 0.1, -1.0, 1.0)
+    _shape_kernels.block_pieces(np.zeros((1, 4), dtype=np.intp), z, 3, 2)
+    _shape_kernels.order_dp_blocks(np.ones(1), np.ones(1), z, z, z, z, np.ones(1))
+    from service.core import _extract_kernels
+
+    _extract_kernels.simplify_groups(p, off, 0.04, 1.5)
     dce_kept(p, 0.04)
     cell = np.array([0, 0, 1], dtype=np.intp)
     order_dp(np.ones(1), np.ones(1), cell, z, z, np.ones(1))

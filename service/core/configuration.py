@@ -25,7 +25,7 @@ from functools import cached_property
 
 import numpy as np
 
-from service.core import _kernels
+from service.core import _extract_kernels, _kernels
 from service.core.dce import dce
 from service.core.mapmodel import MapModel
 from service.core.polylines import Polyline, group_polylines
@@ -187,22 +187,79 @@ def _features_from_ranges(
         min_points=params.min_points,
         wrap=wrap,
     )
-    out = []
-    for g in groups:
-        if g.length < params.min_length:
+    lengths = _lengths([g.points for g in groups])
+    groups = [g for g, length in zip(groups, lengths, strict=True) if length >= params.min_length]
+    out: list[tuple[Polyline, np.ndarray]] = []
+    if not groups:
+        return out
+    if not _kernels.HAVE_NUMBA or min(len(g.points) for g in groups) < 2:
+        for g in groups:
+            keep = dce(g.points, params.dce_threshold)
+            pieces = split_pieces(keep, g.points, params.piece_length)
+            if len(pieces) == 1:
+                out.append((g, g.points[keep]))
+                continue
+            for pk in pieces:
+                out.append((_piece(g, int(pk[0]), int(pk[-1])), g.points[pk]))
+        return out
+    # The same DCE and cuts for all groups in one compiled call.
+    pts = np.vstack([g.points for g in groups])
+    if not np.all(np.isfinite(pts)):
+        raise LocalizationError("DCE input has non-finite coordinates")
+    off = np.cumsum([0, *(len(g.points) for g in groups)])
+    verts, voff, pieces = _extract_kernels.simplify_groups(
+        pts, off.astype(np.intp), float(params.dce_threshold), float(params.piece_length)
+    )
+    vo = voff.tolist()
+    rows = pieces.tolist()
+    whole = [vo[g + 1] - vo[g] - 1 == b and a == 0 for g, a, b in rows]
+    cut = [r for r, w in zip(rows, whole, strict=True) if not w]
+    # bearings of the cut pieces' end points, one np.arctan2 over all (as _piece takes them)
+    ends = np.array([(verts[vo[g] + a], verts[vo[g] + b]) for g, a, b in cut], dtype=np.intp)
+    ends = ends.reshape(-1, 2) + off[[g for g, _, _ in cut]].reshape(-1, 1)
+    bear = np.arctan2(pts[ends, 1], pts[ends, 0]).tolist()
+    k = 0
+    for (g, a, b), w in zip(rows, whole, strict=True):
+        grp = groups[g]
+        pk = verts[vo[g] + a : vo[g] + b + 1]
+        if w:
+            out.append((grp, grp.points[pk]))
             continue
-        keep = dce(g.points, params.dce_threshold)
-        pieces = split_pieces(keep, g.points, params.piece_length)
-        if len(pieces) == 1:
-            out.append((g, g.points[keep]))
-            continue
-        for pk in pieces:
-            out.append((_piece(g, int(pk[0]), int(pk[-1])), g.points[pk]))
+        out.append((_piece(grp, int(pk[0]), int(pk[-1]), *bear[k]), grp.points[pk]))
+        k += 1
     return out
 
 
-def _piece(g: Polyline, k0: int, k1: int) -> Polyline:
-    """Points ``k0..k1`` (inclusive) of ``g`` as a polyline of their own."""
+def _lengths(parts: list[np.ndarray]) -> list[float]:
+    """:attr:`Polyline.length` of each ``(k, 2)`` point array, with one numpy pass over all
+    (the same edge lengths, summed per polyline by the same ``np.sum``)."""
+    if not parts:
+        return []
+    d = np.diff(np.vstack(parts), axis=0)
+    h = np.hypot(d[:, 0], d[:, 1])
+    off = list(itertools.accumulate((len(p) for p in parts), initial=0))
+    total = np.add.reduce  # what np.sum calls, without its wrappers
+    return [float(total(h[a : b - 1])) for a, b in itertools.pairwise(off)]
+
+
+def _angular_sizes(parts: list[np.ndarray]) -> list[float]:
+    """:attr:`Polyline.angular_size` of each ``(k, 2)`` point array (sensor frame), with one
+    numpy pass over all (the same bearing steps, summed per polyline by the same ``np.sum``)."""
+    if not parts:
+        return []
+    p = np.vstack(parts)
+    steps = np.diff(np.arctan2(p[:, 1], p[:, 0]))
+    steps = (steps + np.pi) % (2.0 * np.pi) - np.pi
+    off = list(itertools.accumulate((len(p) for p in parts), initial=0))
+    total = np.add.reduce  # what np.sum calls, without its wrappers
+    return [float(abs(total(steps[a : b - 1]))) for a, b in itertools.pairwise(off)]
+
+
+def _piece(
+    g: Polyline, k0: int, k1: int, start: float | None = None, end: float | None = None
+) -> Polyline:
+    """Points ``k0..k1`` (inclusive) of ``g`` as a polyline of their own (``start`` /
+    ``end``: their bearings when already known)."""
     pts = g.points[k0 : k1 + 1]
     ids = g.idx[k0 : k1 + 1]
     return Polyline(
@@ -210,8 +267,8 @@ def _piece(g: Polyline, k0: int, k1: int) -> Polyline:
         idx=ids,
         first_beam=int(ids[0]),
         last_beam=int(ids[-1]),
-        bearing_start=float(np.arctan2(pts[0, 1], pts[0, 0])),
-        bearing_end=float(np.arctan2(pts[-1, 1], pts[-1, 0])),
+        bearing_start=float(np.arctan2(pts[0, 1], pts[0, 0])) if start is None else start,
+        bearing_end=float(np.arctan2(pts[-1, 1], pts[-1, 0])) if end is None else end,
     )
 
 
@@ -233,15 +290,16 @@ def scan_configuration(
     if r.size == 0:
         raise LocalizationError("empty scan")
     span = float(np.max(a) - np.min(a)) if a.size > 1 else 0.0
+    raw = _features_from_ranges(r, a, params, wrap=False)
     feats = [
         Feature(
             vertices=v,
             points=g.points,
             bearing_start=g.bearing_start,
             bearing_end=g.bearing_end,
-            angular_size=g.angular_size,
+            angular_size=size,
         )
-        for g, v in _features_from_ranges(r, a, params, wrap=False)
+        for (g, v), size in zip(raw, _angular_sizes([g.points for g, _ in raw]), strict=True)
     ]
     return Configuration(
         features=feats,
@@ -311,32 +369,41 @@ def map_view(
     raw = _features_from_ranges(ranges, angles, params, wrap=full)
     segs_all = caster.segments
     feats: list[Feature] = []
-    # One nearest-segment pass over all features' points (transformed, stacked).
-    hit = np.zeros(0, dtype=np.intp)
-    if raw and len(segs_all):
+    if raw:
+        # All features' points and vertices transformed at once (elementwise, so the same
+        # numbers as per feature), one nearest-segment pass over all points, and per feature
+        # the sorted hit segments (one np.unique over (feature, segment) codes).
+        n_pts = [len(g.points) for g, _ in raw]
+        p_off = np.cumsum([0, *n_pts]).tolist()
+        v_off = np.cumsum([0, *(len(v) for _, v in raw)]).tolist()
         pts = transform_points(pose, np.vstack([g.points for g, _ in raw]))
-        if model is not None:
-            hit = model.nearest(pts, 0.05).segment
-            if np.any(hit < 0):  # not on any segment (cannot happen for ray hits): search all
-                bad = hit < 0
-                hit[bad] = _hit_segments(pts[bad], segs_all)
-        else:
-            hit = _hit_segments(pts, segs_all)
-    off = 0
-    for g, v in raw:
-        pts = transform_points(pose, g.points)
-        ids = np.unique(hit[off : off + len(pts)])
-        off += len(pts)
-        feats.append(
-            Feature(
-                vertices=transform_points(pose, v),
-                points=pts,
-                bearing_start=g.bearing_start,
-                bearing_end=g.bearing_end,
-                angular_size=g.angular_size,
-                segments=segs_all[ids],
+        verts = transform_points(pose, np.vstack([v for _, v in raw]))
+        sizes = _angular_sizes([g.points for g, _ in raw])
+        S = len(segs_all)
+        ids = np.zeros(0, dtype=np.intp)
+        bounds = [0] * (len(raw) + 1)
+        if S:
+            if model is not None:
+                hit = model.nearest(pts, 0.05).segment
+                if np.any(hit < 0):  # not on any segment (cannot happen for ray hits): search all
+                    bad = hit < 0
+                    hit[bad] = _hit_segments(pts[bad], segs_all)
+            else:
+                hit = _hit_segments(pts, segs_all)
+            code = np.unique(np.repeat(np.arange(len(raw)), n_pts) * S + hit)
+            ids = code % S
+            bounds = np.searchsorted(code, np.arange(len(raw) + 1) * S).tolist()
+        for f, (g, _v) in enumerate(raw):
+            feats.append(
+                Feature(
+                    vertices=verts[v_off[f] : v_off[f + 1]],
+                    points=pts[p_off[f] : p_off[f + 1]],
+                    bearing_start=g.bearing_start,
+                    bearing_end=g.bearing_end,
+                    angular_size=sizes[f],
+                    segments=segs_all[ids[bounds[f] : bounds[f + 1]]],
+                )
             )
-        )
     lo, hi = (-np.pi, np.pi) if full else (float(angles[0]), float(angles[-1]))
     return Configuration(
         features=feats, frame="map", viewpoint=pose.copy(), cyclic=full, fov=(lo, hi)

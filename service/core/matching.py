@@ -23,21 +23,22 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from functools import cached_property
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from scipy.spatial import cKDTree
 
-from service.core import _kernels
+from service.core import _kernels, _shape_kernels
 from service.core.configuration import Configuration, Feature
 from service.core.pose import (
+    StackedPairs,
     fit_pairs,
     fit_pairs_ranges,
     pose_from_matches,
     transform_points,
 )
 from service.core.similarity import (
+    complexity_of,
     prepare,
     shape_alignment,
     shape_complexity,
@@ -189,9 +190,10 @@ def order_preserving_dp(
     concatenated (1:n, n:1 and n:m), so a split object is still matched. Order is a hard
     constraint by construction. Returns ``(total cost, [(i_s, i_e, j_s, j_e), ...])`` in order.
 
-    ``blocks`` may also be a :class:`BlockArrays`. With numba the recurrence runs in the
-    kernel :func:`service.core._kernels.order_dp`, else in :func:`_order_preserving_dp_python`
-    (the reference; same recurrence and tie order).
+    ``blocks`` may also be a :class:`BlockArrays`. With numba the blocks are grouped by end
+    cell and the recurrence runs in one compiled call
+    (:func:`service.core._shape_kernels.order_dp_blocks`), else in
+    :func:`_order_preserving_dp_python` (the reference; same recurrence and tie order).
     """
     if not _kernels.HAVE_NUMBA:
         if isinstance(blocks, BlockArrays):
@@ -208,17 +210,11 @@ def order_preserving_dp(
             blocks = d
         return _order_preserving_dp_python(skip_p, skip_q, blocks)
     ba = blocks if isinstance(blocks, BlockArrays) else _blocks_to_arrays(blocks)
-    n, m = len(skip_p), len(skip_q)
-    cell = ba.i_e * m + ba.j_e
-    order = np.argsort(cell, kind="stable")
-    cell_start = np.searchsorted(cell[order], np.arange(n * m + 1)).astype(np.intp)
-    total, path = _kernels.order_dp(
+    total, path = _shape_kernels.order_dp_blocks(
         np.asarray(skip_p, dtype=np.float64).reshape(-1),
         np.asarray(skip_q, dtype=np.float64).reshape(-1),
-        cell_start,
-        np.ascontiguousarray(ba.i_s[order], dtype=np.intp),
-        np.ascontiguousarray(ba.j_s[order], dtype=np.intp),
-        np.ascontiguousarray(ba.cost[order], dtype=np.float64),
+        *(np.ascontiguousarray(x, dtype=np.intp) for x in (ba.i_s, ba.i_e, ba.j_s, ba.j_e)),
+        np.ascontiguousarray(ba.cost, dtype=np.float64),
     )
     return float(total), [tuple(r) for r in path.tolist()]  # type: ignore[misc]
 
@@ -391,6 +387,15 @@ def _map_order_arrays(Q: Configuration, estimate: np.ndarray) -> tuple[np.ndarra
     return np.argsort(np.atleast_1d(mids), kind="stable"), arr
 
 
+def _scan_intervals(P: Configuration) -> np.ndarray:
+    """``(n, 2)`` rows ``(bearing_start, angular_size)`` of the scan's features (cached)."""
+    got = P.__dict__.get("_intervals")
+    if got is None:
+        got = np.array([(f.bearing_start, f.angular_size) for f in P.features]).reshape(-1, 2)
+        P.__dict__["_intervals"] = got
+    return got
+
+
 def _overlaps(start: np.ndarray, span: np.ndarray, lo: float, hi: float) -> np.ndarray:
     """:func:`_overlap` for arrays of intervals (same arithmetic, elementwise)."""
     if hi - lo >= _TWO_PI - 1e-9:
@@ -476,13 +481,17 @@ def match_with_cost(
     # Penalties R (angular size inside the scan's field of view, seen from the estimate).
     w_r = config.penalty_weight
     skip_p = [w_r * f.angular_size for f in P.features]
-    skip_q = (w_r * config.map_penalty_factor) * _overlaps(Qiv[:, 0], Qiv[:, 1], fov[0], fov[1])
+    gate = config.bearing_gate if bearing_gate is None else bearing_gate
+    if n and m and _kernels.HAVE_NUMBA:
+        single, inside = _shape_kernels.interval_gates(_scan_intervals(P), Qiv, gate, *fov)
+    else:
+        inside = _overlaps(Qiv[:, 0], Qiv[:, 1], fov[0], fov[1])
+    skip_q = (w_r * config.map_penalty_factor) * inside
     if n == 0 or m == 0:
         cost, _ = order_preserving_dp(skip_p, skip_q, {})
         return ConfigurationMatch(matches=[], cost=cost)
-    Piv = np.array([(f.bearing_start, f.angular_size) for f in P.features])
-    gate = config.bearing_gate if bearing_gate is None else bearing_gate
-    single = _single_overlaps(Piv, Qiv, gate)
+    if not _kernels.HAVE_NUMBA:
+        single = _single_overlaps(_scan_intervals(P), Qiv, gate)
     # Candidate blocks P[i_s..i_e] ~ Q[j_s..j_e] (runs of up to max_join polylines) whose
     # first and last singles overlap, in the order (i_s, j_s) row-major, then a, then b.
     K = config.max_join
@@ -559,15 +568,19 @@ def match_with_cost(
     surv = np.nonzero(dA <= config.max_consistency)[0]
     cs = ca[surv]
     # the features of every block (-1 padded): scan features i_s.., view features (by index
-    # in Q) in the cut order j_s..
-    steps = np.arange(K)
-    p_pieces = np.where(steps <= cs[:, 1:2] - cs[:, 0:1], cs[:, 0:1] + steps, -1)
-    q_pieces = np.where(
-        steps <= cs[:, 3:4] - cs[:, 2:3], q_ord[np.minimum(cs[:, 2:3] + steps, m - 1)], -1
-    )
+    # in Q) in the cut order j_s..; and its key
     M = len(Q.features) + 1
-    qkey = (q_pieces.astype(np.int64) + 1) @ (M ** steps.astype(np.int64))
-    keys = ((cs[:, 0] * K + (cs[:, 1] - cs[:, 0])) * (M**K) + qkey).tolist()
+    if _kernels.HAVE_NUMBA:
+        p_pieces, q_pieces, key_arr = _shape_kernels.block_pieces(cs, q_ord, K, M)
+    else:
+        steps = np.arange(K)
+        p_pieces = np.where(steps <= cs[:, 1:2] - cs[:, 0:1], cs[:, 0:1] + steps, -1)
+        q_pieces = np.where(
+            steps <= cs[:, 3:4] - cs[:, 2:3], q_ord[np.minimum(cs[:, 2:3] + steps, m - 1)], -1
+        )
+        qkey = (q_pieces.astype(np.int64) + 1) @ (M ** steps.astype(np.int64))
+        key_arr = (cs[:, 0] * K + (cs[:, 1] - cs[:, 0])) * (M**K) + qkey
+    keys = key_arr.tolist()
     sstore = cache.setdefault(("S2", id(P), id(Q)), {})
     get = sstore.get
     svals = [get(kk) for kk in keys]
@@ -698,6 +711,33 @@ def matched_pairs(
     return out
 
 
+def matched_stack(P: Configuration, Q: Configuration, matches: Sequence[Match]) -> StackedPairs:
+    """:func:`matched_pairs` stacked (one copy of all points and of all segments) and without
+    the pairs :func:`service.core.pose.pose_from_matches` skips (no points or no segments)."""
+    pts: list[np.ndarray] = []
+    segs: list[np.ndarray] = []
+    counts: list[int] = []
+    seg_len: list[int] = []
+    for m in matches:
+        fs = [P.features[i].points for i in m.scan]
+        ss = [x for x in (Q.features[j].segments for j in m.map) if x is not None]
+        n_p = sum(len(x) for x in fs)
+        n_s = sum(len(x) for x in ss)
+        if n_p and n_s:
+            pts += fs
+            segs += ss
+            counts.append(n_p)
+            seg_len.append(n_s)
+    lens = np.array(seg_len, dtype=np.intp)
+    return StackedPairs(
+        points=np.vstack(pts) if pts else np.zeros((0, 2)),
+        counts=np.array(counts, dtype=np.intp),
+        segments=np.vstack(segs) if segs else np.zeros((0, 4)),
+        seg_start=(np.cumsum(lens) - lens).astype(np.intp),
+        seg_len=lens,
+    )
+
+
 @dataclass
 class TwoStepResult:
     """Result of :func:`two_step_match`.
@@ -766,32 +806,40 @@ def support(Q: Configuration, scan_points: np.ndarray, pose: np.ndarray, tol: fl
 class _Unit:
     """A feature or two consecutive features joined, as used by step 1: ``pieces`` their
     indices in the configuration, ``key`` their identity; the joined arrays are stacked on
-    first use."""
+    first use (most units only need their mean point and their S*)."""
+
+    __slots__ = ("_points", "_segments", "_vertices", "feats", "key", "pieces")
 
     def __init__(self, feats: tuple[Feature, ...], pieces: tuple[int, ...]) -> None:
         self.feats = feats
         self.pieces = pieces
         self.key = ("u", *(id(f) for f in feats))
+        one = feats[0] if len(feats) == 1 else None
+        self._vertices = None if one is None else one.vertices
+        self._points = None if one is None else one.points
+        self._segments = None if one is None else one.segments
 
-    def _joined(self, attr: str) -> np.ndarray:
-        arrs = [getattr(f, attr) for f in self.feats]
-        return arrs[0] if len(arrs) == 1 else np.vstack(arrs)
-
-    @cached_property
+    @property
     def vertices(self) -> np.ndarray:
-        return self._joined("vertices")
+        if self._vertices is None:
+            self._vertices = np.vstack([f.vertices for f in self.feats])
+        return self._vertices
 
-    @cached_property
+    @property
     def points(self) -> np.ndarray:
-        return self._joined("points")
+        if self._points is None:
+            self._points = np.vstack([f.points for f in self.feats])
+        return self._points
 
-    @cached_property
+    @property
     def has_segments(self) -> bool:
         return all(f.segments is not None for f in self.feats)
 
-    @cached_property
+    @property
     def segments(self) -> np.ndarray | None:
-        return self._joined("segments") if self.has_segments else None
+        if self._segments is None and self.has_segments:
+            self._segments = np.vstack([f.segments for f in self.feats])  # type: ignore[misc]
+        return self._segments
 
 
 def _units(C: Configuration, cyclic: bool) -> list[_Unit]:
@@ -807,6 +855,29 @@ def _units(C: Configuration, cyclic: bool) -> list[_Unit]:
 def _unit_pieces(units: Sequence[_Unit]) -> np.ndarray:
     """``(len(units), 2)`` feature indices of each unit, ``-1`` padded."""
     return np.array([(*u.pieces, -1)[:2] for u in units], dtype=np.intp).reshape(-1, 2)
+
+
+def _piece_means(C: Configuration, pieces: np.ndarray) -> np.ndarray:
+    """``(R, 2)``: per row of ``pieces`` (feature indices, ``-1`` padded) the mean point of
+    those features' points joined, exactly ``np.vstack(points).mean(axis=0)`` (which sums
+    the rows in order): in one compiled call with numba, else that expression per row."""
+    if not _kernels.HAVE_NUMBA:
+        rows = [[C.features[f].points for f in row if f >= 0] for row in pieces.tolist()]
+        return np.array([np.vstack(r).mean(axis=0) for r in rows]).reshape(-1, 2)
+    pts, off = _stacked_points(C)
+    return _shape_kernels.piece_means(pts, off, np.ascontiguousarray(pieces, dtype=np.intp))
+
+
+def _unit_complexity(u: _Unit) -> float:
+    """:func:`service.core.similarity.shape_complexity` of the unit's joined vertices."""
+    if len(u.feats) == 1:
+        return shape_complexity(u.vertices)
+    xs: list[float] = []
+    ys: list[float] = []
+    for f in u.feats:
+        xs += f.vertices[:, 0].tolist()
+        ys += f.vertices[:, 1].tolist()
+    return complexity_of(xs, ys)
 
 
 def step1_hypotheses(
@@ -831,7 +902,7 @@ def step1_hypotheses(
     for k, u in enumerate(p_units):
         c = cache.get(("C", *u.key))
         if c is None:
-            c = shape_complexity(u.vertices)
+            c = _unit_complexity(u)
             cache[("C", *u.key)] = c
         comp.append((c, k))
     comp.sort(key=lambda t: (-t[0], t[1]))
@@ -841,16 +912,17 @@ def step1_hypotheses(
     got = Q.__dict__.get("_step1_units")
     if got is None:
         q_units = [u for u in _units(Q, Q.cyclic) if u.has_segments]
-        q_mean = np.array([u.points.mean(axis=0) for u in q_units]).reshape(-1, 2)
-        got = (q_units, q_mean, _unit_pieces(q_units))
+        q_pieces = _unit_pieces(q_units)
+        got = (q_units, _piece_means(Q, q_pieces), q_pieces)
         Q.__dict__["_step1_units"] = got
     q_units, q_mean, q_pieces = got
     q_rng = np.hypot(q_mean[:, 0] - prior[0], q_mean[:, 1] - prior[1])
     gate = config.step1_max_shape_distance
+    p_pieces = _unit_pieces(p_units)
+    p_mean = _piece_means(P, p_pieces[chosen])
     cand = []
-    for k in chosen:
-        pu = p_units[k]
-        r = float(np.hypot(*pu.points.mean(axis=0)))
+    for k, mean in zip(chosen, p_mean, strict=True):
+        r = float(np.hypot(*mean))
         cand.append((k, np.nonzero(np.abs(q_rng - r) <= config.step1_range_gate)[0]))
     if _kernels.HAVE_NUMBA:
         # every pair of step 1 in one compiled call (the same S* as the loop below computes)
@@ -861,7 +933,7 @@ def step1_hypotheses(
         vals = shape_distances(
             pv,
             pvo,
-            _unit_pieces(p_units)[ks],
+            p_pieces[ks],
             qv,
             qvo,
             q_pieces[js_all],
@@ -1036,13 +1108,14 @@ def two_step_match(
             if not res.matches:
                 break
             pose = pose_from_matches(
-                matched_pairs(P, Q, res.matches),
+                matched_stack(P, Q, res.matches),
                 pose,
                 iterations=config.pose_iterations,
                 inlier_distance=config.pose_inlier_distance,
                 robust_scale=config.pose_robust_scale,
                 prior=prior,
                 prior_weight=config.pose_prior_weight,
+                covariance=False,
             ).pose
             res = match_with_cost(P, Q, pose, config, shape_cost, cache, gate)
         # Motion continuity: a hypothesis far from the prior position pays for the distance

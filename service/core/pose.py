@@ -14,6 +14,7 @@ weighted least squares, re-pairing a few times (:func:`pose_from_matches`).
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -156,8 +157,32 @@ class PoseFit:
     iterations: int
 
 
+@dataclass(frozen=True)
+class StackedPairs:
+    """Matched pairs for :func:`pose_from_matches` stacked: pair ``k``'s scan points are the
+    next ``counts[k]`` rows of ``points`` ``(N, 2)`` and its map segments the rows
+    ``seg_start[k] .. seg_start[k] + seg_len[k] - 1`` of ``segments`` ``(S, 4)``; every pair
+    has points and segments."""
+
+    points: np.ndarray
+    counts: np.ndarray
+    segments: np.ndarray
+    seg_start: np.ndarray
+    seg_len: np.ndarray
+
+    def pairs(self) -> list[tuple[np.ndarray, np.ndarray]]:
+        """The pairs one by one."""
+        pt = np.cumsum([0, *self.counts.tolist()]).tolist()
+        return [
+            (self.points[pt[k] : pt[k + 1]], self.segments[s : s + n])
+            for k, (s, n) in enumerate(
+                zip(self.seg_start.tolist(), self.seg_len.tolist(), strict=True)
+            )
+        ]
+
+
 def pose_from_matches(
-    pairs: Sequence[tuple[np.ndarray, np.ndarray]],
+    pairs: Sequence[tuple[np.ndarray, np.ndarray]] | StackedPairs,
     initial_pose: np.ndarray,
     *,
     iterations: int = 12,
@@ -167,6 +192,7 @@ def pose_from_matches(
     tol: float = 1e-6,
     prior: np.ndarray | None = None,
     prior_weight: float = 0.0,
+    covariance: bool = True,
 ) -> PoseFit:
     """Robot pose from matched polyline pairs by least squares over points of the pairs.
 
@@ -186,12 +212,16 @@ def pose_from_matches(
 
     Raises :class:`LocalizationError` when no pair has points and segments.
 
+    ``pairs`` may also be a :class:`StackedPairs` (what the matcher builds without copying
+    each pair). ``covariance=False`` leaves :attr:`PoseFit.covariance` ``None`` (a caller
+    that only wants the pose saves the 3x3 inverse).
+
     The loop runs in a compiled kernel (:func:`service.core._kernels.pose_iterations`) when
     numba is available, else in :func:`_pose_from_matches_numpy` (the reference).
     """
     if not _kernels.HAVE_NUMBA:
-        return _pose_from_matches_numpy(
-            pairs,
+        fit = _pose_from_matches_numpy(
+            pairs.pairs() if isinstance(pairs, StackedPairs) else pairs,
             initial_pose,
             iterations=iterations,
             inlier_distance=inlier_distance,
@@ -201,25 +231,37 @@ def pose_from_matches(
             prior=prior,
             prior_weight=prior_weight,
         )
-    pts_list, seg_list = [], []
-    for pts, segs in pairs:
-        pts = np.asarray(pts, dtype=np.float64).reshape(-1, 2)
-        segs = np.asarray(segs, dtype=np.float64).reshape(-1, 4)
-        if pts.shape[0] == 0 or segs.shape[0] == 0:
-            continue
-        pts_list.append(pts)
-        seg_list.append(segs)
-    if not pts_list:
-        raise LocalizationError("pose_from_matches: no matched pair with points and segments")
-    K = len(pts_list)
-    own = np.repeat(np.arange(K), [len(x) for x in pts_list])
-    seg_len = np.array([len(x) for x in seg_list], dtype=np.intp)
-    seg_start = np.concatenate(([0], np.cumsum(seg_len)[:-1])).astype(np.intp)
+        return fit if covariance else dataclasses.replace(fit, covariance=None)
+    if isinstance(pairs, StackedPairs):
+        if len(pairs.counts) == 0:
+            raise LocalizationError("pose_from_matches: no matched pair with points and segments")
+        own = np.repeat(np.arange(len(pairs.counts)), pairs.counts)
+        pts_all = np.ascontiguousarray(pairs.points, dtype=np.float64)
+        segs_all = np.ascontiguousarray(pairs.segments, dtype=np.float64)
+        seg_start = np.ascontiguousarray(pairs.seg_start, dtype=np.intp)
+        seg_len = np.ascontiguousarray(pairs.seg_len, dtype=np.intp)
+    else:
+        pts_list, seg_list = [], []
+        for pts, segs in pairs:
+            pts = np.asarray(pts, dtype=np.float64).reshape(-1, 2)
+            segs = np.asarray(segs, dtype=np.float64).reshape(-1, 4)
+            if pts.shape[0] == 0 or segs.shape[0] == 0:
+                continue
+            pts_list.append(pts)
+            seg_list.append(segs)
+        if not pts_list:
+            raise LocalizationError("pose_from_matches: no matched pair with points and segments")
+        K = len(pts_list)
+        own = np.repeat(np.arange(K), [len(x) for x in pts_list])
+        seg_len = np.array([len(x) for x in seg_list], dtype=np.intp)
+        seg_start = np.concatenate(([0], np.cumsum(seg_len)[:-1])).astype(np.intp)
+        pts_all = np.ascontiguousarray(np.vstack(pts_list))
+        segs_all = np.ascontiguousarray(np.vstack(seg_list))
     use_prior = prior is not None and prior_weight > 0.0
     pose, H, rms, n_in, it, have_h = _kernels.pose_iterations(
-        np.ascontiguousarray(np.vstack(pts_list)),
+        pts_all,
         own,
-        np.ascontiguousarray(np.vstack(seg_list)),
+        segs_all,
         seg_start,
         seg_len,
         np.asarray(initial_pose, dtype=np.float64).copy(),
@@ -233,7 +275,7 @@ def pose_from_matches(
     )
     total = len(own)
     cov = None
-    if have_h and n_in > 3:
+    if covariance and have_h and n_in > 3:
         sigma2 = max(float(rms), 1e-3) ** 2
         try:
             cov = sigma2 * np.linalg.inv(H)

@@ -630,8 +630,14 @@ def shape_complexity(points: np.ndarray, simplify: float | None = None) -> float
     if p.shape[0] < 3:
         return 0.0
     # Plain Python: a handful of vertices, where numpy's per-call overhead dominates.
-    xs: list[float] = p[:, 0].tolist()
-    ys: list[float] = p[:, 1].tolist()
+    return complexity_of(p[:, 0].tolist(), p[:, 1].tolist())
+
+
+def complexity_of(xs: list[float], ys: list[float]) -> float:
+    """:func:`shape_complexity` of the polyline ``(xs[i], ys[i])`` (metres, >= 2 vertices,
+    already simplified)."""
+    if len(xs) < 3:
+        return 0.0
     total = 0.0
     pl = math.hypot(xs[1] - xs[0], ys[1] - ys[0])
     pd = math.atan2(ys[1] - ys[0], xs[1] - xs[0])

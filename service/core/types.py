@@ -7,12 +7,15 @@ axis, normalised to (-pi, pi]. The laser sits at the robot origin facing forward
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Literal, Protocol
 
 import numpy as np
 
 from service.errors import LocalizationError
+
+_TWO_PI = 2.0 * math.pi
 
 MapKind = Literal["metric", "schematic"]
 Status = Literal["tracking", "lost", "initializing"]
@@ -24,6 +27,8 @@ METHODS: tuple[str, ...] = ("shape", "icp", "lines")
 
 def wrap_angle(a: float | np.ndarray) -> float | np.ndarray:
     """Normalise angle(s) to (-pi, pi]."""
+    if isinstance(a, float):  # a scalar: Python's float % is numpy's np.mod, bit for bit
+        return float(math.pi - ((math.pi - a) % _TWO_PI))
     w = np.pi - np.mod(np.pi - np.asarray(a, dtype=np.float64), 2.0 * np.pi)
     return float(w) if np.ndim(w) == 0 else w
 

@@ -11,6 +11,7 @@ import pytest
 from service.core.configuration import Configuration, map_view, scan_configuration
 from service.core.localizer import ShapeConfig
 from service.core.mapmodel import MapModel
+from service.core.types import MapData
 from sim_publisher.scenario import make_setup
 
 
@@ -18,7 +19,7 @@ from sim_publisher.scenario import make_setup
 class RealScene:
     """One simulated scan as the shape tracker sees it: the scan configuration ``P``, the map
     view ``Q`` from the scan's true pose, the setup's :class:`ShapeConfig`, the true poses of
-    the scans up to this one and the scan's ranges / angles."""
+    the scans up to this one, the scan's ranges / angles and the map."""
 
     P: Configuration
     Q: Configuration
@@ -26,6 +27,7 @@ class RealScene:
     truth: np.ndarray
     ranges: np.ndarray
     angles: np.ndarray
+    map_data: MapData
 
 
 @pytest.fixture
@@ -46,6 +48,6 @@ def real_scene() -> Callable[[int, int], RealScene]:
             params=cfg.extraction(),
             model=MapModel(s.map_data),
         )
-        return RealScene(P, Q, cfg, np.asarray(s.truth), r, a)
+        return RealScene(P, Q, cfg, np.asarray(s.truth), r, a, s.map_data)
 
     return make

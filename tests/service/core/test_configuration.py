@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import itertools
 import math
+from collections.abc import Callable
 
 import numpy as np
 import pytest
@@ -20,6 +21,9 @@ from service.core.configuration import (
     scan_configuration,
     split_pieces,
 )
+from service.core.dce import dce
+from service.core.mapmodel import MapModel
+from service.core.polylines import group_polylines
 from service.core.pose import transform_points
 from service.core.raycast import RayCaster
 from service.core.types import MapData
@@ -163,3 +167,82 @@ def test_compiled_split_pieces_agrees_with_numpy() -> None:
         assert len(got) == len(ref)
         assert all(np.array_equal(a, b) for a, b in zip(got, ref, strict=True))
     assert multi > 100
+
+
+# --------------------------------------------------------------------------------------------
+# One pass over all groups / features (the batched paths) gives the per-feature results
+# --------------------------------------------------------------------------------------------
+
+
+def _groups(ranges: np.ndarray, angles: np.ndarray, params: ExtractionParams, wrap: bool) -> list:
+    groups = group_polylines(
+        ranges,
+        angles,
+        min_object_distance=params.min_object_distance,
+        range_factor=params.range_factor,
+        min_points=params.min_points,
+        wrap=wrap,
+    )
+    return [g for g in groups if g.length >= params.min_length]
+
+
+def _per_group_reference(
+    ranges: np.ndarray, angles: np.ndarray, params: ExtractionParams, wrap: bool
+) -> list[tuple]:
+    """_features_from_ranges as it runs group by group (dce, split_pieces and _piece per
+    group, Polyline's own length and angular size)."""
+    out = []
+    for g in _groups(ranges, angles, params, wrap):
+        keep = dce(g.points, params.dce_threshold)
+        pieces = split_pieces(keep, g.points, params.piece_length)
+        if len(pieces) == 1:
+            out.append((g, g.points[keep]))
+            continue
+        for pk in pieces:
+            out.append((conf_mod._piece(g, int(pk[0]), int(pk[-1])), g.points[pk]))
+    return out
+
+
+@pytest.mark.parametrize(("setup_id", "scan"), [(2, 15), (2, 300), (1, 60)])
+def test_batched_extraction_and_map_view_equal_the_per_feature_results(
+    setup_id: int, scan: int, real_scene: Callable
+) -> None:
+    """Scan and 720-beam map view of real poses: the one-call DCE / cuts of all groups, the
+    lengths and angular sizes of all polylines in one numpy pass, and the map view's features
+    transformed and given their hit segments all at once are, bit for bit, what the group by
+    group and feature by feature code gives."""
+    sc = real_scene(setup_id, scan)
+    params = sc.config.extraction()
+    pose = sc.truth[scan]
+    n = sc.config.view_beams
+    view_angles = -np.pi + (np.arange(n) + 0.5) * (2.0 * np.pi / n)
+    caster = RayCaster(sc.map_data.segments())
+    view_ranges = caster.cast(pose, view_angles, sc.config.view_max_range)
+    cuts = 0  # groups cut into pieces: extra features
+    for r, a, wrap in ((sc.ranges, sc.angles, False), (view_ranges, view_angles, True)):
+        got = conf_mod._features_from_ranges(r, a, params, wrap)
+        ref = _per_group_reference(r, a, params, wrap)
+        assert len(got) == len(ref) >= 5
+        cuts += len(ref) - len(_groups(r, a, params, wrap))
+        for (g, v), (h, w) in zip(got, ref, strict=True):
+            assert np.array_equal(v, w) and np.array_equal(g.points, h.points)
+            assert np.array_equal(g.idx, h.idx)
+            assert (g.bearing_start, g.bearing_end) == (h.bearing_start, h.bearing_end)
+        sizes = conf_mod._angular_sizes([g.points for g, _ in got])
+        assert sizes == [g.angular_size for g, _ in ref]
+        assert conf_mod._lengths([g.points for g, _ in got]) == [g.length for g, _ in ref]
+    assert cuts > 0
+    model = MapModel(sc.map_data)
+    Q = map_view(caster, pose, beams=n, params=params, model=model)
+    raw = _per_group_reference(view_ranges, view_angles, params, True)
+    assert len(Q.features) == len(raw)
+    for f, (g, v) in zip(Q.features, raw, strict=True):
+        pts = transform_points(pose, g.points)
+        ids = np.unique(model.nearest(pts, 0.05).segment)
+        assert np.array_equal(f.points, pts)
+        assert np.array_equal(f.vertices, transform_points(pose, v))
+        assert f.angular_size == g.angular_size
+        assert np.array_equal(f.segments, caster.segments[ids]) and len(ids) >= 1
+    P = scan_configuration(sc.ranges, sc.angles, params)
+    ref = _per_group_reference(sc.ranges, sc.angles, params, False)
+    assert [f.angular_size for f in P.features] == [g.angular_size for g, _ in ref]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import numpy as np
 import pytest
@@ -16,6 +17,7 @@ from service.core.dce import (
     relevance,
     relevance_array,
 )
+from service.core.raycast import RayCaster
 from service.errors import LocalizationError
 
 
@@ -172,3 +174,35 @@ def test_compiled_dce_keeps_the_same_vertices_as_curve_evolution() -> None:
         ce = CurveEvolution(p)
         ce.evolve_to(th)
         assert np.array_equal(dce(p, th), ce.kept_indices())
+
+
+@pytest.mark.skipif(not _kernels.HAVE_NUMBA, reason="numba kernels not installed")
+def test_compiled_dce_matches_curve_evolution_on_real_groups_and_exact_ties(
+    real_scene: Callable,
+) -> None:
+    """The compiled DCE (an indexed heap, edge lengths kept) removes the same vertices as
+    the reference on the grouped returns of real scans and 720-beam map views (setup 2 and
+    setup 1), and on polylines of integer points where relevances tie exactly (the lower
+    index goes first)."""
+    from service.core.polylines import group_polylines
+
+    groups = []
+    for setup_id, scan in ((2, 10), (2, 200), (1, 30)):
+        sc = real_scene(setup_id, scan)
+        groups += [g.points for g in group_polylines(sc.ranges, sc.angles, min_points=3)]
+        n = 720
+        ang = -np.pi + (np.arange(n) + 0.5) * (2.0 * np.pi / n)
+        r = RayCaster(sc.map_data.segments()).cast(sc.truth[scan], ang, 15.0)
+        groups += [g.points for g in group_polylines(r, ang, min_points=3, wrap=True)]
+    assert sum(len(g) for g in groups) > 1000
+    rng = np.random.default_rng(33)
+    for _ in range(300):
+        p = rng.integers(0, 4, size=(int(rng.integers(3, 60)), 2)).astype(float)
+        keep = np.concatenate(([True], np.any(np.diff(p, axis=0) != 0, axis=1)))
+        if keep.sum() >= 2:
+            groups.append(p[keep])
+    for p in groups:
+        for th in (0.02, 0.3):
+            ce = CurveEvolution(p)
+            ce.evolve_to(th)
+            assert np.array_equal(dce(p, th), ce.kept_indices())

@@ -24,7 +24,7 @@ from service.core.matching import (
     penalty_R,
     pose_consistency,
 )
-from service.core.pose import invert, transform_points
+from service.core.pose import invert, pose_from_matches, transform_points
 from service.core.similarity import shape_distance
 
 # --------------------------------------------------------------------------------------------
@@ -339,3 +339,39 @@ def test_subsample_takes_the_rounded_linspace_rows() -> None:
             want = pts if n <= k else pts[np.linspace(0, n - 1, k).round().astype(int)]
             assert np.array_equal(matching._subsample(pts, k), want)
             assert np.array_equal(matching._subsample(pts, k), want)  # memoised rows
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+def test_stacked_matches_give_the_pose_of_the_matched_pairs(
+    compiled: bool, real_scene: Callable, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The matcher's stacked pairs (one copy of all points and segments) give the pose fit of
+    matched_pairs bit for bit, with its covariance when asked for; a pair without segments is
+    left out as pose_from_matches leaves it out."""
+    if compiled and not _kernels.HAVE_NUMBA:
+        pytest.skip("numba kernels not installed")
+    monkeypatch.setattr(_kernels, "HAVE_NUMBA", compiled)
+    sc = real_scene(2, 90)
+    P, Q, cfg, est = sc.P, sc.Q, sc.config, sc.truth[90] + np.array([0.05, -0.05, 0.02])
+    res = match_with_cost(P, Q, est, cfg)
+    assert len(res.matches) >= 3
+    kw = {"iterations": 12, "inlier_distance": 0.4, "robust_scale": 0.08, "prior": sc.truth[89]}
+    ref = pose_from_matches(matching.matched_pairs(P, Q, res.matches), est, **kw)
+    stack = matching.matched_stack(P, Q, res.matches)
+    got = pose_from_matches(stack, est, **kw)
+    assert np.array_equal(got.pose, ref.pose) and got.rms == ref.rms
+    assert got.inliers == ref.inliers and got.iterations == ref.iterations
+    assert ref.covariance is not None and np.array_equal(got.covariance, ref.covariance)
+    bare = pose_from_matches(stack, est, covariance=False, **kw)
+    assert bare.covariance is None and np.array_equal(bare.pose, ref.pose)
+    # a match whose map features carry no segments (a scan-only feature matched by hand)
+    Q.features[res.matches[0].map[0]].segments = None
+    one = [
+        matching.Match(scan=m.scan, map=m.map[:1], shape_distance=0.0, pose_consistency=0.0)
+        for m in res.matches
+    ]
+    s1 = matching.matched_stack(P, Q, one)
+    assert len(s1.counts) == len(one) - 1
+    a = pose_from_matches(s1, est, **kw)
+    b = pose_from_matches(matching.matched_pairs(P, Q, one), est, **kw)
+    assert np.array_equal(a.pose, b.pose) and a.inliers == b.inliers

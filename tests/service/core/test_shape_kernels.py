@@ -123,3 +123,64 @@ def test_batched_shape_distances_check_their_polylines(
         shape_distances(v, off, np.array([0]), v, off, one)
     empty = np.zeros((0, 2), dtype=np.intp)
     assert shape_distances(v, off, empty, v, off, empty).shape == (0,)
+
+
+# --------------------------------------------------------------------------------------------
+# The other batch kernels of match_with_cost and step 1, against their numpy references
+# --------------------------------------------------------------------------------------------
+
+
+@pytest.mark.skipif(not _kernels.HAVE_NUMBA, reason="numba kernels not installed")
+@pytest.mark.parametrize(("setup_id", "scan"), [(2, 50), (1, 70)])
+def test_interval_gates_and_block_pieces_equal_the_numpy_expressions(
+    setup_id: int, scan: int, real_scene: Callable
+) -> None:
+    """The scan / view interval tests (both field-of-view cases) and the blocks' features and
+    S* keys of match_with_cost: the kernels give the numpy reference's values exactly."""
+    from service.core import _shape_kernels as sk
+    from service.core import matching
+
+    sc = real_scene(setup_id, scan)
+    P, Q, cfg = sc.P, sc.Q, sc.config
+    est = sc.truth[scan] + np.array([0.1, 0.05, -0.1])
+    q_ord, q_iv = matching._map_order_arrays(Q, est)
+    qiv = q_iv[q_ord].reshape(-1, 2)
+    piv = matching._scan_intervals(P)
+    for lo, hi in (P.fov, (-math.pi, math.pi), (-0.3, 2.0)):
+        for tol in (cfg.bearing_gate, cfg.fast_bearing_gate, 0.0):
+            single, inside = sk.interval_gates(piv, qiv, tol, lo, hi)
+            assert np.array_equal(single, matching._single_overlaps(piv, qiv, tol))
+            assert np.array_equal(inside, matching._overlaps(qiv[:, 0], qiv[:, 1], lo, hi))
+    assert 0 < single.sum() < single.size and np.ptp(inside) > 0
+    K, M, m = cfg.max_join, len(Q.features) + 1, len(q_ord)
+    cs = _kernels.block_candidates(np.ones((len(P), m), dtype=bool), K, cfg.join_total)
+    pp, qp, keys = sk.block_pieces(cs, q_ord, K, M)
+    steps = np.arange(K)
+    want_p = np.where(steps <= cs[:, 1:2] - cs[:, 0:1], cs[:, 0:1] + steps, -1)
+    want_q = np.where(
+        steps <= cs[:, 3:4] - cs[:, 2:3], q_ord[np.minimum(cs[:, 2:3] + steps, m - 1)], -1
+    )
+    qkey = (want_q.astype(np.int64) + 1) @ (M ** steps.astype(np.int64))
+    want_k = (cs[:, 0] * K + (cs[:, 1] - cs[:, 0])) * (M**K) + qkey
+    assert np.array_equal(pp, want_p) and np.array_equal(qp, want_q)
+    assert np.array_equal(keys, want_k) and len(set(keys.tolist())) == len(cs)
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+def test_piece_means_are_numpys_mean_of_the_joined_points(
+    compiled: bool, real_scene: Callable, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Mean points of step 1's units (single features and consecutive pairs, wrapping round
+    the view): exactly ``np.vstack(points).mean(axis=0)``."""
+    if compiled and not _kernels.HAVE_NUMBA:
+        pytest.skip("numba kernels not installed")
+    from service.core import matching
+
+    monkeypatch.setattr(_kernels, "HAVE_NUMBA", compiled)
+    sc = real_scene(2, 140)
+    for C, cyclic in ((sc.P, False), (sc.Q, True)):
+        units = matching._units(C, cyclic)
+        pieces = matching._unit_pieces(units)
+        got = matching._piece_means(C, pieces)
+        want = np.array([np.vstack([f.points for f in u.feats]).mean(axis=0) for u in units])
+        assert len(units) > 10 and np.array_equal(got, want)
