@@ -847,42 +847,45 @@ def grid_build(
 
 @njit(cache=True, nogil=True)
 def grid_near(
-    pts: np.ndarray,
+    sx: np.ndarray,
+    sy: np.ndarray,
     x0: float,
     y0: float,
     nx: int,
     ny: int,
     start: np.ndarray,
-    order: np.ndarray,
     cell: float,
     qx: np.ndarray,
     qy: np.ndarray,
     tol: float,
 ) -> np.ndarray:
     """Per query point ``(qx[i], qy[i])``: is some grid point closer than ``tol`` (<= ``cell``)?
-    Exact (all points of the 3 x 3 neighbouring cells are tested)."""
+    ``sx``, ``sy``: the grid's points in cell order (``pts[order]`` of :func:`grid_build`), so
+    the 3 cells of a column of the 3 x 3 neighbourhood are one run. Exact (all points of the
+    3 x 3 neighbouring cells are tested)."""
     n = qx.shape[0]
     out = np.zeros(n, dtype=np.bool_)
     t2 = tol * tol
     for i in range(n):
-        fx = (qx[i] - x0) / cell
-        fy = (qy[i] - y0) / cell
+        xi = qx[i]
+        yi = qy[i]
+        fx = (xi - x0) / cell
+        fy = (yi - y0) / cell
         if fx < -1.0 or fy < -1.0 or fx >= nx + 1.0 or fy >= ny + 1.0:
             continue
         cx = math.floor(fx)
         cy = math.floor(fy)
+        lo = max(cy - 1, 0)
+        hi = min(cy + 2, ny)
+        if lo >= hi:
+            continue
         found = False
         for ax in range(max(cx - 1, 0), min(cx + 2, nx)):
-            for ay in range(max(cy - 1, 0), min(cy + 2, ny)):
-                c = ax * ny + ay
-                for t in range(start[c], start[c + 1]):
-                    j = order[t]
-                    dx = pts[j, 0] - qx[i]
-                    dy = pts[j, 1] - qy[i]
-                    if dx * dx + dy * dy < t2:
-                        found = True
-                        break
-                if found:
+            for t in range(start[ax * ny + lo], start[ax * ny + hi]):
+                dx = sx[t] - xi
+                dy = sy[t] - yi
+                if dx * dx + dy * dy < t2:
+                    found = True
                     break
             if found:
                 break
@@ -968,7 +971,8 @@ def warm_up() -> float:
     cell = np.array([0, 0, 1], dtype=np.intp)
     order_dp(np.ones(1), np.ones(1), cell, z, z, np.ones(1))
     x0, y0, nx, ny, start, order = grid_build(p, 0.1)
-    grid_near(p, x0, y0, nx, ny, start, order, 0.1, p[:, 0].copy(), p[:, 1].copy(), 0.1)
+    sx, sy = p[order, 0].copy(), p[order, 1].copy()
+    grid_near(sx, sy, x0, y0, nx, ny, start, 0.1, p[:, 0].copy(), p[:, 1].copy(), 0.1)
     nearest_segment(p, segs)
     split_cuts(np.array([0, 3], dtype=np.intp), p, 1.5)
     field_scores(np.ones((2, 2)), 0.0, 0.0, 0.5, np.zeros((1, 3)), p, 0.1, 10.0)

@@ -569,8 +569,7 @@ class ShapeLocalizer:
         sel = ok[np.linspace(0, ok.size - 1, min(cfg.violation_beams, ok.size)).astype(np.intp)]
         rs, ang = r[sel], a[sel]
         out = []
-        for pose in poses:
-            expect = self._views.caster.cast(pose, ang, cfg.view_max_range)
+        for expect in self._views.caster.cast_many(np.asarray(poses), ang, cfg.view_max_range):
             out.append(float(np.mean(np.isfinite(expect) & (rs > expect + cfg.violation_margin))))
         return out
 

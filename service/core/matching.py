@@ -45,6 +45,15 @@ from service.core.similarity import (
     shape_distance,
     shape_distances,
 )
+from service.core.stacked import (
+    piece_means,
+    scan_intervals,
+    scan_samples,
+    stacked_points,
+    stacked_vertices,
+    subsample,
+    view_segments,
+)
 from service.core.types import Match, wrap_angle
 
 if TYPE_CHECKING:
@@ -301,27 +310,6 @@ def _concat(feats: Sequence[Feature], attr: str) -> np.ndarray:
     return np.vstack([getattr(f, attr) for f in feats])
 
 
-_SAMPLE_ROWS: dict[tuple[int, int], np.ndarray] = {}
-
-
-def _sample_rows(n: int, k: int) -> np.ndarray:
-    """``k`` evenly spaced rows of ``n`` (``np.linspace`` rounded), memoised per ``(n, k)``."""
-    idx = _SAMPLE_ROWS.get((n, k))
-    if idx is None:
-        if len(_SAMPLE_ROWS) >= 4096:
-            _SAMPLE_ROWS.clear()
-        idx = np.linspace(0, n - 1, k).round().astype(int)
-        idx.setflags(write=False)
-        _SAMPLE_ROWS[(n, k)] = idx
-    return idx
-
-
-def _subsample(points: np.ndarray, k: int) -> np.ndarray:
-    if len(points) <= k:
-        return points
-    return points[_sample_rows(len(points), k)]
-
-
 def _shape_arcs(
     f: Feature | tuple, verts: np.ndarray | Callable[[], np.ndarray], cache: dict
 ) -> Any:
@@ -333,30 +321,6 @@ def _shape_arcs(
         arcs = prepare(verts() if callable(verts) else verts)
         cache[key] = arcs
     return arcs
-
-
-def _stacked_points(C: Configuration) -> tuple[np.ndarray, np.ndarray]:
-    """All feature points of ``C`` stacked ``(N, 2)`` and the row offsets per feature
-    (cached on the configuration)."""
-    got = C.__dict__.get("_stacked")
-    if got is None:
-        pts = np.ascontiguousarray(np.vstack([f.points for f in C.features]), dtype=np.float64)
-        off = np.concatenate(([0], np.cumsum([len(f.points) for f in C.features])))
-        got = (pts, off.astype(np.intp))
-        C.__dict__["_stacked"] = got
-    return got
-
-
-def _stacked_vertices(C: Configuration) -> tuple[np.ndarray, np.ndarray]:
-    """All feature vertices of ``C`` stacked ``(N, 2)`` and the row offsets per feature
-    (cached on the configuration)."""
-    got = C.__dict__.get("_stacked_vertices")
-    if got is None:
-        v = np.ascontiguousarray(np.vstack([f.vertices for f in C.features]), dtype=np.float64)
-        off = np.concatenate(([0], np.cumsum([len(f.vertices) for f in C.features])))
-        got = (v, off.astype(np.intp))
-        C.__dict__["_stacked_vertices"] = got
-    return got
 
 
 def map_order(
@@ -379,21 +343,12 @@ def _map_order_arrays(Q: Configuration, estimate: np.ndarray) -> tuple[np.ndarra
     if not Q.features:
         return np.zeros(0, dtype=np.intp), np.zeros((0, 2))
     if _kernels.HAVE_NUMBA:
-        pts, off = _stacked_points(Q)
+        pts, off = stacked_points(Q)
         arr = _kernels.angular_intervals(pts, off, np.asarray(estimate, dtype=np.float64))
     else:
         arr = np.array([_angular_interval(f.points, estimate) for f in Q.features])
     mids = wrap_angle(arr[:, 0] + 0.5 * arr[:, 1])
     return np.argsort(np.atleast_1d(mids), kind="stable"), arr
-
-
-def _scan_intervals(P: Configuration) -> np.ndarray:
-    """``(n, 2)`` rows ``(bearing_start, angular_size)`` of the scan's features (cached)."""
-    got = P.__dict__.get("_intervals")
-    if got is None:
-        got = np.array([(f.bearing_start, f.angular_size) for f in P.features]).reshape(-1, 2)
-        P.__dict__["_intervals"] = got
-    return got
 
 
 def _overlaps(start: np.ndarray, span: np.ndarray, lo: float, hi: float) -> np.ndarray:
@@ -405,42 +360,6 @@ def _overlaps(start: np.ndarray, span: np.ndarray, lo: float, hi: float) -> np.n
         a = start + shift
         total = total + np.maximum(0.0, np.minimum(a + span, hi) - np.maximum(a, lo))
     return total
-
-
-def _feature_sample(f: Feature, k: int) -> np.ndarray:
-    pts = f.cache.get(("sample", k))
-    if pts is None:
-        pts = _subsample(f.points, k)
-        f.cache[("sample", k)] = pts
-    return pts
-
-
-def _scan_samples(P: Configuration, k: int) -> tuple[np.ndarray, np.ndarray]:
-    """Every scan feature's points subsampled to at most ``k``, stacked ``(N, 2)``, and the
-    row offsets per feature (cached on the configuration)."""
-    key = ("_samples", k)
-    got = P.__dict__.get(key)
-    if got is None:
-        samples = [_feature_sample(f, k) for f in P.features]
-        off = np.concatenate(([0], np.cumsum([len(x) for x in samples])))
-        got = (np.vstack(samples), off)
-        P.__dict__[key] = got
-    return got
-
-
-def _view_segments(Q: Configuration, order: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The map segments of the view's features in ``order``, stacked ``(S, 4)``, and the row
-    offsets per position in the order (cached on the view per order)."""
-    store = Q.__dict__.setdefault("_segments_by_order", {})
-    key = order.tobytes()
-    got = store.get(key)
-    if got is None:
-        segs = [Q.features[j].segments for j in order.tolist()]
-        segs = [x if x is not None else np.zeros((0, 4)) for x in segs]
-        off = np.concatenate(([0], np.cumsum([len(x) for x in segs])))
-        got = (np.vstack(segs), off)
-        store[key] = got
-    return got
 
 
 def _single_overlaps(piv: np.ndarray, qiv: np.ndarray, tol: float) -> np.ndarray:
@@ -483,7 +402,7 @@ def match_with_cost(
     skip_p = [w_r * f.angular_size for f in P.features]
     gate = config.bearing_gate if bearing_gate is None else bearing_gate
     if n and m and _kernels.HAVE_NUMBA:
-        single, inside = _shape_kernels.interval_gates(_scan_intervals(P), Qiv, gate, *fov)
+        single, inside = _shape_kernels.interval_gates(scan_intervals(P), Qiv, gate, *fov)
     else:
         inside = _overlaps(Qiv[:, 0], Qiv[:, 1], fov[0], fov[1])
     skip_q = (w_r * config.map_penalty_factor) * inside
@@ -491,7 +410,7 @@ def match_with_cost(
         cost, _ = order_preserving_dp(skip_p, skip_q, {})
         return ConfigurationMatch(matches=[], cost=cost)
     if not _kernels.HAVE_NUMBA:
-        single = _single_overlaps(_scan_intervals(P), Qiv, gate)
+        single = _single_overlaps(scan_intervals(P), Qiv, gate)
     # Candidate blocks P[i_s..i_e] ~ Q[j_s..j_e] (runs of up to max_join polylines) whose
     # first and last singles overlap, in the order (i_s, j_s) row-major, then a, then b.
     K = config.max_join
@@ -519,8 +438,8 @@ def match_with_cost(
     # is cheap for all blocks at once, S* only for the survivors. Blocks are runs of
     # consecutive features, so their points / segments are contiguous rows of the stacked
     # per-feature arrays.
-    p_all, p_off = _scan_samples(P, max(3, config.align_points // 2))
-    q_all, q_off = _view_segments(Q, q_ord)
+    p_all, p_off = scan_samples(P, max(3, config.align_points // 2))
+    q_all, q_off = view_segments(Q, q_ord)
     p_beg, p_end = p_off[ca[:, 0]], p_off[ca[:, 1] + 1]
     s_start, s_len = q_off[ca[:, 2]], q_off[ca[:, 3] + 1] - q_off[ca[:, 2]]
     smax = int(s_len.max()) if len(s_len) else 0
@@ -587,8 +506,8 @@ def match_with_cost(
     if None in svals and shape_cost is None and _kernels.HAVE_NUMBA:
         # every missing pair in one compiled call (the same S* as the loop below computes)
         miss = [r for r, v in enumerate(svals) if v is None]
-        pv, pvo = _stacked_vertices(P)
-        qv, qvo = _stacked_vertices(Q)
+        pv, pvo = stacked_vertices(P)
+        qv, qvo = stacked_vertices(Q)
         got = shape_distances(
             pv,
             pvo,
@@ -773,20 +692,22 @@ def _near(Q: Configuration, x: np.ndarray, y: np.ndarray, tol: float) -> np.ndar
         return np.isfinite(d)
     key = ("_grid", tol)
     grid = Q.__dict__.get(key)
-    pts = _stacked_points(Q)[0]
     if grid is None:
+        pts = stacked_points(Q)[0]
         cell = 1.01 * tol  # > tol, so the 3 x 3 neighbouring cells hold every near point
-        grid = (*_kernels.grid_build(pts, cell), cell)
+        x0, y0, nx, ny, start, order = _kernels.grid_build(pts, cell)
+        sx, sy = (np.ascontiguousarray(pts[order, k]) for k in (0, 1))
+        grid = (sx, sy, x0, y0, nx, ny, start, cell)
         Q.__dict__[key] = grid
-    x0, y0, nx, ny, start, order, cell = grid
+    sx, sy, x0, y0, nx, ny, start, cell = grid
     return _kernels.grid_near(
-        pts,
+        sx,
+        sy,
         x0,
         y0,
         nx,
         ny,
         start,
-        order,
         cell,
         np.ascontiguousarray(x, dtype=np.float64),
         np.ascontiguousarray(y, dtype=np.float64),
@@ -857,17 +778,6 @@ def _unit_pieces(units: Sequence[_Unit]) -> np.ndarray:
     return np.array([(*u.pieces, -1)[:2] for u in units], dtype=np.intp).reshape(-1, 2)
 
 
-def _piece_means(C: Configuration, pieces: np.ndarray) -> np.ndarray:
-    """``(R, 2)``: per row of ``pieces`` (feature indices, ``-1`` padded) the mean point of
-    those features' points joined, exactly ``np.vstack(points).mean(axis=0)`` (which sums
-    the rows in order): in one compiled call with numba, else that expression per row."""
-    if not _kernels.HAVE_NUMBA:
-        rows = [[C.features[f].points for f in row if f >= 0] for row in pieces.tolist()]
-        return np.array([np.vstack(r).mean(axis=0) for r in rows]).reshape(-1, 2)
-    pts, off = _stacked_points(C)
-    return _shape_kernels.piece_means(pts, off, np.ascontiguousarray(pieces, dtype=np.intp))
-
-
 def _unit_complexity(u: _Unit) -> float:
     """:func:`service.core.similarity.shape_complexity` of the unit's joined vertices."""
     if len(u.feats) == 1:
@@ -913,13 +823,13 @@ def step1_hypotheses(
     if got is None:
         q_units = [u for u in _units(Q, Q.cyclic) if u.has_segments]
         q_pieces = _unit_pieces(q_units)
-        got = (q_units, _piece_means(Q, q_pieces), q_pieces)
+        got = (q_units, piece_means(Q, q_pieces), q_pieces)
         Q.__dict__["_step1_units"] = got
     q_units, q_mean, q_pieces = got
     q_rng = np.hypot(q_mean[:, 0] - prior[0], q_mean[:, 1] - prior[1])
     gate = config.step1_max_shape_distance
     p_pieces = _unit_pieces(p_units)
-    p_mean = _piece_means(P, p_pieces[chosen])
+    p_mean = piece_means(P, p_pieces[chosen])
     cand = []
     for k, mean in zip(chosen, p_mean, strict=True):
         r = float(np.hypot(*mean))
@@ -928,8 +838,8 @@ def step1_hypotheses(
         # every pair of step 1 in one compiled call (the same S* as the loop below computes)
         ks = np.repeat([k for k, _ in cand], [len(js) for _, js in cand])
         js_all = np.concatenate([js for _, js in cand])
-        pv, pvo = _stacked_vertices(P)
-        qv, qvo = _stacked_vertices(Q)
+        pv, pvo = stacked_vertices(P)
+        qv, qvo = stacked_vertices(Q)
         vals = shape_distances(
             pv,
             pvo,
@@ -964,7 +874,7 @@ def step1_hypotheses(
         if not scored:
             continue
         pa = _shape_arcs(pu.key, pu.vertices, cache)
-        pts = _subsample(pu.points, config.align_points)
+        pts = subsample(pu.points, config.align_points)
         for s, j in scored[: config.step1_pairs_per_feature]:
             qu = q_units[j]
             qa = _shape_arcs(qu.key, qu.vertices, cache)
@@ -1060,7 +970,7 @@ def two_step_match(
     cache: dict = {}
     if scan_points is None:
         scan_points = np.vstack([f.points for f in P.features]) if P.features else np.zeros((0, 2))
-    sp = _subsample(scan_points, config.support_points)
+    sp = subsample(scan_points, config.support_points)
     hyps = [(prior, 0.0)]
     # Fast path: small motion. A fine heading sweep near the prior; if its best heading
     # already explains config.fast_support of the scan, step 1 is not needed.

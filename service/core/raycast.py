@@ -70,29 +70,50 @@ class RayCaster:
         ring catch such rays).
         """
         pose = np.asarray(pose, dtype=np.float64)
-        ang = np.asarray(angles, dtype=np.float64)
         if pose.shape != (3,) or not np.all(np.isfinite(pose)):
             raise LocalizationError(f"pose: expected 3 finite values, got shape {pose.shape}")
+        return self.cast_many(pose.reshape(1, 3), angles, max_range)[0]
+
+    def cast_many(self, poses: np.ndarray, angles: np.ndarray, max_range: float) -> np.ndarray:
+        """:meth:`cast` from each of ``poses`` ``(P, 3)`` with the same ``angles``, ``(P, n)``:
+        one pass over all poses' beam / segment pairs (each range is computed by the same
+        operations as for its pose alone)."""
+        poses = np.asarray(poses, dtype=np.float64)
+        ang = np.asarray(angles, dtype=np.float64)
+        if poses.ndim != 2 or poses.shape[1] != 3 or not np.all(np.isfinite(poses)):
+            raise LocalizationError(f"poses: expected (P, 3) finite values, got {poses.shape}")
         if ang.ndim != 1:
             raise LocalizationError(f"angles: expected a 1-D array, got shape {ang.shape}")
         if not np.all(np.isfinite(ang)):
             raise LocalizationError("angles: non-finite value")
         if not (np.isfinite(max_range) and max_range > 0.0):
             raise LocalizationError(f"max_range must be finite and > 0, got {max_range}")
+        n_pose = poses.shape[0]
         n = ang.shape[0]
-        out = np.full(n, np.nan)
-        if n == 0 or self._seg.shape[0] == 0:
+        out = np.full((n_pose, n), np.nan)
+        if n == 0 or n_pose == 0 or self._seg.shape[0] == 0:
             return out
 
-        p = pose[:2]
-        dist = self._distances(p)
-        keep = dist <= max_range
-        if not np.any(keep):
+        # The segments within range of each pose, all poses' one after the other; per segment
+        # its pose's position and heading.
+        near = []
+        dists = []
+        for k in range(n_pose):
+            dist = self._distances(poses[k, :2])
+            keep = np.nonzero(dist <= max_range)[0]
+            near.append(keep)
+            dists.append(dist[keep])
+        counts_k = [len(x) for x in near]
+        if sum(counts_k) == 0:
             return out
-        a = self._a[keep]
-        e = self._e[keep]
+        idx = np.concatenate(near)
+        owner = np.repeat(np.arange(n_pose), counts_k)
+        a = self._a[idx]
+        e = self._e[idx]
         b = a + e
-        touching = dist[keep] <= 1e-12
+        touching = np.concatenate(dists) <= 1e-12
+        px = poses[owner, 0]
+        py = poses[owner, 1]
 
         # Beam angles relative to the first beam, folded into [0, 2pi), sorted.
         base = ang[0]
@@ -101,9 +122,9 @@ class RayCaster:
         rel_sorted = rel[order]
 
         # Bearing interval of each segment in the same relative frame.
-        off = pose[2] + base
-        b0 = np.arctan2(a[:, 1] - p[1], a[:, 0] - p[0]) - off
-        b1 = np.arctan2(b[:, 1] - p[1], b[:, 0] - p[0]) - off
+        off = (poses[:, 2] + base)[owner]
+        b0 = np.arctan2(a[:, 1] - py, a[:, 0] - px) - off
+        b1 = np.arctan2(b[:, 1] - py, b[:, 0] - px) - off
         delta = np.mod(b1 - b0 + np.pi, _TWO_PI) - np.pi  # signed span in (-pi, pi]
         lo = np.where(delta >= 0.0, b0, b1)
         span = np.abs(delta)
@@ -132,15 +153,16 @@ class RayCaster:
         run_start = np.repeat(np.cumsum(counts) - counts, counts)
         pair_pos = np.repeat(starts, counts) + (np.arange(total) - run_start)
         pair_beam = order[pair_pos]
+        pair_pose = owner[pair_seg]
 
         # Exact intersection: p + t*d = a + u*e.
-        world_ang = ang[pair_beam] + pose[2]
+        world_ang = ang[pair_beam] + poses[pair_pose, 2]
         dx = np.cos(world_ang)
         dy = np.sin(world_ang)
         ex = e[pair_seg, 0]
         ey = e[pair_seg, 1]
-        wx = a[pair_seg, 0] - p[0]
-        wy = a[pair_seg, 1] - p[1]
+        wx = a[pair_seg, 0] - px[pair_seg]
+        wy = a[pair_seg, 1] - py[pair_seg]
         den = dx * ey - dy * ex
         with np.errstate(divide="ignore", invalid="ignore"):
             t = (wx * ey - wy * ex) / den
@@ -148,8 +170,11 @@ class RayCaster:
         ok = (den != 0.0) & (t >= 0.0) & (t <= max_range) & (u >= -_U_EPS) & (u <= 1.0 + _U_EPS)
         if not np.any(ok):
             return out
-        best = np.full(n, np.inf)
-        np.minimum.at(best, pair_beam[ok], t[ok])
+        # Nearest hit per beam; a pose's pairs keep their order, so each beam sees its
+        # candidates in the same order as when its pose is cast alone.
+        best = np.full(n_pose * n, np.inf)
+        np.minimum.at(best, pair_pose[ok] * n + pair_beam[ok], t[ok])
+        best = best.reshape(n_pose, n)
         hit = np.isfinite(best)
         out[hit] = best[hit]
         return out

@@ -332,15 +332,6 @@ def test_step1_batched_shape_distances_equal_the_per_pair_distances(
         assert sg == sr and np.array_equal(pg, pr)
 
 
-def test_subsample_takes_the_rounded_linspace_rows() -> None:
-    for n in range(1, 300, 7):
-        pts = np.column_stack([np.arange(n), -np.arange(n)]).astype(float)
-        for k in (12, 24, 120):
-            want = pts if n <= k else pts[np.linspace(0, n - 1, k).round().astype(int)]
-            assert np.array_equal(matching._subsample(pts, k), want)
-            assert np.array_equal(matching._subsample(pts, k), want)  # memoised rows
-
-
 @pytest.mark.parametrize("compiled", [True, False])
 def test_stacked_matches_give_the_pose_of_the_matched_pairs(
     compiled: bool, real_scene: Callable, monkeypatch: pytest.MonkeyPatch
@@ -375,3 +366,22 @@ def test_stacked_matches_give_the_pose_of_the_matched_pairs(
     a = pose_from_matches(s1, est, **kw)
     b = pose_from_matches(matching.matched_pairs(P, Q, one), est, **kw)
     assert np.array_equal(a.pose, b.pose) and a.inliers == b.inliers
+
+
+@pytest.mark.skipif(not _kernels.HAVE_NUMBA, reason="numba kernels not installed")
+def test_grid_near_agrees_with_a_kd_tree_on_a_heading_sweep(real_scene: Callable) -> None:
+    """The heading sweep's queries on a real view (scan points turned through 2.6 rad round
+    the true pose, both support tolerances): the grid answers what a KD-tree answers."""
+    from scipy.spatial import cKDTree
+
+    sc = real_scene(2, 75)
+    Q, pose = sc.Q, sc.truth[75]
+    scan = np.vstack([f.points for f in sc.P.features])
+    tree = cKDTree(np.vstack([f.points for f in Q.features]))
+    for tol in (0.25, 0.1):
+        for dth in np.arange(-1.3, 1.31, 0.05):
+            q = transform_points(pose + np.array([0.0, 0.0, dth]), scan)
+            d, _ = tree.query(q, k=1, distance_upper_bound=tol)
+            assert np.array_equal(matching._near(Q, q[:, 0], q[:, 1], tol), np.isfinite(d))
+    q = transform_points(pose, scan)
+    assert matching._near(Q, q[:, 0], q[:, 1], 0.25).mean() > 0.3

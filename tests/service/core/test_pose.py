@@ -225,14 +225,14 @@ def test_compiled_fit_of_real_candidate_blocks_agrees_with_the_numpy_reference(
     map segments): the compiled kernel, which tries each segment for all points of a block at
     once, and the numpy reference agree to 1e-9, from the truth and from a pose 0.3 m /
     0.2 rad off (schematic floor plan and metric map)."""
-    from service.core import matching
+    from service.core import matching, stacked
 
     sc = real_scene(setup_id, scan)
     P, Q, cfg = sc.P, sc.Q, sc.config
-    p_all, p_off = matching._scan_samples(P, max(3, cfg.align_points // 2))
+    p_all, p_off = stacked.scan_samples(P, max(3, cfg.align_points // 2))
     for est in (sc.truth[scan], sc.truth[scan] + np.array([0.3, -0.2, 0.2])):
         q_ord, _ = matching._map_order_arrays(Q, est)
-        q_all, q_off = matching._view_segments(Q, q_ord)
+        q_all, q_off = stacked.view_segments(Q, q_ord)
         ca = _kernels.block_candidates(np.ones((len(P), len(q_ord)), dtype=bool), 3, True)
         assert len(ca) > 200
         args = (p_all, p_off[ca[:, 0]], p_off[ca[:, 1] + 1], q_all)

@@ -131,3 +131,30 @@ def test_sensor_on_a_segment_or_at_its_end_point() -> None:
     r = rc.cast(np.zeros(3), np.deg2rad([90.0, 135.0]), 5.0)
     assert r[0] == pytest.approx(0.0)  # the end point itself is on every ray
     assert r[1] == pytest.approx(0.0)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_cast_many_is_cast_pose_by_pose(seed: int) -> None:
+    """Several poses in one pass give each pose's own ranges bit for bit: random segments and
+    a floor plan's rooms, poses far apart (some with nothing in range, some on a wall), sorted
+    and unsorted beams."""
+    rng = np.random.default_rng(100 + seed)
+    if seed % 2:
+        seg = rng.uniform(-5, 5, (40, 4))
+    else:
+        seg = np.vstack([_square(0, 0, 4, 3), _square(4, 0, 9, 6), _square(1, 1, 1.5, 1.4)])
+    poses = np.column_stack([rng.uniform(-2, 10, 7), rng.uniform(-2, 7, 7), rng.uniform(-4, 4, 7)])
+    poses[0] = [50.0, 50.0, 0.0]  # nothing within range
+    poses[1] = [2.0, 0.0, 0.3]  # on a wall
+    ang = rng.uniform(-4, 4, 90) if seed % 3 else np.linspace(-np.pi, np.pi, 361)
+    caster = RayCaster(seg)
+    many = caster.cast_many(poses, ang, 6.0)
+    assert many.shape == (7, len(ang))
+    for k in range(7):
+        np.testing.assert_array_equal(many[k], caster.cast(poses[k], ang, 6.0))
+    assert np.isnan(many[0]).all() and np.isfinite(many[2:]).any()
+    assert caster.cast_many(np.zeros((0, 3)), ang, 6.0).shape == (0, len(ang))
+    with pytest.raises(LocalizationError):
+        caster.cast_many(poses[:, :2], ang, 6.0)
+    with pytest.raises(LocalizationError):
+        caster.cast_many(np.array([[0.0, np.nan, 0.0]]), ang, 6.0)

@@ -138,14 +138,14 @@ def test_interval_gates_and_block_pieces_equal_the_numpy_expressions(
     """The scan / view interval tests (both field-of-view cases) and the blocks' features and
     S* keys of match_with_cost: the kernels give the numpy reference's values exactly."""
     from service.core import _shape_kernels as sk
-    from service.core import matching
+    from service.core import matching, stacked
 
     sc = real_scene(setup_id, scan)
     P, Q, cfg = sc.P, sc.Q, sc.config
     est = sc.truth[scan] + np.array([0.1, 0.05, -0.1])
     q_ord, q_iv = matching._map_order_arrays(Q, est)
     qiv = q_iv[q_ord].reshape(-1, 2)
-    piv = matching._scan_intervals(P)
+    piv = stacked.scan_intervals(P)
     for lo, hi in (P.fov, (-math.pi, math.pi), (-0.3, 2.0)):
         for tol in (cfg.bearing_gate, cfg.fast_bearing_gate, 0.0):
             single, inside = sk.interval_gates(piv, qiv, tol, lo, hi)
@@ -164,23 +164,3 @@ def test_interval_gates_and_block_pieces_equal_the_numpy_expressions(
     want_k = (cs[:, 0] * K + (cs[:, 1] - cs[:, 0])) * (M**K) + qkey
     assert np.array_equal(pp, want_p) and np.array_equal(qp, want_q)
     assert np.array_equal(keys, want_k) and len(set(keys.tolist())) == len(cs)
-
-
-@pytest.mark.parametrize("compiled", [True, False])
-def test_piece_means_are_numpys_mean_of_the_joined_points(
-    compiled: bool, real_scene: Callable, monkeypatch: pytest.MonkeyPatch
-) -> None:
-    """Mean points of step 1's units (single features and consecutive pairs, wrapping round
-    the view): exactly ``np.vstack(points).mean(axis=0)``."""
-    if compiled and not _kernels.HAVE_NUMBA:
-        pytest.skip("numba kernels not installed")
-    from service.core import matching
-
-    monkeypatch.setattr(_kernels, "HAVE_NUMBA", compiled)
-    sc = real_scene(2, 140)
-    for C, cyclic in ((sc.P, False), (sc.Q, True)):
-        units = matching._units(C, cyclic)
-        pieces = matching._unit_pieces(units)
-        got = matching._piece_means(C, pieces)
-        want = np.array([np.vstack([f.points for f in u.feats]).mean(axis=0) for u in units])
-        assert len(units) > 10 and np.array_equal(got, want)
