@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import numpy as np
@@ -260,3 +261,54 @@ def test_plain_prior_fit_is_left_out_only_where_nothing_uses_it(
     calls.clear()
     run(True)
     assert calls[:1] == [0]  # with odometry the plain prior fit comes first
+
+
+def _bent_corridor() -> tuple[MapData, np.ndarray, np.ndarray]:
+    """A 16 m corridor whose right wall bows 0.3 m inward over 8 m (the world), and its floor
+    plan drawn the way a schematisation draws such a wall: two straight lines, the kink 1.5 m
+    further along than the bow's apex (the situation of intel's corridor at scans 8377-8431).
+    Returns the plan, the world's segments and the tour (7 cm steps along the corridor)."""
+    length, bulge = 16.0, 0.3
+    ys = np.linspace(0.0, length, 161)
+    xr = 1.0 - bulge * np.where((ys > 4) & (ys < 12), np.sin(np.pi * (ys - 4) / 8), 0.0)
+    left = np.array([[-1.0, -0.5], [-1.0, length + 0.5]])
+    ends = [
+        np.array([[-1.0, -0.5], [1.0, -0.5]]),
+        np.array([[-1.0, length + 0.5], [1.0, length + 0.5]]),
+    ]
+    world = [left, np.column_stack([xr, ys]), *ends]
+    plan_right = np.array([[1.0, 0.0], [1.0, 4.0], [1.0 - bulge, 9.5], [1.0, 12.0], [1.0, length]])
+    plan = MapData.from_lists("bent", "schematic", [left, plan_right, *ends])
+    segs = np.array([[*a, *b] for p in world for a, b in itertools.pairwise(p)])
+    tour = np.array([[0.0, 0.5 + 0.07 * k, math.pi / 2] for k in range(208)])
+    return plan, segs, tour
+
+
+def _along_error(config: ShapeConfig) -> float:
+    """Largest along-corridor error (m) of the shape tracker on :func:`_bent_corridor` with
+    exact odometry and 1 cm range noise."""
+    from sim_publisher.laser import LaserConfig, LaserSimulator
+
+    plan, segs, tour = _bent_corridor()
+    laser = LaserSimulator(segs, LaserConfig(beams=181, max_range=5.0), seed=1)
+    loc = ShapeLocalizer(plan, tour[0].copy(), config)
+    worst = 0.0
+    for k, pose in enumerate(tour):
+        r, a = laser.scan(pose, k)
+        est = loc.update(r, a, pose)
+        worst = max(worst, abs(float(est.pose[1] - pose[1])))
+    return worst
+
+
+def test_odometry_holds_the_pose_where_a_plan_wall_is_drawn_off() -> None:
+    """A plan whose wall is slightly off pulls every scan's fit along the corridor; the shape
+    tracker's odometry floor (0.02 m per scan) keeps the slide within 0.4 m where the looser
+    MotionConfig default (0.03 m) let it reach 0.5 m."""
+    from service.core.motion import MotionConfig
+
+    cfg = ShapeConfig.for_kind("schematic")
+    assert cfg.motion.sigma_xy_floor == pytest.approx(0.02)
+    tight = _along_error(cfg)
+    loose = _along_error(cfg.model_copy(update={"motion": MotionConfig()}))
+    assert tight < 0.4
+    assert loose > tight + 0.1
