@@ -306,6 +306,32 @@ def _gated_shape_cost(config: ShapeConfig, gate: float) -> ShapeCost:
     return cost
 
 
+def _batched_shape_cost(
+    P: Configuration,
+    Q: Configuration,
+    p_rows: np.ndarray,
+    q_rows: np.ndarray,
+    config: ShapeConfig,
+    gate: float,
+) -> list[float]:
+    """:func:`_gated_shape_cost` of many pairs in one compiled call: pair ``r`` joins the
+    features ``p_rows[r]`` of ``P`` and ``q_rows[r]`` of ``Q`` (``-1`` = none); values above
+    ``gate`` come back as ``inf``."""
+    pv, pvo = stacked_vertices(P)
+    qv, qvo = stacked_vertices(Q)
+    return shape_distances(
+        pv,
+        pvo,
+        p_rows,
+        qv,
+        qvo,
+        q_rows,
+        end_weight=config.shape_end_weight,
+        skip_weight=config.shape_skip_weight,
+        upper_bound=math.nextafter(gate, math.inf),
+    ).tolist()
+
+
 def _concat(feats: Sequence[Feature], attr: str) -> np.ndarray:
     return np.vstack([getattr(f, attr) for f in feats])
 
@@ -506,19 +532,9 @@ def match_with_cost(
     if None in svals and shape_cost is None and _kernels.HAVE_NUMBA:
         # every missing pair in one compiled call (the same S* as the loop below computes)
         miss = [r for r, v in enumerate(svals) if v is None]
-        pv, pvo = stacked_vertices(P)
-        qv, qvo = stacked_vertices(Q)
-        got = shape_distances(
-            pv,
-            pvo,
-            p_pieces[miss],
-            qv,
-            qvo,
-            q_pieces[miss],
-            end_weight=config.shape_end_weight,
-            skip_weight=config.shape_skip_weight,
-            upper_bound=math.nextafter(config.max_shape_distance, math.inf),
-        ).tolist()
+        got = _batched_shape_cost(
+            P, Q, p_pieces[miss], q_pieces[miss], config, config.max_shape_distance
+        )
         for r, v in zip(miss, got, strict=True):
             sstore[keys[r]] = v
             svals[r] = v
@@ -838,19 +854,7 @@ def step1_hypotheses(
         # every pair of step 1 in one compiled call (the same S* as the loop below computes)
         ks = np.repeat([k for k, _ in cand], [len(js) for _, js in cand])
         js_all = np.concatenate([js for _, js in cand])
-        pv, pvo = stacked_vertices(P)
-        qv, qvo = stacked_vertices(Q)
-        vals = shape_distances(
-            pv,
-            pvo,
-            p_pieces[ks],
-            qv,
-            qvo,
-            q_pieces[js_all],
-            end_weight=config.shape_end_weight,
-            skip_weight=config.shape_skip_weight,
-            upper_bound=math.nextafter(gate, math.inf),
-        ).tolist()
+        vals = _batched_shape_cost(P, Q, p_pieces[ks], q_pieces[js_all], config, gate)
         pos = 0
         svals = []
         for _, js in cand:

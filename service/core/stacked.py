@@ -36,28 +36,30 @@ def subsample(points: np.ndarray, k: int) -> np.ndarray:
     return points[sample_rows(len(points), k)]
 
 
+def _stacked(C: Configuration, attr: str) -> tuple[np.ndarray, np.ndarray]:
+    """The features' ``attr`` arrays of ``C`` stacked ``(N, 2)`` and the row offsets per
+    feature, cached on the configuration under ``_stacked_<attr>``."""
+    key = f"_stacked_{attr}"
+    got = C.__dict__.get(key)
+    if got is None:
+        rows = [getattr(f, attr) for f in C.features]
+        arr = np.ascontiguousarray(np.vstack(rows), dtype=np.float64)
+        off = np.concatenate(([0], np.cumsum([len(x) for x in rows])))
+        got = (arr, off.astype(np.intp))
+        C.__dict__[key] = got
+    return got
+
+
 def stacked_points(C: Configuration) -> tuple[np.ndarray, np.ndarray]:
     """All feature points of ``C`` stacked ``(N, 2)`` and the row offsets per feature
     (cached on the configuration)."""
-    got = C.__dict__.get("_stacked")
-    if got is None:
-        pts = np.ascontiguousarray(np.vstack([f.points for f in C.features]), dtype=np.float64)
-        off = np.concatenate(([0], np.cumsum([len(f.points) for f in C.features])))
-        got = (pts, off.astype(np.intp))
-        C.__dict__["_stacked"] = got
-    return got
+    return _stacked(C, "points")
 
 
 def stacked_vertices(C: Configuration) -> tuple[np.ndarray, np.ndarray]:
     """All feature vertices of ``C`` stacked ``(N, 2)`` and the row offsets per feature
     (cached on the configuration)."""
-    got = C.__dict__.get("_stacked_vertices")
-    if got is None:
-        v = np.ascontiguousarray(np.vstack([f.vertices for f in C.features]), dtype=np.float64)
-        off = np.concatenate(([0], np.cumsum([len(f.vertices) for f in C.features])))
-        got = (v, off.astype(np.intp))
-        C.__dict__["_stacked_vertices"] = got
-    return got
+    return _stacked(C, "vertices")
 
 
 def scan_intervals(P: Configuration) -> np.ndarray:
