@@ -23,7 +23,7 @@ from service.core.matching import induced_alignment
 from service.core.pose import fit_pairs, transform_points
 from service.core.similarity import prepare, shape_complexity, shape_distance
 from service.core.types import wrap_angle
-from service.core.view_index import ViewIndex, _anchor, _joined, _nearby_segments
+from service.core.view_index import ViewIndex, _anchor, _joined
 
 T = TypeVar("T")
 
@@ -230,7 +230,7 @@ def _refine(
     n = len(poses)
     refined, _ = fit_pairs(
         [sp] * n,
-        [_nearby_segments(index.segments, transform_points(p, sp), 0.5) for p in poses],
+        [index.nearby_segments(transform_points(p, sp), 0.5) for p in poses],
         poses,
         iterations=gconfig.refine_iterations,
         robust_scale=config.align_robust_scale,
@@ -243,7 +243,7 @@ def _refine(
         out, _ = fit_pairs(
             [sp] * n,
             [
-                _nearby_segments(index.segments, transform_points(p, sp), 2.0 * gconfig.fine_scale)
+                index.nearby_segments(transform_points(p, sp), 2.0 * gconfig.fine_scale)
                 for p in start
             ],
             start,

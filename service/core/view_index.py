@@ -35,6 +35,7 @@ from service.core.dce import dce
 from service.core.global_config import GlobalConfig
 from service.core.localizer import ShapeConfig
 from service.core.raycast import RayCaster
+from service.core.segment_grid import SegmentGrid
 from service.core.similarity import ShapeArcs, prepare, shape_complexity
 from service.core.types import MapData
 from service.errors import LocalizationError
@@ -106,19 +107,6 @@ def candidate_viewpoints(
     return pts[keep]
 
 
-def _nearby_segments(segments: np.ndarray, points: np.ndarray, radius: float) -> np.ndarray:
-    """The segments within ``radius`` metres of any of ``points`` (all if none is)."""
-    a = segments[:, 0:2]
-    e = segments[:, 2:4] - a
-    ee = np.maximum(np.einsum("ij,ij->i", e, e), 1e-18)
-    dx = points[:, None, 0] - a[None, :, 0]
-    dy = points[:, None, 1] - a[None, :, 1]
-    u = np.clip((dx * e[None, :, 0] + dy * e[None, :, 1]) / ee[None, :], 0.0, 1.0)
-    d2 = (dx - u * e[None, :, 0]) ** 2 + (dy - u * e[None, :, 1]) ** 2
-    near = np.min(d2, axis=0) <= radius * radius
-    return segments[near] if np.any(near) else segments
-
-
 def _segment_clearance(points: np.ndarray, segments: np.ndarray, chunk: int = 512) -> np.ndarray:
     """Distance (m) from each point to the nearest segment."""
     a = segments[:, 0:2]
@@ -176,6 +164,7 @@ class ViewIndex:
     build_seconds: float = 0.0
     _arcs: list[ShapeArcs | None] = field(default_factory=list, repr=False)
     _caster: RayCaster | None = field(default=None, repr=False)
+    _grid: SegmentGrid | None = field(default=None, repr=False)
 
     def __len__(self) -> int:
         return int(self.unit_view.size)
@@ -200,6 +189,14 @@ class ViewIndex:
         if self._caster is None:
             self._caster = RayCaster(self.segments)
         return self._caster
+
+    def nearby_segments(self, points: np.ndarray, radius: float) -> np.ndarray:
+        """The map's segments within ``radius`` m of any of map-frame ``points`` ``(n, 2)``,
+        in their stored order, all of them if none is (a :class:`SegmentGrid`, built lazily;
+        the same rows as :func:`nearby_segments_brute`)."""
+        if self._grid is None:
+            self._grid = SegmentGrid(self.segments)
+        return self._grid.nearby(points, radius)
 
     def distance(self, points: np.ndarray) -> np.ndarray:
         """Distance (m) from map-frame points ``(n, 2)`` to the map (distance field lookup,
