@@ -50,6 +50,7 @@ from service.core.global_search import (
     _distinct,
     _near,
     _polish,
+    _predict,
     _subsample,
     polish_ms,
 )
@@ -138,8 +139,9 @@ def frame_cost(
     laser, must not outweigh the rest of the drive)."""
     if kf.ranges.size == 0:
         return g.evidence_clip
-    pred = index.caster.cast(pose, kf.angles, config.view_max_range)
-    hit, viol, short = _beam_fractions(kf.ranges, pred, config.support_tolerance, g)
+    tol = config.support_tolerance
+    pred, landed = _predict(index, pose, kf.ranges, kf.angles, tol, config.view_max_range, g)
+    hit, viol, short = _beam_fractions(kf.ranges, pred, tol, g, landed)
     cost = _beam_cost(hit, viol, short, g) + g.cost_floor
     return float(min(cost, g.evidence_clip))
 

@@ -170,15 +170,44 @@ def _polish(
 
 
 def _beam_fractions(
-    r: np.ndarray, pred: np.ndarray, tol: float, gconfig: GlobalConfig
+    r: np.ndarray,
+    pred: np.ndarray,
+    tol: float,
+    gconfig: GlobalConfig,
+    landed: np.ndarray | None = None,
 ) -> tuple[float, float, float]:
     """Fractions of beams (measured ``r``, map-predicted ``pred``, NaN = nothing within range)
     that hit (within ``tol``), violate (return beyond the predicted wall by more than
-    ``max(tol, gconfig.violation_margin)``) and fall short (something unmapped in front)."""
+    ``max(tol, gconfig.violation_margin)``) and fall short (something unmapped in front).
+    With ``landed`` (``gconfig.see_through``: the beams whose return lies on a mapped surface
+    the beam crosses) a beam that passed the predicted wall and ended on mapped structure
+    behind it is no violation: the map holds an object the laser now sees past (a chair or
+    cabinet that moved, a door open), not a wall the pose puts in the way."""
     hit = float(np.mean(np.abs(r - pred) <= tol))  # NaN prediction compares False
-    viol = float(np.mean(np.isfinite(pred) & (r > pred + max(tol, gconfig.violation_margin))))
+    through = np.isfinite(pred) & (r > pred + max(tol, gconfig.violation_margin))
+    if landed is not None:
+        through &= ~landed
+    viol = float(np.mean(through))
     short = float(np.mean(r < pred - tol))
     return hit, viol, short
+
+
+def _predict(
+    index: ViewIndex,
+    pose: np.ndarray,
+    r: np.ndarray,
+    ang: np.ndarray,
+    tol: float,
+    max_range: float,
+    gconfig: GlobalConfig,
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """The map's predicted ranges from ``pose`` over beams ``ang`` and, with
+    ``gconfig.see_through``, which measured returns ``r`` lie on a mapped surface behind the
+    predicted one (:meth:`RayCaster.cast_layered`; ``None`` without)."""
+    if gconfig.see_through:
+        pred, on_map = index.caster.cast_layered(pose, ang, r, tol, max_range)
+        return pred, on_map
+    return index.caster.cast(pose, ang, max_range), None
 
 
 def _beam_cost(hit: float, viol: float, short: float, gconfig: GlobalConfig) -> float:
@@ -208,10 +237,9 @@ def _beam_costs(
     r = ranges[sel]
     ang = angles[sel]
     tol = config.support_tolerance
-    caster = index.caster
     for k, pose in enumerate(np.asarray(poses, dtype=np.float64)):
-        pred = caster.cast(pose, ang, config.view_max_range)
-        hit, viol, short = _beam_fractions(r, pred, tol, gconfig)
+        pred, landed = _predict(index, pose, r, ang, tol, config.view_max_range, gconfig)
+        hit, viol, short = _beam_fractions(r, pred, tol, gconfig, landed)
         out[k] = _beam_cost(hit, viol, short, gconfig)
     return out
 
@@ -296,8 +324,8 @@ def verify(
     if idx.size == 0:
         return Hypothesis(pose=pose.copy(), cost=1.0 + gconfig.cost_floor)
     r = ranges[idx]
-    pred = index.caster.cast(pose, angles[idx], config.view_max_range)
-    hit, viol, short = _beam_fractions(r, pred, tol, gconfig)
+    pred, landed = _predict(index, pose, r, angles[idx], tol, config.view_max_range, gconfig)
+    hit, viol, short = _beam_fractions(r, pred, tol, gconfig, landed)
     total = 0.0
     good = 0.0
     for f in P.features:

@@ -79,6 +79,58 @@ class RayCaster:
         one pass over all poses' beam / segment pairs (each range is computed by the same
         operations as for its pose alone)."""
         poses = np.asarray(poses, dtype=np.float64)
+        pairs = self._pairs(poses, angles, max_range)  # checks the arguments
+        n_pose, n = poses.shape[0], np.shape(angles)[0]
+        out = np.full((n_pose, n), np.nan)
+        if pairs is None:
+            return out
+        pair_pose, pair_beam, t = pairs
+        # Nearest hit per beam; a pose's pairs keep their order, so each beam sees its
+        # candidates in the same order as when its pose is cast alone.
+        best = np.full(n_pose * n, np.inf)
+        np.minimum.at(best, pair_pose * n + pair_beam, t)
+        best = best.reshape(n_pose, n)
+        hit = np.isfinite(best)
+        out[hit] = best[hit]
+        return out
+
+    def cast_layered(
+        self,
+        pose: np.ndarray,
+        angles: np.ndarray,
+        ranges: np.ndarray,
+        tol: float,
+        max_range: float,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`cast`, and per beam whether the measured ``ranges`` (NaN: none) lie within
+        ``tol`` of *any* segment the beam crosses, not only the nearest: a return from a
+        surface the map holds behind another one (the laser saw past a mapped object)."""
+        pose = np.asarray(pose, dtype=np.float64)
+        if pose.shape != (3,) or not np.all(np.isfinite(pose)):
+            raise LocalizationError(f"pose: expected 3 finite values, got shape {pose.shape}")
+        pairs = self._pairs(pose.reshape(1, 3), angles, max_range)  # checks the arguments
+        r = np.asarray(ranges, dtype=np.float64)
+        n = np.shape(angles)[0]
+        if r.shape != (n,):
+            raise LocalizationError(f"ranges: expected shape ({n},), got {r.shape}")
+        out = np.full(n, np.nan)
+        on_map = np.zeros(n, dtype=bool)
+        if pairs is None:
+            return out, on_map
+        _pose, beam, t = pairs
+        best = np.full(n, np.inf)
+        np.minimum.at(best, beam, t)
+        hit = np.isfinite(best)
+        out[hit] = best[hit]
+        close = np.abs(t - r[beam]) <= tol  # NaN ranges compare False
+        on_map[beam[close]] = True
+        return out, on_map
+
+    def _pairs(
+        self, poses: np.ndarray, angles: np.ndarray, max_range: float
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """Every (pose, beam, segment) intersection within ``max_range``: the pose and beam
+        index and the range ``t`` of each (``None``: none); checks the arguments."""
         ang = np.asarray(angles, dtype=np.float64)
         if poses.ndim != 2 or poses.shape[1] != 3 or not np.all(np.isfinite(poses)):
             raise LocalizationError(f"poses: expected (P, 3) finite values, got {poses.shape}")
@@ -90,9 +142,8 @@ class RayCaster:
             raise LocalizationError(f"max_range must be finite and > 0, got {max_range}")
         n_pose = poses.shape[0]
         n = ang.shape[0]
-        out = np.full((n_pose, n), np.nan)
         if n == 0 or n_pose == 0 or self._seg.shape[0] == 0:
-            return out
+            return None
 
         # The segments within range of each pose, all poses' one after the other; per segment
         # its pose's position and heading.
@@ -105,7 +156,7 @@ class RayCaster:
             dists.append(dist[keep])
         counts_k = [len(x) for x in near]
         if sum(counts_k) == 0:
-            return out
+            return None
         idx = np.concatenate(near)
         owner = np.repeat(np.arange(n_pose), counts_k)
         a = self._a[idx]
@@ -147,7 +198,7 @@ class RayCaster:
         owners = np.concatenate([seg_idx, seg_idx])
         total = int(counts.sum())
         if total == 0:
-            return out
+            return None
         pair_seg = np.repeat(owners, counts)
         # Position within each run: global index minus the run's start offset.
         run_start = np.repeat(np.cumsum(counts) - counts, counts)
@@ -169,12 +220,5 @@ class RayCaster:
             u = (wx * dy - wy * dx) / den
         ok = (den != 0.0) & (t >= 0.0) & (t <= max_range) & (u >= -_U_EPS) & (u <= 1.0 + _U_EPS)
         if not np.any(ok):
-            return out
-        # Nearest hit per beam; a pose's pairs keep their order, so each beam sees its
-        # candidates in the same order as when its pose is cast alone.
-        best = np.full(n_pose * n, np.inf)
-        np.minimum.at(best, pair_pose[ok] * n + pair_beam[ok], t[ok])
-        best = best.reshape(n_pose, n)
-        hit = np.isfinite(best)
-        out[hit] = best[hit]
-        return out
+            return None
+        return pair_pose[ok], pair_beam[ok], t[ok]

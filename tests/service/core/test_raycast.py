@@ -158,3 +158,20 @@ def test_cast_many_is_cast_pose_by_pose(seed: int) -> None:
         caster.cast_many(poses[:, :2], ang, 6.0)
     with pytest.raises(LocalizationError):
         caster.cast_many(np.array([[0.0, np.nan, 0.0]]), ang, 6.0)
+
+
+def test_cast_layered_finds_returns_on_surfaces_behind_the_nearest() -> None:
+    """Two parallel walls at x = 2 and x = 5: a return at 5 m lies on the farther one (seen
+    past the nearer), one at 3.5 m on neither, NaN on none; the predicted ranges are
+    :meth:`cast`'s, bit for bit."""
+    segs = np.array([[2.0, -1.0, 2.0, 1.0], [5.0, -3.0, 5.0, 3.0]])
+    caster = RayCaster(segs)
+    pose = np.array([0.0, 0.0, 0.0])
+    ang = np.array([0.0, 0.0, 0.0, 0.0, np.pi])
+    r = np.array([5.05, 3.5, 2.0, np.nan, 1.0])
+    pred, on_map = caster.cast_layered(pose, ang, r, 0.1, 10.0)
+    assert np.array_equal(pred, caster.cast(pose, ang, 10.0), equal_nan=True)
+    assert pred[0] == 2.0 and np.isnan(pred[4])
+    assert on_map.tolist() == [True, False, True, False, False]
+    with pytest.raises(LocalizationError):
+        caster.cast_layered(pose, ang, r[:3], 0.1, 10.0)
