@@ -975,7 +975,9 @@ def warm_up() -> float:
     grid_near(sx, sy, x0, y0, nx, ny, start, 0.1, p[:, 0].copy(), p[:, 1].copy(), 0.1)
     nearest_segment(p, segs)
     split_cuts(np.array([0, 3], dtype=np.intp), p, 1.5)
-    field_scores(np.ones((2, 2)), 0.0, 0.0, 0.5, np.zeros((1, 3)), p, 0.1, 10.0)
+    from service.core import _search_kernels
+
+    _search_kernels.warm_up(p)
     # the map model's kernels (service.core._map_kernels; imported here, not at module level,
     # because that module imports this one)
     from service.core.mapmodel import MapModel
@@ -1108,42 +1110,4 @@ def range_means(P: np.ndarray, beg: np.ndarray, end: np.ndarray) -> np.ndarray:
         cnt = float(end[k] - beg[k])
         out[k, 0] = sx / cnt
         out[k, 1] = sy / cnt
-    return out
-
-
-@njit(cache=True, nogil=True)
-def field_scores(
-    dist: np.ndarray,
-    ox: float,
-    oy: float,
-    res: float,
-    poses: np.ndarray,
-    pts: np.ndarray,
-    sigma: float,
-    cap: float,
-) -> np.ndarray:
-    """Kernel of :func:`service.core.global_search._field_scores` (same arithmetic; the
-    polish's inner loop): for each pose ``(m, 3)`` the mean over robot-frame ``pts`` ``(k, 2)`` of
-    ``exp(-0.5 * (min(d, cap) / sigma) ** 2)``, ``d`` the distance-field value at the point's
-    cell (``inf`` outside the field)."""
-    m = poses.shape[0]
-    k = pts.shape[0]
-    h = dist.shape[0]
-    w = dist.shape[1]
-    out = np.empty(m)
-    for i in range(m):
-        c = math.cos(poses[i, 2])
-        s = math.sin(poses[i, 2])
-        acc = 0.0
-        for j in range(k):
-            x = c * pts[j, 0] - s * pts[j, 1] + poses[i, 0]
-            y = s * pts[j, 0] + c * pts[j, 1] + poses[i, 1]
-            ci = math.floor((x - ox) / res)
-            cj = math.floor((y - oy) / res)
-            d = math.inf
-            if ci >= 0 and ci < w and cj >= 0 and cj < h:
-                d = dist[int(cj), int(ci)]
-            d = min(d, cap)
-            acc += math.exp(-0.5 * (d / sigma) ** 2)
-        out[i] = acc / k
     return out

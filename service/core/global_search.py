@@ -8,11 +8,12 @@ from __future__ import annotations
 
 from collections.abc import Generator
 from dataclasses import dataclass
+from functools import lru_cache
 from typing import TypeVar
 
 import numpy as np
 
-from service.core import _kernels
+from service.core import _kernels, _search_kernels
 from service.core.configuration import (
     Configuration,
     scan_configuration,
@@ -87,19 +88,44 @@ def scan_information(P: Configuration, config: ShapeConfig, gconfig: GlobalConfi
     return float(sum(c for c, _k in comp[: gconfig.scan_units]))
 
 
+@lru_cache(maxsize=4096)
+def _subsample_rows(n: int, k: int) -> np.ndarray:
+    """``k`` evenly spread row indices of ``n`` rows (kept: the same few sizes recur)."""
+    rows = np.linspace(0, n - 1, k).round().astype(int)
+    rows.setflags(write=False)
+    return rows
+
+
 def _subsample(points: np.ndarray, k: int) -> np.ndarray:
     if len(points) <= k:
         return points
-    return points[np.linspace(0, len(points) - 1, k).round().astype(int)]
+    return points[_subsample_rows(len(points), k)]
 
 
 def _support_many(index: ViewIndex, poses: np.ndarray, pts: np.ndarray, tol: float) -> np.ndarray:
     """Fraction of robot-frame ``pts`` within ``tol`` of the map at each of ``poses`` (k, 3)."""
     c, s = np.cos(poses[:, 2]), np.sin(poses[:, 2])
+    if _kernels.HAVE_NUMBA and len(pts) and len(poses):
+        n = _search_kernels.support_counts(
+            index.dist,
+            float(index.origin[0]),
+            float(index.origin[1]),
+            float(index.resolution),
+            np.ascontiguousarray(c),
+            np.ascontiguousarray(s),
+            np.ascontiguousarray(poses, dtype=np.float64),
+            np.ascontiguousarray(pts, dtype=np.float64),
+            float(tol),
+        )
+        return n / len(pts)
     x = c[:, None] * pts[None, :, 0] - s[:, None] * pts[None, :, 1] + poses[:, 0:1]
     y = s[:, None] * pts[None, :, 0] + c[:, None] * pts[None, :, 1] + poses[:, 1:2]
     d = index.distance(np.column_stack([x.ravel(), y.ravel()])).reshape(len(poses), -1)
     return np.mean(d <= tol, axis=1)
+
+
+#: Distance-field values are capped at this (m) in the polish's score.
+_FIELD_CAP = 10.0
 
 
 def _field_scores(index: ViewIndex, poses: np.ndarray, pts: np.ndarray, sigma: float) -> np.ndarray:
@@ -109,21 +135,21 @@ def _field_scores(index: ViewIndex, poses: np.ndarray, pts: np.ndarray, sigma: f
     if len(pts) == 0 or len(poses) == 0:
         return np.zeros(len(poses))
     if _kernels.HAVE_NUMBA:
-        return _kernels.field_scores(
-            index.dist,
+        table, outside = index.score_table(float(sigma), _FIELD_CAP)
+        return _search_kernels.table_scores(
+            table,
+            outside,
             float(index.origin[0]),
             float(index.origin[1]),
             float(index.resolution),
             np.ascontiguousarray(poses, dtype=np.float64),
             np.ascontiguousarray(pts, dtype=np.float64),
-            float(sigma),
-            10.0,
         )
     c, s = np.cos(poses[:, 2]), np.sin(poses[:, 2])
     x = c[:, None] * pts[None, :, 0] - s[:, None] * pts[None, :, 1] + poses[:, 0:1]
     y = s[:, None] * pts[None, :, 0] + c[:, None] * pts[None, :, 1] + poses[:, 1:2]
     d = index.distance(np.column_stack([x.ravel(), y.ravel()])).reshape(len(poses), -1)
-    return np.mean(np.exp(-0.5 * (np.minimum(d, 10.0) / sigma) ** 2), axis=1)
+    return np.mean(np.exp(-0.5 * (np.minimum(d, _FIELD_CAP) / sigma) ** 2), axis=1)
 
 
 #: Scales (m, rad) of the polish's motion prior (:func:`_polish`).
@@ -328,11 +354,16 @@ def verify(
     hit, viol, short = _beam_fractions(r, pred, tol, gconfig, landed)
     total = 0.0
     good = 0.0
-    for f in P.features:
-        d = index.distance(transform_points(pose, _subsample(f.points, 16)))
-        total += f.length
-        if np.mean(d <= tol) >= 0.5:
-            good += f.length
+    if P.features:
+        # one distance lookup for every feature's points (the same values as one per feature)
+        subs = [_subsample(f.points, 16) for f in P.features]
+        near = index.distance(transform_points(pose, np.vstack(subs))) <= tol
+        start = 0
+        for f, sub in zip(P.features, subs, strict=True):
+            total += f.length
+            if np.mean(near[start : start + len(sub)]) >= 0.5:
+                good += f.length
+            start += len(sub)
     explained = good / total if total > 0 else 0.0
     cost = _beam_cost(hit, viol, short, gconfig) + gconfig.cost_floor
     return Hypothesis(

@@ -26,6 +26,7 @@ from scipy import ndimage
 from shapely import contains_xy
 from shapely.geometry import Polygon
 
+from service.core import _search_kernels
 from service.core.configuration import (
     Configuration,
     ExtractionParams,
@@ -35,7 +36,7 @@ from service.core.dce import dce
 from service.core.global_config import GlobalConfig
 from service.core.localizer import ShapeConfig
 from service.core.raycast import RayCaster
-from service.core.segment_grid import SegmentGrid
+from service.core.segment_grid import SegmentGrid, nearby_segments_brute
 from service.core.similarity import ShapeArcs, prepare, shape_complexity
 from service.core.types import MapData
 from service.errors import LocalizationError
@@ -129,6 +130,11 @@ def _segment_clearance(points: np.ndarray, segments: np.ndarray, chunk: int = 51
 # --------------------------------------------------------------------------------------------
 
 
+#: Up to this many segments (floor plans) measuring every point against every segment is
+#: quicker than the bucket grid (0.12 vs 0.30 ms at 50 segments, even at ~400).
+_BRUTE_SEGMENTS = 256
+
+
 @dataclass(eq=False)
 class ViewIndex:
     """Everything global search needs about one map, precomputed (see :func:`build_index`).
@@ -165,6 +171,9 @@ class ViewIndex:
     _arcs: list[ShapeArcs | None] = field(default_factory=list, repr=False)
     _caster: RayCaster | None = field(default=None, repr=False)
     _grid: SegmentGrid | None = field(default=None, repr=False)
+    _tables: dict[tuple[float, float], tuple[np.ndarray, float]] = field(
+        default_factory=dict, repr=False
+    )
 
     def __len__(self) -> int:
         return int(self.unit_view.size)
@@ -194,9 +203,24 @@ class ViewIndex:
         """The map's segments within ``radius`` m of any of map-frame ``points`` ``(n, 2)``,
         in their stored order, all of them if none is (a :class:`SegmentGrid`, built lazily;
         the same rows as :func:`nearby_segments_brute`)."""
+        if len(self.segments) <= _BRUTE_SEGMENTS:
+            return nearby_segments_brute(self.segments, points, radius)
         if self._grid is None:
             self._grid = SegmentGrid(self.segments)
         return self._grid.nearby(points, radius)
+
+    def score_table(self, sigma: float, cap: float) -> tuple[np.ndarray, float]:
+        """The polish's per-cell score ``exp(-0.5 (min(d, cap) / sigma)²)`` over the distance
+        field, and its value outside the field (built once per ``sigma`` / ``cap``, kept;
+        :mod:`service.core._search_kernels`)."""
+        key = (float(sigma), float(cap))
+        got = self._tables.get(key)
+        if got is None:
+            table = _search_kernels.score_table(self.dist, key[0], key[1])
+            outside = float(_search_kernels.score_table(np.full((1, 1), np.inf), *key)[0, 0])
+            got = (table, outside)
+            self._tables[key] = got
+        return got
 
     def distance(self, points: np.ndarray) -> np.ndarray:
         """Distance (m) from map-frame points ``(n, 2)`` to the map (distance field lookup,

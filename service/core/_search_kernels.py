@@ -1,0 +1,153 @@
+"""Compiled inner loops of global search's scoring on the distance field (implementation
+details, numba; see :mod:`service.core._kernels` for the conventions: the arithmetic follows
+the numpy reference expression by expression, no ``fastmath``).
+
+The polish (:func:`service.core.global_search._polish`) scores 125 poses per stage and
+hypothesis, each over ~80 scan points: ``exp(-d² / 2 s²)`` of the distance-field value ``d``
+under every point. The value depends on the field cell alone, so :func:`score_table` computes
+it once per cell and sigma (the same expression, so the same bits) and :func:`table_scores`
+only looks it up: the exponentials leave the inner loop.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from service.core._kernels import njit
+
+
+@njit(cache=True, nogil=True)
+def _score(d: float, sigma: float, cap: float) -> float:
+    d = min(d, cap)
+    return math.exp(-0.5 * (d / sigma) ** 2)
+
+
+@njit(cache=True, nogil=True)
+def field_scores(
+    dist: np.ndarray,
+    ox: float,
+    oy: float,
+    res: float,
+    poses: np.ndarray,
+    pts: np.ndarray,
+    sigma: float,
+    cap: float,
+) -> np.ndarray:
+    """Kernel of :func:`service.core.global_search._field_scores` (same arithmetic): for each
+    pose ``(m, 3)`` the mean over robot-frame ``pts`` ``(k, 2)`` of
+    ``exp(-0.5 * (min(d, cap) / sigma) ** 2)``, ``d`` the distance-field value at the point's
+    cell (``inf`` outside the field). The reference for :func:`table_scores`."""
+    m = poses.shape[0]
+    k = pts.shape[0]
+    h = dist.shape[0]
+    w = dist.shape[1]
+    out = np.empty(m)
+    for i in range(m):
+        c = math.cos(poses[i, 2])
+        s = math.sin(poses[i, 2])
+        acc = 0.0
+        for j in range(k):
+            x = c * pts[j, 0] - s * pts[j, 1] + poses[i, 0]
+            y = s * pts[j, 0] + c * pts[j, 1] + poses[i, 1]
+            ci = math.floor((x - ox) / res)
+            cj = math.floor((y - oy) / res)
+            d = math.inf
+            if ci >= 0 and ci < w and cj >= 0 and cj < h:
+                d = dist[int(cj), int(ci)]
+            acc += _score(d, sigma, cap)
+        out[i] = acc / k
+    return out
+
+
+@njit(cache=True, nogil=True)
+def score_table(dist: np.ndarray, sigma: float, cap: float) -> np.ndarray:
+    """Per field cell the score :func:`field_scores` adds for a point in it ``(h, w)``."""
+    h = dist.shape[0]
+    w = dist.shape[1]
+    out = np.empty((h, w))
+    for r in range(h):
+        for c in range(w):
+            out[r, c] = _score(float(dist[r, c]), sigma, cap)
+    return out
+
+
+@njit(cache=True, nogil=True)
+def table_scores(
+    table: np.ndarray,
+    outside: float,
+    ox: float,
+    oy: float,
+    res: float,
+    poses: np.ndarray,
+    pts: np.ndarray,
+) -> np.ndarray:
+    """:func:`field_scores` with the per-cell scores looked up in ``table``
+    (:func:`score_table`) and ``outside`` for points beyond the field: the same sums in the
+    same order, so the same results to the bit."""
+    m = poses.shape[0]
+    k = pts.shape[0]
+    h = table.shape[0]
+    w = table.shape[1]
+    out = np.empty(m)
+    for i in range(m):
+        c = math.cos(poses[i, 2])
+        s = math.sin(poses[i, 2])
+        acc = 0.0
+        for j in range(k):
+            x = c * pts[j, 0] - s * pts[j, 1] + poses[i, 0]
+            y = s * pts[j, 0] + c * pts[j, 1] + poses[i, 1]
+            ci = math.floor((x - ox) / res)
+            cj = math.floor((y - oy) / res)
+            if ci >= 0 and ci < w and cj >= 0 and cj < h:
+                acc += table[int(cj), int(ci)]
+            else:
+                acc += outside
+        out[i] = acc / k
+    return out
+
+
+@njit(cache=True, nogil=True)
+def support_counts(
+    dist: np.ndarray,
+    ox: float,
+    oy: float,
+    res: float,
+    cos_t: np.ndarray,
+    sin_t: np.ndarray,
+    poses: np.ndarray,
+    pts: np.ndarray,
+    tol: float,
+) -> np.ndarray:
+    """Kernel of :func:`service.core.global_search._support_many`: per pose the number of
+    robot-frame ``pts`` whose field value is at most ``tol`` (``cos_t`` / ``sin_t`` the poses'
+    headings' cosines and sines as numpy computed them, so the points are the reference's)."""
+    m = poses.shape[0]
+    k = pts.shape[0]
+    h = dist.shape[0]
+    w = dist.shape[1]
+    out = np.zeros(m, dtype=np.int64)
+    for i in range(m):
+        c = cos_t[i]
+        s = sin_t[i]
+        n = 0
+        for j in range(k):
+            x = c * pts[j, 0] - s * pts[j, 1] + poses[i, 0]
+            y = s * pts[j, 0] + c * pts[j, 1] + poses[i, 1]
+            ci = math.floor((x - ox) / res)
+            cj = math.floor((y - oy) / res)
+            if ci >= 0 and ci < w and cj >= 0 and cj < h and dist[int(cj), int(ci)] <= tol:
+                n += 1
+        out[i] = n
+    return out
+
+
+def warm_up(p: np.ndarray) -> None:
+    """Compile (or load) every kernel of this module on tiny inputs."""
+    field = np.ones((2, 2), dtype=np.float32)
+    z = np.zeros((1, 3))
+    field_scores(field, 0.0, 0.0, 0.5, z, p, 0.1, 10.0)
+    table = score_table(field, 0.1, 10.0)
+    table_scores(table, 0.0, 0.0, 0.0, 0.5, z, p)
+    support_counts(field, 0.0, 0.0, 0.5, np.ones(1), np.zeros(1), z, p, 0.1)

@@ -1,0 +1,44 @@
+"""Global search's distance-field kernels (service/core/_search_kernels.py) against their
+references: the table lookup gives the direct kernel's scores to the bit, the support count
+gives the numpy reference's fractions exactly."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from service.core import _kernels, _search_kernels
+from service.core import global_search as gs
+from service.core.global_localization import load_or_build_index
+from sim_publisher.office import office_schematic_map
+
+pytestmark = pytest.mark.skipif(not _kernels.HAVE_NUMBA, reason="numba kernels not installed")
+
+
+def _poses(rng: np.random.Generator, n: int) -> np.ndarray:
+    return np.column_stack([rng.uniform(-1, 15, n), rng.uniform(-1, 24, n), rng.uniform(-4, 4, n)])
+
+
+@pytest.mark.parametrize("sigma", [0.015, 0.05, 0.1])
+def test_table_scores_equal_the_direct_kernel_bit_for_bit(sigma: float) -> None:
+    idx = load_or_build_index(office_schematic_map())
+    rng = np.random.default_rng(7)
+    poses, pts = _poses(rng, 400), rng.uniform(-6, 6, size=(80, 2))
+    args = (float(idx.origin[0]), float(idx.origin[1]), float(idx.resolution))
+    direct = _search_kernels.field_scores(idx.dist, *args, poses, pts, sigma, 10.0)
+    table, outside = idx.score_table(sigma, 10.0)
+    looked_up = _search_kernels.table_scores(table, outside, *args, poses, pts)
+    assert np.array_equal(direct, looked_up)
+    assert np.ptp(direct) > 0.02  # inside and outside the field both occur
+    assert idx.score_table(sigma, 10.0)[0] is table  # built once
+
+
+def test_support_kernel_equals_the_numpy_reference(monkeypatch: pytest.MonkeyPatch) -> None:
+    idx = load_or_build_index(office_schematic_map())
+    rng = np.random.default_rng(8)
+    poses, pts = _poses(rng, 300), rng.uniform(-6, 6, size=(80, 2))
+    got = gs._support_many(idx, poses, pts, 0.1)
+    monkeypatch.setattr(gs._kernels, "HAVE_NUMBA", False)
+    ref = gs._support_many(idx, poses, pts, 0.1)
+    assert np.array_equal(got, ref)
+    assert np.ptp(ref) > 0.05
