@@ -16,13 +16,13 @@ from service.core import evidence as ev_mod
 from service.core import hypotheses as hyp_mod
 from service.core.configuration import Configuration
 from service.core.global_search import (
-    Hypothesis,
     ambiguity,
     scan_information,
     search_steps,
     self_similar_steps,
 )
 from service.core.hypotheses import Track
+from service.core.pose_scoring import Hypothesis
 from service.core.types import Estimate
 
 if TYPE_CHECKING:

@@ -43,20 +43,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from service.core.global_config import GlobalConfig
-from service.core.global_search import (
-    WORK_MS,
-    _beam_cost,
-    _beam_fractions,
-    _distinct,
-    _near,
-    _polish,
-    _predict,
-    _subsample,
-    polish_ms,
-)
+from service.core.global_search import WORK_MS, _distinct, _near, polish_ms
 from service.core.hypotheses import Track
 from service.core.localizer import ShapeConfig
 from service.core.pose import compose, invert
+from service.core.pose_scoring import _beam_cost, _beam_fractions, _polish, _predict, _subsample
 from service.core.types import wrap_angle
 from service.core.view_index import ViewIndex
 

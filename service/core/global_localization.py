@@ -52,18 +52,16 @@ from service.core.configuration import (
 from service.core.drive_search import DriveSearch
 from service.core.global_config import GlobalConfig
 from service.core.global_search import (
-    Hypothesis,
     SearchResult,
-    _field_scores,
     _near,
     ambiguity,
     global_search,
     self_similar,
-    verify,
 )
 from service.core.localizer import ShapeConfig, ShapeLocalizer
 from service.core.motion import check_pose3
 from service.core.pose import compose, invert
+from service.core.pose_scoring import Hypothesis, _field_scores, verify
 from service.core.types import Estimate, MapData, Status, wrap_angle
 from service.core.view_index import (
     FORMAT_VERSION,

@@ -8,12 +8,10 @@ from __future__ import annotations
 
 from collections.abc import Generator
 from dataclasses import dataclass
-from functools import lru_cache
 from typing import TypeVar
 
 import numpy as np
 
-from service.core import _kernels, _search_kernels
 from service.core.configuration import (
     Configuration,
     scan_configuration,
@@ -22,6 +20,14 @@ from service.core.global_config import GlobalConfig
 from service.core.localizer import ShapeConfig
 from service.core.matching import induced_alignment
 from service.core.pose import fit_pairs, transform_points
+from service.core.pose_scoring import (
+    Hypothesis,
+    _beam_costs,
+    _polish,
+    _subsample,
+    _support_many,
+    verify,
+)
 from service.core.similarity import prepare, shape_complexity, shape_distance
 from service.core.types import wrap_angle
 from service.core.view_index import ViewIndex, _anchor, _joined
@@ -31,21 +37,6 @@ T = TypeVar("T")
 # --------------------------------------------------------------------------------------------
 # Global search
 # --------------------------------------------------------------------------------------------
-
-
-@dataclass
-class Hypothesis:
-    """A pose hypothesis ``[x, y, theta]`` (map frame) with its verification on one scan:
-    ``hit`` fraction of beams returned where the map predicts (within the support tolerance),
-    ``violation`` fraction of beams that passed through a map wall, ``cost`` (lower is
-    better), ``explained`` length fraction of the scan's polylines lying on the map there."""
-
-    pose: np.ndarray
-    cost: float
-    hit: float = 0.0
-    violation: float = 0.0
-    explained: float = 0.0
-    short: float = 0.0
 
 
 @dataclass
@@ -86,188 +77,6 @@ def scan_information(P: Configuration, config: ShapeConfig, gconfig: GlobalConfi
         return 0.0
     _units, comp = _ranked_units(P, config, gconfig)
     return float(sum(c for c, _k in comp[: gconfig.scan_units]))
-
-
-@lru_cache(maxsize=4096)
-def _subsample_rows(n: int, k: int) -> np.ndarray:
-    """``k`` evenly spread row indices of ``n`` rows (kept: the same few sizes recur)."""
-    rows = np.linspace(0, n - 1, k).round().astype(int)
-    rows.setflags(write=False)
-    return rows
-
-
-def _subsample(points: np.ndarray, k: int) -> np.ndarray:
-    if len(points) <= k:
-        return points
-    return points[_subsample_rows(len(points), k)]
-
-
-def _support_many(index: ViewIndex, poses: np.ndarray, pts: np.ndarray, tol: float) -> np.ndarray:
-    """Fraction of robot-frame ``pts`` within ``tol`` of the map at each of ``poses`` (k, 3)."""
-    c, s = np.cos(poses[:, 2]), np.sin(poses[:, 2])
-    if _kernels.HAVE_NUMBA and len(pts) and len(poses):
-        n = _search_kernels.support_counts(
-            index.dist,
-            float(index.origin[0]),
-            float(index.origin[1]),
-            float(index.resolution),
-            np.ascontiguousarray(c),
-            np.ascontiguousarray(s),
-            np.ascontiguousarray(poses, dtype=np.float64),
-            np.ascontiguousarray(pts, dtype=np.float64),
-            float(tol),
-        )
-        return n / len(pts)
-    x = c[:, None] * pts[None, :, 0] - s[:, None] * pts[None, :, 1] + poses[:, 0:1]
-    y = s[:, None] * pts[None, :, 0] + c[:, None] * pts[None, :, 1] + poses[:, 1:2]
-    d = index.distance(np.column_stack([x.ravel(), y.ravel()])).reshape(len(poses), -1)
-    return np.mean(d <= tol, axis=1)
-
-
-#: Distance-field values are capped at this (m) in the polish's score.
-_FIELD_CAP = 10.0
-
-
-def _field_scores(index: ViewIndex, poses: np.ndarray, pts: np.ndarray, sigma: float) -> np.ndarray:
-    """Mean of ``exp(-d² / 2 sigma²)`` over robot-frame ``pts`` at each of ``poses`` ``(m, 3)``,
-    ``d`` the distance-field value (capped at 10 m). A numba kernel when available, else the
-    numpy reference (same arithmetic)."""
-    if len(pts) == 0 or len(poses) == 0:
-        return np.zeros(len(poses))
-    if _kernels.HAVE_NUMBA:
-        table, outside = index.score_table(float(sigma), _FIELD_CAP)
-        return _search_kernels.table_scores(
-            table,
-            outside,
-            float(index.origin[0]),
-            float(index.origin[1]),
-            float(index.resolution),
-            np.ascontiguousarray(poses, dtype=np.float64),
-            np.ascontiguousarray(pts, dtype=np.float64),
-        )
-    c, s = np.cos(poses[:, 2]), np.sin(poses[:, 2])
-    x = c[:, None] * pts[None, :, 0] - s[:, None] * pts[None, :, 1] + poses[:, 0:1]
-    y = s[:, None] * pts[None, :, 0] + c[:, None] * pts[None, :, 1] + poses[:, 1:2]
-    d = index.distance(np.column_stack([x.ravel(), y.ravel()])).reshape(len(poses), -1)
-    return np.mean(np.exp(-0.5 * (np.minimum(d, _FIELD_CAP) / sigma) ** 2), axis=1)
-
-
-#: Scales (m, rad) of the polish's motion prior (:func:`_polish`).
-_PRIOR_XY, _PRIOR_TH = 0.1, 0.04
-
-
-def _polish(
-    index: ViewIndex,
-    poses: np.ndarray,
-    pts: np.ndarray,
-    sigma: float,
-    stages: tuple[tuple[float, float], ...] = ((0.05, 0.02), (0.015, 0.006)),
-    prior: float = 0.0,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Local search around each pose ``(k, 3)`` on the distance field: per stage a 5 x 5 x 5
-    grid of ``(step_xy m, step_theta rad)`` (default +-0.1 m / +-0.04 rad, then +-0.03 m /
-    +-0.012 rad) maximising the mean of ``exp(-d² / 2 s²)`` over the robot-frame ``pts``,
-    ``s = max(sigma, step_xy)``. Unlike the least-squares fit it cannot be dragged by points
-    that have no counterpart in the map. ``prior`` > 0 makes the given poses a motion prior:
-    the objective is the score less ``prior`` x ((offset / 0.1 m)² + (turn / 0.04 rad)²) from
-    them. Returns the poses and their final scores ``(k,)`` (without the prior's term)."""
-    out = np.asarray(poses, dtype=np.float64).copy()
-    start = out.copy()
-    best_score = np.zeros(len(out))
-    for step_xy, step_th in stages:
-        s_eff = max(sigma, step_xy)
-        o = np.arange(-2, 3)
-        dx, dy, dth = np.meshgrid(o * step_xy, o * step_xy, o * step_th, indexing="ij")
-        delta = np.column_stack([dx.ravel(), dy.ravel(), dth.ravel()])
-        cand = (out[:, None, :] + delta[None, :, :]).reshape(-1, 3)
-        score = _field_scores(index, cand, pts, s_eff).reshape(len(out), -1)
-        obj = score
-        if prior > 0.0:
-            off = cand.reshape(len(out), -1, 3) - start[:, None, :]
-            obj = score - prior * (
-                (off[..., 0] ** 2 + off[..., 1] ** 2) / _PRIOR_XY**2
-                + (off[..., 2] / _PRIOR_TH) ** 2
-            )
-        best = np.argmax(obj, axis=1)
-        best_score = score[np.arange(len(out)), best]
-        out = cand.reshape(len(out), -1, 3)[np.arange(len(out)), best]
-    out[:, 2] = wrap_angle(out[:, 2])
-    return out, best_score
-
-
-def _beam_fractions(
-    r: np.ndarray,
-    pred: np.ndarray,
-    tol: float,
-    gconfig: GlobalConfig,
-    landed: np.ndarray | None = None,
-) -> tuple[float, float, float]:
-    """Fractions of beams (measured ``r``, map-predicted ``pred``, NaN = nothing within range)
-    that hit (within ``tol``), violate (return beyond the predicted wall by more than
-    ``max(tol, gconfig.violation_margin)``) and fall short (something unmapped in front).
-    With ``landed`` (``gconfig.see_through``: the beams whose return lies on a mapped surface
-    the beam crosses) a beam that passed the predicted wall and ended on mapped structure
-    behind it is no violation: the map holds an object the laser now sees past (a chair or
-    cabinet that moved, a door open), not a wall the pose puts in the way."""
-    hit = float(np.mean(np.abs(r - pred) <= tol))  # NaN prediction compares False
-    through = np.isfinite(pred) & (r > pred + max(tol, gconfig.violation_margin))
-    if landed is not None:
-        through &= ~landed
-    viol = float(np.mean(through))
-    short = float(np.mean(r < pred - tol))
-    return hit, viol, short
-
-
-def _predict(
-    index: ViewIndex,
-    pose: np.ndarray,
-    r: np.ndarray,
-    ang: np.ndarray,
-    tol: float,
-    max_range: float,
-    gconfig: GlobalConfig,
-) -> tuple[np.ndarray, np.ndarray | None]:
-    """The map's predicted ranges from ``pose`` over beams ``ang`` and, with
-    ``gconfig.see_through``, which measured returns ``r`` lie on a mapped surface behind the
-    predicted one (:meth:`RayCaster.cast_layered`; ``None`` without)."""
-    if gconfig.see_through:
-        pred, on_map = index.caster.cast_layered(pose, ang, r, tol, max_range)
-        return pred, on_map
-    return index.caster.cast(pose, ang, max_range), None
-
-
-def _beam_cost(hit: float, viol: float, short: float, gconfig: GlobalConfig) -> float:
-    """The beam part of :func:`verify`'s cost from its beam fractions:
-    ``1 - hit - short_credit * short + violation_weight * violation``."""
-    return 1.0 - hit - gconfig.short_credit * short + gconfig.violation_weight * viol
-
-
-def _beam_costs(
-    index: ViewIndex,
-    poses: np.ndarray,
-    ranges: np.ndarray,
-    angles: np.ndarray,
-    beams: int,
-    config: ShapeConfig,
-    gconfig: GlobalConfig,
-) -> np.ndarray:
-    """The beam part of :func:`verify`'s cost for each of ``poses`` ``(k, 3)`` on ``beams``
-    evenly chosen valid beams: ``1 - hit - short_credit * short + violation_weight *
-    violation``. A quick ranking: unlike the point support it sees beams that pass through a
-    wall, and it does not reward a wrong place for lining up furniture with map walls."""
-    ok = np.nonzero(np.isfinite(ranges))[0]
-    sel = _subsample(ok, beams)
-    out = np.full(len(poses), np.inf)
-    if sel.size == 0:
-        return out
-    r = ranges[sel]
-    ang = angles[sel]
-    tol = config.support_tolerance
-    for k, pose in enumerate(np.asarray(poses, dtype=np.float64)):
-        pred, landed = _predict(index, pose, r, ang, tol, config.view_max_range, gconfig)
-        hit, viol, short = _beam_fractions(r, pred, tol, gconfig, landed)
-        out[k] = _beam_cost(hit, viol, short, gconfig)
-    return out
 
 
 def _refine(
@@ -322,58 +131,6 @@ def _distinct(a: np.ndarray, b: np.ndarray, gconfig: GlobalConfig) -> bool:
 
 def _near(a: np.ndarray, b: np.ndarray, dist: float = 0.3, ang: float = 0.15) -> bool:
     return bool(np.hypot(*(a[:2] - b[:2])) < dist and abs(wrap_angle(a[2] - b[2])) < ang)
-
-
-def verify(
-    index: ViewIndex,
-    pose: np.ndarray,
-    ranges: np.ndarray,
-    angles: np.ndarray,
-    P: Configuration,
-    config: ShapeConfig,
-    gconfig: GlobalConfig,
-) -> Hypothesis:
-    """Check a pose against the map beam by beam and feature by feature.
-
-    ``gconfig.verify_beams`` valid beams of the scan are compared with the ranges the map
-    predicts from ``pose``: a *hit* lies within ``config.support_tolerance`` of the predicted
-    range, a *violation* is a return beyond the predicted range plus the tolerance (the beam
-    went through a map wall), a *short* one ends before the predicted wall (something
-    unmapped in front of it). ``explained`` is the length fraction of the scan's polylines with
-    at least half their points within the tolerance of the map. Cost
-    ``1 - hit + violation_weight * violation + cost_floor``.
-    """
-    tol = config.support_tolerance
-    ok = np.isfinite(ranges)
-    idx = np.nonzero(ok)[0]
-    idx = _subsample(idx, gconfig.verify_beams)
-    if idx.size == 0:
-        return Hypothesis(pose=pose.copy(), cost=1.0 + gconfig.cost_floor)
-    r = ranges[idx]
-    pred, landed = _predict(index, pose, r, angles[idx], tol, config.view_max_range, gconfig)
-    hit, viol, short = _beam_fractions(r, pred, tol, gconfig, landed)
-    total = 0.0
-    good = 0.0
-    if P.features:
-        # one distance lookup for every feature's points (the same values as one per feature)
-        subs = [_subsample(f.points, 16) for f in P.features]
-        near = index.distance(transform_points(pose, np.vstack(subs))) <= tol
-        start = 0
-        for f, sub in zip(P.features, subs, strict=True):
-            total += f.length
-            if np.mean(near[start : start + len(sub)]) >= 0.5:
-                good += f.length
-            start += len(sub)
-    explained = good / total if total > 0 else 0.0
-    cost = _beam_cost(hit, viol, short, gconfig) + gconfig.cost_floor
-    return Hypothesis(
-        pose=pose.copy(),
-        cost=cost,
-        hit=hit,
-        violation=viol,
-        explained=explained,
-        short=short,
-    )
 
 
 def global_search(

@@ -28,19 +28,10 @@ import numpy as np
 
 from service.core.configuration import Configuration
 from service.core.global_config import GlobalConfig
-from service.core.global_search import (
-    WORK_MS,
-    Hypothesis,
-    _near,
-    _polish,
-    _refine,
-    _subsample,
-    _verify_ms,
-    polish_ms,
-    verify,
-)
+from service.core.global_search import WORK_MS, _near, _refine, _verify_ms, polish_ms
 from service.core.localizer import ShapeConfig
 from service.core.pose import compose, invert
+from service.core.pose_scoring import Hypothesis, _polish, _subsample, verify
 from service.core.view_index import ViewIndex
 
 #: A hypothesis of this scan continues a track of the last one within this distance (m) and

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from service.core import _kernels, _search_kernels
-from service.core import global_search as gs
+from service.core import pose_scoring as gs
 from service.core.global_localization import load_or_build_index
 from sim_publisher.office import office_schematic_map
 

@@ -1,10 +1,10 @@
-"""Beam verification of global search (service/core/global_search.py)."""
+"""Scoring a pose against the map (service/core/pose_scoring.py): the beam verification."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from service.core import global_search as gs
+from service.core import pose_scoring as gs
 from service.core.configuration import scan_configuration
 from service.core.global_config import GlobalConfig
 from service.core.global_localization import load_or_build_index
