@@ -25,6 +25,30 @@ def _score(d: float, sigma: float, cap: float) -> float:
 
 
 @njit(cache=True, nogil=True)
+def _cell(
+    c: float,
+    s: float,
+    pose: np.ndarray,
+    px: float,
+    py: float,
+    ox: float,
+    oy: float,
+    res: float,
+    h: int,
+    w: int,
+) -> tuple[int, int]:
+    """Field cell ``(row, column)`` of robot-frame point ``(px, py)`` seen from ``pose``
+    (heading cosine ``c``, sine ``s``); ``(-1, -1)`` outside the ``h x w`` field."""
+    x = c * px - s * py + pose[0]
+    y = s * px + c * py + pose[1]
+    ci = math.floor((x - ox) / res)
+    cj = math.floor((y - oy) / res)
+    if ci >= 0 and ci < w and cj >= 0 and cj < h:
+        return int(cj), int(ci)
+    return -1, -1
+
+
+@njit(cache=True, nogil=True)
 def field_scores(
     dist: np.ndarray,
     ox: float,
@@ -49,13 +73,10 @@ def field_scores(
         s = math.sin(poses[i, 2])
         acc = 0.0
         for j in range(k):
-            x = c * pts[j, 0] - s * pts[j, 1] + poses[i, 0]
-            y = s * pts[j, 0] + c * pts[j, 1] + poses[i, 1]
-            ci = math.floor((x - ox) / res)
-            cj = math.floor((y - oy) / res)
+            r, q = _cell(c, s, poses[i], pts[j, 0], pts[j, 1], ox, oy, res, h, w)
             d = math.inf
-            if ci >= 0 and ci < w and cj >= 0 and cj < h:
-                d = dist[int(cj), int(ci)]
+            if r >= 0:
+                d = dist[r, q]
             acc += _score(d, sigma, cap)
         out[i] = acc / k
     return out
@@ -96,12 +117,9 @@ def table_scores(
         s = math.sin(poses[i, 2])
         acc = 0.0
         for j in range(k):
-            x = c * pts[j, 0] - s * pts[j, 1] + poses[i, 0]
-            y = s * pts[j, 0] + c * pts[j, 1] + poses[i, 1]
-            ci = math.floor((x - ox) / res)
-            cj = math.floor((y - oy) / res)
-            if ci >= 0 and ci < w and cj >= 0 and cj < h:
-                acc += table[int(cj), int(ci)]
+            r, q = _cell(c, s, poses[i], pts[j, 0], pts[j, 1], ox, oy, res, h, w)
+            if r >= 0:
+                acc += table[r, q]
             else:
                 acc += outside
         out[i] = acc / k
@@ -133,11 +151,8 @@ def support_counts(
         s = sin_t[i]
         n = 0
         for j in range(k):
-            x = c * pts[j, 0] - s * pts[j, 1] + poses[i, 0]
-            y = s * pts[j, 0] + c * pts[j, 1] + poses[i, 1]
-            ci = math.floor((x - ox) / res)
-            cj = math.floor((y - oy) / res)
-            if ci >= 0 and ci < w and cj >= 0 and cj < h and dist[int(cj), int(ci)] <= tol:
+            r, q = _cell(c, s, poses[i], pts[j, 0], pts[j, 1], ox, oy, res, h, w)
+            if r >= 0 and dist[r, q] <= tol:
                 n += 1
         out[i] = n
     return out

@@ -177,8 +177,7 @@ def _predict(
     ``gconfig.see_through``, which measured returns ``r`` lie on a mapped surface behind the
     predicted one (:meth:`RayCaster.cast_layered`; ``None`` without)."""
     if gconfig.see_through:
-        pred, on_map = index.caster.cast_layered(pose, ang, r, tol, max_range)
-        return pred, on_map
+        return index.caster.cast_layered(pose, ang, r, tol, max_range)
     return index.caster.cast(pose, ang, max_range), None
 
 

@@ -11,6 +11,7 @@ import contextlib
 import hashlib
 import json
 import logging
+import math
 import os
 import re
 import tempfile
@@ -217,7 +218,7 @@ class ViewIndex:
         got = self._tables.get(key)
         if got is None:
             table = _search_kernels.score_table(self.dist, key[0], key[1])
-            outside = float(_search_kernels.score_table(np.full((1, 1), np.inf), *key)[0, 0])
+            outside = float(_search_kernels._score(math.inf, key[0], key[1]))
             got = (table, outside)
             self._tables[key] = got
         return got
