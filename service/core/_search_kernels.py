@@ -2,7 +2,7 @@
 details, numba; see :mod:`service.core._kernels` for the conventions: the arithmetic follows
 the numpy reference expression by expression, no ``fastmath``).
 
-The polish (:func:`service.core.global_search._polish`) scores 125 poses per stage and
+The polish (:func:`service.core.pose_scoring._polish`) scores 125 poses per stage and
 hypothesis, each over ~80 scan points: ``exp(-d² / 2 s²)`` of the distance-field value ``d``
 under every point. The value depends on the field cell alone, so :func:`score_table` computes
 it once per cell and sigma (the same expression, so the same bits) and :func:`table_scores`
@@ -59,7 +59,7 @@ def field_scores(
     sigma: float,
     cap: float,
 ) -> np.ndarray:
-    """Kernel of :func:`service.core.global_search._field_scores` (same arithmetic): for each
+    """Kernel of :func:`service.core.pose_scoring._field_scores` (same arithmetic): for each
     pose ``(m, 3)`` the mean over robot-frame ``pts`` ``(k, 2)`` of
     ``exp(-0.5 * (min(d, cap) / sigma) ** 2)``, ``d`` the distance-field value at the point's
     cell (``inf`` outside the field). The reference for :func:`table_scores`."""
@@ -138,7 +138,7 @@ def support_counts(
     pts: np.ndarray,
     tol: float,
 ) -> np.ndarray:
-    """Kernel of :func:`service.core.global_search._support_many`: per pose the number of
+    """Kernel of :func:`service.core.pose_scoring._support_many`: per pose the number of
     robot-frame ``pts`` whose field value is at most ``tol`` (``cos_t`` / ``sin_t`` the poses'
     headings' cosines and sines as numpy computed them, so the points are the reference's)."""
     m = poses.shape[0]

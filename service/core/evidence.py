@@ -25,7 +25,7 @@ What.
   back by the odometry between them, polished on the distance field with that pose as the
   motion prior (as the re-scoring does, so odometry drift over the window is absorbed a
   keyframe at a time), and verified beam by beam (the cost of
-  :func:`service.core.global_search.verify`, clipped at ``evidence_clip``). Work is counted
+  :func:`service.core.pose_scoring.verify`, clipped at ``evidence_clip``). Work is counted
   in reference ms and bounded per scan. A track whose evidence is already clearly worse than
   the best complete one (``evidence_drop``) is not scored further.
 * :func:`evidence` / :func:`evidence_margin` — a track's mean cost over the window and how
@@ -125,7 +125,7 @@ def pair_ms(g: GlobalConfig) -> float:
 def frame_cost(
     index: ViewIndex, pose: np.ndarray, kf: Keyframe, config: ShapeConfig, g: GlobalConfig
 ) -> float:
-    """:func:`service.core.global_search.verify`'s cost of ``pose`` on keyframe ``kf``'s
+    """:func:`service.core.pose_scoring.verify`'s cost of ``pose`` on keyframe ``kf``'s
     beams, clipped at ``evidence_clip`` (one bad keyframe, e.g. a person in front of the
     laser, must not outweigh the rest of the drive)."""
     if kf.ranges.size == 0:

@@ -92,7 +92,7 @@ class GlobalConfig(BaseModel):
     see_through: bool = Field(
         False,
         description="A return beyond the predicted wall that lies on a mapped surface the "
-        "beam crosses behind it is no violation (:func:`service.core.global_search."
+        "beam crosses behind it is no violation (:func:`service.core.pose_scoring."
         "_beam_fractions`). Metric: on (a map drawn from a robot's scans holds chairs, "
         "cabinets and doors that are elsewhere, open or seen past later: on the tuning log "
         "fr079 30 % of the scans verified at cost > 0.95 at their reference pose, 7 % with "
@@ -336,6 +336,7 @@ class GlobalConfig(BaseModel):
         description="Evidence rule: the winner's mean and median cost over the window "
         "(keyframe costs clipped at evidence_clip). On the tuning log fr079's metric map, "
         "drawn from a cluttered office, the true place scored 0.74-0.88 over the window "
+        "(before see_through) "
         "(the single scans of a 180-degree laser), the best alternatives 0.95-1.0: the "
         "margin, not this bar, tells them apart; the bar only refuses a leader that "
         "explains the drive no better than a wrong place does.",

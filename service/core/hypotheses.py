@@ -4,7 +4,7 @@ search that :class:`service.core.global_localization.GlobalShapeLocalizer` runs 
 ``GlobalConfig.search_budget_ms`` is set:
 
 * :func:`rescore` — every kept hypothesis, moved by the odometry since the last scan, is fitted
-  locally to the new scan and verified beam by beam (:func:`service.core.global_search.verify`),
+  locally to the new scan and verified beam by beam (:func:`service.core.pose_scoring.verify`),
   best first, within a share of the per-scan budget. Evidence thus accumulates on every scan
   for every hypothesis, not only for those a search happens to find again.
 * :func:`merge` — a search that was spread over several scans delivers hypotheses for the
