@@ -12,7 +12,7 @@ What runs where, per scan (:meth:`ShapeLocalizer.update`; ``docs/core.md`` has t
    point-to-line against the whole map (:class:`service.core.mapmodel.MapModel`), the motion
    prior as a Gaussian term; its scan log-likelihood is the evidence;
 4. **Shape matching** (§5: the map's abstract sensor reading from the prior, S*, the eq. 5
-   dynamic programme, two-step matching) -- :func:`service.core.matching.two_step_match` --
+   dynamic programme, two-step matching) -- :func:`service.core.two_step.two_step_match` --
    runs when there is no odometry or the fit from the odometry prior is doubtful (far from
    the prior, low support, likelihood dropped): its correspondences give a pose beyond the
    fit's basin, which the precise fit then refines (unmatched scan polylines down-weighted);
@@ -41,10 +41,10 @@ from service.core.configuration import (
 )
 from service.core.dce import DCE_NOISE_THRESHOLD
 from service.core.mapmodel import MapModel
-from service.core.matching import TwoStepResult, two_step_match
 from service.core.motion import Motion, MotionConfig, Prediction, check_pose3
 from service.core.pose import compose
 from service.core.refine import Refined, RefineParams, refine_pose, scan_normals
+from service.core.two_step import TwoStepResult, two_step_match
 from service.core.types import Estimate, MapData, Match, Status, wrap_angle
 from service.errors import LocalizationError
 
@@ -410,7 +410,7 @@ class ShapeLocalizer:
     2. the precise fit (:func:`~service.core.refine.refine_pose`) aligns the scan with the
        whole map from that prior;
     3. the shape matching of §4-§5 (grouping, DCE, S*, eq. 5 via
-       :func:`~service.core.matching.two_step_match`) runs when there is no odometry, or when
+       :func:`~service.core.two_step.two_step_match`) runs when there is no odometry, or when
        the fit from the odometry prior is doubtful (its likelihood dropped, or it moved far
        from the prior): its correspondences give pose hypotheses beyond the fit's basin, each
        refined by the precise fit;

@@ -1,4 +1,5 @@
-"""Configuration matching (service/core/matching.py): eq. 4, penalty R, the eq. 5 DP.
+"""Configuration matching (service/core/matching.py): eq. 4, penalty R, the eq. 5 DP; and the
+parts of the two-step matching (service/core/two_step.py) that check it bit for bit.
 
 Runs in about a second.
 """
@@ -12,7 +13,7 @@ from collections.abc import Callable
 import numpy as np
 import pytest
 
-from service.core import _kernels, matching
+from service.core import _kernels, matching, two_step
 from service.core.configuration import Configuration, Feature
 from service.core.localizer import ShapeConfig
 from service.core.matching import (
@@ -274,7 +275,7 @@ def test_grid_near_agrees_with_a_kd_tree() -> None:
         q = pts[rng.integers(0, len(pts), 3000)] + rng.normal(0, tol, size=(3000, 2))
         q = np.vstack([q, rng.uniform(-10, 10, size=(500, 2))])
         d, _ = cKDTree(pts).query(q, k=1, distance_upper_bound=tol)
-        got = matching._near(Q, q[:, 0], q[:, 1], tol)
+        got = two_step._near(Q, q[:, 0], q[:, 1], tol)
         assert np.array_equal(got, np.isfinite(d))
         assert 0 < got.sum() < len(q)
 
@@ -315,7 +316,7 @@ def test_step1_batched_shape_distances_equal_the_per_pair_distances(
     joined units gives the same hypotheses and distances, bit for bit (schematic map)."""
     sc = real_scene(2, 60)
     P, Q, cfg, prior = sc.P, sc.Q, sc.config, sc.truth[59]
-    got = matching.step1_hypotheses(P, Q, prior, cfg, {})
+    got = two_step.step1_hypotheses(P, Q, prior, cfg, {})
 
     def per_pair(pv, po, pp, qv, qo, qp, **kw):  # type: ignore[no-untyped-def]
         def join(v, o, row):  # type: ignore[no-untyped-def]
@@ -326,7 +327,7 @@ def test_step1_batched_shape_distances_equal_the_per_pair_distances(
 
     monkeypatch.setattr(matching, "shape_distances", per_pair)
     Q.__dict__.pop("_step1_units", None)
-    ref = matching.step1_hypotheses(P, Q, prior, cfg, {})
+    ref = two_step.step1_hypotheses(P, Q, prior, cfg, {})
     assert len(got) == len(ref) >= 4
     for (pg, sg), (pr, sr) in zip(got, ref, strict=True):
         assert sg == sr and np.array_equal(pg, pr)
@@ -382,6 +383,6 @@ def test_grid_near_agrees_with_a_kd_tree_on_a_heading_sweep(real_scene: Callable
         for dth in np.arange(-1.3, 1.31, 0.05):
             q = transform_points(pose + np.array([0.0, 0.0, dth]), scan)
             d, _ = tree.query(q, k=1, distance_upper_bound=tol)
-            assert np.array_equal(matching._near(Q, q[:, 0], q[:, 1], tol), np.isfinite(d))
+            assert np.array_equal(two_step._near(Q, q[:, 0], q[:, 1], tol), np.isfinite(d))
     q = transform_points(pose, scan)
-    assert matching._near(Q, q[:, 0], q[:, 1], 0.25).mean() > 0.3
+    assert two_step._near(Q, q[:, 0], q[:, 1], 0.25).mean() > 0.3

@@ -8,7 +8,7 @@ from collections.abc import Callable
 import numpy as np
 import pytest
 
-from service.core import _kernels, matching, stacked
+from service.core import _kernels, stacked, two_step
 
 
 def test_subsample_takes_the_rounded_linspace_rows() -> None:
@@ -31,8 +31,8 @@ def test_piece_means_are_numpys_mean_of_the_joined_points(
     monkeypatch.setattr(_kernels, "HAVE_NUMBA", compiled)
     sc = real_scene(2, 140)
     for C, cyclic in ((sc.P, False), (sc.Q, True)):
-        units = matching._units(C, cyclic)
-        pieces = matching._unit_pieces(units)
+        units = two_step._units(C, cyclic)
+        pieces = two_step._unit_pieces(units)
         got = stacked.piece_means(C, pieces)
         want = np.array([np.vstack([f.points for f in u.feats]).mean(axis=0) for u in units])
         assert len(units) > 10 and np.array_equal(got, want)
