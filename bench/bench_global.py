@@ -24,7 +24,7 @@ Drive trials (``--drive``, issue 13): global localisation WHILE THE ROBOT DRIVES
 [--quick N] [--stride1 1] [--seed 1] [--cache build/bench_global/index] [--out docs/global]``
 
 A trial picks a random start scan on a tour, creates ``create_localizer("shape", map, None,
-search_budget_ms=--budget-ms)`` (no initial pose; the service's default budget of 25 reference
+search_budget_ms=--budget-ms)`` (no initial pose; the service's default budget of 50 reference
 ms per scan, 0 = a whole search per scan as offline) and feeds that scan and every
 following one WITH its odometry
 (``update(ranges, angles, odom)``) until the travel since the start exceeds the map's travel
@@ -350,7 +350,7 @@ class DriveTask:
     data: str
     cache: str
     stride1: int
-    budget: float | None = 25.0
+    budget: float | None = 50.0
 
 
 @dataclass
@@ -1132,8 +1132,8 @@ def main(argv: list[str] | None = None) -> int:
     drive.add_argument(
         "--budget-ms",
         type=float,
-        default=25.0,
-        help="per-scan search budget, reference ms (the service's default 25; 0: whole search)",
+        default=50.0,
+        help="per-scan search budget, reference ms (the service's default 50; 0: whole search)",
     )
     drive.add_argument(
         "--cache",

@@ -46,13 +46,15 @@ class ServiceSettings(BaseModel):
     docs/cluster.md); ``"static"`` serves what ``robots`` matches.
     ``search_budget_ms`` is the per-scan work (reference ms) a robot's global search may take
     before the worker moves on (the search goes on with its next scan; 0: a whole search per
-    scan). Default 25: with the tracker's own few ms and the decision's overhead a searching
-    robot's scan stays within ~40 ms of one core, so a robot queued behind it on the same
-    worker waits less than 50 ms (issue 13), while a whole search (~100 ms on a metric map,
-    ~300 ms on a floor plan) still finishes within 4-12 scans. With 20 tracked robots at
-    10 Hz on a 2-core machine, one robot searching back to back added +14 / +16 ms to their
-    p99 at 25 and +5 ms at 12 on the previous session's machine, and +2.5 to +6.6 ms (median
-    +3.4) at 25 and +3.5 to +4.4 ms at 15 on the ~1.6x faster one of 2026-11-24
+    scan). Default 50 (issue 13, docs/global.md "Why 50"): on this project's 2-core VM a
+    searching scan then takes ~30 ms of wall time (p99 of a drive, median over drives; 17-20 ms
+    at 25), so a robot queued behind it waits less than 50 ms, and a search reaches a fix in
+    about half the travel: held-out log mit-csail within 15 m 100 / 70 % (metric / floor plan)
+    against 80 / 40 % at 25. Tracked robots do not queue behind it at all with the search
+    worker (below). With 20 tracked robots at 10 Hz on a 2-core machine, one robot searching
+    back to back added +14 / +16 ms to their p99 at 25 and +5 ms at 12 on an earlier, slower
+    machine, and +2.5 to +6.6 ms (median +3.4) at 25 and +3.5 to +4.4 ms at 15 on the
+    ~1.6x faster one of 2026-11-24
     (``bench/bench_service.py --robots 20 --searching 0,1 --search-budget-ms 15``); a lower
     budget needs about twice the scans to a fix. ``search_worker`` (with
     ``workers`` >= 1) adds one worker process, niced by ``search_worker_nice``, that takes
@@ -83,7 +85,7 @@ class ServiceSettings(BaseModel):
     reconnect_max_ms: int = Field(default=1000, ge=100)
     max_robots: int = Field(default=1000, ge=1)
     worker_timeout_s: float = Field(default=30.0, gt=0.0)
-    search_budget_ms: float = Field(default=25.0, ge=0.0, le=10_000.0)
+    search_budget_ms: float = Field(default=50.0, ge=0.0, le=10_000.0)
     search_worker: bool = True
     search_worker_nice: int = Field(default=19, ge=0, le=19)
     log_level: Literal["debug", "info", "warning", "error"] = "info"

@@ -8,7 +8,8 @@ drive"."""
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -16,12 +17,14 @@ from service.core import evidence as ev_mod
 from service.core import hypotheses as hyp_mod
 from service.core.configuration import Configuration
 from service.core.global_search import (
+    _near,
     ambiguity,
     scan_information,
     search_steps,
     self_similar_steps,
 )
 from service.core.hypotheses import Track
+from service.core.pose import compose
 from service.core.pose_scoring import Hypothesis
 from service.core.types import Estimate
 
@@ -29,6 +32,18 @@ if TYPE_CHECKING:
     from service.core.global_config import GlobalConfig
     from service.core.localizer import ShapeConfig
     from service.core.view_index import ViewIndex
+
+
+@dataclass(eq=False)
+class Probation:
+    """A search's winner being tracked before it is published (``GlobalConfig.
+    probation_travel``): the track it came from (kept with the others, moved by the
+    odometry), the travel ``left``, and the decision's ambiguity and extras."""
+
+    track: Track
+    left: float
+    ambiguity: float
+    extras: dict[str, float] = field(default_factory=dict)
 
 
 class DriveSearch:
@@ -52,6 +67,12 @@ class DriveSearch:
     work_ms: float
     _search_turn: bool
     _frames: list[ev_mod.Keyframe]
+    _probation: Probation | None
+    _searching: bool
+    _search_status: str
+    _since_fix: int
+    _anchor_travel: float
+    tracker: Any
     _frame_key: int
     # and the methods _seeds, _anchor_seeds, _near_track, _confirmed, _confirm, _unresolved,
     # _no_hypothesis
@@ -272,3 +293,80 @@ class DriveSearch:
 
     def _odom_copy(self) -> np.ndarray | None:
         return None if self._last_odom is None else self._last_odom.copy()
+
+    # ------------------------------------------------------------------ probation
+    def _probation_due(self, extras: dict[str, float]) -> bool:
+        """Whether a winner the tracker just confirmed goes on probation first: with
+        odometry, ``probation_travel`` > 0, and not recovered next to the lost track."""
+        return (
+            self.gconfig.probation_travel > 0.0
+            and self._last_odom is not None
+            and "near_track" not in extras
+        )
+
+    def _begin_probation(
+        self, best: Track, est: Estimate, amb: float, extras: dict[str, float]
+    ) -> Estimate:
+        """Track ``best`` (the tracker is already reset to it and accepted this scan) while
+        the search's hypotheses are kept and moved by the odometry; publish the search's
+        status with the tracked pose as the best guess."""
+        self._probation = Probation(best, self.gconfig.probation_travel, amb, dict(extras))
+        # the pending jobs belong to earlier scans; a failed probation starts a new search
+        self._job = None
+        self._twin_job = None
+        self._confirm_next = False
+        return self._on_probation(est)
+
+    def _on_probation(self, est: Estimate) -> Estimate:
+        p = self._probation
+        assert p is not None
+        p.track.pose = est.pose.copy()
+        est.status = self._search_status  # type: ignore[assignment]
+        est.ambiguity = p.ambiguity
+        est.extras["probation"] = max(0.0, p.left)
+        est.hypotheses = len(self._tracks)
+        order = [p.track, *(t for t in self._tracks if t is not p.track)]
+        est.candidates = hyp_mod.candidates(order)
+        return est
+
+    def _probation_step(self, est: Estimate, delta: np.ndarray | None, unfit: bool) -> Estimate:
+        """One tracked scan of a probation. The odometry ``delta`` moves the kept hypotheses
+        and counts towards the travel; the probation fails on a scan the tracker loses or
+        finds ``unfit`` (rejected with a score below ``collapse_score``), or one without
+        odometry (no travel to count): the search then goes on with the hypotheses it held,
+        without the winner and those at its pose. Passed, the tracker's estimate is the fix."""
+        p = self._probation
+        assert p is not None
+        failed = unfit or est.status == "lost" or delta is None
+        if delta is not None:
+            step = float(np.hypot(delta[0], delta[1]))
+            self._travel += step
+            p.left -= step
+            for t in self._tracks:
+                if t is not p.track:
+                    t.pose = compose(t.pose, delta)
+            if self._anchor is not None:
+                self._anchor = compose(self._anchor, delta)
+                self._anchor_travel += step
+        if failed:
+            self._probation = None
+            self._searching = True
+            self._history = []
+            self.tracker.reset(None)
+            self._tracks = [
+                t for t in self._tracks if t is not p.track and not _near(t.pose, est.pose)
+            ]
+            extras = {"probation_failed": 1.0, "hypotheses": float(len(self._tracks))}
+            if not self._tracks:
+                return self._no_hypothesis(extras)
+            amb = ambiguity([t.hyp for t in self._tracks], self.gconfig)
+            return self._unresolved(self._tracks[0], amb, extras)
+        if p.left > 0.0:
+            return self._on_probation(est)
+        self._probation = None
+        self._since_fix = 0
+        self._tracks = []
+        self._history = []
+        est.ambiguity = p.ambiguity
+        est.extras.update({"global_fix": 1.0, "probation_passed": 1.0, **p.extras})
+        return est

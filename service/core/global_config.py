@@ -324,6 +324,18 @@ class GlobalConfig(BaseModel):
         "at least this explains nearly nothing of the drive: it is not scored further, and "
         "pruned (its scoring would take the search's budget).",
     )
+    probation_travel: float = Field(
+        0.0,
+        ge=0,
+        description="With odometry, a search's winner (not one recovered next to the lost "
+        "track) is first tracked for this much travel (m) while the published status stays "
+        "initializing / lost; a scan the tracker loses or finds unfit on the way ends the "
+        "probation and the search goes on with the hypotheses it held, the winner dropped "
+        "(:meth:`service.core.drive_search.DriveSearch._probation_step`). Schematic: 1.0 -- a "
+        "floor plan that leaves out walls the laser sees can make a wrong place explain the "
+        "scans better than the true one for a metre or more (fr079 tuning start 3540: a place "
+        "2.6 m away, fixed at 1.25 m of travel, lost again 0.8 m later).",
+    )
     drive_travel: float = Field(
         1.0, ge=0, description="Evidence rule: the window spans at least this travel (m)."
     )
@@ -399,5 +411,6 @@ class GlobalConfig(BaseModel):
                 shortlist=150,
                 verify_beams=720,
                 violation_margin=0.5,
+                probation_travel=1.0,
             )
         raise LocalizationError(f"unknown map kind {kind!r}; expected metric or schematic")

@@ -49,7 +49,7 @@ from service.core.composite import composite_scan
 from service.core.configuration import (
     scan_configuration,
 )
-from service.core.drive_search import DriveSearch
+from service.core.drive_search import DriveSearch, Probation
 from service.core.global_config import GlobalConfig
 from service.core.global_search import (
     SearchResult,
@@ -207,19 +207,24 @@ class GlobalShapeLocalizer(DriveSearch):
     @property
     def pose(self) -> np.ndarray | None:
         """Last tracked pose (map frame), ``None`` while searching without a fix."""
-        return None if self._searching else self.tracker.pose
+        return None if self._searching or self._probation is not None else self.tracker.pose
 
     @property
     def unsettled(self) -> bool:
         """Searching, or fixed by a search fewer than ``gconfig.settle_scans`` scans ago: where
         a service keeps the robot on its search worker (a wrong or early fix that is lost again
         then costs no tracking worker a search)."""
-        return self._searching or self._since_fix < self.gconfig.settle_scans
+        return (
+            self._searching
+            or self._probation is not None
+            or self._since_fix < self.gconfig.settle_scans
+        )
 
     @property
     def searching(self) -> bool:
-        """``True`` while the pose is unknown (global search on every scan)."""
-        return self._searching
+        """``True`` while the pose is unknown: a global search on every scan, or its winner
+        on probation (``GlobalConfig.probation_travel``)."""
+        return self._searching or self._probation is not None
 
     def reset(self, initial_pose: np.ndarray | None, odom: np.ndarray | None = None) -> None:
         """Forget the history; ``None`` starts a global search (status ``initializing``).
@@ -231,6 +236,7 @@ class GlobalShapeLocalizer(DriveSearch):
             None if initial_pose is None or odom is None else check_pose3(odom, "odom")
         )
         self._searching = initial_pose is None
+        self._probation: Probation | None = None  # a winner tracked before it is published
         self._since_fix = self.gconfig.settle_scans  # a given pose needs no settling
         self._search_status = "initializing"
         self._unfit = 0  # consecutive tracked scans that did not fit the map at all
@@ -280,6 +286,8 @@ class GlobalShapeLocalizer(DriveSearch):
             # a floor plan, or a crowd, can leave a scan unexplained while odometry holds)
             odometry_prior = odom is not None and self.tracker.config.motion.use_odometry
             unfit = rejected and est.score < self.gconfig.collapse_score
+            if self._probation is not None:
+                return self._probation_step(est, delta, unfit)
             self._unfit = self._unfit + 1 if unfit else 0
             need = self.tracker.config.lost_after if odometry_prior else 1
             collapsed = self._unfit >= need
@@ -355,6 +363,7 @@ class GlobalShapeLocalizer(DriveSearch):
 
     def _start_search(self, last_pose: np.ndarray | None) -> None:
         self._searching = True
+        self._probation = None
         self._unfit = 0
         self._search_status = "lost"
         self._episode = 0
@@ -500,6 +509,8 @@ class GlobalShapeLocalizer(DriveSearch):
         if est.status == "tracking" and "rejected" not in est.extras and close:
             self._since_fix = 0
             self._searching = False
+            if self._probation_due(extras):
+                return self._begin_probation(best, est, amb, extras)
             self._tracks = []
             self._job = None
             self._twin_job = None

@@ -4,6 +4,7 @@ odometry and re-scored on every scan, a fix on the move within the per-scan work
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from service.core import global_search as gs
 from service.core import hypotheses as hy
@@ -239,3 +240,76 @@ def test_a_pending_twin_check_and_the_search_take_turns(monkeypatch) -> None:
     assert len(turns) >= 6, "no twin check was pending long enough to test"
     assert sum("search" in t for t in turns) >= len(turns) // 2 - 1
     assert sum("twin" in t for t in turns) >= len(turns) // 2 - 1
+
+
+def _to_probation(loc: GlobalShapeLocalizer, su, start: int, n: int):  # type: ignore[no-untyped-def]
+    """Drive until the search's winner goes on probation: (scan index, estimate)."""
+    for i in range(start, start + n):
+        est = loc.update(*su.scan(i), su.odom[i])
+        assert est.status != "tracking", f"scan {i}: published before any probation"
+        if "probation" in est.extras:
+            return i, est
+    raise AssertionError(f"no probation in {n} scans")
+
+
+def test_a_floor_plan_winner_is_tracked_on_probation_before_it_is_published() -> None:
+    """Floor plan (probation_travel 1 m): the search's winner is tracked while the status
+    stays initializing, the pose unknown and the winner first among the candidates; it is
+    published as a fix only after 1 m of odometry travel, correct."""
+    su = make_setup(2)
+    loc = _budgeted(su.map_data, 25.0)
+    assert loc.gconfig.probation_travel == 1.0
+    i0, est = _to_probation(loc, su, 250, 120)
+    assert est.status == "initializing" and loc.searching and loc.pose is None
+    assert est.candidates is not None
+    np.testing.assert_allclose(est.candidates[0, :3], est.pose)
+    travel = 0.0
+    for i in range(i0 + 1, i0 + 200):
+        d = su.odom[i][:2] - su.odom[i - 1][:2]
+        travel += float(np.hypot(*d))
+        est = loc.update(*su.scan(i), su.odom[i])
+        if est.status == "tracking":
+            break
+        assert est.status == "initializing" and "probation" in est.extras
+        assert est.extras["probation"] == pytest.approx(max(0.0, 1.0 - travel), abs=1e-9)
+    assert est.status == "tracking", "the probation never ended"
+    assert travel >= 1.0 and est.extras.get("probation_passed") == 1.0
+    assert est.extras.get("global_fix") == 1.0 and not loc.searching
+    assert _ok(est.pose, su.truth[i])
+
+
+def test_a_winner_that_fails_its_probation_goes_back_to_the_search() -> None:
+    """On probation, scans from elsewhere (the robot carried off) no longer fit the winner:
+    the probation fails, the search goes on with the hypotheses it held (here none besides
+    the winner) without the winner, and nothing was published as tracking."""
+    su = make_setup(2)
+    loc = _budgeted(su.map_data, 25.0)
+    i0, est = _to_probation(loc, su, 250, 120)
+    far = next(
+        k for k in range(len(su.truth)) if np.hypot(*(su.truth[k][:2] - su.truth[i0][:2])) > 8.0
+    )
+    assert loc._probation is not None
+    winner = loc._probation.track
+    failed = None
+    for k in range(1, 30):
+        est = loc.update(*su.scan(far + k), su.odom[i0 + k])
+        assert est.status != "tracking", f"scan {k}: a winner that no longer fits was published"
+        if "probation_failed" in est.extras:
+            failed = est
+            break
+    assert failed is not None, "the probation never failed"
+    assert failed.status == "initializing" and loc.searching and loc.pose is None
+    assert winner not in loc._tracks
+    assert all(not gs._near(t.pose, winner.pose) for t in loc._tracks)
+    searches = loc.searches
+    loc.update(*su.scan(far + k + 1), su.odom[i0 + k + 1])
+    assert loc.searches == searches + 1  # the search goes on
+
+
+def test_metric_maps_have_no_probation() -> None:
+    su = make_setup(1, max_scans=2100)
+    loc = _budgeted(su.map_data, 25.0)
+    assert loc.gconfig.probation_travel == 0.0
+    run = _drive(loc, su, 2000, 60)
+    assert run[-1][1].status == "tracking"
+    assert not any("probation" in e.extras for _i, e, _w in run)
