@@ -17,7 +17,6 @@ from service.core import evidence as ev_mod
 from service.core import hypotheses as hyp_mod
 from service.core.configuration import Configuration
 from service.core.global_search import (
-    _near,
     ambiguity,
     scan_information,
     search_steps,
@@ -44,6 +43,7 @@ class Probation:
     left: float
     ambiguity: float
     extras: dict[str, float] = field(default_factory=dict)
+    rejected: int = 0
 
 
 class DriveSearch:
@@ -72,6 +72,7 @@ class DriveSearch:
     _search_status: str
     _since_fix: int
     _anchor_travel: float
+    _unfit: int
     tracker: Any
     _frame_key: int
     # and the methods _seeds, _anchor_seeds, _near_track, _confirmed, _confirm, _unresolved,
@@ -211,6 +212,10 @@ class DriveSearch:
             elif lead is not None and lead.twin_ok is None:
                 # the drive's best explanation is the one whose twins must be held
                 target = lead
+        if near_track is None and best.found < g.fix_min_found:
+            # a second search must have had its chance to find another place
+            confirmed = False
+            extras["found_wait"] = 1.0
         lead_cost = max(fix_cost, g.drive_max_cost) if odometry else fix_cost
         if (
             target.twin_ok is None
@@ -320,6 +325,7 @@ class DriveSearch:
     def _on_probation(self, est: Estimate) -> Estimate:
         p = self._probation
         assert p is not None
+        # the winner follows the tracker (moved by the odometry with the others before)
         p.track.pose = est.pose.copy()
         est.status = self._search_status  # type: ignore[assignment]
         est.ambiguity = p.ambiguity
@@ -329,22 +335,31 @@ class DriveSearch:
         est.candidates = hyp_mod.candidates(order)
         return est
 
-    def _probation_step(self, est: Estimate, delta: np.ndarray | None, unfit: bool) -> Estimate:
+    def _probation_step(self, est: Estimate, delta: np.ndarray | None, collapsed: bool) -> Estimate:
         """One tracked scan of a probation. The odometry ``delta`` moves the kept hypotheses
-        and counts towards the travel; the probation fails on a scan the tracker loses or
-        finds ``unfit`` (rejected with a score below ``collapse_score``), or one without
-        odometry (no travel to count): the search then goes on with the hypotheses it held,
-        without the winner and those at its pose. Passed, the tracker's estimate is the fix."""
+        and counts towards the travel. The probation fails where tracking would have ended --
+        the tracker loses the scan, or ``collapsed``: ``lost_after`` scans in a row rejected
+        with a score below ``collapse_score`` -- and on a scan without odometry (no travel
+        to count). The search then goes on with the hypotheses it held; the winner stays
+        among them, moved by the odometry, and has to win again (it keeps counting as the
+        alternative to every other: dropping it let a poor alias win the evidence rule
+        unopposed on tuning building 4, after one furnished room's scans failed the true
+        place's probation). Passed, the tracker's estimate is the fix."""
         p = self._probation
         assert p is not None
-        failed = unfit or est.status == "lost" or delta is None
+        p.rejected += "rejected" in est.extras
+        failed = (
+            collapsed
+            or est.status == "lost"
+            or delta is None
+            or p.rejected >= self.gconfig.probation_rejects
+        )
         if delta is not None:
             step = float(np.hypot(delta[0], delta[1]))
             self._travel += step
             p.left -= step
             for t in self._tracks:
-                if t is not p.track:
-                    t.pose = compose(t.pose, delta)
+                t.pose = compose(t.pose, delta)
             if self._anchor is not None:
                 self._anchor = compose(self._anchor, delta)
                 self._anchor_travel += step
@@ -352,13 +367,10 @@ class DriveSearch:
             self._probation = None
             self._searching = True
             self._history = []
+            self._unfit = 0
             self.tracker.reset(None)
-            self._tracks = [
-                t for t in self._tracks if t is not p.track and not _near(t.pose, est.pose)
-            ]
+            p.track.wins = 0
             extras = {"probation_failed": 1.0, "hypotheses": float(len(self._tracks))}
-            if not self._tracks:
-                return self._no_hypothesis(extras)
             amb = ambiguity([t.hyp for t in self._tracks], self.gconfig)
             return self._unresolved(self._tracks[0], amb, extras)
         if p.left > 0.0:

@@ -324,6 +324,23 @@ class GlobalConfig(BaseModel):
         "at least this explains nearly nothing of the drive: it is not scored further, and "
         "pruned (its scoring would take the search's budget).",
     )
+    probation_rejects: int = Field(
+        3,
+        ge=1,
+        description="A probation also fails once the tracker has rejected this many of its "
+        "scans (in a row or not): on a floor plan the tracker keeps a wrong place through "
+        "scans that fit it half-way, rejecting most but accepting some.",
+    )
+    fix_min_found: int = Field(
+        1,
+        ge=1,
+        description="With a budget, a winner away from a lost track is fixed only once this "
+        "many of the searches have found it (the one it came from and later ones): one search "
+        "can miss the true place, and a lone alias then wins every rule unopposed (tuning "
+        "building 9, floor plan, 50 ms: the only search finished in 2.6 m of driving had "
+        "not found the true place; its best alias won the evidence rule with no alternative "
+        "left). Schematic: 2. Metric: 1 (an exact map's costs leave an alias no such lead).",
+    )
     probation_travel: float = Field(
         0.0,
         ge=0,
@@ -412,5 +429,6 @@ class GlobalConfig(BaseModel):
                 verify_beams=720,
                 violation_margin=0.5,
                 probation_travel=1.0,
+                fix_min_found=2,
             )
         raise LocalizationError(f"unknown map kind {kind!r}; expected metric or schematic")

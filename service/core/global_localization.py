@@ -286,11 +286,12 @@ class GlobalShapeLocalizer(DriveSearch):
             # a floor plan, or a crowd, can leave a scan unexplained while odometry holds)
             odometry_prior = odom is not None and self.tracker.config.motion.use_odometry
             unfit = rejected and est.score < self.gconfig.collapse_score
-            if self._probation is not None:
-                return self._probation_step(est, delta, unfit)
             self._unfit = self._unfit + 1 if unfit else 0
             need = self.tracker.config.lost_after if odometry_prior else 1
             collapsed = self._unfit >= need
+            if self._probation is not None:
+                # the probation fails where tracking would have collapsed
+                return self._probation_step(est, delta, collapsed)
             if est.status == "lost" or collapsed:
                 speed = self.tracker.known_speed()
                 self._start_search(est.pose)
