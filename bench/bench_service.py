@@ -1064,7 +1064,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     ap.add_argument("--map", default="metric", help="comma list: metric and/or schematic")
     ap.add_argument("--workers", type=int, default=None, help="service workers (default: cores)")
-    ap.add_argument("--search-budget-ms", type=float, default=None, help="service's (default 25)")
+    ap.add_argument("--search-budget-ms", type=float, default=None, help="service's (default 50)")
     ap.add_argument("--rate", default="10", help="comma list of scans per second per robot")
     ap.add_argument("--searching", default="0", help="comma list of K searching robots")
     ap.add_argument(

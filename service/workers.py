@@ -146,7 +146,9 @@ class WorkerCore:
         self.maps: dict[str, MapData] = {}
         self.robots: dict[str, _Robot] = {}
         self.cache_dir = cache_dir  # per-map view index cache of global localisation
-        self.search_budget_ms = search_budget_ms  # per-scan work of a global search
+        #: per-scan work of a global search while the robot is alone on this worker; half of
+        #: it while other robots share the worker (ServiceSettings.search_budget_ms)
+        self.search_budget_ms = search_budget_ms
 
     def handle(self, req: tuple[Any, ...]) -> Reply:
         """Execute one request; never raises (errors come back as ``("err", reason)``)."""
@@ -267,6 +269,11 @@ class WorkerCore:
                 r.localizer = self._create(r.method, md, r.last_pose, r.last_odom)
             else:
                 r.localizer = self._create(r.method, md, r.initial_pose)
+        set_budget = getattr(r.localizer, "set_search_budget", None)
+        if self.search_budget_ms is not None and set_budget is not None:
+            # the whole budget only while no other robot's scan can queue behind this one
+            alone = len(self.robots) == 1
+            set_budget(self.search_budget_ms if alone else 0.5 * self.search_budget_ms)
         est = r.localizer.update(ranges, angles, odom)
         if odom is not None:
             r.last_odom = np.asarray(odom, dtype=np.float64).copy()

@@ -220,6 +220,14 @@ class GlobalShapeLocalizer(DriveSearch):
             or self._since_fix < self.gconfig.settle_scans
         )
 
+    def set_search_budget(self, ms: float) -> None:
+        """Set the per-scan work budget of a budgeted search (``GlobalConfig.
+        search_budget_ms``; a search without a budget stays whole). The service halves it
+        while other robots share this robot's worker."""
+        g = self.gconfig
+        if g.search_budget_ms is not None and g.search_budget_ms != ms:
+            self.gconfig = g.model_copy(update={"search_budget_ms": float(ms)})
+
     @property
     def searching(self) -> bool:
         """``True`` while the pose is unknown: a global search on every scan, or its winner

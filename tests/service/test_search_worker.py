@@ -86,6 +86,36 @@ def test_export_import_carries_the_localiser_state() -> None:
     assert out is not None and out["status"] == "tracking" and out["unsettled"]  # just fixed
 
 
+def test_a_searching_robot_gets_the_whole_budget_only_alone_on_its_worker() -> None:
+    su = make_setup(1, max_scans=2010)
+    md = su.map_data
+    core = WorkerCore(search_budget_ms=50.0)
+    core.handle(("map", md))
+    assert core.handle(("config", "s", "shape", md.map_id, None, None, None))[0] == "ok"
+    r, ang = su.scan(2000)
+    assert core.handle(("scan", "s", r, ang, su.odom[2000]))[0] == "ok"
+    loc = core.robots["s"].localizer
+    assert isinstance(loc, GlobalShapeLocalizer)
+    assert loc.gconfig.search_budget_ms == 50.0
+    assert loc.work_ms <= 50.0 + 15.0
+    # a second robot on the same worker: each search scan gets half
+    assert core.handle(("config", "t", "shape", md.map_id, None, None, None))[0] == "ok"
+    r, ang = su.scan(2001)
+    assert core.handle(("scan", "s", r, ang, su.odom[2001]))[0] == "ok"
+    assert loc.gconfig.search_budget_ms == 25.0
+    assert loc.work_ms <= 25.0 + 15.0
+    core.handle(("forget", "t"))
+    r, ang = su.scan(2002)
+    assert core.handle(("scan", "s", r, ang, su.odom[2002]))[0] == "ok"
+    assert loc.gconfig.search_budget_ms == 50.0
+    # a localiser without a budget (a whole search per scan) keeps none
+    whole = WorkerCore()
+    whole.handle(("map", md))
+    whole.handle(("config", "w", "shape", md.map_id, None, None, None))
+    whole.handle(("scan", "w", r, ang, su.odom[2002]))
+    assert whole.robots["w"].localizer.gconfig.search_budget_ms is None
+
+
 def test_node_moves_a_searching_robot_to_the_search_worker(tmp_path: Path) -> None:
     h = Harness(tmp_path, workers=1)
     try:

@@ -261,6 +261,7 @@ def test_a_floor_plan_winner_is_tracked_on_probation_before_it_is_published() ->
     assert loc.gconfig.probation_travel == 1.0
     i0, est = _to_probation(loc, su, 250, 120)
     assert est.status == "initializing" and loc.searching and loc.pose is None
+    assert loc._probation is not None and loc._probation.track.found >= 2  # fix_min_found
     assert est.candidates is not None
     np.testing.assert_allclose(est.candidates[0, :3], est.pose)
     travel = 0.0
