@@ -46,11 +46,13 @@ class ServiceSettings(BaseModel):
     docs/cluster.md); ``"static"`` serves what ``robots`` matches.
     ``search_budget_ms`` is the per-scan work (reference ms) a robot's global search may take
     before the worker moves on (the search goes on with its next scan; 0: a whole search per
-    scan). Default 50 (issue 13, docs/global.md "Why 50"): on this project's 2-core VM a
-    searching scan then takes ~30 ms of wall time (p99 of a drive, median over drives; 17-20 ms
-    at 25), so a robot queued behind it waits less than 50 ms, and a search reaches a fix in
-    about half the travel: held-out log mit-csail within 15 m 100 / 70 % (metric / floor plan)
-    against 80 / 40 % at 25. Tracked robots do not queue behind it at all with the search
+    scan). Default 50 (issue 13, docs/global.md "Why 50"): a search reaches its fix sooner
+    than at 25 (drive bench, travel to the fix p50: held-out mit-csail metric map 6.6 -> 3.0
+    m, fr079 floor plan 13.7 -> 9.9 m; mit-csail metric within 15 m 80 -> 100 %). A robot
+    gets the whole budget only while it is alone on its worker, and half of it while other
+    robots share the worker (a 50 ms searching scan takes up to ~100 ms of wall time at p99
+    on a real metric map, too long for a robot queued behind it). Tracked robots do not
+    queue behind searches at all with the search
     worker (below). With 20 tracked robots at 10 Hz on a 2-core machine, one robot searching
     back to back added +14 / +16 ms to their p99 at 25 and +5 ms at 12 on an earlier, slower
     machine, and +2.5 to +6.6 ms (median +3.4) at 25 and +3.5 to +4.4 ms at 15 on the
