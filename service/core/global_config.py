@@ -346,8 +346,10 @@ class GlobalConfig(BaseModel):
         ge=0,
         description="With odometry, a search's winner (not one recovered next to the lost "
         "track) is first tracked for this much travel (m) while the published status stays "
-        "initializing / lost; a scan the tracker loses or finds unfit on the way ends the "
-        "probation and the search goes on with the hypotheses it held, the winner dropped "
+        "initializing / lost; where tracking would have ended (the tracker loses the scan, "
+        "or lost_after unfit scans in a row), after probation_rejects rejected scans, or on a "
+        "scan without odometry the probation fails and the search goes on with the "
+        "hypotheses it held, the winner among them without its wins "
         "(:meth:`service.core.drive_search.DriveSearch._probation_step`). Schematic: 1.0 -- a "
         "floor plan that leaves out walls the laser sees can make a wrong place explain the "
         "scans better than the true one for a metre or more (fr079 tuning start 3540: a place "
