@@ -16,7 +16,7 @@ gets every scan of the log (or the first ``--limit``), with the scan's laser odo
 (``odom=on``) or ``None`` (``odom=off``, the seed paper's mode). When ``shape`` loses the
 track it searches the whole map again: by default one whole search on the scan at hand (the
 published table), with ``--search-budget-ms B`` spread over scans within B reference ms per
-scan, as the service runs it (its default 25; write those rows to another ``--out``). Per run:
+scan, as the service runs it (its default 50; write those rows to another ``--out``). Per run:
 
 - ``scored``: scans with a flag-1 (GMapping-corrected) reference; the errors below are the
   Euclidean distance (m) of the estimated laser position from it on those scans only (flag-0
@@ -487,7 +487,7 @@ def main(argv: list[str] | None = None) -> int:
         type=float,
         default=None,
         help="shape: spread a lost robot's global search over scans within this per-scan "
-        "budget (reference ms) as the service does (its default 25); default: a whole search "
+        "budget (reference ms) as the service does (its default 50); default: a whole search "
         "on the scan the track was lost on (the published tables); write to another --out",
     )
     args = ap.parse_args(argv)

@@ -299,6 +299,18 @@ class DriveSearch:
     def _odom_copy(self) -> np.ndarray | None:
         return None if self._last_odom is None else self._last_odom.copy()
 
+    def _move_kept(self, delta: np.ndarray) -> float:
+        """Move the kept hypotheses and the dead-reckoned anchor by the odometry increment
+        ``delta`` (robot frame) and count its travel; returns that travel (m)."""
+        step = float(np.hypot(delta[0], delta[1]))
+        self._travel += step
+        for t in self._tracks:
+            t.pose = compose(t.pose, delta)
+        if self._anchor is not None:
+            self._anchor = compose(self._anchor, delta)
+            self._anchor_travel += step
+        return step
+
     # ------------------------------------------------------------------ probation
     def _probation_due(self, extras: dict[str, float]) -> bool:
         """Whether a winner the tracker just confirmed goes on probation first: with
@@ -355,14 +367,7 @@ class DriveSearch:
             or p.rejected >= self.gconfig.probation_rejects
         )
         if delta is not None:
-            step = float(np.hypot(delta[0], delta[1]))
-            self._travel += step
-            p.left -= step
-            for t in self._tracks:
-                t.pose = compose(t.pose, delta)
-            if self._anchor is not None:
-                self._anchor = compose(self._anchor, delta)
-                self._anchor_travel += step
+            p.left -= self._move_kept(delta)
         if failed:
             self._probation = None
             self._searching = True

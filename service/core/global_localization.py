@@ -402,13 +402,9 @@ class GlobalShapeLocalizer(DriveSearch):
         prev_odom = self._last_odom
         delta = self._remember_odom(odom)
         if delta is not None:
-            self._travel += float(np.hypot(delta[0], delta[1]))
-            for t in self._tracks:
-                t.pose = compose(t.pose, delta)
-            if self._anchor is not None:
-                start = self._anchor
-                self._anchor = compose(start, delta)
-                self._anchor_travel += float(np.hypot(delta[0], delta[1]))
+            start = self._anchor
+            self._move_kept(delta)
+            if start is not None:
                 # (with odometry only: without it the held anchor is no motion prior the
                 # tracker could be trusted from; tuning seeds 11 and 16 tracked wrong places)
                 back = self._reacquire(r, a, start, prev_odom, odom)

@@ -6,7 +6,7 @@ Global search refines each of its candidate poses against "the segments near the
 segments, 180-360 points per scan) the brute-force selection took ~6 ms per pose and half of a
 search's time; floor plans (50-500 segments) barely noticed it. The grid returns exactly the
 same segments in the same order as the brute-force reference
-:func:`service.core.view_index._nearby_segments`: the grid only decides which segments are
+:func:`nearby_segments_brute`: the grid only decides which segments are
 measured, the test itself is the reference's arithmetic on those.
 """
 
