@@ -987,6 +987,15 @@ def warm_up() -> float:
     model = MapModel(MapData.from_lists("warm-up", "metric", [p]))
     refine_pose(model, p, np.zeros(3), RefineParams(iterations=2))
     model.nearest(p, 0.5, np.full_like(p, np.nan))
+    # the scan-to-scan fit of the odometry check (service.core._odometry_kernels)
+    from service.core.motion import MotionConfig
+    from service.core.scan_odometry import ScanOdometry
+
+    check = ScanOdometry(MotionConfig().scan_odometry, MotionConfig())
+    beams = np.linspace(-1.5, 1.5, 40)
+    wall = 1.0 / np.maximum(np.cos(beams), 0.2)
+    check.correct(wall, beams, np.zeros(3))
+    check.correct(wall, beams, np.array([0.01, 0.0, 0.0]))
     return time.perf_counter() - t0
 
 

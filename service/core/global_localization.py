@@ -62,6 +62,7 @@ from service.core.localizer import ShapeConfig, ShapeLocalizer
 from service.core.motion import check_pose3
 from service.core.pose import compose, invert
 from service.core.pose_scoring import Hypothesis, _field_scores, verify
+from service.core.scan_odometry import ScanOdometry
 from service.core.types import Estimate, MapData, Status, wrap_angle
 from service.core.view_index import (
     FORMAT_VERSION,
@@ -113,6 +114,24 @@ __all__ = [
 _SEED_TURNS = (0.0, -0.4, 0.4, -0.8, 0.8)
 _ASSOCIATE = hyp_mod.ASSOCIATE
 _Track = hyp_mod.Track
+
+
+def _checked_scan(ranges: np.ndarray, angles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``ranges`` and ``angles`` as float64 arrays, validated exactly like the tracker does (the
+    same errors for the same bad input) before any state changes."""
+    r = np.asarray(ranges, dtype=np.float64)
+    a = np.asarray(angles, dtype=np.float64)
+    if r.ndim != 1 or a.ndim != 1 or r.shape != a.shape:
+        raise LocalizationError(
+            f"ranges and angles must be 1-D of equal length, got {r.shape} and {a.shape}"
+        )
+    if r.size == 0:
+        raise LocalizationError("empty scan")
+    if not np.all(np.isfinite(a)):
+        raise LocalizationError("beam angles must be finite")
+    if np.any(np.isinf(r)) or np.any(r[~np.isnan(r)] < 0):
+        raise LocalizationError("ranges must be >= 0 or NaN (no return)")
+    return r, a
 
 
 def _position_sigma(est: Estimate) -> float:
@@ -172,6 +191,7 @@ class GlobalShapeLocalizer(DriveSearch):
         self.gconfig = gconfig or GlobalConfig.for_kind(map_data.kind)
         self.cache_dir = None if cache_dir is None else Path(cache_dir)
         self.tracker = ShapeLocalizer(map_data, initial_pose, self.config)
+        self._scan_odometry = ScanOdometry(self.config.motion.scan_odometry, self.config.motion)
         self._index: ViewIndex | None = None
         self._tracks: list[_Track] = []
         self._searching = False
@@ -238,6 +258,7 @@ class GlobalShapeLocalizer(DriveSearch):
         """Forget the history; ``None`` starts a global search (status ``initializing``).
         ``odom``: odometry pose at ``initial_pose`` (the next increment starts from it)."""
         self.tracker.reset(initial_pose, odom)
+        self._scan_odometry.reset(None if odom is None else check_pose3(odom, "odom"))
         self._tracks = []
         self._history = []
         self._last_odom = (
@@ -269,7 +290,10 @@ class GlobalShapeLocalizer(DriveSearch):
     ) -> Estimate:
         """Localise one scan (see the class docstring). ``ranges`` metres (NaN = no return),
         ``angles`` radians robot frame, ``odom`` optional odometry pose (own frame; only used
-        to move the kept hypotheses between scans)."""
+        to move the kept hypotheses between scans; corrected by the scans first,
+        ``ShapeConfig.motion.scan_odometry``)."""
+        r, a = _checked_scan(ranges, angles)
+        odom = self._corrected_odom(r, a, odom)
         if not self._searching:
             self._since_fix += 1
             delta = self._remember_odom(odom)
@@ -281,7 +305,7 @@ class GlobalShapeLocalizer(DriveSearch):
                 # a turn the shape tracker cannot bridge (e.g. a look-around spin that goes on
                 # after the fix): trust the odometry's heading change for the prior
                 self.tracker.predict(delta)
-            est = self.tracker.update(ranges, angles, odom)
+            est = self.tracker.update(r, a, odom)
             # The tracker's own ambiguity compares its step-2 hypotheses, which often converge
             # to the same pose (a "tie" of one pose with itself): not an integrity signal.
             # It stays in extras; the published ambiguity is the global one (None here).
@@ -307,22 +331,23 @@ class GlobalShapeLocalizer(DriveSearch):
                 est.status = "lost"
                 est.ambiguity = 1.0  # no hypotheses yet: nothing tells the places apart
             return est
-        r = np.asarray(ranges, dtype=np.float64)
-        a = np.asarray(angles, dtype=np.float64)
-        # validate exactly like the tracker (same errors for the same bad input)
-        if r.ndim != 1 or a.ndim != 1 or r.shape != a.shape:
-            raise LocalizationError(
-                f"ranges and angles must be 1-D of equal length, got {r.shape} and {a.shape}"
-            )
-        if r.size == 0:
-            raise LocalizationError("empty scan")
-        if not np.all(np.isfinite(a)):
-            raise LocalizationError("beam angles must be finite")
-        if np.any(np.isinf(r)) or np.any(r[~np.isnan(r)] < 0):
-            raise LocalizationError("ranges must be >= 0 or NaN (no return)")
         return self._search(r, a, odom)
 
     # ---------------------------------------------------------------- internals
+    def _corrected_odom(
+        self, r: np.ndarray, a: np.ndarray, odom: np.ndarray | None
+    ) -> np.ndarray | None:
+        """The scan's odometry pose corrected by matching the scan to the previous one
+        (:class:`service.core.scan_odometry.ScanOdometry`), or as received when that is off;
+        a scan without odometry makes the next reading start afresh."""
+        if odom is None:
+            self._scan_odometry.reset(None)
+            return None
+        o = check_pose3(odom, "odom")
+        if not self.config.motion.scan_odometry.enabled:
+            return o
+        return self._scan_odometry.correct(r, a, o)
+
     def _remember_odom(self, odom: np.ndarray | None) -> np.ndarray | None:
         """Odometry delta since the previous scan (robot frame) or ``None``."""
         if odom is None:

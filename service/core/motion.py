@@ -26,6 +26,7 @@ Frames and units: REP 103, metres and radians; odometry increments are in the ro
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Literal, Protocol
 
@@ -37,6 +38,77 @@ from service.core.types import wrap_angle
 from service.errors import LocalizationError
 
 Source = Literal["odometry", "velocity", "held"]
+
+
+class ScanOdometryConfig(BaseModel):
+    """Parameters of :class:`service.core.scan_odometry.ScanOdometry`: the odometry
+    increments corrected by matching each scan to the previous one (metres, radians)."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    enabled: bool = Field(
+        True,
+        description="Correct each odometry increment by matching the scan to the previous "
+        "one (off: the odometry as received).",
+    )
+    max_points: int = Field(
+        120, ge=10, description="New-scan points fitted (evenly subsampled by beam)."
+    )
+    max_range: float = Field(
+        15.0, gt=0, description="Returns farther than this (m) are left out of the fit."
+    )
+    iterations: int = Field(10, ge=1, description="Gauss-Newton steps (re-associated each).")
+    gate_initial: float = Field(
+        0.5, gt=0, description="Association distance (m) of the first step ..."
+    )
+    gate_final: float = Field(0.15, gt=0, description="... shrinking to this by the last.")
+    robust_scale: float = Field(0.05, gt=0, description="Cauchy scale of the residuals (m).")
+    normal_window: int = Field(
+        5,
+        ge=1,
+        description="A point's surface normal is fitted to the returns within this "
+        "many beams on either side ...",
+    )
+    normal_radius: float = Field(0.2, gt=0, description="... and this distance (m) of it.")
+    max_flatness: float = Field(
+        0.1,
+        gt=0,
+        description="... when they lie on a line: the smaller spread at most this share of "
+        "the larger (else no normal: a corner, or clutter).",
+    )
+    normal_gate: float = Field(
+        0.8,
+        gt=0,
+        le=math.pi / 2,
+        description="A point pairs only with a previous point whose surface normal agrees "
+        "within this (rad): where the previous scan saw one wall and this one the wall "
+        "round the corner, pairing across the corner would drag the fit.",
+    )
+    min_constraint: float = Field(
+        0.05,
+        gt=0,
+        le=0.5,
+        description="The fit corrects the position only along directions that at least this "
+        "share of the points' weight observes (their normals' projection; "
+        "scan_odometry.observed): elsewhere, e.g. along a corridor, the odometry holds.",
+    )
+    point_sigma: float = Field(0.03, gt=0, description="Residual sigma of one point (m).")
+    effective_points: int = Field(
+        40,
+        ge=1,
+        description="The points count as at most this many independent ones against the "
+        "prior (neighbouring returns' errors are correlated).",
+    )
+    inlier_tolerance: float = Field(
+        0.05, gt=0, description="A point within this (m) of the previous scan is explained."
+    )
+    min_inliers: float = Field(
+        0.5,
+        gt=0,
+        le=1,
+        description="The fit is kept only when it explains at least this share of the points "
+        "(else the raw increment is used: the scans do not overlap enough).",
+    )
 
 
 class MotionConfig(BaseModel):
@@ -75,6 +147,11 @@ class MotionConfig(BaseModel):
     )
     velocity_sigma_theta: float = Field(
         0.6, gt=0, description="Heading sigma of the velocity prior (rad): weak on purpose."
+    )
+    scan_odometry: ScanOdometryConfig = Field(
+        default_factory=ScanOdometryConfig,
+        description="Odometry increments corrected by matching each scan to the previous one "
+        "(service.core.scan_odometry), before any use of the odometry.",
     )
 
 

@@ -244,6 +244,34 @@ def build_maps(n: int) -> None:
         )
 
 
+#: Windows of a whole log kept as arrays (``log``, first scan, scans): fr079 scans 846-865,
+#: where the robot backs up ~0.6 m (scans 854-859) while its odometry reports forward motion.
+WINDOWS = (("fr079", 846, 20),)
+
+
+def cut_window(src: Path, name: str, first: int, count: int, dst: Path) -> int:
+    """Scans ``first .. first + count - 1`` of the whole log ``name`` as an ``.npz``: ``ranges``
+    / ``angles`` ``(count, beams)``, ``odom`` ``(count, 3)`` (the odometry pose each scan
+    carries), ``reference`` ``(count, 3)`` and ``flag`` ``(count,)`` (GMapping's per-scan
+    reference and its flag). Returns the number of flag-1 scans."""
+    from service.logs import attach_reference, load_reference, read_log
+
+    files = {"fr079": "fr079.orig.bag", "intel": "intel.orig.bag", "mit-csail": "mit-csail.clf"}
+    info, it = read_log(src / files[name], limit=first + count)
+    ref = load_reference(src / "corrected" / f"{name}.gfs_reference_per_scan.txt")
+    scans = list(attach_reference(it, ref, scan_count=info.scan_count))[first : first + count]
+    nan3 = np.full(3, np.nan)
+    np.savez_compressed(
+        dst,
+        ranges=np.array([np.asarray(s.ranges, dtype=np.float64) for s in scans]),
+        angles=np.array([np.asarray(s.angles, dtype=np.float64) for s in scans]),
+        odom=np.array([np.asarray(s.odom, dtype=np.float64) for s in scans]),
+        reference=np.array([nan3 if s.reference is None else s.reference for s in scans]),
+        flag=np.array([bool(s.reference_ok and s.reference is not None) for s in scans]),
+    )
+    return sum(bool(s.reference_ok) for s in scans)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--source", type=Path, default=DEFAULT_SOURCE)
@@ -268,6 +296,10 @@ def main(argv: list[str] | None = None) -> int:
         k = cut_relations(src / f"{name}.relations", HERE / f"{name}.{n}.relations", stamps)
         print(f"{name}.{n}: {len(stamps)} reference rows, {k} relations")
     build_maps(n)
+    for name, first, count in WINDOWS:
+        dst = HERE / f"{name}.{first}-{first + count - 1}.npz"
+        k = cut_window(src, name, first, count, dst)
+        print(f"{dst.name}: {count} scans, {k} with a flag-1 reference")
     return 0
 
 

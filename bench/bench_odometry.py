@@ -1,0 +1,225 @@
+"""Odometry checked against the scans (``service.core.scan_odometry``): how far each
+odometry increment is from the reference's, as received and as corrected.
+
+For every pair of scans ``(j, i)`` that both have a reference pose -- consecutive scans
+(``gap 1``), scans 10 apart (``gap 10``), or on intel, whose flag-1 references are sparse,
+each flag-1 scan and the previous flag-1 scan at most 30 scans before it (``gap ref``) --
+the increment ``odom_j^-1 (+) odom_i`` is compared with the reference's ``ref_j^-1 (+) ref_i``:
+translation error (m) and heading error (deg), percentiles over all pairs, and how many pairs
+the correction made worse / better by more than 5 cm. Also the share of scans whose
+increment was replaced by the fit and the time per scan (``ScanOdometry.correct``, after 10
+warm-up scans).
+
+Real logs: the GMapping-corrected references of ``../shared/data/real`` (``--data``; not part
+of a clone). mit-csail is the held-out log. Generated buildings (``--worlds``, default the
+tuning seeds 0-19 and held-out 1000-1007; setup 2: schematic tour, a scan every 104 mm, the
+simulated odometry; moving people on) need no data.
+
+    python bench/bench_odometry.py                      # all, writes docs/odometry.md
+    python bench/bench_odometry.py --logs fr079 --worlds 12 --out /tmp/odo
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import math
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "bench"))
+
+from service.core.motion import MotionConfig  # noqa: E402
+from service.core.pose import compose, invert  # noqa: E402
+from service.core.scan_odometry import ScanOdometry  # noqa: E402
+
+HELD_OUT_LOGS = ("mit-csail",)
+
+
+def _pairs(flags: np.ndarray, gap: int | None) -> list[tuple[int, int]]:
+    idx = np.flatnonzero(flags)
+    if gap is not None:
+        return [(int(i) - gap, int(i)) for i in idx if i - gap >= 0 and flags[i - gap]]
+    return [(int(a), int(b)) for a, b in itertools.pairwise(idx) if 0 < b - a <= 30]
+
+
+def _errors(poses: np.ndarray, ref: np.ndarray, pairs: list[tuple[int, int]]) -> np.ndarray:
+    out = np.empty((len(pairs), 2))
+    for k, (j, i) in enumerate(pairs):
+        d = compose(invert(poses[j]), poses[i])
+        t = compose(invert(ref[j]), ref[i])
+        out[k] = math.hypot(d[0] - t[0], d[1] - t[1]), abs(math.remainder(d[2] - t[2], 2 * math.pi))
+    return out
+
+
+def run_tour(
+    scans: list[tuple[np.ndarray, np.ndarray]], odom: np.ndarray, motion: MotionConfig
+) -> tuple[np.ndarray, float, np.ndarray]:
+    """Corrected odometry poses ``(n, 3)``, the share of scans corrected, times (ms)."""
+    so = ScanOdometry(motion.scan_odometry, motion)
+    out = np.empty_like(odom)
+    corrected = 0
+    ms = []
+    for i, (r, a) in enumerate(scans):
+        t0 = time.perf_counter()
+        out[i] = so.correct(r, a, odom[i])
+        ms.append(1e3 * (time.perf_counter() - t0))
+        corrected += so.corrected
+    return out, corrected / len(scans), np.asarray(ms[10:])
+
+
+def _row(
+    name: str, split: str, gap: str, raw: np.ndarray, fix: np.ndarray, share: float, ms: np.ndarray
+) -> str:
+    def cell(e: np.ndarray) -> str:
+        t = np.percentile(e[:, 0], [50, 90, 99])
+        r = np.degrees(np.percentile(e[:, 1], [50, 90, 99]))
+        return f"{t[0]:.3f} / {t[1]:.3f} / {t[2]:.3f} | {r[0]:.2f} / {r[1]:.2f} / {r[2]:.2f}"
+
+    worse = int(np.sum(fix[:, 0] > raw[:, 0] + 0.05))
+    better = int(np.sum(fix[:, 0] < raw[:, 0] - 0.05))
+    return (
+        f"| {name} | {split} | {gap} | {len(raw)} | {cell(raw)} | {cell(fix)} | {worse} / "
+        f"{better} | {100 * share:.1f} % | {np.median(ms):.2f} / {np.percentile(ms, 99):.2f} |"
+    )
+
+
+def real_rows(data: Path, logs: list[str], motion: MotionConfig) -> list[str]:
+    from bench_real import load_log
+
+    rows = []
+    for name in logs:
+        log = load_log(data, name, None)
+        keep = [i for i, o in enumerate(log.odom) if o is not None]
+        scans = [(log.ranges[i], log.angles[i]) for i in keep]
+        odom = np.array([log.odom[i] for i in keep])
+        ref = log.reference[keep]
+        flags = log.ok[keep]
+        fixed, share, ms = run_tour(scans, odom, motion)
+        split = "held-out" if name in HELD_OUT_LOGS else "tuning"
+        gaps: list[tuple[str, int | None]] = [("1", 1), ("10", 10)]
+        if len(_pairs(flags, 1)) < 100:
+            gaps = [("ref", None)]
+        for label, gap in gaps:
+            pairs = _pairs(flags, gap)
+            rows.append(
+                _row(
+                    name,
+                    split,
+                    label,
+                    _errors(odom, ref, pairs),
+                    _errors(fixed, ref, pairs),
+                    share,
+                    ms,
+                )
+            )
+            print(rows[-1], flush=True)
+    return rows
+
+
+def world_rows(seeds: list[int], motion: MotionConfig) -> list[str]:
+    from bench_worlds import _building
+
+    from sim_publisher.scenario import building_setup
+
+    raws, fixes, shares, times = [], [], [], []
+    groups: dict[str, list[int]] = {
+        "tuning": [s for s in seeds if s < 1000],
+        "held-out": [s for s in seeds if s >= 1000],
+    }
+    rows = []
+    for split, group in groups.items():
+        if not group:
+            continue
+        raws, fixes, shares, times = [], [], [], []
+        for seed in group:
+            su = building_setup(_building(seed, 2), 2, seed=0)
+            scans = [su.scan(i) for i in range(len(su.truth))]
+            fixed, share, ms = run_tour(scans, su.odom, motion)
+            pairs = _pairs(np.ones(len(su.truth), dtype=bool), 1)
+            raws.append(_errors(su.odom, su.truth, pairs))
+            fixes.append(_errors(fixed, su.truth, pairs))
+            shares.append(share)
+            times.append(ms)
+        name = f"buildings {group[0]}-{group[-1]} ({len(group)}), setup 2, 2 people"
+        rows.append(
+            _row(
+                name,
+                split,
+                "1",
+                np.vstack(raws),
+                np.vstack(fixes),
+                float(np.mean(shares)),
+                np.concatenate(times),
+            )
+        )
+        print(rows[-1], flush=True)
+    return rows
+
+
+def _commit() -> str:
+    try:
+        return subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"],
+            cwd=ROOT,
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--data", type=Path, default=Path("/work/shared/data/real"))
+    ap.add_argument("--logs", default="intel,fr079,mit-csail", help="'' for none")
+    ap.add_argument("--worlds", default="0-19,1000-1007", help="seeds, e.g. 0-19,1000-1007")
+    ap.add_argument("--out", type=Path, default=ROOT / "docs")
+    args = ap.parse_args(argv)
+    seeds: list[int] = []
+    for part in filter(None, args.worlds.split(",")):
+        lo, _, hi = part.partition("-")
+        seeds += list(range(int(lo), int(hi or lo) + 1))
+    motion = MotionConfig()
+    t0 = time.perf_counter()
+    rows = []
+    logs = [s for s in args.logs.split(",") if s]
+    if logs:
+        rows += real_rows(args.data, logs, motion)
+    if seeds:
+        rows += world_rows(seeds, motion)
+    head = (
+        "| tour | split | gap | pairs | odometry: translation p50 / p90 / p99 m | heading p50 / "
+        "p90 / p99 deg | checked: translation p50 / p90 / p99 m | heading p50 / p90 / p99 deg "
+        "| worse / better by > 5 cm | corrected | ms p50 / p99 |\n"
+        "|---|---|---|---|---|---|---|---|---|---|---|"
+    )
+    cmd = "python bench/bench_odometry.py " + " ".join(argv if argv is not None else sys.argv[1:])
+    text = (
+        "# Odometry checked against the scans\n\n"
+        f"Generated by `{cmd.strip()}` at commit {_commit()} in "
+        f"{time.perf_counter() - t0:.0f} s, one process. Definitions: the docstring of "
+        "`bench/bench_odometry.py`; the method: `service/core/scan_odometry.py`.\n\n"
+        + head
+        + "\n"
+        + "\n".join(rows)
+        + "\n"
+    )
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "odometry.md").write_text(text)
+    print(f"wrote {args.out / 'odometry.md'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
