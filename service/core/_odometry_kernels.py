@@ -2,9 +2,9 @@
 numba; conventions of :mod:`service.core._kernels`). The numpy reference is
 :func:`service.core.scan_odometry._match_numpy`; both associate every point with the
 *nearest* previous point within the gate whose surface normal agrees with the point's (here
-through a bucket grid whose cell is the largest gate, there among the KD-tree's 16 nearest),
-so both take the same steps up to ties, rounding and crowds of more than 16 closer points
-with the wrong orientation.
+through the buckets of :func:`service.core._kernels.grid_build`, whose cell is the largest
+gate; there among the KD-tree's 16 nearest), so both take the same steps up to ties,
+rounding and crowds of more than 16 closer points with the wrong orientation.
 """
 
 from __future__ import annotations
@@ -14,40 +14,6 @@ import math
 import numpy as np
 
 from service.core._kernels import njit
-
-
-@njit(cache=True, nogil=True)
-def bucket_grid(
-    pts: np.ndarray, cell: float
-) -> tuple[np.ndarray, np.ndarray, float, float, int, int]:
-    """Points ``(n, 2)`` sorted into square buckets of side ``cell``: ``start`` ``(nx*ny+1,)``
-    offsets into ``items`` (point indices), the grid origin and size."""
-    n = pts.shape[0]
-    ox = pts[0, 0]
-    oy = pts[0, 1]
-    mx = ox
-    my = oy
-    for i in range(n):
-        ox = min(ox, pts[i, 0])
-        oy = min(oy, pts[i, 1])
-        mx = max(mx, pts[i, 0])
-        my = max(my, pts[i, 1])
-    nx = int((mx - ox) / cell) + 1
-    ny = int((my - oy) / cell) + 1
-    count = np.zeros(nx * ny + 1, dtype=np.int64)
-    key = np.empty(n, dtype=np.int64)
-    for i in range(n):
-        k = int((pts[i, 1] - oy) / cell) * nx + int((pts[i, 0] - ox) / cell)
-        key[i] = k
-        count[k + 1] += 1
-    for k in range(nx * ny):
-        count[k + 1] += count[k]
-    fill = count[:-1].copy()
-    items = np.empty(n, dtype=np.int64)
-    for i in range(n):
-        items[fill[key[i]]] = i
-        fill[key[i]] += 1
-    return count, items, ox, oy, nx, ny
 
 
 @njit(cache=True, nogil=True)
@@ -71,12 +37,12 @@ def _nearest(
     """Index of the previous point nearest to ``(x, y)`` within ``gate`` (<= ``cell``) whose
     normal lies within the normal gate of ``(mx, my)`` (either sign), -1 for none."""
     cx = math.floor((x - ox) / cell)
-    cy = math.floor((y - oy) / cell)
+    cy = math.floor((y - oy) / cell)  # cells of :func:`service.core._kernels.grid_build`
     best = -1
     bd = gate * gate
     for gy in range(max(cy - 1, 0), min(cy + 2, ny)):
         for gx in range(max(cx - 1, 0), min(cx + 2, nx)):
-            k = gy * nx + gx
+            k = gx * ny + gy
             for m in range(start[k], start[k + 1]):
                 j = items[m]
                 dx = prev[j, 0] - x

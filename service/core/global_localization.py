@@ -63,7 +63,7 @@ from service.core.motion import check_pose3
 from service.core.pose import compose, invert
 from service.core.pose_scoring import Hypothesis, _field_scores, verify
 from service.core.scan_odometry import ScanOdometry
-from service.core.types import Estimate, MapData, Status, wrap_angle
+from service.core.types import Estimate, MapData, Status, check_scan, wrap_angle
 from service.core.view_index import (
     FORMAT_VERSION,
     ViewIndex,
@@ -114,24 +114,6 @@ __all__ = [
 _SEED_TURNS = (0.0, -0.4, 0.4, -0.8, 0.8)
 _ASSOCIATE = hyp_mod.ASSOCIATE
 _Track = hyp_mod.Track
-
-
-def _checked_scan(ranges: np.ndarray, angles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``ranges`` and ``angles`` as float64 arrays, validated exactly like the tracker does (the
-    same errors for the same bad input) before any state changes."""
-    r = np.asarray(ranges, dtype=np.float64)
-    a = np.asarray(angles, dtype=np.float64)
-    if r.ndim != 1 or a.ndim != 1 or r.shape != a.shape:
-        raise LocalizationError(
-            f"ranges and angles must be 1-D of equal length, got {r.shape} and {a.shape}"
-        )
-    if r.size == 0:
-        raise LocalizationError("empty scan")
-    if not np.all(np.isfinite(a)):
-        raise LocalizationError("beam angles must be finite")
-    if np.any(np.isinf(r)) or np.any(r[~np.isnan(r)] < 0):
-        raise LocalizationError("ranges must be >= 0 or NaN (no return)")
-    return r, a
 
 
 def _position_sigma(est: Estimate) -> float:
@@ -292,7 +274,7 @@ class GlobalShapeLocalizer(DriveSearch):
         ``angles`` radians robot frame, ``odom`` optional odometry pose (own frame; only used
         to move the kept hypotheses between scans; corrected by the scans first,
         ``ShapeConfig.motion.scan_odometry``)."""
-        r, a = _checked_scan(ranges, angles)
+        r, a = check_scan(ranges, angles)
         odom = self._corrected_odom(r, a, odom)
         if not self._searching:
             self._since_fix += 1

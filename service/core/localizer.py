@@ -45,7 +45,7 @@ from service.core.motion import Motion, MotionConfig, Prediction, check_pose3
 from service.core.pose import compose
 from service.core.refine import Refined, RefineParams, refine_pose, scan_normals
 from service.core.two_step import TwoStepResult, two_step_match
-from service.core.types import Estimate, MapData, Match, Status, wrap_angle
+from service.core.types import Estimate, MapData, Match, Status, check_scan, wrap_angle
 from service.errors import LocalizationError
 
 
@@ -608,18 +608,7 @@ class ShapeLocalizer:
         Raises :class:`LocalizationError` on empty, mismatched, non-finite-angle or negative
         range input.
         """
-        r = np.asarray(ranges, dtype=np.float64)
-        a = np.asarray(angles, dtype=np.float64)
-        if r.ndim != 1 or a.ndim != 1 or r.shape != a.shape:
-            raise LocalizationError(
-                f"ranges and angles must be 1-D of equal length, got {r.shape} and {a.shape}"
-            )
-        if r.size == 0:
-            raise LocalizationError("empty scan")
-        if not np.all(np.isfinite(a)):
-            raise LocalizationError("beam angles must be finite")
-        if np.any(np.isinf(r)) or np.any(r[~np.isnan(r)] < 0):
-            raise LocalizationError("ranges must be >= 0 or NaN (no return)")
+        r, a = check_scan(ranges, angles)
         if self._pose is None:
             if odom is not None:
                 check_pose3(odom, "odom")

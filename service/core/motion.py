@@ -193,6 +193,17 @@ class MotionModel(Protocol):
         ...
 
 
+def odometry_sigmas(delta: np.ndarray, c: MotionConfig) -> tuple[float, float]:
+    """Position and heading sigmas (m, rad) of one odometry increment ``delta`` (robot
+    frame): ``floor + alpha * distance + alpha * angle`` (the ``alpha`` parameters of the
+    classic odometry model)."""
+    d = float(np.hypot(delta[0], delta[1]))
+    t = abs(float(delta[2]))
+    s_trans = c.sigma_xy_floor + c.alpha_trans_trans * d + c.alpha_trans_rot * t
+    s_rot = c.sigma_theta_floor + c.alpha_rot_rot * t + c.alpha_rot_trans * d
+    return s_trans, s_rot
+
+
 def check_pose3(p: object, what: str) -> np.ndarray:
     """``[x, y, theta]`` as float64 with theta wrapped; :class:`LocalizationError` otherwise."""
     a = np.asarray(p, dtype=np.float64)
@@ -270,10 +281,7 @@ class OdometryMotion:
         c = self.config
         if delta is None:
             delta = np.zeros(3)
-        d = float(np.hypot(delta[0], delta[1]))
-        t = abs(float(delta[2]))
-        s_trans = c.sigma_xy_floor + c.alpha_trans_trans * d + c.alpha_trans_rot * t
-        s_rot = c.sigma_theta_floor + c.alpha_rot_rot * t + c.alpha_rot_trans * d
+        s_trans, s_rot = odometry_sigmas(delta, c)
         prior = compose(base, delta)
         info = _information(float(prior[2]), s_trans, s_trans, s_rot)
         return Prediction(pose=prior, information=info, source="odometry", delta=delta)

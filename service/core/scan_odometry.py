@@ -34,7 +34,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from service.core import _kernels, _odometry_kernels
-from service.core.motion import MotionConfig, ScanOdometryConfig
+from service.core.motion import MotionConfig, ScanOdometryConfig, odometry_sigmas
 from service.core.pose import compose, invert, transform_points
 
 
@@ -108,10 +108,7 @@ def _wrap(a: float) -> float:
 
 def _prior_information(delta: np.ndarray, motion: MotionConfig) -> np.ndarray:
     """The odometry model's information of one increment (robot frame of the older scan)."""
-    d = float(np.hypot(delta[0], delta[1]))
-    t = abs(float(delta[2]))
-    s_trans = motion.sigma_xy_floor + motion.alpha_trans_trans * d + motion.alpha_trans_rot * t
-    s_rot = motion.sigma_theta_floor + motion.alpha_rot_rot * t + motion.alpha_rot_trans * d
+    s_trans, s_rot = odometry_sigmas(delta, motion)
     return np.diag([1.0 / s_trans**2, 1.0 / s_trans**2, 1.0 / s_rot**2])
 
 
@@ -139,7 +136,7 @@ def match_increment(
         return d0, 0.0
     if _kernels.HAVE_NUMBA:
         cell = max(config.gate_initial, config.gate_final)
-        start, items, ox, oy, nx, ny = _odometry_kernels.bucket_grid(prev_points, cell)
+        ox, oy, nx, ny, start, items = _kernels.grid_build(prev_points, cell)
         x, share, normal, total = _odometry_kernels.match_iterations(
             prev_points,
             prev_normals,

@@ -33,6 +33,25 @@ def wrap_angle(a: float | np.ndarray) -> float | np.ndarray:
     return float(w) if np.ndim(w) == 0 else w
 
 
+def check_scan(ranges: object, angles: object) -> tuple[np.ndarray, np.ndarray]:
+    """``ranges`` and ``angles`` as float64 arrays, or :class:`LocalizationError` for an empty,
+    mismatched, non-finite-angle or negative-range scan (every localiser's one check; NaN
+    ranges mean no return)."""
+    r = np.asarray(ranges, dtype=np.float64)
+    a = np.asarray(angles, dtype=np.float64)
+    if r.ndim != 1 or a.ndim != 1 or r.shape != a.shape:
+        raise LocalizationError(
+            f"ranges and angles must be 1-D of equal length, got {r.shape} and {a.shape}"
+        )
+    if r.size == 0:
+        raise LocalizationError("empty scan")
+    if not np.all(np.isfinite(a)):
+        raise LocalizationError("beam angles must be finite")
+    if np.any(np.isinf(r)) or np.any(r[~np.isnan(r)] < 0):
+        raise LocalizationError("ranges must be >= 0 or NaN (no return)")
+    return r, a
+
+
 @dataclass(frozen=True)
 class MapData:
     """A map as the core sees it: a kind and a tuple of polylines, each ``(k, 2)`` float64, k >= 2.
