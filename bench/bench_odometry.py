@@ -194,6 +194,9 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     rows = []
     logs = [s for s in args.logs.split(",") if s]
+    if logs and not args.data.is_dir():
+        print(f"{args.data} not found (not part of a clone): the real logs are left out")
+        logs = []
     if logs:
         rows += real_rows(args.data, logs, motion)
     if seeds:
