@@ -34,15 +34,10 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from service.core import _kernels, _odometry_kernels
+from service.core.baselines import scan_points
 from service.core.motion import MotionConfig, ScanOdometryConfig, odometry_sigmas
 from service.core.pose import compose, invert, transform_points
-
-
-def _points(ranges: np.ndarray, angles: np.ndarray, max_range: float) -> np.ndarray:
-    r = np.asarray(ranges, dtype=np.float64).reshape(-1)
-    a = np.asarray(angles, dtype=np.float64).reshape(-1)
-    ok = np.isfinite(r) & np.isfinite(a) & (r > 0.0) & (r <= max_range)
-    return np.column_stack([r[ok] * np.cos(a[ok]), r[ok] * np.sin(a[ok])])
+from service.core.types import wrap_angle
 
 
 def surface_normals(
@@ -96,14 +91,10 @@ def _surface_points(
 ) -> tuple[np.ndarray, np.ndarray]:
     """The returns within ``max_range`` that have a surface normal
     (:func:`surface_normals`), robot frame, and their normals."""
-    pts = _points(ranges, angles, config.max_range)
+    pts = scan_points(ranges, angles, config.max_range)
     nrm = surface_normals(pts, config.normal_window, config.normal_radius, config.max_flatness)
     ok = np.all(np.isfinite(nrm), axis=1)
     return np.ascontiguousarray(pts[ok]), np.ascontiguousarray(nrm[ok])
-
-
-def _wrap(a: float) -> float:
-    return (a + math.pi) % (2.0 * math.pi) - math.pi
 
 
 def _prior_information(delta: np.ndarray, motion: MotionConfig) -> np.ndarray:
@@ -149,7 +140,7 @@ def match_increment(
             cell,
             np.ascontiguousarray(points, dtype=np.float64),
             np.ascontiguousarray(normals, dtype=np.float64),
-            np.asarray(delta, dtype=np.float64).copy(),
+            d0.copy(),
             np.ascontiguousarray(information, dtype=np.float64),
             math.cos(config.normal_gate),
             int(config.iterations),
@@ -251,7 +242,7 @@ def _match_numpy(
         normal = (jac.T * w) @ jac
         H = scale * normal + information
         e = x - x0
-        e[2] = _wrap(e[2])
+        e[2] = wrap_angle(float(e[2]))
         g = scale * (jac.T * w) @ r + information @ e
         try:
             step = np.linalg.solve(H, -g)
