@@ -206,6 +206,15 @@ class DriveSearch:
                 # the evidence rule: the best explanation of the drive's keyframes by a clear
                 # margin over every alternative; it stands in for the single-scan bars
                 best = target = lead
+                if lead.twin_ok is None and lead.twin_held:
+                    # its check found a twin, which joined the hypotheses and has now been
+                    # judged on the same keyframes and beaten by the margin (or let go): the
+                    # drive has answered what the check asked. Checking again compares the
+                    # two on this scan alone, where the twin may fit better, and found the
+                    # same twin again and again (tuning log fr079, start 1174: the true place
+                    # won the drive by 0.19 from 7.6 m on and was never fixed)
+                    lead.twin_ok = True
+                    extras["twin_judged"] = 1.0
                 confirmed, informative, amb = True, True, 0.0
                 fix_cost = max(fix_cost, g.drive_max_cost)
                 extras["drive_rule"] = 1.0
@@ -293,6 +302,7 @@ class DriveSearch:
             return
         extras["twin_rejected"] = 1.0
         track.twin_ok = None
+        track.twin_held = True
         move = hyp_mod.odometry_move(job.odom, self._last_odom)
         self._tracks = hyp_mod.merge(self._tracks, [twin], move, 1)
 

@@ -48,8 +48,10 @@ class Track:
     stands for a scan on which it was not among the verified hypotheses). ``hyp`` is its
     latest verification with ``cost`` replaced by the decision's (windowed) cost; ``wins``
     consecutive scans it was the best; ``age`` scans it was re-scored on (budgeted search);
-    ``twin_ok`` the outcome of its self-similarity check (``None``: not checked); ``found``
-    how many searches found it (the one it came from, and later ones that found it again)."""
+    ``twin_ok`` the outcome of its self-similarity check (``None``: not checked);
+    ``twin_held`` whether a check of it found a twin that then joined the hypotheses (so the
+    drive's evidence judges the two on the same keyframes); ``found`` how many searches found
+    it (the one it came from, and later ones that found it again)."""
 
     pose: np.ndarray
     costs: list[float]
@@ -57,6 +59,7 @@ class Track:
     wins: int = 0
     age: int = 0
     twin_ok: bool | None = None
+    twin_held: bool = False
     found: int = 1
     ev: dict[int, float] = field(default_factory=dict)
     ev_pose: dict[int, np.ndarray] = field(default_factory=dict)

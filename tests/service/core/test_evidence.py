@@ -143,3 +143,29 @@ def test_prune_keeps_a_judged_track_before_unjudged_newcomers() -> None:
     # one per pose: a newcomer on the old track's pose is not kept beside it
     twin = _track(np.array([0.05, 0.0, 0.0]), cost=0.1)
     assert twin not in ev.prune([old, twin], frames, keep=8, g=g)
+
+
+def test_prune_keeps_the_copy_of_a_place_that_explains_its_keyframes_better() -> None:
+    """Two tracks at one place: an old one, slid a little, whose back-scored keyframes are
+    poor, and a fresh one a search found at the same place, scored better on the keyframes
+    both have. The fresh one stays (the slid one would make the place lose the drive to an
+    alias); a fresh copy only slightly better, or judged on too few keyframes, does not
+    replace the judged track."""
+    g = GlobalConfig(evidence_drop=0.3, evidence_junk=0.95, evidence_drop_frames=3)
+    frames = [_frame(k, 0.3 * k) for k in range(8)]
+    slid = _track(np.array([0.0, 0.0, 0.0]), cost=0.6)
+    slid.ev = {k: 0.7 for k in range(8)}
+    alias = _track(np.array([8.0, 0.0, np.pi]), cost=0.45)
+    alias.ev = {k: 0.5 for k in range(8)}
+    fresh = _track(np.array([0.2, 0.0, 0.05]), cost=0.3)
+    fresh.ev = {k: 0.3 for k in range(5, 8)}
+    kept = ev.prune([slid, alias, fresh], frames, keep=8, g=g)
+    assert fresh in kept and slid not in kept and alias in kept
+    close = _track(np.array([0.2, 0.0, 0.05]), cost=0.3)
+    close.ev = {k: 0.6 for k in range(5, 8)}  # better by 0.1 < evidence_drop / 2
+    kept = ev.prune([slid, alias, close], frames, keep=8, g=g)
+    assert slid in kept and close not in kept
+    early = _track(np.array([0.2, 0.0, 0.05]), cost=0.3)
+    early.ev = {7: 0.2, 6: 0.2}  # two keyframes: not judged yet
+    kept = ev.prune([slid, alias, early], frames, keep=8, g=g)
+    assert slid in kept and early not in kept
