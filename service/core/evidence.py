@@ -267,11 +267,9 @@ def evidence_margin(
     for t in tracks:
         if t is best or not _distinct(t.pose, best.pose, g):
             continue
-        common = [f.key for f in frames if f.key in t.ev and f.key in best.ev]
-        if len(common) < min(g.evidence_drop_frames, len(frames)):
+        mine, theirs, n = _common_means(best, t, frames)
+        if n < min(g.evidence_drop_frames, len(frames)):
             return float("-inf")
-        mine = float(np.mean([best.ev[k] for k in common]))
-        theirs = float(np.mean([t.ev[k] for k in common]))
         out = min(out, theirs - mine)
     return out
 
@@ -282,12 +280,21 @@ def _better_twin(young: Track, old: Track, frames: list[Keyframe], g: GlobalConf
     ``evidence_drop`` / 2."""
     if not _near(young.pose, old.pose):
         return False
-    common = [f.key for f in frames if f.key in young.ev and f.key in old.ev]
-    if len(common) < g.evidence_drop_frames:
-        return False
-    mine = float(np.mean([young.ev[k] for k in common]))
-    theirs = float(np.mean([old.ev[k] for k in common]))
-    return mine < theirs - 0.5 * g.evidence_drop
+    mine, theirs, n = _common_means(young, old, frames)
+    return n >= g.evidence_drop_frames and mine < theirs - 0.5 * g.evidence_drop
+
+
+def _common_means(a: Track, b: Track, frames: list[Keyframe]) -> tuple[float, float, int]:
+    """The mean costs of ``a`` and of ``b`` over the keyframes of ``frames`` both were
+    scored on, and how many those are (``nan`` means for none)."""
+    common = [f.key for f in frames if f.key in a.ev and f.key in b.ev]
+    if not common:
+        return float("nan"), float("nan"), 0
+    return (
+        float(np.mean([a.ev[k] for k in common])),
+        float(np.mean([b.ev[k] for k in common])),
+        len(common),
+    )
 
 
 def leader(tracks: list[Track], frames: list[Keyframe], g: GlobalConfig) -> Track | None:
