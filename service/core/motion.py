@@ -233,11 +233,13 @@ class OdometryMotion:
         self._last: np.ndarray | None = None
         self._anchor: np.ndarray | None = None  # pose estimate where ``_last`` was taken
         self._fresh = True  # the previous predict used a fresh reading
+        self._at_reset = False  # ``_last`` is the reset's reading, no scan has used it yet
 
     def reset(self, odom: np.ndarray | None = None) -> None:
         self._last = None if odom is None else check_pose3(odom, "odom")
         self._anchor = None
         self._fresh = True
+        self._at_reset = odom is not None
 
     def stale(self, odom: np.ndarray) -> bool:
         """``True`` when ``odom`` repeats the previous reading bit for bit (see module doc)."""
@@ -246,9 +248,14 @@ class OdometryMotion:
 
     def hold(self, pose: np.ndarray) -> Prediction:
         """Prior for a scan with a stale reading: the last pose, weak (velocity) sigmas; the
-        anchor stays where the reading was taken."""
+        anchor stays where the reading was taken. The first scan that repeats the reading
+        given to :meth:`reset` is the scan taken at the reset pose: its fit, not the reset
+        pose, is where that reading was taken (a global fix confirmed on a scan: the next
+        increment applies to the confirmed fit; anchoring it at the hypothesis instead left
+        fr079 start 1714's track 0.3 m off inside a double wall)."""
         self._settle(pose)
-        self._fresh = False
+        self._fresh = self._at_reset
+        self._at_reset = False
         c = self.config
         info = _information(
             float(pose[2]), c.velocity_sigma_xy, c.velocity_sigma_xy, c.velocity_sigma_theta
@@ -278,6 +285,7 @@ class OdometryMotion:
         base = self._anchor if self._anchor is not None else pose
         delta = self.increment(odom)
         self._fresh = True
+        self._at_reset = False
         c = self.config
         if delta is None:
             delta = np.zeros(3)

@@ -75,3 +75,27 @@ def test_reset_with_odometry_bridges_a_restart() -> None:
     m.reset(np.array([4.0, 4.0, 0.0]))
     pred = m.predict(pose, np.array([4.0, 4.0, 0.4]))  # turned 0.4 rad since the saved reading
     np.testing.assert_allclose(pred.pose, compose(pose, np.array([0.0, 0.0, 0.4])), atol=1e-12)
+
+
+def test_the_scan_on_the_reset_reading_anchors_the_next_increment_at_its_fit() -> None:
+    """A global fix is confirmed by resetting the tracker to the hypothesis with this scan's
+    odometry and fitting this scan: the next increment applies to the fit, not to the
+    hypothesis (fr079 start 1714: anchored at the hypothesis, the track stayed 0.3 m off)."""
+    m = Motion()
+    reading = np.array([5.0, 5.0, 0.0])
+    hypothesis = np.array([1.0, 1.0, 0.0])
+    m.reset(reading)
+    held = m.predict(hypothesis, reading)  # the confirming scan: same reading as the reset
+    assert held.source == "held"
+    np.testing.assert_allclose(held.pose, hypothesis)
+    fit = np.array([1.0, 1.3, 0.0])  # the scan moved the pose 0.3 m
+    nxt = m.predict(fit, np.array([5.1, 5.0, 0.0]))
+    assert nxt.source == "odometry"
+    np.testing.assert_allclose(nxt.pose, [1.1, 1.3, 0.0], atol=1e-12)
+    # a reading that stays frozen after that scan is stale as before: the jump is applied
+    # from the fit of the scan where it was taken
+    m.reset(reading)
+    m.predict(hypothesis, reading)
+    m.predict(fit, reading)  # frozen on the next scan too; the robot drove on
+    caught = m.predict(fit + np.array([0.1, 0.0, 0.0]), np.array([5.2, 5.0, 0.0]))
+    np.testing.assert_allclose(caught.pose, [1.2, 1.3, 0.0], atol=1e-12)
