@@ -23,7 +23,7 @@ from service.core.global_search import (
     self_similar_steps,
 )
 from service.core.hypotheses import Track
-from service.core.pose import compose
+from service.core.pose import compose, invert
 from service.core.pose_scoring import Hypothesis
 from service.core.types import Estimate
 
@@ -44,6 +44,10 @@ class Probation:
     ambiguity: float
     extras: dict[str, float] = field(default_factory=dict)
     rejected: int = 0
+    #: the confirmed pose and the odometry reading it was confirmed on (the reference the
+    #: tracked pose is checked against, ``GlobalConfig.probation_slide``)
+    start: np.ndarray | None = None
+    start_odom: np.ndarray | None = None
 
 
 class DriveSearch:
@@ -337,7 +341,14 @@ class DriveSearch:
         """Track ``best`` (the tracker is already reset to it and accepted this scan) while
         the search's hypotheses are kept and moved by the odometry; publish the search's
         status with the tracked pose as the best guess."""
-        self._probation = Probation(best, self.gconfig.probation_travel, amb, dict(extras))
+        self._probation = Probation(
+            best,
+            self.gconfig.probation_travel,
+            amb,
+            dict(extras),
+            start=est.pose.copy(),
+            start_odom=self._odom_copy(),
+        )
         # the pending jobs belong to earlier scans; a failed probation starts a new search
         self._job = None
         self._twin_job = None
@@ -356,6 +367,33 @@ class DriveSearch:
         order = [p.track, *(t for t in self._tracks if t is not p.track)]
         est.candidates = hyp_mod.candidates(order)
         return est
+
+    def _slide_check(self, r: np.ndarray, a: np.ndarray, est: Estimate) -> None:
+        """``GlobalConfig.probation_slide``: put the tracker back on the dead-reckoned pose
+        (the confirmed pose moved by the odometry since) when the tracked one has moved away
+        from it and lets clearly more of this scan's beams through the map's walls
+        (:meth:`service.core.localizer.ShapeLocalizer.violations`). Slow slides like that,
+        a few cm per scan, each look fine against the scan's own odometry prior; only the
+        probation has a reference that is not itself the tracker's output."""
+        p = self._probation
+        g = self.gconfig
+        if (
+            p is None
+            or g.probation_slide <= 0.0
+            or p.start is None
+            or p.start_odom is None
+            or self._last_odom is None
+        ):
+            return
+        dead = compose(p.start, compose(invert(p.start_odom), self._last_odom))
+        if float(np.hypot(*(est.pose[:2] - dead[:2]))) <= g.probation_slide:
+            return
+        v_track, v_dead = self.tracker.violations(r, a, [est.pose, dead])
+        est.extras["slide_violation"] = v_track - v_dead
+        if v_track > v_dead + g.probation_slide_violation:
+            est.extras["slide_reset"] = 1.0
+            est.pose = dead
+            self.tracker.reset(dead, self._last_odom)
 
     def _probation_step(self, est: Estimate, delta: np.ndarray | None, collapsed: bool) -> Estimate:
         """One tracked scan of a probation. The odometry ``delta`` moves the kept hypotheses

@@ -355,6 +355,28 @@ class GlobalConfig(BaseModel):
         "scans better than the true one for a metre or more (fr079 tuning start 3540: a place "
         "2.6 m away, fixed at 1.25 m of travel, lost again 0.8 m later).",
     )
+    probation_slide: float = Field(
+        0.15,
+        ge=0,
+        description="During a probation the odometry is the reference: the confirmed pose "
+        "moved by the odometry since (dead-reckoned; over the probation's metre the checked "
+        "odometry is good to a few cm). A tracked pose farther than this (m) from it that "
+        "lets probation_slide_violation more of the checked beams through map walls than it "
+        "does has slid along furniture or a double wall: the tracker is put back on the "
+        "dead-reckoned pose, and the probation goes on from there (0 = off; "
+        ":meth:`service.core.drive_search.DriveSearch._slide_check`). Tuning log fr079, floor "
+        "plan, start 4361: the tracker slid 0.34 m from the dead-reckoned pose into 24 % of "
+        "beams through walls (dead-reckoned 8 %) and was published 0.52 m off; on the tuning "
+        "trials a correct probation's tracked pose never let more than 3.3 % more beams "
+        "through walls than the dead-reckoned one on the real logs, up to 20 % on generated "
+        "buildings, where putting it back changed no fix.",
+    )
+    probation_slide_violation: float = Field(
+        0.1,
+        ge=0,
+        le=1,
+        description="See probation_slide: the excess share of beams through walls.",
+    )
     drive_travel: float = Field(
         1.0, ge=0, description="Evidence rule: the window spans at least this travel (m)."
     )

@@ -305,6 +305,7 @@ class GlobalShapeLocalizer(DriveSearch):
             collapsed = self._unfit >= need
             if self._probation is not None:
                 # the probation fails where tracking would have collapsed
+                self._slide_check(r, a, est)
                 return self._probation_step(est, delta, collapsed)
             if est.status == "lost" or collapsed:
                 speed = self.tracker.known_speed()

@@ -564,7 +564,7 @@ class ShapeLocalizer:
             m += 3.0 * float(max(pred.sigma[0], pred.sigma[1]))
         return m
 
-    def _violations(self, r: np.ndarray, a: np.ndarray, poses: list[np.ndarray]) -> list[float]:
+    def violations(self, r: np.ndarray, a: np.ndarray, poses: list[np.ndarray]) -> list[float]:
         """Per pose, the share of ``violation_beams`` evenly chosen valid beams whose return
         lies more than ``violation_margin`` beyond the range the map predicts from that pose
         (through a wall); the same beams for every pose."""
@@ -578,10 +578,6 @@ class ShapeLocalizer:
         for expect in self._views.caster.cast_many(np.asarray(poses), ang, cfg.view_max_range):
             out.append(float(np.mean(np.isfinite(expect) & (rs > expect + cfg.violation_margin))))
         return out
-
-    def _violation(self, r: np.ndarray, a: np.ndarray, pose: np.ndarray) -> float:
-        """:meth:`_violations` of one pose."""
-        return self._violations(r, a, [pose])[0]
 
     def _always_doubtful(self, pred: Prediction) -> bool:
         """The shape matching runs whatever the prior's fit: set so, or no odometry."""
@@ -654,7 +650,7 @@ class ShapeLocalizer:
         # the "shape" arbiter stands in for a motion prior the velocity model cannot give;
         # with odometry the likelihood weighed against the prior decides on every map
         # (one candidate: nothing to weigh, the check is skipped)
-        viol = self._violations(r, a, [f.pose for _n, f in cands]) if len(cands) > 1 else [0.0]
+        viol = self.violations(r, a, [f.pose for _n, f in cands]) if len(cands) > 1 else [0.0]
         if (
             cfg.arbiter == "shape"
             and shape_ok

@@ -250,7 +250,7 @@ def build_maps(n: int) -> None:
 #: fr079 scans 1174-1329, a drive out of a small room at the west end along the corridor
 #: (a start of the global search whose true place an alias 31 m away fits better on single
 #: scans).
-WINDOWS = (("fr079", 846, 20), ("fr079", 1174, 156))
+WINDOWS = (("fr079", 846, 20), ("fr079", 1174, 156), ("fr079", 4361, 150))
 
 
 def cut_window(src: Path, name: str, first: int, count: int, dst: Path) -> int:

@@ -172,11 +172,11 @@ def test_beams_through_walls_measure_a_wrong_pose() -> None:
     pose = np.array([3.0, 2.0, 0.1])
     loc = ShapeLocalizer(ROOM, pose)
     r = _scan(pose, rng)
-    assert loc._violation(r, ANGLES, pose) == 0.0
+    assert loc.violations(r, ANGLES, [pose])[0] == 0.0
     shifted = pose + np.array([0.0, -0.8, 0.0])
-    assert loc._violation(r, ANGLES, shifted) > 0.2
+    assert loc.violations(r, ANGLES, [shifted])[0] > 0.2
     off = ShapeLocalizer(ROOM, pose, ShapeConfig(violation_beams=0))
-    assert off._violation(r, ANGLES, shifted) == 0.0
+    assert off.violations(r, ANGLES, [shifted])[0] == 0.0
 
 
 def test_step_bound_follows_the_robots_own_speed_without_odometry() -> None:
