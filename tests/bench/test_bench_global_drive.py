@@ -3,6 +3,7 @@ trial's end and the found / within-limit / confident-wrong classification."""
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 import math
 import sys
@@ -109,3 +110,44 @@ def test_hypotheses_read_defensively(bg) -> None:
     assert bg.hypotheses_of(SimpleNamespace(hypotheses=None, extras={"hypotheses": 4.0})) == 4.0
     assert bg.hypotheses_of(SimpleNamespace(extras={})) is None
     assert bg.hypotheses_of(SimpleNamespace(hypotheses=2)) == 2.0
+
+
+def _room_scan(half: float, n: int = 360) -> tuple[np.ndarray, np.ndarray]:
+    """Ranges from the centre of an empty square room of half-width ``half`` (exact)."""
+    a = np.linspace(-np.pi, np.pi, n, endpoint=False)
+    return half / np.maximum(np.abs(np.cos(a)), np.abs(np.sin(a))), a
+
+
+def test_plan_share_counts_the_returns_on_mapped_walls(bg) -> None:
+    ps = importlib.import_module("plan_share")
+    room = np.array(
+        [[-2, -2, 2, -2], [2, -2, 2, 2], [2, 2, -2, 2], [-2, 2, -2, -2]], dtype=np.float64
+    )
+    share = ps.PlanShare(room)
+    r, a = _room_scan(2.0)
+    assert share.scan_share(np.zeros(3), r, a) == 1.0
+    # the same scan placed 1 m off: only the returns that still land near a wall count
+    off = share.scan_share(np.array([1.0, 0.0, 0.0]), r, a)
+    assert 0.0 < off < 0.6
+    # furniture: half the beams stop at 0.8 m, on nothing the plan draws
+    r2 = r.copy()
+    r2[::2] = 0.8
+    assert share.scan_share(np.zeros(3), r2, a) == 0.5
+    # no reference, or no returns in range: not scored
+    assert np.isnan(share.scan_share(np.array([np.nan, 0.0, 0.0]), r, a))
+    assert np.isnan(share.scan_share(np.zeros(3), np.full_like(r, np.nan), a))
+
+
+def test_share_table_splits_found_trials_by_plan_share(bg) -> None:
+    m = bg.DriveMap("real", "fr079", "schematic")
+    names = [f.name for f in dataclasses.fields(bg.DriveTrial) if f.name != "search_ms"]
+    base = dict.fromkeys(names, 0)
+    base.update(group="real", world="fr079", map="schematic", setup="", room="")
+
+    def trial(share: float, within: bool) -> object:
+        return bg.DriveTrial(**{**base, "plan_share": share, "within_limit": within})
+
+    ts = [trial(0.3, False), trial(0.4, True), trial(0.7, True), trial(0.9, True)]
+    ts.append(trial(float("nan"), True))  # no reference: in neither column
+    row = bg.share_table(ts, [m]).splitlines()[2]
+    assert row == "| real fr079 schematic | 1/2 | 2/2 |"
