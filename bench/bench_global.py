@@ -605,15 +605,7 @@ def share_table(trials: Sequence[DriveTrial], maps: Sequence[DriveMap]) -> str:
         f"| map | plan share < {SHARE_SPLIT} | plan share >= {SHARE_SPLIT} |",
         "|---|---|---|",
     ]
-    seen: set[tuple[str, str, str]] = set()
-    for m in maps:
-        key = (m.group, m.world if m.group != "worlds" else "*", m.kind)
-        if key in seen:
-            continue
-        seen.add(key)
-        ts = [t for t in trials if (t.group, t.world if t.group != "worlds" else "*", t.map) == key]
-        if not ts:
-            continue
+    for m, ts in table_groups(trials, maps):
         cells = []
         for low in (True, False):
             sel = [
@@ -849,10 +841,11 @@ def drive_row(group: str, name: str, r: dict[str, Any]) -> str:
     )
 
 
-def drive_table(trials: Sequence[DriveTrial], maps: Sequence[DriveMap]) -> str:
-    """The markdown table: one row per office setup, per worlds setup (all worlds pooled) and
-    per real log and map, in ``maps`` order."""
-    rows = []
+def table_groups(
+    trials: Sequence[DriveTrial], maps: Sequence[DriveMap]
+) -> Iterator[tuple[DriveMap, list[DriveTrial]]]:
+    """The trials of each table row, in ``maps`` order: one row per office setup, per worlds
+    setup (all worlds pooled) and per real log and map; rows without trials are left out."""
     seen: set[tuple[str, str, str]] = set()
     for m in maps:
         key = (m.group, m.world if m.group != "worlds" else "*", m.kind)
@@ -860,8 +853,15 @@ def drive_table(trials: Sequence[DriveTrial], maps: Sequence[DriveMap]) -> str:
             continue
         seen.add(key)
         ts = [t for t in trials if (t.group, t.world if t.group != "worlds" else "*", t.map) == key]
-        if not ts:
-            continue
+        if ts:
+            yield m, ts
+
+
+def drive_table(trials: Sequence[DriveTrial], maps: Sequence[DriveMap]) -> str:
+    """The markdown table: one row per office setup, per worlds setup (all worlds pooled) and
+    per real log and map, in ``maps`` order."""
+    rows = []
+    for m, ts in table_groups(trials, maps):
         if m.group == "worlds":
             seeds = sorted({int(t.world) for t in ts})
             split = "held-out" if min(seeds) >= HELD_OUT_FIRST_SEED else "incl. TUNING seeds"
