@@ -15,6 +15,9 @@ way AMCL's motion models seed its particles. Every localisation method (``shape`
   with the velocity model's weak sigmas, source ``"held"``: the scan decides), and the next
   fresh reading's increment is applied to the pose estimated at the scan where the previous
   reading was taken, so motion that the held scans already tracked is not counted twice.
+  One exception: the first scan that repeats the reading given to ``reset`` (a restart or a
+  confirmed global fix, both measured from that reading) was taken where that reading was,
+  so its fit, not the reset pose, anchors the next increment.
 * :class:`VelocityMotion` -- no odometry (the seed's experiment, ``--no-odom``): the robot is
   assumed to keep its recent translation per scan (smoothed), heading unchanged; the prior is
   weak, so the scan decides.
