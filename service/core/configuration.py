@@ -31,7 +31,7 @@ from service.core.mapmodel import MapModel
 from service.core.polylines import Polyline, group_polylines
 from service.core.pose import transform_points
 from service.core.raycast import RayCaster
-from service.core.types import MapData, wrap_angle
+from service.core.types import MapData, scan_arrays, wrap_angle
 from service.errors import LocalizationError
 
 
@@ -281,14 +281,7 @@ def scan_configuration(
     :class:`LocalizationError` on mismatched or malformed arrays.
     """
     params = params or ExtractionParams()
-    r = np.asarray(ranges, dtype=np.float64)
-    a = np.asarray(angles, dtype=np.float64)
-    if r.ndim != 1 or a.ndim != 1 or r.shape != a.shape:
-        raise LocalizationError(
-            f"ranges and angles must be 1-D of equal length, got {r.shape} and {a.shape}"
-        )
-    if r.size == 0:
-        raise LocalizationError("empty scan")
+    r, a = scan_arrays(ranges, angles)
     span = float(np.max(a) - np.min(a)) if a.size > 1 else 0.0
     raw = _features_from_ranges(r, a, params, wrap=False)
     feats = [

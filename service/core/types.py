@@ -33,10 +33,10 @@ def wrap_angle(a: float | np.ndarray) -> float | np.ndarray:
     return float(w) if np.ndim(w) == 0 else w
 
 
-def check_scan(ranges: object, angles: object) -> tuple[np.ndarray, np.ndarray]:
-    """``ranges`` and ``angles`` as float64 arrays, or :class:`LocalizationError` for an empty,
-    mismatched, non-finite-angle or negative-range scan (every localiser's one check; NaN
-    ranges mean no return)."""
+def scan_arrays(ranges: object, angles: object) -> tuple[np.ndarray, np.ndarray]:
+    """``ranges`` and ``angles`` as float64 arrays of one non-empty 1-D shape, or
+    :class:`LocalizationError` (the shape part of :func:`check_scan`; the scan's
+    configuration needs no more)."""
     r = np.asarray(ranges, dtype=np.float64)
     a = np.asarray(angles, dtype=np.float64)
     if r.ndim != 1 or a.ndim != 1 or r.shape != a.shape:
@@ -45,6 +45,14 @@ def check_scan(ranges: object, angles: object) -> tuple[np.ndarray, np.ndarray]:
         )
     if r.size == 0:
         raise LocalizationError("empty scan")
+    return r, a
+
+
+def check_scan(ranges: object, angles: object) -> tuple[np.ndarray, np.ndarray]:
+    """``ranges`` and ``angles`` as float64 arrays, or :class:`LocalizationError` for an empty,
+    mismatched, non-finite-angle or negative-range scan (every localiser's one check; NaN
+    ranges mean no return)."""
+    r, a = scan_arrays(ranges, angles)
     if not np.all(np.isfinite(a)):
         raise LocalizationError("beam angles must be finite")
     if np.any(np.isinf(r)) or np.any(r[~np.isnan(r)] < 0):
