@@ -594,7 +594,7 @@ _PLANS: dict[DriveMap, PlanShare] = {}
 def plan_share_of(m: DriveMap, src: DriveSource) -> PlanShare:
     """The plan-share test of ``m``'s map (kept in this process)."""
     if m not in _PLANS:
-        _PLANS[m] = PlanShare(np.asarray(src.map_data.segments(), dtype=np.float64))
+        _PLANS[m] = PlanShare(src.map_data)
     return _PLANS[m]
 
 

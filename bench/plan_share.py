@@ -17,26 +17,17 @@ y 0-6 m) went unfixed within 15 m; 31 of the 33 others were fixed within 15 m.
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial import cKDTree
 
-#: wall sample spacing (m): well below ``tolerance``, so a return's distance to the nearest
-#: sample is its distance to the wall within 2.5 cm
-SPACING = 0.05
+from service.core.mapmodel import MapModel
+from service.core.types import MapData
 
 
 class PlanShare:
-    """The plan-share test of one map's segments ``(n, 4)`` ``[x0, y0, x1, y1]`` (metres)."""
+    """The plan-share test of one map: the map's own nearest-wall query
+    (:meth:`service.core.mapmodel.MapModel.nearest`, exact point-to-segment distances)."""
 
-    def __init__(
-        self, segments: np.ndarray, tolerance: float = 0.3, max_range: float = 15.0
-    ) -> None:
-        seg = np.asarray(segments, dtype=np.float64).reshape(-1, 4)
-        pts = []
-        for x0, y0, x1, y1 in seg:
-            n = max(2, int(np.hypot(x1 - x0, y1 - y0) / SPACING) + 1)
-            t = np.linspace(0.0, 1.0, n)
-            pts.append(np.column_stack([x0 + t * (x1 - x0), y0 + t * (y1 - y0)]))
-        self._tree = cKDTree(np.vstack(pts)) if pts else None
+    def __init__(self, map_data: MapData, tolerance: float = 0.3, max_range: float = 15.0) -> None:
+        self._model = MapModel(map_data, reach=max(1.0, tolerance))
         self.tolerance = tolerance
         self.max_range = max_range
 
@@ -47,9 +38,9 @@ class PlanShare:
         r = np.asarray(ranges, dtype=np.float64)
         a = np.asarray(angles, dtype=np.float64)
         ok = np.isfinite(r) & (r > 0.0) & (r <= self.max_range)
-        if self._tree is None or not np.all(np.isfinite(p)) or not ok.any():
+        if not np.all(np.isfinite(p)) or not ok.any():
             return float("nan")
         th = p[2] + a[ok]
         xy = np.column_stack([p[0] + r[ok] * np.cos(th), p[1] + r[ok] * np.sin(th)])
-        d, _ = self._tree.query(xy, distance_upper_bound=2.0 * self.tolerance)
+        d = self._model.nearest(xy, self.tolerance).distance
         return float(np.mean(d <= self.tolerance))

@@ -13,6 +13,8 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from service.core.types import MapData
+
 BENCH = Path(__file__).resolve().parents[2] / "bench"
 
 
@@ -120,9 +122,7 @@ def _room_scan(half: float, n: int = 360) -> tuple[np.ndarray, np.ndarray]:
 
 def test_plan_share_counts_the_returns_on_mapped_walls(bg) -> None:
     ps = importlib.import_module("plan_share")
-    room = np.array(
-        [[-2, -2, 2, -2], [2, -2, 2, 2], [2, 2, -2, 2], [-2, 2, -2, -2]], dtype=np.float64
-    )
+    room = MapData.from_lists("room", "schematic", [[[-2, -2], [2, -2], [2, 2], [-2, 2], [-2, -2]]])
     share = ps.PlanShare(room)
     r, a = _room_scan(2.0)
     assert share.scan_share(np.zeros(3), r, a) == 1.0
