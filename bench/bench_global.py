@@ -58,7 +58,12 @@ Definitions:
   only scans with a reference. A tour without such a scan is skipped, and the output says so.
   ``--stride1 K`` feeds only every K-th scan on setup-1 tours (default 1: the 11 mm spacing
   of the paper; each fed scan carries its own odometry pose, so the increments stay
-  consistent); the table states the stride.
+  consistent); the table states the stride. ``--real-stride K`` does the same on the real logs,
+  each block of K scans feeding its first referenced scan (:func:`fed_scans`). It asks a tuning
+  log what a faster robot would see: a search's work is spread over scans, so it costs travel
+  in proportion to the distance between scans. Median step while moving: intel 0.06 m (every
+  0.09 s, 0.65 m/s), fr079 0.10 m (0.21 s, 0.45 m/s), mit-csail 0.21 m (0.21 s, 1.0 m/s);
+  fr079 with K = 2 steps as far as mit-csail, intel with K = 4.
 - scored scan: in simulation every scan; on a real log a scan with a flag-1 (GMapping-
   corrected) reference, as in ``bench_real.py`` (a scan without one is not scored). intel has
   one every ~17 scans (~0.8 m), mit-csail every ~4 scans (~1 m), fr079 nearly every scan, so
@@ -355,6 +360,7 @@ class DriveTask:
     cache: str
     stride1: int
     budget: float | None = 50.0
+    real_stride: int = 1
 
 
 @dataclass
@@ -452,6 +458,20 @@ def trial_end(travel: np.ndarray, start: int, need: float) -> int:
     return min(j + 1, len(travel))
 
 
+def fed_scans(start: int, end: int, stride: int, scored: np.ndarray) -> list[int]:
+    """The scans a trial feeds from ``start`` to ``end`` (exclusive), one per ``stride`` scans:
+    in each block ``[start + k * stride, start + (k + 1) * stride)`` the first scored scan, or
+    the block's first scan where none is (a real log's references can fall on every 17th scan
+    only, intel, and a fixed stride could skip all of them), and always ``end - 1`` last."""
+    idx = []
+    for b in range(start, end, stride):
+        ok = np.flatnonzero(scored[b : min(b + stride, end)])
+        idx.append(b + int(ok[0]) if ok.size else b)
+    if idx[-1] != end - 1:
+        idx.append(end - 1)  # the scan beyond the limit + margin is always fed
+    return idx
+
+
 def spread(total: int, parts: int) -> list[int]:
     """``total`` split over ``parts``: ``total // parts`` each, the first ``total % parts`` one
     more."""
@@ -524,12 +544,13 @@ def hypotheses_of(est: Any) -> float | None:
         return None
 
 
-_SOURCES: dict[tuple[DriveMap, str, int], DriveSource] = {}
+_SOURCES: dict[tuple[DriveMap, str, int, int], DriveSource] = {}
 
 
-def drive_source(m: DriveMap, data: Path, stride1: int = 1) -> DriveSource:
-    """The tour of ``m`` (kept in this process; the last 4)."""
-    key = (m, str(data), stride1)
+def drive_source(m: DriveMap, data: Path, stride1: int = 1, real_stride: int = 1) -> DriveSource:
+    """The tour of ``m`` (kept in this process; the last 4); ``stride1`` / ``real_stride``:
+    feed every k-th scan of a setup-1 tour / a real log."""
+    key = (m, str(data), stride1, real_stride)
     if key in _SOURCES:
         return _SOURCES[key]
     if m.group == "real":
@@ -550,7 +571,7 @@ def drive_source(m: DriveMap, data: Path, stride1: int = 1) -> DriveSource:
             map_data=md,
             travel=cumulative_travel(od[:, :2]),
             truth=truth,
-            stride=1,
+            stride=real_stride,
             scan=lambda i: (log.ranges[i], log.angles[i]),
             odom=lambda i: log.odom[i],
             after=after_real,
@@ -618,11 +639,13 @@ def share_table(trials: Sequence[DriveTrial], maps: Sequence[DriveMap]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def prepare_drive_map(m: DriveMap, data: str, cache: str, stride1: int) -> dict[str, Any]:
+def prepare_drive_map(
+    m: DriveMap, data: str, cache: str, stride1: int, real_stride: int = 1
+) -> dict[str, Any]:
     """Load the tour and make its map's view index ready (built or loaded from ``cache``);
     returns the tour's travel and scored scans for the start choice, and the index figures."""
     t0 = time.perf_counter()
-    src = drive_source(m, Path(data), stride1)
+    src = drive_source(m, Path(data), stride1, real_stride)
     t1 = time.perf_counter()
     loc = _localizer(src.map_data, cache)
     idx = getattr(loc, "index", None)
@@ -640,7 +663,7 @@ def prepare_drive_map(m: DriveMap, data: str, cache: str, stride1: int) -> dict[
     }
 
 
-def _prepare_job(args: tuple[DriveMap, str, str, int]) -> dict[str, Any]:
+def _prepare_job(args: tuple[DriveMap, str, str, int, int]) -> dict[str, Any]:
     return prepare_drive_map(*args)
 
 
@@ -671,13 +694,11 @@ def _warm(m: DriveMap, src: DriveSource, cache: str) -> None:
 def run_drive_trial(task: DriveTask) -> DriveTrial:
     """Run one trial (see the module docstring)."""
     m = task.map
-    src = drive_source(m, Path(task.data), task.stride1)
+    src = drive_source(m, Path(task.data), task.stride1, task.real_stride)
     _warm(m, src, task.cache)
     need = m.limit + DRIVE_MARGIN
     end = trial_end(src.travel, task.start, need)
-    idx = list(range(task.start, end, src.stride))
-    if idx[-1] != end - 1:
-        idx.append(end - 1)  # the scan beyond the limit + margin is always fed
+    idx = fed_scans(task.start, end, src.stride, src.scored)
     loc = _localizer(src.map_data, task.cache, task.budget)
     status: list[str] = []
     work: list[float] = []
@@ -1011,7 +1032,7 @@ def drive_main(args: argparse.Namespace, argv: Sequence[str]) -> int:
 
     # 1. tours loaded and view indexes made ready, one task per map
     info: dict[DriveMap, dict[str, Any]] = {}
-    prep = [(m, data, cache, args.stride1) for m in maps]
+    prep = [(m, data, cache, args.stride1, args.real_stride) for m in maps]
     for k, r in _pool_map(_prepare_job, prep, args.jobs):
         info[maps[k]] = r
         print(
@@ -1050,7 +1071,8 @@ def drive_main(args: argparse.Namespace, argv: Sequence[str]) -> int:
             notes.append(f"{m.label()}: only {starts.size} distinct start scans (of {want})")
         budget = args.budget_ms if args.budget_ms > 0 else None
         tasks += [
-            DriveTask(m, int(s), k, data, cache, args.stride1, budget) for k, s in enumerate(starts)
+            DriveTask(m, int(s), k, data, cache, args.stride1, budget, args.real_stride)
+            for k, s in enumerate(starts)
         ]
     for n in notes:
         print(n)
@@ -1190,6 +1212,7 @@ def main(argv: list[str] | None = None) -> int:
         "--quick", type=int, default=None, help="smoke run: at most N starts per map and world"
     )
     drive.add_argument("--stride1", type=int, default=1, help="feed every k-th setup-1 scan")
+    drive.add_argument("--real-stride", type=int, default=1, help="feed every k-th real scan")
     drive.add_argument(
         "--budget-ms",
         type=float,
@@ -1206,8 +1229,8 @@ def main(argv: list[str] | None = None) -> int:
     )
     args = ap.parse_args(argv)
     if args.drive:
-        if args.stride1 < 1:
-            ap.error("--stride1 must be >= 1")
+        if args.stride1 < 1 or args.real_stride < 1:
+            ap.error("--stride1 and --real-stride must be >= 1")
         return drive_main(args, sys.argv[1:] if argv is None else argv)
     maps = [m.strip() for m in args.maps.split(",") if m.strip()]
     print(f"load average at start: {_load()}")

@@ -150,8 +150,12 @@ def global_search(
 #: Work model of the search, in milliseconds of one core of the reference machine (the 2-core
 #: build VM) per item: a deterministic stand-in for wall time, so that a search spread over
 #: scans by a budget (:class:`service.core.global_localization.GlobalShapeLocalizer`) takes
-#: the same steps, and gives the same poses, on any machine and under any load. Measured with
-#: ``bench/bench_global.py --work-model``.
+#: the same steps, and gives the same poses, on any machine and under any load. Set on
+#: 2026-11-23 (commit 2437c81); no measuring tool was committed then. Measured on 2026-11-25
+#: (``bench/bench_work_model.py`` on branch ``work-model-2026-11-25``), this machine's CPU is
+#: 0.33-0.37x of the model on floor plans and 0.54-0.70x on metric maps, and a ray cast costs
+#: per map segment (real metric maps 1 500-2 700, floor plans 50-200), which the model leaves
+#: out: see the closing note of that day before changing it.
 WORK_MS = {
     "sstar": 0.007,  # one S* comparison (shape_distance with an upper bound)
     "induced": 0.065,  # one S*-induced alignment

@@ -42,6 +42,17 @@ def test_trial_end_feeds_the_first_scan_beyond_the_need(bg) -> None:
     assert bg.trial_end(travel, 8, 5.0) == 10
 
 
+def test_fed_scans_take_one_scan_per_block_preferring_a_referenced_one(bg) -> None:
+    scored = np.zeros(20, dtype=bool)
+    scored[[5, 6, 13]] = True
+    # blocks of 4 from scan 2: [2-5] -> 5 (referenced), [6-9] -> 6, [10-13] -> 13,
+    # [14-17] -> 14 (none referenced), [18] -> 18, and the last scan 18 is already fed
+    assert bg.fed_scans(2, 19, 4, scored) == [5, 6, 13, 14, 18]
+    # stride 1 feeds every scan; the end scan is always fed
+    assert bg.fed_scans(3, 7, 1, scored) == [3, 4, 5, 6]
+    assert bg.fed_scans(0, 10, 4, np.ones(20, dtype=bool)) == [0, 4, 8, 9]
+
+
 def test_choose_starts_leaves_the_need_and_respects_eligibility(bg) -> None:
     travel = np.arange(30) * 0.5  # 14.5 m tour
     rng = np.random.default_rng(0)
