@@ -358,9 +358,8 @@ class DriveTask:
     trial: int
     data: str
     cache: str
-    stride1: int
+    stride: int
     budget: float | None = 50.0
-    real_stride: int = 1
 
 
 @dataclass
@@ -544,13 +543,21 @@ def hypotheses_of(est: Any) -> float | None:
         return None
 
 
-_SOURCES: dict[tuple[DriveMap, str, int, int], DriveSource] = {}
+_SOURCES: dict[tuple[DriveMap, str, int], DriveSource] = {}
 
 
-def drive_source(m: DriveMap, data: Path, stride1: int = 1, real_stride: int = 1) -> DriveSource:
-    """The tour of ``m`` (kept in this process; the last 4); ``stride1`` / ``real_stride``:
-    feed every k-th scan of a setup-1 tour / a real log."""
-    key = (m, str(data), stride1, real_stride)
+def map_stride(m: DriveMap, stride1: int, real_stride: int) -> int:
+    """The stride of ``m``'s trials: ``--real-stride`` on a real log, ``--stride1`` on a
+    setup-1 (metric) tour in simulation, 1 on a floor-plan tour."""
+    if m.group == "real":
+        return real_stride
+    return stride1 if m.kind == "metric" else 1
+
+
+def drive_source(m: DriveMap, data: Path, stride: int = 1) -> DriveSource:
+    """The tour of ``m`` (kept in this process; the last 4), its trials feeding one scan per
+    ``stride`` (:func:`map_stride`)."""
+    key = (m, str(data), stride)
     if key in _SOURCES:
         return _SOURCES[key]
     if m.group == "real":
@@ -571,7 +578,7 @@ def drive_source(m: DriveMap, data: Path, stride1: int = 1, real_stride: int = 1
             map_data=md,
             travel=cumulative_travel(od[:, :2]),
             truth=truth,
-            stride=real_stride,
+            stride=stride,
             scan=lambda i: (log.ranges[i], log.angles[i]),
             odom=lambda i: log.odom[i],
             after=after_real,
@@ -590,7 +597,7 @@ def drive_source(m: DriveMap, data: Path, stride1: int = 1, real_stride: int = 1
             map_data=su.map_data,
             travel=cumulative_travel(su.truth[:, :2]),
             truth=su.reference,
-            stride=stride1 if setup == 1 else 1,
+            stride=stride,
             scan=su.scan,
             odom=lambda i: su.odom[i],
             after=su.passed,
@@ -639,13 +646,11 @@ def share_table(trials: Sequence[DriveTrial], maps: Sequence[DriveMap]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def prepare_drive_map(
-    m: DriveMap, data: str, cache: str, stride1: int, real_stride: int = 1
-) -> dict[str, Any]:
+def prepare_drive_map(m: DriveMap, data: str, cache: str, stride: int) -> dict[str, Any]:
     """Load the tour and make its map's view index ready (built or loaded from ``cache``);
     returns the tour's travel and scored scans for the start choice, and the index figures."""
     t0 = time.perf_counter()
-    src = drive_source(m, Path(data), stride1, real_stride)
+    src = drive_source(m, Path(data), stride)
     t1 = time.perf_counter()
     loc = _localizer(src.map_data, cache)
     idx = getattr(loc, "index", None)
@@ -663,7 +668,7 @@ def prepare_drive_map(
     }
 
 
-def _prepare_job(args: tuple[DriveMap, str, str, int, int]) -> dict[str, Any]:
+def _prepare_job(args: tuple[DriveMap, str, str, int]) -> dict[str, Any]:
     return prepare_drive_map(*args)
 
 
@@ -694,7 +699,7 @@ def _warm(m: DriveMap, src: DriveSource, cache: str) -> None:
 def run_drive_trial(task: DriveTask) -> DriveTrial:
     """Run one trial (see the module docstring)."""
     m = task.map
-    src = drive_source(m, Path(task.data), task.stride1, task.real_stride)
+    src = drive_source(m, Path(task.data), task.stride)
     _warm(m, src, task.cache)
     need = m.limit + DRIVE_MARGIN
     end = trial_end(src.travel, task.start, need)
@@ -1032,7 +1037,8 @@ def drive_main(args: argparse.Namespace, argv: Sequence[str]) -> int:
 
     # 1. tours loaded and view indexes made ready, one task per map
     info: dict[DriveMap, dict[str, Any]] = {}
-    prep = [(m, data, cache, args.stride1, args.real_stride) for m in maps]
+    strides = {m: map_stride(m, args.stride1, args.real_stride) for m in maps}
+    prep = [(m, data, cache, strides[m]) for m in maps]
     for k, r in _pool_map(_prepare_job, prep, args.jobs):
         info[maps[k]] = r
         print(
@@ -1071,8 +1077,7 @@ def drive_main(args: argparse.Namespace, argv: Sequence[str]) -> int:
             notes.append(f"{m.label()}: only {starts.size} distinct start scans (of {want})")
         budget = args.budget_ms if args.budget_ms > 0 else None
         tasks += [
-            DriveTask(m, int(s), k, data, cache, args.stride1, budget, args.real_stride)
-            for k, s in enumerate(starts)
+            DriveTask(m, int(s), k, data, cache, strides[m], budget) for k, s in enumerate(starts)
         ]
     for n in notes:
         print(n)
