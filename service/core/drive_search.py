@@ -225,6 +225,21 @@ class DriveSearch:
             elif lead is not None and lead.twin_ok is None:
                 # the drive's best explanation is the one whose twins must be held
                 target = lead
+        if (
+            near_track is None
+            and "drive_rule" not in extras
+            and odom_now is not None
+            and ev_mod.beaten(best, self._tracks, self._frames, g)
+        ):
+            # a single-scan winner that a distinct alternative beats on the drive's
+            # keyframes is not fixed (tuning log fr079, start 4112, floor plan: a place 5.4 m
+            # off, cost 0.37 on the scan, drive 0.52 against the true place's 0.46; without
+            # the rule, tuning log intel start 5781 was fixed wrong on the drive bench). Holding
+            # it back also while the alternative trails by less than drive_margin was tried
+            # and not kept: at fr079's east end aliases along the corridor stay within 0.01-0.09
+            # of the true place for the whole drive, and it was never fixed (docs/global.md).
+            confirmed = False
+            extras["drive_beaten"] = 1.0
         if near_track is None and best.found < g.fix_min_found:
             # a second search must have had its chance to find another place
             confirmed = False

@@ -350,16 +350,22 @@ class GlobalConfig(BaseModel):
         "or lost_after unfit scans in a row), after probation_rejects rejected scans, or on a "
         "scan without odometry the probation fails and the search goes on with the "
         "hypotheses it held, the winner among them without its wins "
-        "(:meth:`service.core.drive_search.DriveSearch._probation_step`). Schematic: 1.0 -- a "
+        "(:meth:`service.core.drive_search.DriveSearch._probation_step`). Schematic: 2.0 -- a "
         "floor plan that leaves out walls the laser sees can make a wrong place explain the "
-        "scans better than the true one for a metre or more (fr079 tuning start 3540: a place "
-        "2.6 m away, fixed at 1.25 m of travel, lost again 0.8 m later).",
+        "scans better than the true one for a metre or more, and no rule on the scans or the "
+        "drive's keyframes can tell (the true place is the worse fit all along): only the "
+        "tracker losing the wrong place does. Tuning logs: fr079 start 3540, a place 2.6 m "
+        "away, lost 0.8 m after its fix; fr079 3692, an alias 14 m away turned 180 degrees "
+        "(scan cost 0.22 against the true place's 0.41, drive 0.43 against 0.46), lost on the "
+        "scan after a 1-m probation; intel 12318, a place 4.6 m away (0.12-0.20 against the "
+        "true pose's 0.32-0.37; the true place was never a hypothesis), lost 0.7 m after a 1-m "
+        "probation. Metric maps: 0 (an exact map has no such stretch).",
     )
     probation_slide: float = Field(
         0.15,
         ge=0,
         description="During a probation the odometry is the reference: the confirmed pose "
-        "moved by the odometry since (dead-reckoned; over the probation's metre the checked "
+        "moved by the odometry since (dead-reckoned; over the probation's 2 m the checked "
         "odometry is good to a few cm). A tracked pose farther than this (m) from it that "
         "lets probation_slide_violation more of the checked beams through map walls than it "
         "does has slid along furniture or a double wall: the tracker is put back on the "
@@ -452,7 +458,7 @@ class GlobalConfig(BaseModel):
                 shortlist=150,
                 verify_beams=720,
                 violation_margin=0.5,
-                probation_travel=1.0,
+                probation_travel=2.0,
                 fix_min_found=2,
             )
         raise LocalizationError(f"unknown map kind {kind!r}; expected metric or schematic")

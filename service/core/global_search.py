@@ -148,23 +148,30 @@ def global_search(
 
 
 #: Work model of the search, in milliseconds of one core of the reference machine (the 2-core
-#: build VM) per item: a deterministic stand-in for wall time, so that a search spread over
+#: build VM) per item: a deterministic stand-in for CPU time, so that a search spread over
 #: scans by a budget (:class:`service.core.global_localization.GlobalShapeLocalizer`) takes
-#: the same steps, and gives the same poses, on any machine and under any load. Set on
-#: 2026-11-23 (commit 2437c81); no measuring tool was committed then. Measured on 2026-11-25
-#: (``bench/bench_work_model.py`` on branch ``work-model-2026-11-25``), this machine's CPU is
-#: 0.33-0.37x of the model on floor plans and 0.54-0.70x on metric maps, and a ray cast costs
-#: per map segment (real metric maps 1 500-2 700, floor plans 50-200), which the model leaves
-#: out: see the closing note of that day before changing it.
+#: the same steps, and gives the same poses, on any machine and under any load. A ray cast
+#: (verification, beam check, keyframe score) and the refinement's nearby segments also cost
+#: per segment of the map: every cast measures each segment against the sensor before it
+#: intersects beams, so a real log's metric map (1 500-2 700 segments) casts 2-3x slower than
+#: a floor plan (50-200). Measured with ``bench/bench_work_model.py`` on the tuning maps
+#: (2026-11-25: office, building 3, intel and fr079, metric and floor plan); each item is set
+#: at or above the slowest map's measurement, so a budget does not buy more CPU than it names.
+#: The model of 2026-11-23 (no segment term) overestimated the CPU of a floor-plan search
+#: 2.5-3x and underestimated the casts on the real metric maps.
 WORK_MS = {
-    "sstar": 0.007,  # one S* comparison (shape_distance with an upper bound)
-    "induced": 0.065,  # one S*-induced alignment
-    "support": 0.000092,  # one pose x one point of the support ranking
-    "polish": 0.000026,  # one pose x grid cell x point of a distance-field polish
-    "beam": 0.0045,  # one pose x one beam of a ray cast check
-    "refine": 1.7,  # one pose through the four refinement stages
-    "verify": 1.0,  # one verification's fixed part (the feature check) ...
-    "verify_beam": 0.0009,  # ... and per beam
+    "sstar": 0.0105,  # one S* comparison (shape_distance with an upper bound)
+    "induced": 0.045,  # one S*-induced alignment
+    "support": 0.000012,  # one pose x one point of the support ranking
+    "polish": 0.000006,  # one pose x grid cell x point of a distance-field polish ...
+    "polish_call": 0.15,  # ... and one call's fixed part (a keyframe polishes one pose)
+    "beam": 0.0023,  # one pose x one beam of a ray cast check ...
+    "cast_segment": 0.00018,  # ... and one pose x one segment of the map (any ray cast)
+    "layered": 0.1,  # a verification's see-through cast (GlobalConfig.see_through)
+    "refine": 0.6,  # one pose through the four refinement stages ...
+    "refine_segment": 0.00035,  # ... and x one segment of the map (denser segment grid)
+    "verify": 0.3,  # one verification's fixed part (the feature check) ...
+    "verify_beam": 0.0002,  # ... and per beam (plus its ray cast)
 }
 
 _CHUNK_SSTAR = 96  # S* comparisons between two yields
@@ -174,12 +181,30 @@ _CHUNK_REFINE = 2  # poses refined / verified between two yields
 
 
 def polish_ms(points: int) -> float:
-    """Work (reference ms) of one pose's :func:`_polish` (two 5 x 5 x 5 grids) on ``points``."""
+    """Work (reference ms) of one pose's :func:`_polish` (two 5 x 5 x 5 grids) on ``points``,
+    in a call over several poses."""
     return 250 * max(points, 1) * WORK_MS["polish"]
 
 
-def _verify_ms(gconfig: GlobalConfig) -> float:
-    return WORK_MS["verify"] + gconfig.verify_beams * WORK_MS["verify_beam"]
+def cast_ms(index: ViewIndex) -> float:
+    """Work (reference ms) of one pose's ray cast that depends on the map: its segments."""
+    return len(index.caster.segments) * WORK_MS["cast_segment"]
+
+
+def refine_ms(index: ViewIndex) -> float:
+    """Work (reference ms) of one pose's :func:`_refine` on ``index``'s map."""
+    return WORK_MS["refine"] + len(index.caster.segments) * WORK_MS["refine_segment"]
+
+
+def beams_ms(index: ViewIndex, gconfig: GlobalConfig, beams: int) -> float:
+    """Work (reference ms) of one pose's cast and beam fractions over ``beams`` beams (a
+    verification's, a keyframe's score)."""
+    layered = WORK_MS["layered"] if gconfig.see_through else 0.0
+    return beams * WORK_MS["verify_beam"] + cast_ms(index) + layered
+
+
+def _verify_ms(index: ViewIndex, gconfig: GlobalConfig) -> float:
+    return WORK_MS["verify"] + beams_ms(index, gconfig, gconfig.verify_beams)
 
 
 def run_steps(steps: Generator[float, None, T]) -> T:
@@ -329,7 +354,9 @@ def search_steps(
             quick_parts.append(
                 _beam_costs(index, pol, r, a, gconfig.shortlist_beams, config, gconfig)
             )
-            yield len(block) * (polish_ms(len(sp)) + gconfig.shortlist_beams * WORK_MS["beam"])
+            yield len(block) * (
+                polish_ms(len(sp)) + gconfig.shortlist_beams * WORK_MS["beam"] + cast_ms(index)
+            )
         H = np.vstack(polished_parts)
         quick = np.concatenate(quick_parts)
         order = np.argsort(quick, kind="stable")
@@ -345,7 +372,7 @@ def search_steps(
         block = np.vstack(picked[i : i + _CHUNK_REFINE])
         refined = _refine(index, block, sp, config, gconfig)
         hyps.extend(verify(index, p, r, a, P, config, gconfig) for p in refined)
-        yield len(block) * (WORK_MS["refine"] + _verify_ms(gconfig))
+        yield len(block) * (refine_ms(index) + _verify_ms(index, gconfig))
     hyps.sort(key=lambda h: h.cost)
     out: list[Hypothesis] = []
     for h in hyps:
@@ -416,7 +443,7 @@ def self_similar_steps(
             v = verify(index, pose, ranges, angles, P, config, gconfig)
             if out is None or v.cost < out.cost:
                 out = v
-        yield len(block) * (WORK_MS["refine"] + 2.0 * _verify_ms(gconfig))
+        yield len(block) * (refine_ms(index) + 2.0 * _verify_ms(index, gconfig))
     return out
 
 

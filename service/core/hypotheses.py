@@ -28,7 +28,7 @@ import numpy as np
 
 from service.core.configuration import Configuration
 from service.core.global_config import GlobalConfig
-from service.core.global_search import WORK_MS, _near, _refine, _verify_ms, polish_ms
+from service.core.global_search import _near, _refine, _verify_ms, polish_ms, refine_ms
 from service.core.localizer import ShapeConfig
 from service.core.pose import compose, invert
 from service.core.pose_scoring import Hypothesis, _polish, _subsample, verify
@@ -119,8 +119,8 @@ def rescore(
         return 0.0
     pts = np.vstack([f.points for f in P.features]) if P.features else np.zeros((0, 2))
     sp = _subsample(pts, gconfig.support_points)
-    fit_ms = polish_ms(len(sp)) if odometry else WORK_MS["refine"]
-    each = fit_ms + _verify_ms(gconfig)
+    fit_ms = polish_ms(len(sp)) if odometry else refine_ms(index)
+    each = fit_ms + _verify_ms(index, gconfig)
     n = max(1, min(len(tracks), int(limit // each)))
     order = sorted(range(len(tracks)), key=lambda k: tracks[k].hyp.cost)
     chosen = [tracks[k] for k in order[:n]]

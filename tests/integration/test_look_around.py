@@ -6,7 +6,7 @@ scans before it drives; the service fuses the scans by their odometry into one 3
 Asserted from what comes back over Zenoh: within the 3 look-around scans the published best
 guess passes the proximity test (< 0.5 m, < 10 deg) -- the search's winner, which on a floor
 plan is tracked on probation while the status stays ``initializing`` with an ambiguity
-(``GlobalConfig.probation_travel``: published only after 1 m of travel, here scan 13); then
+(``GlobalConfig.probation_travel``: published only after 2 m of travel, here scan 23); then
 ``tracking``, and every estimate from the first fix on is ``tracking`` and passes the test.
 The service runs with ``--search-budget-ms 0`` (a whole search per scan): a fix within three
 scans is what the look-around composite buys; the default budget spreads a floor-plan search
@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-SCANS = 16
+SCANS = 32
 START = 0.35  # a tour position in the corridor by the west rooms (setup 2)
 
 

@@ -169,3 +169,48 @@ def test_prune_keeps_the_copy_of_a_place_that_explains_its_keyframes_better() ->
     early.ev = {7: 0.2, 6: 0.2}  # two keyframes: not judged yet
     kept = ev.prune([slid, alias, early], frames, keep=8, g=g)
     assert slid in kept and early not in kept
+
+
+def test_prune_keeps_the_best_fit_to_the_scans_whatever_its_drive() -> None:
+    """Nine fully judged tracks and one room to keep eight: the one that fits the scans at
+    hand best (the robot started where the map explains little, so its early keyframes are
+    poor) is kept although eight others have a better mean over the drive; without it, the
+    decision would rank the runner-up first. The mean still orders the rest."""
+    g = GlobalConfig(evidence_drop=0.3, evidence_junk=0.95, evidence_drop_frames=3)
+    frames = [_frame(k, 0.3 * k) for k in range(10)]
+    others = []
+    for k in range(8):
+        t = _track(np.array([5.0 * (k + 1), 0.0, 0.0]), cost=0.3 + 0.01 * k)
+        t.ev = {f: 0.35 + 0.01 * k for f in range(10)}
+        others.append(t)
+    true = _track(np.array([0.0, 0.0, 0.0]), cost=0.11)
+    true.ev = {f: (0.75 if f < 5 else 0.15) for f in range(10)}  # mean 0.45: ninth
+    kept = ev.prune([*others, true], frames, keep=8, g=g)
+    assert len(kept) == 8 and true in kept
+    assert kept[0] is true  # ordered by decision cost
+    assert others[-1] not in kept  # the worst mean over the drive made room
+    # a track both worst on the drive and not the best fit is still let go
+    true.hyp.cost = 0.5
+    assert true not in ev.prune([*others, true], frames, keep=8, g=g)
+
+
+def test_a_single_scan_winner_is_beaten_by_an_alternative_that_explains_the_drive_better() -> None:
+    """A single-scan winner and a distinct alternative scored on the same keyframes: the
+    winner is beaten while the alternative's mean over them is lower; not when it is higher,
+    nor by a copy at the winner's own place, nor by an alternative judged on fewer than
+    ``evidence_drop_frames`` of the winner's keyframes."""
+    g = GlobalConfig(evidence_drop_frames=3)
+    frames = [_frame(k, 0.3 * k) for k in range(6)]
+    best = _track(np.array([0.0, 0.0, 0.0]), cost=0.37)
+    best.ev = {k: 0.52 for k in range(6)}
+    alias = _track(np.array([5.4, 0.0, 0.0]), cost=0.41)
+    for theirs, want in ((0.46, True), (0.51, True), (0.53, False), (0.70, False)):
+        alias.ev = {k: theirs for k in range(6)}
+        assert ev.beaten(best, [best, alias], frames, g) is want, theirs
+    copy = _track(np.array([0.1, 0.0, 0.02]), cost=0.3)
+    copy.ev = {k: 0.30 for k in range(6)}
+    assert not ev.beaten(best, [best, copy], frames, g)
+    alias.ev = {4: 0.30, 5: 0.30}  # two keyframes: not judged yet
+    assert not ev.beaten(best, [best, alias], frames, g)
+    alias.ev = {k: 0.30 for k in range(2, 6)}  # four of the winner's six: judged
+    assert ev.beaten(best, [best, alias], frames, g)
