@@ -38,6 +38,7 @@ odometry frame.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -256,6 +257,18 @@ def backfill(
     return spent
 
 
+def _gaps(
+    best: Track, tracks: list[Track], frames: list[Keyframe], g: GlobalConfig
+) -> Iterator[tuple[float, int]]:
+    """For each distinct alternative to ``best``: its mean cost minus ``best``'s over the
+    keyframes of ``frames`` both were scored on, and how many those are."""
+    for t in tracks:
+        if t is best or not _distinct(t.pose, best.pose, g):
+            continue
+        mine, theirs, n = _common_means(best, t, frames)
+        yield theirs - mine, n
+
+
 def evidence_margin(
     best: Track, tracks: list[Track], frames: list[Keyframe], g: GlobalConfig
 ) -> float:
@@ -264,14 +277,12 @@ def evidence_margin(
     no alternative; ``-inf`` if an alternative has fewer than ``evidence_drop_frames`` of
     them scored: it is not known yet; :func:`backfill` scores every track's newest keyframes
     first)."""
+    need = min(g.evidence_drop_frames, len(frames))
     out = float("inf")
-    for t in tracks:
-        if t is best or not _distinct(t.pose, best.pose, g):
-            continue
-        mine, theirs, n = _common_means(best, t, frames)
-        if n < min(g.evidence_drop_frames, len(frames)):
+    for gap, n in _gaps(best, tracks, frames, g):
+        if n < need:
             return float("-inf")
-        out = min(out, theirs - mine)
+        out = min(out, gap)
     return out
 
 
@@ -280,15 +291,7 @@ def beaten(best: Track, tracks: list[Track], frames: list[Keyframe], g: GlobalCo
     cost over the keyframes both were scored on, at least ``evidence_drop_frames`` of them
     (or all of ``frames`` if fewer)."""
     need = min(g.evidence_drop_frames, len(frames))
-    if need == 0:
-        return False
-    for t in tracks:
-        if t is best or not _distinct(t.pose, best.pose, g):
-            continue
-        mine, theirs, n = _common_means(best, t, frames)
-        if n >= need and theirs < mine:
-            return True
-    return False
+    return need > 0 and any(n >= need and gap < 0 for gap, n in _gaps(best, tracks, frames, g))
 
 
 def _better_twin(young: Track, old: Track, frames: list[Keyframe], g: GlobalConfig) -> bool:
