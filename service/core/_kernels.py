@@ -978,6 +978,9 @@ def warm_up() -> float:
     from service.core import _search_kernels
 
     _search_kernels.warm_up(p)
+    from service.core import _raycast_kernels
+
+    _raycast_kernels.warm_up()
     # the map model's kernels (service.core._map_kernels; imported here, not at module level,
     # because that module imports this one)
     from service.core.mapmodel import MapModel

@@ -166,3 +166,30 @@ def warm_up(p: np.ndarray) -> None:
     table = score_table(field, 0.1, 10.0)
     table_scores(table, 0.0, 0.0, 0.0, 0.5, z, p)
     support_counts(field, 0.0, 0.0, 0.5, np.ones(1), np.zeros(1), z, p, 0.1)
+    near_mask(np.zeros((1, 4)), p, 0.1)
+
+
+@njit(cache=True, nogil=True)
+def near_mask(segments: np.ndarray, points: np.ndarray, radius: float) -> np.ndarray:
+    """:func:`service.core.segment_grid._near_mask` (its numpy reference) in loops: per
+    segment, whether any point lies within ``radius`` (the same squared distance, compared
+    with ``radius * radius``; a segment stops at its first such point)."""
+    n_seg = segments.shape[0]
+    r2 = radius * radius
+    out = np.zeros(n_seg, dtype=np.bool_)
+    for j in range(n_seg):
+        ax = segments[j, 0]
+        ay = segments[j, 1]
+        ex = segments[j, 2] - ax
+        ey = segments[j, 3] - ay
+        ee = max(ex * ex + ey * ey, 1e-18)
+        for i in range(points.shape[0]):
+            dx = points[i, 0] - ax
+            dy = points[i, 1] - ay
+            u = min(max((dx * ex + dy * ey) / ee, 0.0), 1.0)
+            fx = dx - u * ex
+            fy = dy - u * ey
+            if fx * fx + fy * fy <= r2:
+                out[j] = True
+                break
+    return out

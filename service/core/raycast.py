@@ -17,8 +17,11 @@ actually intersect, not to beams x segments.
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 
+from service.core import _kernels, _raycast_kernels
 from service.errors import LocalizationError
 
 _TWO_PI = 2.0 * np.pi
@@ -26,6 +29,22 @@ _TWO_PI = 2.0 * np.pi
 _ANG_EPS = 1e-9
 # Relative tolerance on the segment parameter u so that rays through a shared vertex hit.
 _U_EPS = 1e-12
+
+
+class _Spans(NamedTuple):
+    """Per segment near a pose (:meth:`RayCaster._spans`): its pose ``owner``, start ``a``
+    and direction ``e`` ``(m, 2)``; that pose's position ``px``, ``py`` (per segment); the
+    runs ``[i0, i1)`` and ``[0, j1)`` of beam positions in ``order`` (beams by bearing)."""
+
+    owner: np.ndarray
+    a: np.ndarray
+    e: np.ndarray
+    px: np.ndarray
+    py: np.ndarray
+    i0: np.ndarray
+    i1: np.ndarray
+    j1: np.ndarray
+    order: np.ndarray
 
 
 class RayCaster:
@@ -47,6 +66,7 @@ class RayCaster:
         self._a = self._seg[:, 0:2]
         self._e = self._seg[:, 2:4] - self._seg[:, 0:2]
         self._ee = np.einsum("ij,ij->i", self._e, self._e)
+        self._a_c = np.ascontiguousarray(self._a)  # the kernels' copy
 
     @property
     def segments(self) -> np.ndarray:
@@ -79,17 +99,8 @@ class RayCaster:
         one pass over all poses' beam / segment pairs (each range is computed by the same
         operations as for its pose alone)."""
         poses = np.asarray(poses, dtype=np.float64)
-        pairs = self._pairs(poses, angles, max_range)  # checks the arguments
-        n_pose, n = poses.shape[0], np.shape(angles)[0]
-        out = np.full((n_pose, n), np.nan)
-        if pairs is None:
-            return out
-        pair_pose, pair_beam, t = pairs
-        # Nearest hit per beam; a pose's pairs keep their order, so each beam sees its
-        # candidates in the same order as when its pose is cast alone.
-        best = np.full(n_pose * n, np.inf)
-        np.minimum.at(best, pair_pose * n + pair_beam, t)
-        best = best.reshape(n_pose, n)
+        best, _ = self._nearest(poses, angles, max_range, None, -1.0)  # checks the arguments
+        out = np.full(best.shape, np.nan)
         hit = np.isfinite(best)
         out[hit] = best[hit]
         return out
@@ -108,29 +119,108 @@ class RayCaster:
         pose = np.asarray(pose, dtype=np.float64)
         if pose.shape != (3,) or not np.all(np.isfinite(pose)):
             raise LocalizationError(f"pose: expected 3 finite values, got shape {pose.shape}")
-        pairs = self._pairs(pose.reshape(1, 3), angles, max_range)  # checks the arguments
         r = np.asarray(ranges, dtype=np.float64)
         n = np.shape(angles)[0]
         if r.shape != (n,):
             raise LocalizationError(f"ranges: expected shape ({n},), got {r.shape}")
+        best, on_map = self._nearest(pose.reshape(1, 3), angles, max_range, r, tol)
         out = np.full(n, np.nan)
-        on_map = np.zeros(n, dtype=bool)
-        if pairs is None:
-            return out, on_map
-        _pose, beam, t = pairs
-        best = np.full(n, np.inf)
-        np.minimum.at(best, beam, t)
-        hit = np.isfinite(best)
-        out[hit] = best[hit]
-        close = np.abs(t - r[beam]) <= tol  # NaN ranges compare False
-        on_map[beam[close]] = True
+        hit = np.isfinite(best[0])
+        out[hit] = best[0][hit]
         return out, on_map
 
-    def _pairs(
-        self, poses: np.ndarray, angles: np.ndarray, max_range: float
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-        """Every (pose, beam, segment) intersection within ``max_range``: the pose and beam
-        index and the range ``t`` of each (``None``: none); checks the arguments."""
+    def _nearest(
+        self,
+        poses: np.ndarray,
+        angles: np.ndarray,
+        max_range: float,
+        ranges: np.ndarray | None,
+        tol: float,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The nearest hit per pose and beam, ``(P, n)`` (``inf``: none), and, with
+        ``ranges`` (one pose), per beam whether any hit lies within ``tol`` of its range;
+        checks the arguments. The compiled kernel walks the spans of :meth:`_spans` pair by
+        pair (:func:`service.core._raycast_kernels.nearest_hits`); without numba the pairs
+        are built as arrays (:meth:`_pairs`). Both give the same bits."""
+        ang = self._check(poses, angles, max_range)
+        n_pose, n = poses.shape[0], ang.shape[0]
+        best = np.full((n_pose, n), np.inf)
+        on_map = np.zeros(n, dtype=bool)
+        if n == 0 or n_pose == 0 or self._seg.shape[0] == 0:
+            return best, on_map
+        if _kernels.HAVE_NUMBA:
+            self._nearest_compiled(poses, ang, max_range, ranges, tol, best, on_map)
+            return best, on_map
+        spans = self._spans(poses, ang, max_range)
+        if spans is None:
+            return best, on_map
+        pairs = self._pairs(poses, ang, max_range, spans)
+        if pairs is None:
+            return best, on_map
+        pair_pose, pair_beam, t = pairs
+        # Nearest hit per beam; a pose's pairs keep their order, so each beam sees its
+        # candidates in the same order as when its pose is cast alone.
+        flat = best.reshape(-1)
+        np.minimum.at(flat, pair_pose * n + pair_beam, t)
+        if ranges is not None:
+            close = np.abs(t - ranges[pair_beam]) <= tol  # NaN ranges compare False
+            on_map[pair_beam[close]] = True
+        return best, on_map
+
+    def _nearest_compiled(
+        self,
+        poses: np.ndarray,
+        ang: np.ndarray,
+        max_range: float,
+        ranges: np.ndarray | None,
+        tol: float,
+        best: np.ndarray,
+        on_map: np.ndarray,
+    ) -> None:
+        """:meth:`_nearest` by the kernels of :mod:`service.core._raycast_kernels` (the same
+        steps as :meth:`_spans` and :meth:`_pairs`; the bearings' ``arctan2`` in numpy)."""
+        idx, owner, touching = _raycast_kernels.near_segments(
+            self._a_c, self._e, self._ee, poses, float(max_range)
+        )
+        if idx.shape[0] == 0:
+            return
+        a = self._a_c[idx]
+        b = a + self._e[idx]
+        px = poses[owner, 0]
+        py = poses[owner, 1]
+        bearing0 = np.arctan2(a[:, 1] - py, a[:, 0] - px)
+        bearing1 = np.arctan2(b[:, 1] - py, b[:, 0] - px)
+        base = ang[0]
+        rel = np.mod(ang - base, _TWO_PI)
+        order = np.argsort(rel, kind="stable")
+        world = ang[None, :] + poses[:, 2][:, None]
+        _raycast_kernels.nearest_hits(
+            self._a_c,
+            self._e,
+            idx,
+            owner,
+            touching,
+            bearing0,
+            bearing1,
+            poses,
+            ang,
+            float(base),
+            rel[order],
+            order,
+            np.cos(world),
+            np.sin(world),
+            float(max_range),
+            _ANG_EPS,
+            _U_EPS,
+            np.full(ang.shape[0], np.nan) if ranges is None else ranges,
+            float(tol) if ranges is not None else -1.0,
+            best,
+            on_map,
+        )
+
+    @staticmethod
+    def _check(poses: np.ndarray, angles: np.ndarray, max_range: float) -> np.ndarray:
+        """The beam angles as float64, after checking the arguments of a cast."""
         ang = np.asarray(angles, dtype=np.float64)
         if poses.ndim != 2 or poses.shape[1] != 3 or not np.all(np.isfinite(poses)):
             raise LocalizationError(f"poses: expected (P, 3) finite values, got {poses.shape}")
@@ -140,10 +230,13 @@ class RayCaster:
             raise LocalizationError("angles: non-finite value")
         if not (np.isfinite(max_range) and max_range > 0.0):
             raise LocalizationError(f"max_range must be finite and > 0, got {max_range}")
+        return ang
+
+    def _spans(self, poses: np.ndarray, ang: np.ndarray, max_range: float) -> _Spans | None:
+        """The segments within ``max_range`` of each pose and, per segment, the run of beams
+        (positions in bearing order) its bearing interval covers (``None``: no segment near
+        any pose; the numpy reference of the kernels)."""
         n_pose = poses.shape[0]
-        n = ang.shape[0]
-        if n == 0 or n_pose == 0 or self._seg.shape[0] == 0:
-            return None
 
         # The segments within range of each pose, all poses' one after the other; per segment
         # its pose's position and heading.
@@ -191,7 +284,16 @@ class RayCaster:
         i1 = np.searchsorted(rel_sorted, np.minimum(hi, _TWO_PI) + _ANG_EPS, side="right")
         j1 = np.searchsorted(rel_sorted, hi - _TWO_PI + _ANG_EPS, side="right")
         j1 = np.where(hi > _TWO_PI, j1, 0)
+        return _Spans(owner, a, e, px, py, i0, i1, j1, order)
 
+    def _pairs(
+        self, poses: np.ndarray, ang: np.ndarray, max_range: float, spans: _Spans
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """Every (pose, beam, segment) intersection within ``max_range`` of ``spans`` (the
+        numpy reference of the kernel): the pose and beam index and the range ``t`` of each
+        (``None``: none)."""
+        owner, a, e, px, py = spans.owner, spans.a, spans.e, spans.px, spans.py
+        i0, i1, j1, order = spans.i0, spans.i1, spans.j1, spans.order
         seg_idx = np.arange(a.shape[0])
         starts = np.concatenate([i0, np.zeros_like(j1)])
         counts = np.concatenate([np.maximum(i1 - i0, 0), j1])

@@ -14,10 +14,24 @@ from __future__ import annotations
 
 import numpy as np
 
+from service.core import _kernels, _search_kernels
+
 
 def _near_mask(segments: np.ndarray, points: np.ndarray, radius: float) -> np.ndarray:
     """For each segment, whether it lies within ``radius`` of any of ``points`` (the exact
-    point-to-segment distance, squared, compared with ``radius²``)."""
+    point-to-segment distance, squared, compared with ``radius²``); compiled
+    (:func:`service.core._search_kernels.near_mask`) where numba is installed."""
+    if _kernels.HAVE_NUMBA:
+        return _search_kernels.near_mask(
+            np.ascontiguousarray(segments, dtype=np.float64),
+            np.ascontiguousarray(points, dtype=np.float64),
+            float(radius),
+        )
+    return _near_mask_reference(segments, points, radius)
+
+
+def _near_mask_reference(segments: np.ndarray, points: np.ndarray, radius: float) -> np.ndarray:
+    """:func:`_near_mask` in numpy (every point against every segment)."""
     a = segments[:, 0:2]
     e = segments[:, 2:4] - a
     ee = np.maximum(np.einsum("ij,ij->i", e, e), 1e-18)

@@ -61,3 +61,25 @@ def test_empty_grid_and_empty_points() -> None:
     assert empty.nearby(np.array([[0.0, 0.0]]), 0.5).shape == (0, 4)
     seg = np.array([[0.0, 0.0, 1.0, 0.0]])
     assert np.array_equal(SegmentGrid(seg).nearby(np.zeros((0, 2)), 0.5), seg)
+
+
+def test_compiled_near_mask_equals_the_numpy_reference() -> None:
+    """_search_kernels.near_mask (used where numba is installed) decides every segment as
+    the numpy reference does, degenerate segments and points on the radius included."""
+    from service.core import _kernels, segment_grid
+
+    if not _kernels.HAVE_NUMBA:
+        pytest.skip("numba kernels not installed")
+    rng = np.random.default_rng(5)
+    seen = 0
+    for k in range(300):
+        seg = _random_map(rng, int(rng.integers(1, 80)))
+        if k % 5 == 0:
+            seg[:, 2:] = seg[:, :2]  # zero-length segments
+        pts = rng.uniform(-22.0, 22.0, size=(int(rng.integers(1, 200)), 2))
+        radius = float(rng.uniform(0.05, 3.0))
+        got = segment_grid._near_mask(seg, pts, radius)
+        want = segment_grid._near_mask_reference(seg, pts, radius)
+        assert np.array_equal(got, want)
+        seen += int(got.any() and not got.all())
+    assert seen > 100  # mixed answers, not all-or-nothing
