@@ -994,15 +994,21 @@ def drive_maps(
 def _pool_map(
     fn: Callable[[Any], Any], items: Sequence[Any], jobs: int
 ) -> Iterator[tuple[int, Any]]:
-    """``(position, fn(item))`` in completion order; in this process when ``jobs`` <= 1."""
+    """``(position, fn(item))`` in completion order; in this process when ``jobs`` <= 1.
+    Every process first compiles or loads the core's numba kernels
+    (:func:`service.core._kernels.warm_up`), as the service does at start-up, so no trial's
+    CPU counts it (after a kernel changes, compiling took ~5 s of the first trial per process)."""
+    from service.core._kernels import warm_up
+
     if jobs <= 1:
+        warm_up()
         for k, it in enumerate(items):
             yield k, fn(it)
         return
     from concurrent.futures import as_completed
 
     ctx = multiprocessing.get_context("spawn")
-    with ProcessPoolExecutor(max_workers=jobs, mp_context=ctx) as ex:
+    with ProcessPoolExecutor(max_workers=jobs, mp_context=ctx, initializer=warm_up) as ex:
         futs = {ex.submit(fn, it): k for k, it in enumerate(items)}
         for f in as_completed(futs):
             yield futs[f], f.result()
