@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from service.core import _kernels
+from service.core import _kernels, _pose_kernels
 from service.core.types import wrap_angle
 from service.errors import LocalizationError
 
@@ -216,7 +216,7 @@ def pose_from_matches(
     each pair). ``covariance=False`` leaves :attr:`PoseFit.covariance` ``None`` (a caller
     that only wants the pose saves the 3x3 inverse).
 
-    The loop runs in a compiled kernel (:func:`service.core._kernels.pose_iterations`) when
+    The loop runs in a compiled kernel (:func:`service.core._pose_kernels.pose_iterations`) when
     numba is available, else in :func:`_pose_from_matches_numpy` (the reference).
     """
     if not _kernels.HAVE_NUMBA:
@@ -258,7 +258,7 @@ def pose_from_matches(
         pts_all = np.ascontiguousarray(np.vstack(pts_list))
         segs_all = np.ascontiguousarray(np.vstack(seg_list))
     use_prior = prior is not None and prior_weight > 0.0
-    pose, H, rms, n_in, it, have_h = _kernels.pose_iterations(
+    pose, H, rms, n_in, it, have_h = _pose_kernels.pose_iterations(
         pts_all,
         own,
         segs_all,
@@ -532,12 +532,12 @@ def _fit_kernel(
     robust_scale: float,
     damping: float,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Run :func:`service.core._kernels.fit_blocks`: pair ``k`` owns the points
+    """Run :func:`service.core._pose_kernels.fit_blocks`: pair ``k`` owns the points
     ``P[pt_order[pt_beg[k]:pt_end[k]]]`` and the segments ``segs[seg_start[k]:][:seg_len[k]]``;
     ``initial_pose`` is one pose for all pairs or one per pair."""
     init = np.asarray(initial_pose, dtype=np.float64)
     poses0 = init.copy() if init.ndim == 2 else np.tile(init, (len(seg_len), 1))
-    poses, rms = _kernels.fit_blocks(
+    poses, rms = _pose_kernels.fit_blocks(
         np.ascontiguousarray(P, dtype=np.float64),
         pt_order,
         pt_beg,
@@ -569,7 +569,7 @@ def fit_pairs_blocks(
     """:func:`fit_pairs` with each pair's segments a run of rows of one array: pair ``k``'s
     map segments are ``segs[seg_start[k] : seg_start[k] + seg_len[k]]`` (``segs`` ``(S, 4)``),
     its points the rows of ``P`` ``(N, 2)`` with ``own == k``. Compiled kernel
-    (:func:`service.core._kernels.fit_blocks`) when numba is available, else the numpy
+    (:func:`service.core._pose_kernels.fit_blocks`) when numba is available, else the numpy
     reference on padded arrays."""
     init = np.asarray(initial_pose, dtype=np.float64)
     K = len(seg_len)
