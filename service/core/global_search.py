@@ -158,7 +158,10 @@ def global_search(
 #: (2026-11-25: office, building 3, intel and fr079, metric and floor plan); each item is set
 #: at or above the slowest map's measurement, so a budget does not buy more CPU than it names.
 #: The model of 2026-11-23 (no segment term) overestimated the CPU of a floor-plan search
-#: 2.5-3x and underestimated the casts on the real metric maps.
+#: 2.5-3x and underestimated the casts on the real metric maps. Since the casts were compiled
+#: (stop 30, service/core/_raycast_kernels.py) the cast terms (beam, cast_segment) overstate
+#: them ~2.5x; left as they are, since lowering them made the search faster and fixed a tuning
+#: alias wrong (docs/global.md, "Measured: global localisation while driving").
 WORK_MS = {
     "sstar": 0.0105,  # one S* comparison (shape_distance with an upper bound)
     "induced": 0.045,  # one S*-induced alignment

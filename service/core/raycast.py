@@ -100,10 +100,7 @@ class RayCaster:
         operations as for its pose alone)."""
         poses = np.asarray(poses, dtype=np.float64)
         best, _ = self._nearest(poses, angles, max_range, None, -1.0)  # checks the arguments
-        out = np.full(best.shape, np.nan)
-        hit = np.isfinite(best)
-        out[hit] = best[hit]
-        return out
+        return np.where(np.isinf(best), np.nan, best)  # no hit: NaN
 
     def cast_layered(
         self,
@@ -124,10 +121,7 @@ class RayCaster:
         if r.shape != (n,):
             raise LocalizationError(f"ranges: expected shape ({n},), got {r.shape}")
         best, on_map = self._nearest(pose.reshape(1, 3), angles, max_range, r, tol)
-        out = np.full(n, np.nan)
-        hit = np.isfinite(best[0])
-        out[hit] = best[0][hit]
-        return out, on_map
+        return np.where(np.isinf(best[0]), np.nan, best[0]), on_map
 
     def _nearest(
         self,
@@ -203,7 +197,6 @@ class RayCaster:
             bearing0,
             bearing1,
             poses,
-            ang,
             float(base),
             rel[order],
             order,
