@@ -410,7 +410,43 @@ class DriveSearch:
             est.pose = dead
             self.tracker.reset(dead, self._last_odom)
 
-    def _probation_step(self, est: Estimate, delta: np.ndarray | None, collapsed: bool) -> Estimate:
+    def _probation_evidence(self, r: np.ndarray, a: np.ndarray) -> None:
+        """The drive's evidence goes on during a probation: this scan may become a keyframe,
+        and the kept tracks (the winner at its tracked pose among them) are scored on the
+        keyframes they lack, within the search's evidence share of the budget."""
+        g = self.gconfig
+        odom_now = self._last_odom
+        if odom_now is None or not g.search_budget_ms:
+            return
+        if ev_mod.keyframe_due(self._frames, odom_now, self._travel, g):
+            kf = ev_mod.make_keyframe(self._frame_key, r, a, odom_now, self._travel, g)
+            self._frame_key += 1
+            self._frames = ev_mod.window([*self._frames, kf], g)
+        self.work_ms = ev_mod.backfill(
+            self.index,
+            self._tracks,
+            self._frames,
+            odom_now,
+            self.config,
+            g,
+            float(g.search_budget_ms) * g.evidence_share,
+        )
+
+    def _drive_holds(self, track: Track, extras: dict[str, float]) -> bool:
+        """Whether ``track`` still wins the evidence rule (:meth:`_evidence_won`) on the
+        drive's keyframes, those made during its probation included."""
+        if not self._frames or track not in self._tracks:
+            return False
+        return self._evidence_won(track, extras)
+
+    def _probation_step(
+        self,
+        est: Estimate,
+        delta: np.ndarray | None,
+        collapsed: bool,
+        r: np.ndarray,
+        a: np.ndarray,
+    ) -> Estimate:
         """One tracked scan of a probation. The odometry ``delta`` moves the kept hypotheses
         and counts towards the travel. The probation fails where tracking would have ended --
         the tracker loses the scan, or ``collapsed``: ``lost_after`` scans in a row rejected
@@ -419,18 +455,32 @@ class DriveSearch:
         among them, moved by the odometry, and has to win again (it keeps counting as the
         alternative to every other: dropping it let a poor alias win the evidence rule
         unopposed on tuning building 4, after one furnished room's scans failed the true
-        place's probation). Passed, the tracker's estimate is the fix."""
+        place's probation). Passed, the tracker's estimate is the fix.
+
+        A winner of the evidence rule is held through the rejections while the drive's
+        evidence, which goes on during the probation (:meth:`_probation_evidence`), still
+        names it and the scan does not contradict it (``GlobalConfig.probation_hold_violation``);
+        once the rejections have reached the bar, every later scan of the probation must hold
+        so."""
         p = self._probation
         assert p is not None
+        g = self.gconfig
         p.rejected += "rejected" in est.extras
-        failed = (
-            collapsed
-            or est.status == "lost"
-            or delta is None
-            or p.rejected >= self.gconfig.probation_rejects
-        )
         if delta is not None:
             p.left -= self._move_kept(delta)
+            self._probation_evidence(r, a)
+        struck = collapsed or p.rejected >= g.probation_rejects
+        if (
+            struck
+            and delta is not None
+            and "drive_rule" in p.extras
+            and g.probation_hold_violation > 0.0
+            and self._drive_holds(p.track, est.extras)
+            and self.tracker.violations(r, a, [est.pose])[0] <= g.probation_hold_violation
+        ):
+            struck = False
+            est.extras["probation_held"] = 1.0
+        failed = struck or est.status == "lost" or delta is None
         if failed:
             self._probation = None
             self._searching = True

@@ -383,6 +383,25 @@ class GlobalConfig(BaseModel):
         le=1,
         description="See probation_slide: the excess share of beams through walls.",
     )
+    probation_hold_violation: float = Field(
+        0.1,
+        ge=0,
+        le=1,
+        description="A probation whose winner was fixed by the evidence rule (drive_margin "
+        "over every distinct alternative on the drive's keyframes) is not failed by the "
+        "tracker's rejections (probation_rejects, or lost_after unfit scans in a row) while "
+        "the evidence, kept up on the probation's own keyframes, still names it by that margin "
+        "and the scan at the tracked pose lets at most this share of the checked beams through "
+        "the map's walls. A rejection there means the map explains little of the scan, not "
+        "that another place explains it better: in the east hall of the tuning log fr079 the "
+        "floor plan shows the outline only, and 13 probations at the true place (0.01-0.2 m "
+        "off) failed on 3 rejected scans, with 0.00-0.04 of the beams through walls. Wrong "
+        "winners the tracker's rejections caught in the tuning trials either lost the "
+        "evidence (intel 7771, 20 m off) or were fixed by the single-scan bars, except one: "
+        "an alias 2.8 m along fr079's corridor won the evidence with the true place not "
+        "among the hypotheses, and its rejected scans let 0.24-0.43 of the beams through "
+        "walls. 0 = never held.",
+    )
     drive_travel: float = Field(
         1.0, ge=0, description="Evidence rule: the window spans at least this travel (m)."
     )

@@ -306,7 +306,7 @@ class GlobalShapeLocalizer(DriveSearch):
             if self._probation is not None:
                 # the probation fails where tracking would have collapsed
                 self._slide_check(r, a, est)
-                return self._probation_step(est, delta, collapsed)
+                return self._probation_step(est, delta, collapsed, r, a)
             if est.status == "lost" or collapsed:
                 speed = self.tracker.known_speed()
                 self._start_search(est.pose)

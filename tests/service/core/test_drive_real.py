@@ -101,3 +101,36 @@ def test_a_probation_that_slides_off_the_odometry_into_walls_is_put_back(tmp_pat
         loc._slide_check(r, a, near)
         assert "slide_reset" not in near.extras and "slide_violation" not in near.extras
     assert checked >= 3 and put_back == checked
+
+
+def test_a_winner_of_the_drive_is_held_through_rejected_scans_it_does_not_contradict(
+    tmp_path: Path,
+) -> None:
+    """fr079 scans 4401-4510, the east hall, which the floor plan draws as an outline: the
+    true place wins the evidence rule and goes on probation at scan 4482, then the tracker
+    rejects most scans (the plan explains a quarter of the returns). Those rejections no
+    longer fail the probation while the drive's evidence still names the place and the scans
+    do not run through walls (``GlobalConfig.probation_hold_violation``); before, the
+    probation failed on its third rejection (4486) and the next one too (4492). With holding
+    switched off (0) it fails again."""
+    md = load_map_file(DATA / "fr079.schematic.geojson", kind="schematic")
+    z = np.load(DATA / "fr079.4361-4510.npz")
+    first = 4401 - 4361
+    for hold in (None, 0.0):
+        loc = create_localizer("shape", md, None, cache_dir=tmp_path, search_budget_ms=50.0)
+        assert isinstance(loc, GlobalShapeLocalizer)
+        if hold is not None:
+            loc.gconfig = loc.gconfig.model_copy(update={"probation_hold_violation": hold})
+        held = failed = on_probation = 0
+        for i in range(first, len(z["ranges"])):
+            est = loc.update(z["ranges"][i], z["angles"][i], z["odom"][i])
+            assert est.status != "tracking", i  # the probation's 2 m end after the excerpt
+            held += "probation_held" in est.extras
+            failed += "probation_failed" in est.extras
+            if "probation" in est.extras and z["flag"][i]:
+                on_probation += 1
+                assert np.hypot(*(est.pose[:2] - z["reference"][i][:2])) < 0.3, i
+        if hold is None:
+            assert failed == 0 and held >= 10 and on_probation >= 20, (failed, held)
+        else:
+            assert failed >= 1 and held == 0, (failed, held)
