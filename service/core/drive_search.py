@@ -411,9 +411,10 @@ class DriveSearch:
             self.tracker.reset(dead, self._last_odom)
 
     def _probation_evidence(self, r: np.ndarray, a: np.ndarray) -> None:
-        """The drive's evidence goes on during a probation: this scan may become a keyframe,
-        and the kept tracks (the winner at its tracked pose among them) are scored on the
-        keyframes they lack, within the search's evidence share of the budget."""
+        """The drive's evidence goes on during the probation of a winner of the evidence rule
+        (only such a winner can be held, so only its probation pays for this): this scan may
+        become a keyframe, and the kept tracks (the winner at its tracked pose among them) are
+        scored on the keyframes they lack, within the search's evidence share of the budget."""
         g = self.gconfig
         odom_now = self._last_odom
         if odom_now is None or not g.search_budget_ms:
@@ -466,14 +467,16 @@ class DriveSearch:
         assert p is not None
         g = self.gconfig
         p.rejected += "rejected" in est.extras
+        drive_won = "drive_rule" in p.extras
         if delta is not None:
             p.left -= self._move_kept(delta)
-            self._probation_evidence(r, a)
+            if drive_won:
+                self._probation_evidence(r, a)
         struck = collapsed or p.rejected >= g.probation_rejects
         if (
             struck
             and delta is not None
-            and "drive_rule" in p.extras
+            and drive_won
             and g.probation_hold_violation > 0.0
             and self._drive_holds(p.track, est.extras)
             and self.tracker.violations(r, a, [est.pose])[0] <= g.probation_hold_violation
