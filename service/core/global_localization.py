@@ -172,6 +172,9 @@ class GlobalShapeLocalizer(DriveSearch):
         self.config = config or ShapeConfig.for_kind(map_data.kind)
         self.gconfig = gconfig or GlobalConfig.for_kind(map_data.kind)
         self.cache_dir = None if cache_dir is None else Path(cache_dir)
+        #: whether the budget grows with a scan's travel (GlobalConfig.budget_step); the
+        #: service turns it off while other robots share the worker (set_search_budget)
+        self._travel_scaled = True
         self.tracker = ShapeLocalizer(map_data, initial_pose, self.config)
         self._scan_odometry = ScanOdometry(self.config.motion.scan_odometry, self.config.motion)
         self._index: ViewIndex | None = None
@@ -222,13 +225,16 @@ class GlobalShapeLocalizer(DriveSearch):
             or self._since_fix < self.gconfig.settle_scans
         )
 
-    def set_search_budget(self, ms: float) -> None:
+    def set_search_budget(self, ms: float, travel_scaled: bool = True) -> None:
         """Set the per-scan work budget of a budgeted search (``GlobalConfig.
-        search_budget_ms``; a search without a budget stays whole). The service halves it
-        while other robots share this robot's worker."""
+        search_budget_ms``; a search without a budget stays whole) and whether a scan that
+        moved farther than ``GlobalConfig.budget_step`` gets more (``budget_max_scale``).
+        The service halves the budget and turns the scaling off while other robots share
+        this robot's worker (their scans queue behind this one's)."""
         g = self.gconfig
         if g.search_budget_ms is not None and g.search_budget_ms != ms:
             self.gconfig = g.model_copy(update={"search_budget_ms": float(ms)})
+        self._travel_scaled = bool(travel_scaled)
 
     @property
     def searching(self) -> bool:
@@ -264,6 +270,7 @@ class GlobalShapeLocalizer(DriveSearch):
         self._frames: list[evidence.Keyframe] = []  # budgeted: the drive's keyframes
         self._frame_key = 0
         self._candidates = 0  # poses the last finished search induced
+        self._scan_step = 0.0  # odometry travel (m) of the scan at hand (budget_step)
         #: reference ms of search work spent on the last scan (budgeted search; benchmarks)
         self.work_ms = 0.0
 
@@ -421,6 +428,7 @@ class GlobalShapeLocalizer(DriveSearch):
         rs, as_ = self._composite(r, a)
         P = scan_configuration(rs, as_, self.config.extraction())
         if g.search_budget_ms is not None:
+            self._scan_step = 0.0 if delta is None else float(np.hypot(delta[0], delta[1]))
             return self._search_budgeted(r, a, rs, as_, P, delta is not None)
         seeds = self._seeds() + self._anchor_seeds(delta is not None)
         res = global_search(self.index, rs, as_, self.config, g, seeds=seeds, P=P)
