@@ -284,10 +284,11 @@ class DriveSearch:
         return self._unresolved(best, amb, extras)
 
     def _scan_budget(self) -> float:
-        """This scan's work budget (reference ms): ``search_budget_ms``, times the scan's
-        odometry travel over ``budget_step`` when that is more, at most
-        ``budget_max_scale`` times (``GlobalConfig.budget_step``; 1 while the service has
-        turned the scaling off, and on a scan without odometry)."""
+        """This scan's work budget (reference ms): ``search_budget_ms`` times the whole
+        number of ``budget_step``s in the robot's step per scan (the median (checked)
+        odometry travel of its last searching scans), at least 1 and at most
+        ``budget_max_scale`` (``GlobalConfig.budget_step``; 1 while the service has turned
+        the scaling off, and without odometry)."""
         g = self.gconfig
         budget = float(g.search_budget_ms or 0.0)
         if g.budget_step <= 0.0 or not getattr(self, "_travel_scaled", True):
