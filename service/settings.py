@@ -51,9 +51,9 @@ class ServiceSettings(BaseModel):
     m, fr079 floor plan 13.7 -> 9.9 m; mit-csail metric within 15 m 80 -> 100 %). A robot
     gets the whole budget only while it is alone on its worker, and half of it while other
     robots share the worker (a 50 ms searching scan takes up to ~100 ms of wall time at p99
-    on a real metric map, too long for a robot queued behind it). Alone, a scan that moved k
-    whole ``GlobalConfig.budget_step`` (0.1 m) since the previous one gets k times the budget,
-    at most ``budget_max_scale`` (3) times: the search's rules count metres, so a fast robot
+    on a real metric map, too long for a robot queued behind it). Alone, a robot whose step
+    per scan holds k whole ``GlobalConfig.budget_step`` (0.1 m) gets k times the budget, at
+    most ``budget_max_scale`` (3) times: the search's rules count metres, so a fast robot
     (or one whose scans arrive seldom) would otherwise get less search per metre driven.
     Tracked robots do not queue behind searches at all with the search worker (below).
     With 20 tracked robots at 10 Hz on a 2-core machine, one robot searching back to back

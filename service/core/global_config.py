@@ -260,9 +260,10 @@ class GlobalConfig(BaseModel):
         0.1,
         ge=0,
         description="With a budget, the odometry travel (m) per scan that "
-        "``search_budget_ms`` is meant for: a scan that moved k whole such steps gets k times "
-        "the work, up to ``budget_max_scale`` times, so that the search's work per metre "
-        "does not fall with the robot's speed or rise with its scan interval. The decision "
+        "``search_budget_ms`` is meant for: a robot whose step per scan (the median travel of "
+        "its last 5 searching scans) holds k whole such steps gets k times the work per "
+        "scan, up to ``budget_max_scale`` times, so that the search's work per metre "
+        "does not fall as the robot drives faster or scans less often. The decision "
         "counts metres (keyframes every ``evidence_spacing``, the window ``evidence_span``, "
         "the probation ``probation_travel``) while the budget counts scans, so a robot that "
         "drives twice as far per scan got half the search per metre and needed about twice "
