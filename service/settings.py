@@ -51,15 +51,12 @@ class ServiceSettings(BaseModel):
     m, fr079 floor plan 13.7 -> 9.9 m; mit-csail metric within 15 m 80 -> 100 %). A robot
     gets the whole budget only while it is alone on its worker, and half of it while other
     robots share the worker (a 50 ms searching scan takes up to ~100 ms of wall time at p99
-    on a real metric map, too long for a robot queued behind it). Alone, a robot whose step
-    per scan holds k whole ``GlobalConfig.budget_step`` (0.1 m) gets k times the budget, at
-    most ``budget_max_scale`` (3) times: the search's rules count metres, so a fast robot
-    (or one whose scans arrive seldom) would otherwise get less search per metre driven.
-    Tracked robots do not queue behind searches at all with the search worker (below).
-    With 20 tracked robots at 10 Hz on a 2-core machine, one robot searching back to back
-    added +14 / +16 ms to their p99 at 25 and +5 ms at 12 on an earlier, slower machine,
-    and +2.5 to +6.6 ms (median +3.4) at 25 and +3.5 to +4.4 ms at 15 on the ~1.6x faster
-    one of 2026-11-24
+    on a real metric map, too long for a robot queued behind it). Tracked robots do not
+    queue behind searches at all with the search
+    worker (below). With 20 tracked robots at 10 Hz on a 2-core machine, one robot searching
+    back to back added +14 / +16 ms to their p99 at 25 and +5 ms at 12 on an earlier, slower
+    machine, and +2.5 to +6.6 ms (median +3.4) at 25 and +3.5 to +4.4 ms at 15 on the
+    ~1.6x faster one of 2026-11-24
     (``bench/bench_service.py --robots 20 --searching 0,1 --search-budget-ms 15``); a lower
     budget needs about twice the scans to a fix. ``search_worker`` (with
     ``workers`` >= 1) adds one worker process, niced by ``search_worker_nice``, that takes

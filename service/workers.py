@@ -272,12 +272,8 @@ class WorkerCore:
         set_budget = getattr(r.localizer, "set_search_budget", None)
         if self.search_budget_ms is not None and set_budget is not None:
             # the whole budget only while no other robot's scan can queue behind this one
-            # (and then a scan that moved farther gets more: GlobalConfig.budget_step)
             alone = len(self.robots) == 1
-            if alone:
-                set_budget(self.search_budget_ms, travel_scaled=True)
-            else:
-                set_budget(0.5 * self.search_budget_ms, travel_scaled=False)
+            set_budget(self.search_budget_ms if alone else 0.5 * self.search_budget_ms)
         est = r.localizer.update(ranges, angles, odom)
         if odom is not None:
             r.last_odom = np.asarray(odom, dtype=np.float64).copy()

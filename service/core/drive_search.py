@@ -70,7 +70,6 @@ class DriveSearch:
     _last_odom: np.ndarray | None
     work_ms: float
     _search_turn: bool
-    _scan_step: float
     _frames: list[ev_mod.Keyframe]
     _probation: Probation | None
     _searching: bool
@@ -115,7 +114,7 @@ class DriveSearch:
            tracker confirms it on the scan at hand.
         """
         g = self.gconfig
-        budget = self._scan_budget()
+        budget = float(g.search_budget_ms or 0.0)
         fused = len(self._history) > 1
         odom_now = self._last_odom if odometry else None
         if odom_now is not None and ev_mod.keyframe_due(self._frames, odom_now, self._travel, g):
@@ -282,23 +281,6 @@ class DriveSearch:
             guess = Track(self._anchor.copy(), best.costs, best.hyp, best.wins)
             return self._unresolved(guess, amb, extras)
         return self._unresolved(best, amb, extras)
-
-    def _scan_budget(self) -> float:
-        """This scan's work budget (reference ms): ``search_budget_ms`` times the whole
-        number of ``budget_step``s in the robot's step per scan (the median (checked)
-        odometry travel of its last searching scans), at least 1 and at most
-        ``budget_max_scale`` (``GlobalConfig.budget_step``; 1 while the service has turned
-        the scaling off, and without odometry)."""
-        g = self.gconfig
-        budget = float(g.search_budget_ms or 0.0)
-        if g.budget_step <= 0.0 or not getattr(self, "_travel_scaled", True):
-            return budget
-        # whole multiples: a robot that moves less than two steps per scan keeps exactly the
-        # configured budget (a fractional scale of ~1.04 on the tuning buildings' floor-plan
-        # tours, 0.104 m per scan, only shifted the search's timing: 179 of 400 starts moved,
-        # both ways, one of them to a wrong first fix)
-        scale = min(max(np.floor(self._scan_step / g.budget_step + 1e-9), 1.0), g.budget_max_scale)
-        return budget * float(scale)
 
     def _evidence_won(self, lead: Track, extras: dict[str, float]) -> bool:
         """The evidence rule (``GlobalConfig.evidence_min_frames``) for the track that best

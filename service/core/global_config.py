@@ -256,30 +256,6 @@ class GlobalConfig(BaseModel):
         "service sets it (``ServiceSettings.search_budget_ms``) so that one searching robot "
         "cannot hold a worker much longer than a tracked scan takes.",
     )
-    budget_step: float = Field(
-        0.1,
-        ge=0,
-        description="With a budget, the odometry travel (m) per scan that "
-        "``search_budget_ms`` is meant for: a robot whose step per scan (the median travel of "
-        "its last 5 searching scans) holds k whole such steps gets k times the work per "
-        "scan, up to ``budget_max_scale`` times, so that the search's work per metre "
-        "does not fall as the robot drives faster or scans less often. The decision "
-        "counts metres (keyframes every ``evidence_spacing``, the window ``evidence_span``, "
-        "the probation ``probation_travel``) while the budget counts scans, so a robot that "
-        "drives twice as far per scan got half the search per metre and needed about twice "
-        "the travel to a fix: the tuning log fr079 fed every 3rd scan (0.3 m per scan) went "
-        "from 85 to 67.5 % of its floor-plan starts fixed within 15 m. 0.1 m is fr079's "
-        "median step while moving (0.45 m/s at 4.8 Hz), on which the budget of 50 was "
-        "chosen. 0 = a fixed budget per scan.",
-    )
-    budget_max_scale: float = Field(
-        3.0,
-        ge=1,
-        description="See budget_step: at most this many times ``search_budget_ms`` per scan "
-        "(bounds one scan's wall time, and the work an odometry jump can claim). The "
-        "service applies the scaling only while the robot is alone on its worker "
-        "(:meth:`~service.core.global_localization.GlobalShapeLocalizer.set_search_budget`).",
-    )
     twin_shortlist: int = Field(
         48,
         ge=0,

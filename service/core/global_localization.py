@@ -126,14 +126,6 @@ def _position_sigma(est: Estimate) -> float:
     return float(np.sqrt(max(0.0, float(np.linalg.eigvalsh(0.5 * (c + c.T))[-1]))))
 
 
-#: Searching scans whose median odometry travel is the robot's step per scan
-#: (``GlobalConfig.budget_step``): a single long step, a scan after a gap in the log, does
-#: not raise the budget (intel has 1.8 % of such steps of 0.2 m or more while it drives
-#: 0.06 m per scan; scaled on single steps, two of its floor-plan starts on the drive bench
-#: were fixed wrong first: 7087, a place 10 m off, and 12318).
-_STEP_SCANS = 5
-
-
 class GlobalShapeLocalizer(DriveSearch):
     """Shape-based localisation with global search (implements
     :class:`service.core.types.Localizer`, method ``shape``).
@@ -180,9 +172,6 @@ class GlobalShapeLocalizer(DriveSearch):
         self.config = config or ShapeConfig.for_kind(map_data.kind)
         self.gconfig = gconfig or GlobalConfig.for_kind(map_data.kind)
         self.cache_dir = None if cache_dir is None else Path(cache_dir)
-        #: whether the budget grows with a scan's travel (GlobalConfig.budget_step); the
-        #: service turns it off while other robots share the worker (set_search_budget)
-        self._travel_scaled = True
         self.tracker = ShapeLocalizer(map_data, initial_pose, self.config)
         self._scan_odometry = ScanOdometry(self.config.motion.scan_odometry, self.config.motion)
         self._index: ViewIndex | None = None
@@ -233,16 +222,13 @@ class GlobalShapeLocalizer(DriveSearch):
             or self._since_fix < self.gconfig.settle_scans
         )
 
-    def set_search_budget(self, ms: float, travel_scaled: bool = True) -> None:
+    def set_search_budget(self, ms: float) -> None:
         """Set the per-scan work budget of a budgeted search (``GlobalConfig.
-        search_budget_ms``; a search without a budget stays whole) and whether a scan that
-        moved farther than ``GlobalConfig.budget_step`` gets more (``budget_max_scale``).
-        The service halves the budget and turns the scaling off while other robots share
-        this robot's worker (their scans queue behind this one's)."""
+        search_budget_ms``; a search without a budget stays whole). The service halves it
+        while other robots share this robot's worker."""
         g = self.gconfig
         if g.search_budget_ms is not None and g.search_budget_ms != ms:
             self.gconfig = g.model_copy(update={"search_budget_ms": float(ms)})
-        self._travel_scaled = bool(travel_scaled)
 
     @property
     def searching(self) -> bool:
@@ -278,8 +264,6 @@ class GlobalShapeLocalizer(DriveSearch):
         self._frames: list[evidence.Keyframe] = []  # budgeted: the drive's keyframes
         self._frame_key = 0
         self._candidates = 0  # poses the last finished search induced
-        self._scan_step = 0.0  # the robot's odometry travel (m) per scan (budget_step)
-        self._steps: list[float] = []  # the last _STEP_SCANS searching scans' travel (m)
         #: reference ms of search work spent on the last scan (budgeted search; benchmarks)
         self.work_ms = 0.0
 
@@ -437,11 +421,6 @@ class GlobalShapeLocalizer(DriveSearch):
         rs, as_ = self._composite(r, a)
         P = scan_configuration(rs, as_, self.config.extraction())
         if g.search_budget_ms is not None:
-            if delta is not None:
-                steps = getattr(self, "_steps", [])[-(_STEP_SCANS - 1) :]
-                self._steps = [*steps, float(np.hypot(*delta[:2]))]
-            steps = getattr(self, "_steps", [])
-            self._scan_step = float(np.median(steps)) if steps else 0.0
             return self._search_budgeted(r, a, rs, as_, P, delta is not None)
         seeds = self._seeds() + self._anchor_seeds(delta is not None)
         res = global_search(self.index, rs, as_, self.config, g, seeds=seeds, P=P)

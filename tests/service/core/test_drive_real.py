@@ -7,7 +7,6 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-import pytest
 
 from service.core.drive_search import Probation
 from service.core.factory import create_localizer
@@ -135,42 +134,3 @@ def test_a_winner_of_the_drive_is_held_through_rejected_scans_it_does_not_contra
             assert failed == 0 and held >= 10 and on_probation >= 20, (failed, held)
         else:
             assert failed >= 1 and held == 0, (failed, held)
-
-
-def test_a_scan_that_moved_farther_gets_a_larger_search_budget(tmp_path: Path) -> None:
-    """``GlobalConfig.budget_step``: the search's work per scan is ``search_budget_ms`` times
-    the scan's odometry travel over ``budget_step`` where that is more, at most
-    ``budget_max_scale`` times. Fed every 3rd scan of fr079 1174-1329 (~0.3 m per scan) a
-    searching scan spends more than the plain budget; with the scaling turned off (the
-    service does so while other robots share the worker) none does."""
-    md = load_map_file(DATA / "fr079.schematic.geojson", kind="schematic")
-    z = np.load(DATA / "fr079.1174-1329.npz")
-    most: dict[bool, float] = {}
-    for scaled in (True, False):
-        loc = create_localizer("shape", md, None, cache_dir=tmp_path, search_budget_ms=50.0)
-        assert isinstance(loc, GlobalShapeLocalizer)
-        loc.set_search_budget(50.0, travel_scaled=scaled)
-        works = []
-        for i in range(0, 90, 3):
-            searching = loc.searching
-            loc.update(z["ranges"][i], z["angles"][i], z["odom"][i])
-            if searching:
-                works.append(loc.work_ms)
-        most[scaled] = max(works)
-        # one step of work may overrun the budget (as test_search_worker allows)
-        assert most[scaled] <= (150.0 if scaled else 50.0) + 15.0, (scaled, most)
-    assert most[True] > 50.0 + 15.0, most
-    # the rule itself
-    g = loc.gconfig
-    loc.set_search_budget(50.0, travel_scaled=True)
-    # whole multiples of budget_step, at most budget_max_scale
-    steps = ((0.0, 50.0), (0.05, 50.0), (0.15, 50.0), (0.2, 100.0), (0.29, 100.0), (0.3, 150.0))
-    for step, want in (*steps, (1.0, 150.0)):
-        loc._scan_step = step
-        assert loc._scan_budget() == pytest.approx(want), step
-    loc._scan_step = 0.2
-    loc.set_search_budget(25.0, travel_scaled=False)
-    assert loc._scan_budget() == 25.0
-    loc.set_search_budget(50.0, travel_scaled=True)
-    loc.gconfig = g.model_copy(update={"budget_step": 0.0})
-    assert loc._scan_budget() == 50.0
