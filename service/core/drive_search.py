@@ -117,23 +117,13 @@ class DriveSearch:
         budget = float(g.search_budget_ms or 0.0)
         fused = len(self._history) > 1
         odom_now = self._last_odom if odometry else None
-        if odom_now is not None and ev_mod.keyframe_due(self._frames, odom_now, self._travel, g):
-            kf = ev_mod.make_keyframe(self._frame_key, r, a, odom_now, self._travel, g)
-            self._frame_key += 1
-            self._frames = ev_mod.window([*self._frames, kf], g)
+        if odom_now is not None:
+            self._add_keyframe(r, a, odom_now)
         spent = hyp_mod.rescore(
             self.index, self._tracks, rs, as_, P, self.config, g, budget * g.rescore_share, odometry
         )
         if odom_now is not None:
-            spent += ev_mod.backfill(
-                self.index,
-                self._tracks,
-                self._frames,
-                odom_now,
-                self.config,
-                g,
-                budget * g.evidence_share,
-            )
+            spent += self._backfill(odom_now, budget * g.evidence_share)
         extras: dict[str, float] = {}
         twin_done, twin = False, None
         confirming = self._confirm_next
@@ -419,18 +409,23 @@ class DriveSearch:
         odom_now = self._last_odom
         if odom_now is None or not g.search_budget_ms:
             return
+        self._add_keyframe(r, a, odom_now)
+        self.work_ms = self._backfill(odom_now, float(g.search_budget_ms) * g.evidence_share)
+
+    def _add_keyframe(self, r: np.ndarray, a: np.ndarray, odom_now: np.ndarray) -> None:
+        """This scan becomes a keyframe of the drive's evidence when it is due
+        (:func:`service.core.evidence.keyframe_due`); the window keeps the recent ones."""
+        g = self.gconfig
         if ev_mod.keyframe_due(self._frames, odom_now, self._travel, g):
             kf = ev_mod.make_keyframe(self._frame_key, r, a, odom_now, self._travel, g)
             self._frame_key += 1
             self._frames = ev_mod.window([*self._frames, kf], g)
-        self.work_ms = ev_mod.backfill(
-            self.index,
-            self._tracks,
-            self._frames,
-            odom_now,
-            self.config,
-            g,
-            float(g.search_budget_ms) * g.evidence_share,
+
+    def _backfill(self, odom_now: np.ndarray, limit: float) -> float:
+        """The kept tracks scored on the window's keyframes they lack, within ``limit``
+        reference ms (:func:`service.core.evidence.backfill`); returns the work spent."""
+        return ev_mod.backfill(
+            self.index, self._tracks, self._frames, odom_now, self.config, self.gconfig, limit
         )
 
     def _drive_holds(self, track: Track, extras: dict[str, float]) -> bool:
