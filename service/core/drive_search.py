@@ -465,7 +465,7 @@ class DriveSearch:
         drive_won = "drive_rule" in p.extras
         if delta is not None:
             p.left -= self._move_kept(delta)
-            if drive_won:
+            if drive_won or g.probation_verdict:
                 self._probation_evidence(r, a)
         struck = collapsed or p.rejected >= g.probation_rejects
         if (
@@ -479,6 +479,14 @@ class DriveSearch:
             struck = False
             est.extras["probation_held"] = 1.0
         failed = struck or est.status == "lost" or delta is None
+        if (
+            not failed
+            and p.left <= 0.0
+            and g.probation_verdict
+            and ev_mod.beaten(p.track, self._tracks, self._frames, g)
+        ):
+            failed = True
+            p.extras["probation_beaten"] = 1.0
         if failed:
             self._probation = None
             self._searching = True
@@ -487,6 +495,8 @@ class DriveSearch:
             self.tracker.reset(None)
             p.track.wins = 0
             extras = {"probation_failed": 1.0, "hypotheses": float(len(self._tracks))}
+            if "probation_beaten" in p.extras:
+                extras["probation_beaten"] = 1.0
             amb = ambiguity([t.hyp for t in self._tracks], self.gconfig)
             return self._unresolved(self._tracks[0], amb, extras)
         if p.left > 0.0:

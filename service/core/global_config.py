@@ -402,6 +402,13 @@ class GlobalConfig(BaseModel):
         "among the hypotheses, and its rejected scans let 0.24-0.43 of the beams through "
         "walls. 0 = never held.",
     )
+    probation_verdict: bool = Field(
+        False,
+        description="Every probation keeps up the drive's evidence (not only an evidence-rule "
+        "winner's), and one whose winner a distinct alternative explains the drive's "
+        "keyframes better than at the probation's end fails there "
+        "(:meth:`service.core.drive_search.DriveSearch._probation_step`).",
+    )
     drive_travel: float = Field(
         1.0, ge=0, description="Evidence rule: the window spans at least this travel (m)."
     )
@@ -479,5 +486,6 @@ class GlobalConfig(BaseModel):
                 violation_margin=0.5,
                 probation_travel=2.0,
                 fix_min_found=2,
+                probation_verdict=True,
             )
         raise LocalizationError(f"unknown map kind {kind!r}; expected metric or schematic")
