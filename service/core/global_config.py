@@ -404,10 +404,18 @@ class GlobalConfig(BaseModel):
     )
     probation_verdict: bool = Field(
         False,
-        description="Every probation keeps up the drive's evidence (not only an evidence-rule "
-        "winner's), and one whose winner a distinct alternative explains the drive's "
-        "keyframes better than at the probation's end fails there "
-        "(:meth:`service.core.drive_search.DriveSearch._probation_step`).",
+        description="Every probation keeps up the drive's evidence, not only an evidence-rule "
+        "winner's (probation_hold_violation), and a winner that a distinct alternative "
+        "explains the drive's keyframes better than (evidence_drop_frames of them in common) "
+        "when its probation's travel is done fails there; the search goes on "
+        "(:meth:`service.core.drive_search.DriveSearch._probation_step`). A winner of the "
+        "single-scan rules may lead the drive by a hair when it is confirmed (it only must "
+        "not be beaten, see drive_margin): the 2 m of keyframes the probation adds are what "
+        "tells it from the true place. Tuning logs, floor plan, budget 45 ms: fr079 2871 "
+        "(an alias 18 m off, probation passed without a rejected scan) and intel 12318 (3.5 m "
+        "/ 80 degrees off, leading by 0.02 when confirmed) were published wrong; both were "
+        "beaten at the probation's end and fixed at the true place 3 m later. Schematic: "
+        "on. Metric maps have no probation.",
     )
     drive_travel: float = Field(
         1.0, ge=0, description="Evidence rule: the window spans at least this travel (m)."

@@ -134,3 +134,37 @@ def test_a_winner_of_the_drive_is_held_through_rejected_scans_it_does_not_contra
             assert failed == 0 and held >= 10 and on_probation >= 20, (failed, held)
         else:
             assert failed >= 1 and held == 0, (failed, held)
+
+
+def test_a_probation_whose_winner_the_drive_explains_worse_fails_at_its_end(
+    tmp_path: Path,
+) -> None:
+    """fr079 scans 2871-2985 (floor plan) at a 45 ms search budget: a single scan's rules fix a
+    place 18 m off (it leads the drive's keyframes by less than ``drive_margin``), and its
+    2 m probation, tracked without a rejected scan, would publish it at scan 2946. The
+    probation keeps up the drive's evidence, on which the true place explains the keyframes
+    better by its end, so it fails there (``GlobalConfig.probation_verdict``) and the true
+    place is fixed by the evidence rule 3 m later. With the verdict off the wrong place is
+    published."""
+    md = load_map_file(DATA / "fr079.schematic.geojson", kind="schematic")
+    z = np.load(DATA / "fr079.2871-2985.npz")
+    for verdict in (True, False):
+        loc = create_localizer("shape", md, None, cache_dir=tmp_path, search_budget_ms=45.0)
+        assert isinstance(loc, GlobalShapeLocalizer)
+        assert loc.gconfig.probation_verdict
+        loc.gconfig = loc.gconfig.model_copy(update={"probation_verdict": verdict})
+        beaten, wrong, fix = 0, 0, None
+        for i in range(len(z["ranges"])):
+            est = loc.update(z["ranges"][i], z["angles"][i], z["odom"][i])
+            beaten += "probation_beaten" in est.extras
+            if est.status == "tracking" and z["flag"][i]:
+                ref = z["reference"][i]
+                ok = np.hypot(*(est.pose[:2] - ref[:2])) < 0.5 and abs(
+                    wrap_angle(float(est.pose[2] - ref[2]))
+                ) < np.deg2rad(10.0)
+                wrong += not ok
+                fix = i if fix is None and ok else fix
+        if verdict:
+            assert beaten == 1 and wrong == 0 and fix is not None, (beaten, wrong, fix)
+        else:
+            assert beaten == 0 and wrong > 0, (beaten, wrong)
