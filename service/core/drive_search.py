@@ -483,6 +483,7 @@ class DriveSearch:
             not failed
             and p.left <= 0.0
             and g.probation_verdict
+            and not drive_won
             and ev_mod.beaten(p.track, self._tracks, self._frames, g)
         ):
             failed = True
