@@ -401,10 +401,11 @@ class DriveSearch:
             self.tracker.reset(dead, self._last_odom)
 
     def _probation_evidence(self, r: np.ndarray, a: np.ndarray) -> None:
-        """The drive's evidence goes on during the probation of a winner of the evidence rule
-        (only such a winner can be held, so only its probation pays for this): this scan may
-        become a keyframe, and the kept tracks (the winner at its tracked pose among them) are
-        scored on the keyframes they lack, within the search's evidence share of the budget."""
+        """The drive's evidence goes on during a probation (a winner of the evidence rule can
+        be held on it, a winner of the single-scan rules is judged on it at the end): this
+        scan may become a keyframe, and the kept tracks (the winner at its tracked pose among
+        them) are scored on the keyframes they lack, within the search's evidence share of
+        the budget."""
         g = self.gconfig
         odom_now = self._last_odom
         if odom_now is None or not g.search_budget_ms:
@@ -457,7 +458,9 @@ class DriveSearch:
         evidence, which goes on during the probation (:meth:`_probation_evidence`), still
         names it and the scan does not contradict it (``GlobalConfig.probation_hold_violation``);
         once the rejections have reached the bar, every later scan of the probation must hold
-        so."""
+        so. A winner of the single-scan rules fails at the probation's end if a distinct
+        alternative then explains the drive's keyframes, those of the probation included,
+        better (``GlobalConfig.probation_verdict``)."""
         p = self._probation
         assert p is not None
         g = self.gconfig

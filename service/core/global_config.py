@@ -404,18 +404,21 @@ class GlobalConfig(BaseModel):
     )
     probation_verdict: bool = Field(
         False,
-        description="Every probation keeps up the drive's evidence, not only an evidence-rule "
-        "winner's (probation_hold_violation), and a winner that a distinct alternative "
-        "explains the drive's keyframes better than (evidence_drop_frames of them in common) "
-        "when its probation's travel is done fails there; the search goes on "
-        "(:meth:`service.core.drive_search.DriveSearch._probation_step`). A winner of the "
-        "single-scan rules may lead the drive by a hair when it is confirmed (it only must "
-        "not be beaten, see drive_margin): the 2 m of keyframes the probation adds are what "
-        "tells it from the true place. Tuning logs, floor plan, budget 45 ms: fr079 2871 "
-        "(an alias 18 m off, probation passed without a rejected scan) and intel 12318 (3.5 m "
-        "/ 80 degrees off, leading by 0.02 when confirmed) were published wrong; both were "
-        "beaten at the probation's end and fixed at the true place 3 m later. Schematic: "
-        "on. Metric maps have no probation.",
+        description="The probation of a winner of the single-scan rules keeps up the drive's "
+        "evidence too (an evidence-rule winner's always does, probation_hold_violation), and "
+        "fails when its travel is done if a distinct alternative then explains the drive's "
+        "keyframes better (evidence_drop_frames of them in common); the search goes on "
+        "(:meth:`service.core.drive_search.DriveSearch._probation_step`). Such a winner "
+        "only had to be not beaten on the drive when it was confirmed, and may lead by a "
+        "hair: the 2 m of keyframes the probation adds are what can tell it from the true "
+        "place. Tuning logs, floor plan, 45 ms budget: fr079 2871 (a place 18 m off, "
+        "probation passed without a rejected scan) and intel 12318 (3.5 m / 80 degrees off, "
+        "leading by 0.02 when confirmed) were published wrong; both are beaten at the "
+        "probation's end and fixed at the true place 2-3 m later. Not for a winner of the "
+        "evidence rule: its 6 m window slides during the probation past what told it apart "
+        "(fr079 fed every 3rd scan, starts 1174 and 1201: the true place won by 0.18, and an "
+        "alias 31 m away that fits the corridor's scans better beat it at the probation's "
+        "end). Schematic: on. Metric maps have no probation.",
     )
     drive_travel: float = Field(
         1.0, ge=0, description="Evidence rule: the window spans at least this travel (m)."

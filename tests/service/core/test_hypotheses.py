@@ -6,14 +6,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from service.core import evidence as ev
 from service.core import global_search as gs
 from service.core import hypotheses as hy
 from service.core.configuration import scan_configuration
+from service.core.drive_search import Probation
 from service.core.factory import create_localizer
 from service.core.global_config import GlobalConfig
 from service.core.global_localization import GlobalShapeLocalizer, load_or_build_index
 from service.core.localizer import ShapeConfig
-from service.core.types import MapData, wrap_angle
+from service.core.types import Estimate, MapData, wrap_angle
 from service.core.view_index import build_index
 from sim_publisher.laser import LaserSimulator
 from sim_publisher.scenario import make_setup
@@ -340,3 +342,44 @@ def test_a_probation_survives_a_move_to_another_worker() -> None:
         runs.append(out)
     assert runs[0] == runs[1]
     assert ("tracking" in [o[0] for o in runs[0]]) and runs[0][0][0] == "initializing"
+
+
+def _judged_probation(
+    md: MapData, scan: tuple[np.ndarray, np.ndarray], extras: dict[str, float], alt_cost: float
+) -> Estimate:
+    """The last scan of a probation (0.05 m left, a 0.1 m step, the tracker accepting it)
+    whose winner scored 0.5 on each of 4 keyframes and a distinct alternative 5 m away
+    ``alt_cost``; no budget, so the evidence is what is given here."""
+    loc = GlobalShapeLocalizer(md, None, gconfig=GlobalConfig.for_kind("schematic"))
+    frames = [
+        ev.Keyframe(k, np.ones(3), np.zeros(3), np.ones((3, 2)), np.zeros(3), 0.5 * k)
+        for k in range(4)
+    ]
+    tracks = []
+    for x, c in ((0.0, 0.5), (5.0, alt_cost)):
+        pose = np.array([x, 0.0, 0.0])
+        t = hy.Track(pose, [c], gs.Hypothesis(pose=pose.copy(), cost=c))
+        t.ev = {f.key: c for f in frames}
+        tracks.append(t)
+    loc._frames, loc._tracks, loc._searching = frames, tracks, False
+    loc._probation = Probation(tracks[0], 0.05, 0.0, dict(extras))
+    est = Estimate(pose=np.zeros(3), status="tracking", score=0.9, extras={})
+    return loc._probation_step(est, np.array([0.1, 0.0, 0.0]), False, *scan)
+
+
+def test_a_single_scan_winner_the_drive_explains_worse_fails_at_its_probation_end() -> None:
+    """``GlobalConfig.probation_verdict``: at the end of the probation of a winner of the
+    single-scan rules, a distinct alternative with the lower mean cost on the drive's
+    keyframes fails it and the search goes on; an alternative that explains them worse does
+    not, and a winner of the evidence rule is not judged so (its window slides past what
+    told it apart; fr079 every 3rd scan, starts 1174 / 1201)."""
+    su = make_setup(2)
+    scan = su.scan(250)
+    beaten = _judged_probation(su.map_data, scan, {}, alt_cost=0.4)
+    assert beaten.status != "tracking"
+    assert beaten.extras.get("probation_failed") == 1.0
+    assert beaten.extras.get("probation_beaten") == 1.0
+    ahead = _judged_probation(su.map_data, scan, {}, alt_cost=0.6)
+    assert ahead.status == "tracking" and ahead.extras.get("probation_passed") == 1.0
+    drive = _judged_probation(su.map_data, scan, {"drive_rule": 1.0}, alt_cost=0.4)
+    assert drive.status == "tracking" and drive.extras.get("probation_passed") == 1.0
