@@ -482,16 +482,14 @@ class DriveSearch:
             struck = False
             est.extras["probation_held"] = 1.0
         failed = struck or est.status == "lost" or delta is None
-        if (
+        beaten = (
             not failed
             and p.left <= 0.0
             and g.probation_verdict
             and not drive_won
             and ev_mod.beaten(p.track, self._tracks, self._frames, g)
-        ):
-            failed = True
-            p.extras["probation_beaten"] = 1.0
-        if failed:
+        )
+        if failed or beaten:
             self._probation = None
             self._searching = True
             self._history = []
@@ -499,7 +497,7 @@ class DriveSearch:
             self.tracker.reset(None)
             p.track.wins = 0
             extras = {"probation_failed": 1.0, "hypotheses": float(len(self._tracks))}
-            if "probation_beaten" in p.extras:
+            if beaten:
                 extras["probation_beaten"] = 1.0
             amb = ambiguity([t.hyp for t in self._tracks], self.gconfig)
             return self._unresolved(self._tracks[0], amb, extras)
