@@ -383,3 +383,37 @@ def test_a_single_scan_winner_the_drive_explains_worse_fails_at_its_probation_en
     assert ahead.status == "tracking" and ahead.extras.get("probation_passed") == 1.0
     drive = _judged_probation(su.map_data, scan, {"drive_rule": 1.0}, alt_cost=0.4)
     assert drive.status == "tracking" and drive.extras.get("probation_passed") == 1.0
+
+
+def test_a_drive_winner_is_held_while_no_alternative_has_caught_up() -> None:
+    """The hold of an evidence-rule winner's probation through rejected scans is a
+    hysteresis: winning took ``drive_margin`` (0.15), keeping it takes a margin above 0 over
+    every distinct alternative, within ``drive_max_cost`` (fr079 start 4361 failed 0.1 m
+    before its probation's end on a margin of 0.145)."""
+    su = make_setup(2)
+    g = GlobalConfig.for_kind("schematic")
+    assert g.drive_margin == 0.15
+    frames = [
+        ev.Keyframe(k, np.ones(3), np.zeros(3), np.ones((3, 2)), np.zeros(3), 0.5 * k)
+        for k in range(4)
+    ]
+
+    def holds(win_cost: float, alt_cost: float) -> bool:
+        loc = GlobalShapeLocalizer(su.map_data, None, gconfig=g)
+        tracks = []
+        for x, c in ((0.0, win_cost), (5.0, alt_cost)):
+            pose = np.array([x, 0.0, 0.0])
+            t = hy.Track(pose, [c], gs.Hypothesis(pose=pose.copy(), cost=c))
+            t.ev = {f.key: c for f in frames}
+            tracks.append(t)
+        loc._frames, loc._tracks = frames, tracks
+        extras: dict[str, float] = {}
+        out = loc._drive_holds(tracks[0], extras)
+        assert extras["drive_margin"] == pytest.approx(alt_cost - win_cost)
+        return out
+
+    assert holds(0.5, 0.6)  # 0.1 ahead: too little to win, enough to keep
+    assert holds(0.5, 0.51)
+    assert not holds(0.5, 0.5)  # caught up
+    assert not holds(0.5, 0.45)  # overtaken
+    assert not holds(0.9, 1.2)  # explains the drive too poorly (drive_max_cost 0.85)
