@@ -434,9 +434,10 @@ class DriveSearch:
         name ``track``: it explains them better than every distinct alternative (a margin
         above 0), within ``drive_max_cost``. A hysteresis: winning took ``drive_margin``;
         keeping a winner through rejected scans takes only that no alternative has caught
-        up. Requiring the full margin failed the true place at the end of its probation on
-        the tuning log fr079 (floor plan, start 4361: 0.1 m of its 2 m left, margin 0.145
-        after 0.15-0.18 all along, never fixed in 20 m)."""
+        up. Requiring the full margin failed the true place's probation on the tuning log
+        fr079 (floor plan, start 4109, 50 ms: held through rejections at a margin of 0.162,
+        failed when it dipped to 0.1497, never fixed in 20 m; held, it passes with margins of
+        0.11 and more and is fixed at 16.3 m)."""
         if not self._frames or track not in self._tracks:
             return False
         g = self.gconfig

@@ -388,8 +388,8 @@ def test_a_single_scan_winner_the_drive_explains_worse_fails_at_its_probation_en
 def test_a_drive_winner_is_held_while_no_alternative_has_caught_up() -> None:
     """The hold of an evidence-rule winner's probation through rejected scans is a
     hysteresis: winning took ``drive_margin`` (0.15), keeping it takes a margin above 0 over
-    every distinct alternative, within ``drive_max_cost`` (fr079 start 4361 failed 0.1 m
-    before its probation's end on a margin of 0.145)."""
+    every distinct alternative, within ``drive_max_cost`` (fr079 start 4109's true place
+    failed its probation when the margin dipped from 0.162 to 0.1497)."""
     su = make_setup(2)
     g = GlobalConfig.for_kind("schematic")
     assert g.drive_margin == 0.15
