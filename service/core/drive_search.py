@@ -272,9 +272,10 @@ class DriveSearch:
             return self._unresolved(guess, amb, extras)
         return self._unresolved(best, amb, extras)
 
-    def _evidence_won(self, lead: Track, extras: dict[str, float]) -> bool:
+    def _evidence_won(self, lead: Track, extras: dict[str, float], keep: bool = False) -> bool:
         """The evidence rule (``GlobalConfig.evidence_min_frames``) for the track that best
-        explains the drive's keyframes."""
+        explains the drive's keyframes; with ``keep``, the bar for keeping a winner instead
+        (a margin above 0, :meth:`_drive_holds`)."""
         g = self.gconfig
         frames = self._frames
         if frames[-1].travel - frames[0].travel < g.drive_travel:
@@ -288,7 +289,8 @@ class DriveSearch:
         # the median: the leader must explain most of the drive, not only its last metres
         # (tuning building 7: a translated copy of a corridor 28 m away fitted the last 4 of
         # 20 keyframes, cost 1.0 on the rest, mean 0.82 against alternatives at 1.0)
-        return max(mean, med) <= g.drive_max_cost and margin >= g.drive_margin
+        won = margin > 0.0 if keep else margin >= g.drive_margin
+        return max(mean, med) <= g.drive_max_cost and won
 
     def _twin_result(
         self, twin: Hypothesis | None, max_amb: float, extras: dict[str, float]
@@ -440,15 +442,7 @@ class DriveSearch:
         0.11 and more and is fixed at 16.3 m)."""
         if not self._frames or track not in self._tracks:
             return False
-        g = self.gconfig
-        frames = self._frames
-        if frames[-1].travel - frames[0].travel < g.drive_travel:
-            return False
-        mean, _ = ev_mod.evidence(track, frames)
-        med = ev_mod.median(track, frames)
-        margin = ev_mod.evidence_margin(track, self._tracks, frames, g)
-        extras["drive_margin"] = max(-9.0, min(margin, 9.0))
-        return max(mean, med) <= g.drive_max_cost and margin > 0.0
+        return self._evidence_won(track, extras, keep=True)
 
     def _probation_step(
         self,
