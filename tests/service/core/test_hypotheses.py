@@ -344,6 +344,22 @@ def test_a_probation_survives_a_move_to_another_worker() -> None:
     assert ("tracking" in [o[0] for o in runs[0]]) and runs[0][0][0] == "initializing"
 
 
+def _two_tracks(win_cost: float, alt_cost: float) -> tuple[list[ev.Keyframe], list[hy.Track]]:
+    """4 keyframes over 1.5 m of travel, a winner at the origin scoring ``win_cost`` on each
+    and a distinct alternative 5 m away scoring ``alt_cost``."""
+    frames = [
+        ev.Keyframe(k, np.ones(3), np.zeros(3), np.ones((3, 2)), np.zeros(3), 0.5 * k)
+        for k in range(4)
+    ]
+    tracks = []
+    for x, c in ((0.0, win_cost), (5.0, alt_cost)):
+        pose = np.array([x, 0.0, 0.0])
+        t = hy.Track(pose, [c], gs.Hypothesis(pose=pose.copy(), cost=c))
+        t.ev = {f.key: c for f in frames}
+        tracks.append(t)
+    return frames, tracks
+
+
 def _judged_probation(
     md: MapData, scan: tuple[np.ndarray, np.ndarray], extras: dict[str, float], alt_cost: float
 ) -> Estimate:
@@ -351,16 +367,7 @@ def _judged_probation(
     whose winner scored 0.5 on each of 4 keyframes and a distinct alternative 5 m away
     ``alt_cost``; no budget, so the evidence is what is given here."""
     loc = GlobalShapeLocalizer(md, None, gconfig=GlobalConfig.for_kind("schematic"))
-    frames = [
-        ev.Keyframe(k, np.ones(3), np.zeros(3), np.ones((3, 2)), np.zeros(3), 0.5 * k)
-        for k in range(4)
-    ]
-    tracks = []
-    for x, c in ((0.0, 0.5), (5.0, alt_cost)):
-        pose = np.array([x, 0.0, 0.0])
-        t = hy.Track(pose, [c], gs.Hypothesis(pose=pose.copy(), cost=c))
-        t.ev = {f.key: c for f in frames}
-        tracks.append(t)
+    frames, tracks = _two_tracks(0.5, alt_cost)
     loc._frames, loc._tracks, loc._searching = frames, tracks, False
     loc._probation = Probation(tracks[0], 0.05, 0.0, dict(extras))
     est = Estimate(pose=np.zeros(3), status="tracking", score=0.9, extras={})
@@ -393,19 +400,10 @@ def test_a_drive_winner_is_held_while_no_alternative_has_caught_up() -> None:
     su = make_setup(2)
     g = GlobalConfig.for_kind("schematic")
     assert g.drive_margin == 0.15
-    frames = [
-        ev.Keyframe(k, np.ones(3), np.zeros(3), np.ones((3, 2)), np.zeros(3), 0.5 * k)
-        for k in range(4)
-    ]
 
     def holds(win_cost: float, alt_cost: float) -> bool:
         loc = GlobalShapeLocalizer(su.map_data, None, gconfig=g)
-        tracks = []
-        for x, c in ((0.0, win_cost), (5.0, alt_cost)):
-            pose = np.array([x, 0.0, 0.0])
-            t = hy.Track(pose, [c], gs.Hypothesis(pose=pose.copy(), cost=c))
-            t.ev = {f.key: c for f in frames}
-            tracks.append(t)
+        frames, tracks = _two_tracks(win_cost, alt_cost)
         loc._frames, loc._tracks = frames, tracks
         extras: dict[str, float] = {}
         out = loc._drive_holds(tracks[0], extras)
