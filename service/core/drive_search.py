@@ -255,9 +255,11 @@ class DriveSearch:
                 steps, self._odom_copy(), track=target, cost=target.hyp.cost
             )
         if best.hyp.cost <= fix_cost and amb <= max_amb and confirmed and informative:
+            # a winner of the evidence may be confirmed twice, alone and under its prior
+            fits = 2 if g.confirm_drive_prior and "drive_rule" in extras else 1
             if best.twin_ok is None:
                 extras["twin_pending"] = 1.0
-            elif best.twin_ok and spent + hyp_mod.CONFIRM_MS > budget and not confirming:
+            elif best.twin_ok and spent + fits * hyp_mod.CONFIRM_MS > budget and not confirming:
                 # the tracker's confirmation would overrun this scan's budget: it runs
                 # first on the next scan, which then advances no search
                 self._confirm_next = True

@@ -506,11 +506,80 @@ class GlobalShapeLocalizer(DriveSearch):
         """The tracker, reset to the winner with this scan's odometry, must accept this scan
         within ``confirm_distance`` / ``confirm_angle`` of it, with a position standard
         deviation of at most ``confirm_sigma``: then tracking starts (the fix is returned);
-        ``None`` otherwise (``extras`` records the refusal)."""
+        ``None`` otherwise (``extras`` records the refusal). The scan's prior is weak: it
+        decides alone. A winner of the drive's evidence it fails is confirmed again under
+        the odometry's per-scan prior, unless the scan explained itself clearly better
+        elsewhere; that place then joins the hypotheses (``GlobalConfig.confirm_drive_prior``)."""
+        g = self.gconfig
+        free, ok = self._confirm_fit(best, r, a, None)
+        est = free if ok else None
+        if est is None and g.confirm_drive_prior and "drive_rule" in extras:
+            est = self._confirm_held(best, r, a, free, extras)
+        if est is None:
+            self.tracker.reset(None)
+            extras["confirm_rejected"] = 1.0
+            return None
+        self._since_fix = 0
+        self._searching = False
+        if self._probation_due(extras):
+            return self._begin_probation(best, est, amb, extras)
+        self._tracks = []
+        self._job = None
+        self._twin_job = None
+        est.ambiguity = amb
+        est.extras.update({"global_fix": 1.0, **extras})
+        return est
+
+    def _confirm_held(
+        self,
+        best: _Track,
+        r: np.ndarray,
+        a: np.ndarray,
+        free: Estimate,
+        extras: dict[str, float],
+    ) -> Estimate | None:
+        """A winner of the drive's evidence whose scan, fitted alone (``free``), failed the
+        confirmation: the scan again under the odometry's per-scan prior at the winner
+        (``GlobalConfig.confirm_drive_prior``). Unless the fit alone, with the tracker's
+        ``min_support``, explained the scan clearly better than the held fit
+        (``confirm_unexplained``): the place it pointed to then joins the hypotheses, for
+        the drive's evidence to judge, and nothing is confirmed on this scan."""
+        g = self.gconfig
+        place = self.tracker.last_fit
+        free_support = float(free.extras.get("support", 0.0))
+        mc = self.tracker.config.motion
+        self.work_ms += hyp_mod.CONFIRM_MS
+        held, ok = self._confirm_fit(best, r, a, (mc.sigma_xy_floor, mc.sigma_theta_floor))
+        if not ok:
+            return None
+        held_support = float(held.extras.get("support", 0.0))
+        if (
+            place is None
+            or free_support < self.tracker.config.min_support
+            or 1.0 - free_support > g.confirm_unexplained * (1.0 - held_support)
+        ):
+            extras["confirm_held"] = 1.0
+            return held
+        # the scan contradicts the winner's pose: the drive, not this scan alone nor the
+        # winner's prior, must tell the two places apart
+        hyp = Hypothesis(pose=place.copy(), cost=best.hyp.cost)
+        self._tracks = hyp_mod.merge(self._tracks, [hyp], None, 1)
+        extras["confirm_elsewhere"] = 1.0
+        return None
+
+    def _confirm_fit(
+        self,
+        best: _Track,
+        r: np.ndarray,
+        a: np.ndarray,
+        known: tuple[float, float] | None,
+    ) -> tuple[Estimate, bool]:
+        """The tracker's fit of this scan from the winner (``known``: the prior's sigmas,
+        :meth:`ShapeLocalizer.reset`), and whether it passes the confirmation's bars."""
         g = self.gconfig
         # the tracker starts at the fix with this scan's odometry, so the next scan's
         # increment (e.g. the rest of a look-around turn) is its motion prior
-        self.tracker.reset(best.pose, self._last_odom)
+        self.tracker.reset(best.pose, self._last_odom, known=known)
         if self._speed is not None:
             self.tracker.set_speed(self._speed)
         est = self.tracker.update(r, a, self._last_odom)
@@ -519,20 +588,7 @@ class GlobalShapeLocalizer(DriveSearch):
             and abs(float(wrap_angle(est.pose[2] - best.pose[2]))) <= g.confirm_angle
             and _position_sigma(est) <= g.confirm_sigma
         )
-        if est.status == "tracking" and "rejected" not in est.extras and close:
-            self._since_fix = 0
-            self._searching = False
-            if self._probation_due(extras):
-                return self._begin_probation(best, est, amb, extras)
-            self._tracks = []
-            self._job = None
-            self._twin_job = None
-            est.ambiguity = amb
-            est.extras.update({"global_fix": 1.0, **extras})
-            return est
-        self.tracker.reset(None)
-        extras["confirm_rejected"] = 1.0
-        return None
+        return est, bool(est.status == "tracking" and "rejected" not in est.extras and close)
 
     def _no_hypothesis(self, extras: dict[str, float]) -> Estimate:
         """The estimate while no hypothesis is known (yet): the dead-reckoned last pose after

@@ -116,18 +116,28 @@ class ShapeLocalizer:
         """Last accepted pose ``[x, y, theta]`` (map frame), ``None`` before a fix."""
         return None if self._pose is None else self._pose.copy()
 
-    def reset(self, initial_pose: np.ndarray | None, odom: np.ndarray | None = None) -> None:
+    def reset(
+        self,
+        initial_pose: np.ndarray | None,
+        odom: np.ndarray | None = None,
+        known: tuple[float, float] | None = None,
+    ) -> None:
         """Forget the history; ``None`` means the pose is unknown. ``odom``: odometry pose
-        at ``initial_pose`` (the next scan's increment is measured from it)."""
+        at ``initial_pose`` (the next scan's increment is measured from it). ``known``: how
+        well ``initial_pose`` is known (position, heading sigmas; m, rad) -- the prior of
+        the scan taken there (:meth:`service.core.motion.OdometryMotion.hold`)."""
         self._pose = None if initial_pose is None else check_pose3(initial_pose, "initial_pose")
         self._rejected = 0
         self._streak = 0  # scans accepted since the reset (the velocity is known after 3)
         self._drift = 0.0  # odometry position variance accumulated while scans are rejected
         self._typical: float | None = None  # recent typical log-likelihood of accepted fits
-        self.motion.reset(None if initial_pose is None else odom)
+        self.motion.reset(None if initial_pose is None else odom, known)
         self._views.clear()
         #: How many scans ran the shape matching (for benchmarks and tests).
         self.shape_runs = 0
+        #: The pose of the last scan's best fit, accepted or rejected (``None``: no fit was
+        #: made). A rejected scan returns the prior; this says where the scan itself pointed.
+        self.last_fit: np.ndarray | None = None
 
     def known_speed(self) -> np.ndarray | None:
         """The smoothed translation per scan (map frame, m) once three scans were accepted
@@ -255,6 +265,7 @@ class ShapeLocalizer:
         range input.
         """
         r, a = check_scan(ranges, angles)
+        self.last_fit = None
         if self._pose is None:
             if odom is not None:
                 check_pose3(odom, "odom")
@@ -321,6 +332,7 @@ class ShapeLocalizer:
         if len(cands) > 1:
             extras["violation"] = viol[k_best]
         fit = best.fit
+        self.last_fit = fit.pose.copy()
         sup = fit.inlier_fraction
         score = float(np.clip(sup if explained is None else 0.5 * (sup + explained), 0.0, 1.0))
         step = float(np.hypot(*(fit.pose[:2] - pred.pose[:2])))
@@ -342,6 +354,7 @@ class ShapeLocalizer:
                 return self._reject(pred, score, matches, sup, ambiguity, 3.0, extras)
             best, matches, explained, weights = rec
             fit = best.fit
+            self.last_fit = fit.pose.copy()
             sup = fit.inlier_fraction
             score = float(np.clip(0.5 * (sup + explained), 0.0, 1.0))
             extras.update(

@@ -178,9 +178,13 @@ class Prediction:
 class MotionModel(Protocol):
     """The seam every method uses to predict the pose of the next scan."""
 
-    def reset(self, odom: np.ndarray | None = None) -> None:
+    def reset(
+        self, odom: np.ndarray | None = None, known: tuple[float, float] | None = None
+    ) -> None:
         """Forget odometry and velocity history (new start pose); ``odom``, when given, is
-        the odometry pose at that start: the next increment is measured from it."""
+        the odometry pose at that start: the next increment is measured from it. ``known``:
+        how well the start pose is known (position, heading sigmas; m, rad), for the scan
+        taken there (see :meth:`OdometryMotion.hold`); ``None``: it is not."""
         ...
 
     def predict(self, pose: np.ndarray, odom: np.ndarray | None) -> Prediction:
@@ -237,12 +241,16 @@ class OdometryMotion:
         self._anchor: np.ndarray | None = None  # pose estimate where ``_last`` was taken
         self._fresh = True  # the previous predict used a fresh reading
         self._at_reset = False  # ``_last`` is the reset's reading, no scan has used it yet
+        self._known: tuple[float, float] | None = None  # the reset pose's sigmas, if known
 
-    def reset(self, odom: np.ndarray | None = None) -> None:
+    def reset(
+        self, odom: np.ndarray | None = None, known: tuple[float, float] | None = None
+    ) -> None:
         self._last = None if odom is None else check_pose3(odom, "odom")
         self._anchor = None
         self._fresh = True
         self._at_reset = odom is not None
+        self._known = known if odom is not None else None
 
     def stale(self, odom: np.ndarray) -> bool:
         """``True`` when ``odom`` repeats the previous reading bit for bit (see module doc)."""
@@ -255,10 +263,26 @@ class OdometryMotion:
         given to :meth:`reset` is the scan taken at the reset pose: its fit, not the reset
         pose, is where that reading was taken (a global fix confirmed on a scan: the next
         increment applies to the confirmed fit; anchoring it at the hypothesis instead left
-        fr079 start 1714's track 0.3 m off inside a double wall)."""
+        fr079 start 1714's track 0.3 m off inside a double wall).
+
+        When the reset said how well its pose is known (``known``), that scan's prior is the
+        reset pose with those sigmas, source ``"odometry"``: the pose is known as well as an
+        odometry increment would tell it, and the scan refines it under that prior instead
+        of deciding alone (a global fix that the drive's evidence found, confirmed on a scan
+        of which the map explains little: see ``GlobalConfig.confirm_drive_prior``)."""
         self._settle(pose)
-        self._fresh = self._at_reset
+        at_reset, known = self._at_reset, self._known
+        self._fresh = at_reset
         self._at_reset = False
+        self._known = None
+        if at_reset and known is not None:
+            info = _information(float(pose[2]), known[0], known[0], known[1])
+            return Prediction(
+                pose=np.asarray(pose, dtype=np.float64).copy(),
+                information=info,
+                source="odometry",
+                delta=np.zeros(3),
+            )
         c = self.config
         info = _information(
             float(pose[2]), c.velocity_sigma_xy, c.velocity_sigma_xy, c.velocity_sigma_theta
@@ -289,6 +313,7 @@ class OdometryMotion:
         delta = self.increment(odom)
         self._fresh = True
         self._at_reset = False
+        self._known = None
         c = self.config
         if delta is None:
             delta = np.zeros(3)
@@ -356,8 +381,10 @@ class Motion:
         self.odometry = OdometryMotion(self.config)
         self.velocity = VelocityMotion(self.config)
 
-    def reset(self, odom: np.ndarray | None = None) -> None:
-        self.odometry.reset(odom if self.config.use_odometry else None)
+    def reset(
+        self, odom: np.ndarray | None = None, known: tuple[float, float] | None = None
+    ) -> None:
+        self.odometry.reset(odom if self.config.use_odometry else None, known)
         self.velocity.reset()
 
     def predict(self, pose: np.ndarray, odom: np.ndarray | None) -> Prediction:

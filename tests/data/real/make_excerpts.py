@@ -2,7 +2,8 @@
 
 Usage (from the repository root; reads ``/work/shared/data/real`` or ``--source DIR``)::
 
-    .venv/bin/python tests/data/real/make_excerpts.py [--source DIR] [--scans 300] [--maps-only]
+    .venv/bin/python tests/data/real/make_excerpts.py [--source DIR] [--scans 300]
+        [--maps-only | --windows-only]
 
 Writes, for the first ``--scans`` scans of each log (see README.md beside this file):
 
@@ -251,26 +252,40 @@ def build_maps(n: int) -> None:
 #: (a start of the global search whose true place an alias 31 m away fits better on single
 #: scans); fr079 scans 4361-4510 at the east end; fr079 scans 2871-2985, a start whose
 #: probation, at a 45 ms search budget, goes to a place 18 m off that the drive's keyframes
-#: explain worse than the true one.
+#: explain worse than the true one; intel scans 8329-8648 fed one in four (``stride``: in each
+#: block of 4 the first with a flag-1 reference, else the block's first, as
+#: ``bench/bench_global.py --real-stride 4`` feeds them), a start whose evidence-rule winner
+#: lies 1.37 m along a corridor from the true place.
 WINDOWS = (
-    ("fr079", 846, 20),
-    ("fr079", 1174, 156),
-    ("fr079", 4361, 150),
-    ("fr079", 2871, 115),
+    ("fr079", 846, 20, 1),
+    ("fr079", 1174, 156, 1),
+    ("fr079", 4361, 150, 1),
+    ("fr079", 2871, 115, 1),
+    ("intel", 8329, 320, 4),
 )
 
 
-def cut_window(src: Path, name: str, first: int, count: int, dst: Path) -> int:
-    """Scans ``first .. first + count - 1`` of the whole log ``name`` as an ``.npz``: ``ranges``
-    / ``angles`` ``(count, beams)``, ``odom`` ``(count, 3)`` (the odometry pose each scan
-    carries), ``reference`` ``(count, 3)`` and ``flag`` ``(count,)`` (GMapping's per-scan
-    reference and its flag). Returns the number of flag-1 scans."""
+def cut_window(
+    src: Path, name: str, first: int, count: int, dst: Path, stride: int = 1
+) -> tuple[int, int]:
+    """Scans ``first .. first + count - 1`` of the whole log ``name`` as an ``.npz`` (with
+    ``stride`` > 1 one scan per block of ``stride``: the first with a flag-1 reference, else
+    the block's first): ``ranges`` / ``angles`` ``(n, beams)``, ``odom`` ``(n, 3)`` (the
+    odometry pose each scan carries), ``reference`` ``(n, 3)``, ``flag`` ``(n,)`` (GMapping's
+    per-scan reference and its flag) and ``scan`` ``(n,)`` (the scan's number in the whole
+    log). Returns the number of scans kept and of flag-1 scans among them."""
     from service.logs import attach_reference, load_reference, read_log
 
     files = {"fr079": "fr079.orig.bag", "intel": "intel.orig.bag", "mit-csail": "mit-csail.clf"}
     info, it = read_log(src / files[name], limit=first + count)
     ref = load_reference(src / "corrected" / f"{name}.gfs_reference_per_scan.txt")
-    scans = list(attach_reference(it, ref, scan_count=info.scan_count))[first : first + count]
+    window = list(attach_reference(it, ref, scan_count=info.scan_count))[first : first + count]
+    numbers: list[int] = []
+    for b in range(0, len(window), stride):
+        block = window[b : b + stride]
+        ok = [k for k, s in enumerate(block) if s.reference_ok and s.reference is not None]
+        numbers.append(b + (ok[0] if ok else 0))
+    scans = [window[k] for k in numbers]
     nan3 = np.full(3, np.nan)
     np.savez_compressed(
         dst,
@@ -279,8 +294,9 @@ def cut_window(src: Path, name: str, first: int, count: int, dst: Path) -> int:
         odom=np.array([np.asarray(s.odom, dtype=np.float64) for s in scans]),
         reference=np.array([nan3 if s.reference is None else s.reference for s in scans]),
         flag=np.array([bool(s.reference_ok and s.reference is not None) for s in scans]),
+        scan=np.array([first + k for k in numbers]),
     )
-    return sum(bool(s.reference_ok) for s in scans)
+    return len(scans), sum(bool(s.reference_ok) for s in scans)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -290,11 +306,19 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--maps-only", action="store_true", help="rewrite only the maps, from the excerpts here"
     )
+    ap.add_argument(
+        "--windows-only",
+        action="store_true",
+        help="rewrite only the schematised maps and the scan windows (WINDOWS)",
+    )
     args = ap.parse_args(argv)
     src: Path = args.source
     n: int = args.scans
     if args.maps_only:
         build_maps(n)
+        return 0
+    if args.windows_only:
+        write_windows(src)
         return 0
     for name in BAGS:
         count = cut_bag(src / f"{name}.orig.bag", HERE / f"{name}.{n}.bag", n)
@@ -307,16 +331,23 @@ def main(argv: list[str] | None = None) -> int:
         k = cut_relations(src / f"{name}.relations", HERE / f"{name}.{n}.relations", stamps)
         print(f"{name}.{n}: {len(stamps)} reference rows, {k} relations")
     build_maps(n)
-    # the schematised map of fr079, as bench/bench_real.py writes it, for the drive test
-    shutil.copyfile(
-        REPO / "docs" / "real" / "maps" / "fr079_schematic.geojson",
-        HERE / "fr079.schematic.geojson",
-    )
-    for name, first, count in WINDOWS:
-        dst = HERE / f"{name}.{first}-{first + count - 1}.npz"
-        k = cut_window(src, name, first, count, dst)
-        print(f"{dst.name}: {count} scans, {k} with a flag-1 reference")
+    write_windows(src)
     return 0
+
+
+def write_windows(src: Path) -> None:
+    """The schematised maps (as bench/bench_real.py writes them) and the windows of
+    :data:`WINDOWS`, for the drive tests."""
+    for name in ("fr079", "intel"):
+        shutil.copyfile(
+            REPO / "docs" / "real" / "maps" / f"{name}_schematic.geojson",
+            HERE / f"{name}.schematic.geojson",
+        )
+    for name, first, count, stride in WINDOWS:
+        every = "" if stride == 1 else f".every{stride}"
+        dst = HERE / f"{name}.{first}-{first + count - 1}{every}.npz"
+        n, k = cut_window(src, name, first, count, dst, stride)
+        print(f"{dst.name}: {n} scans, {k} with a flag-1 reference")
 
 
 if __name__ == "__main__":

@@ -312,3 +312,22 @@ def test_odometry_holds_the_pose_where_a_plan_wall_is_drawn_off() -> None:
     loose = _along_error(cfg.model_copy(update={"motion": MotionConfig()}))
     assert tight < 0.4
     assert loose > tight + 0.1
+
+
+def test_a_rejected_scan_keeps_the_prior_and_says_where_it_pointed() -> None:
+    """A scan whose fit moves the pose beyond the step bound is rejected: the estimate is the
+    prior, while ``last_fit`` is where the scan itself fitted (the global search's
+    confirmation uses it: ``GlobalConfig.confirm_unexplained``); after an accepted scan it is
+    the published pose."""
+    start = np.array([3.0, 2.0, 0.2])
+    loc = ShapeLocalizer(ROOM, start, ShapeConfig(odom_step_floor=0.1))
+    first = loc.update(_scan(start, np.random.default_rng(3)), ANGLES, np.zeros(3))
+    assert first.status == "tracking" and "rejected" not in first.extras
+    assert loc.last_fit is not None
+    np.testing.assert_allclose(loc.last_fit, first.pose)
+    moved = start + np.array([0.35, 0.0, 0.0])  # the odometry says the robot barely moved
+    est = loc.update(_scan(moved, np.random.default_rng(4)), ANGLES, np.array([0.01, 0.0, 0.0]))
+    assert est.extras.get("rejected") == 3.0
+    assert np.hypot(*(est.pose[:2] - first.pose[:2])) < 0.02
+    assert loc.last_fit is not None
+    assert np.hypot(*(loc.last_fit[:2] - moved[:2])) < 0.05, loc.last_fit

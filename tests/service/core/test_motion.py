@@ -99,3 +99,34 @@ def test_the_scan_on_the_reset_reading_anchors_the_next_increment_at_its_fit() -
     m.predict(fit, reading)  # frozen on the next scan too; the robot drove on
     caught = m.predict(fit + np.array([0.1, 0.0, 0.0]), np.array([5.2, 5.0, 0.0]))
     np.testing.assert_allclose(caught.pose, [1.2, 1.3, 0.0], atol=1e-12)
+
+
+def test_a_reset_pose_known_to_some_precision_is_the_prior_of_the_scan_taken_there() -> None:
+    """A global fix the drive's evidence found is confirmed under a prior of the precision
+    the caller gives (``GlobalConfig.confirm_drive_prior``): the scan on the reset reading
+    gets the reset pose with those sigmas as an odometry prior (the scan refines it, it does
+    not decide alone); the anchoring at that scan's fit is unchanged, and the precision is
+    used once -- a later frozen reading holds with the weak sigmas again."""
+    m = Motion()
+    reading = np.array([5.0, 5.0, 0.0])
+    hypothesis = np.array([1.0, 1.0, 0.7])
+    m.reset(reading, known=(0.1, 0.03))
+    pred = m.predict(hypothesis, reading)
+    assert pred.source == "odometry"
+    np.testing.assert_allclose(pred.pose, hypothesis)
+    np.testing.assert_allclose(pred.sigma, [0.1, 0.1, 0.03], rtol=1e-9)
+    fit = np.array([1.0, 1.1, 0.7])
+    nxt = m.predict(fit, np.array([5.1, 5.0, 0.0]))
+    np.testing.assert_allclose(nxt.pose, compose(fit, np.array([0.1, 0.0, 0.0])), atol=1e-12)
+    frozen = m.predict(nxt.pose, np.array([5.1, 5.0, 0.0]))
+    assert frozen.source == "held"
+    assert frozen.sigma[0] == pytest.approx(MotionConfig().velocity_sigma_xy)
+    # without a precision, or when the first reading after the reset is fresh, nothing changes
+    m.reset(reading)
+    assert m.predict(hypothesis, reading).source == "held"
+    m.reset(reading, known=(0.1, 0.03))
+    moved = m.predict(hypothesis, np.array([5.1, 5.0, 0.0]))
+    assert moved.source == "odometry"
+    assert moved.sigma[0] == pytest.approx(0.03 + 0.1 * 0.1)  # the increment's own sigma
+    later = m.predict(moved.pose, np.array([5.1, 5.0, 0.0]))
+    assert later.source == "held"
