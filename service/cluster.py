@@ -672,7 +672,7 @@ class ClusterPlane:
             if refresh_at is not None and now >= refresh_at and not isolated:
                 refresh_at = None
                 try:
-                    self._refresh_served()
+                    self._refresh_served(frozenset(live))
                 except Exception as e:
                     log.warning("cluster: could not compare poses after reconnecting: %s", e)
                 finally:
@@ -716,20 +716,36 @@ class ClusterPlane:
                 log.warning("cluster: could not ask %s for its state: %s", inst, e)
         self.rebalance(target)
 
-    def _refresh_served(self) -> None:
+    def _refresh_served(self, expected: frozenset[str]) -> None:
         """After being cut off (frozen, partitioned): the others may have served our robots
         meanwhile and let go when our token came back. Each robot for which another instance
         knows a pose newer than ours when we were cut off restarts from that pose (ours may
         have been computed since from the stale localiser); robots configured meanwhile are
-        learnt."""
-        f = fetch_state(
-            self.session,
-            self.prefix,
-            "*",
-            self.instance_id,
-            self.settings.catchup_timeout_s,
-            with_maps=False,
-        )
+        learnt. ``expected``: the instances whose tokens are live; asked again (every 0.1 s,
+        within ``catchup_timeout_s``) until each has answered: right after a reconnection
+        the router may not route to all of them yet (a CI run that asked 0.23 s after the
+        tokens came back restarted 1 of the 2 robots the others had served). An instance
+        that knows no robot sends no state, so with one the comparison waits that long."""
+        deadline = time.monotonic() + self.settings.catchup_timeout_s
+        while True:
+            f = fetch_state(
+                self.session,
+                self.prefix,
+                "*",
+                self.instance_id,
+                self.settings.catchup_timeout_s,
+                with_maps=False,
+            )
+            silent = expected - f.instances - {self.instance_id}
+            if not silent or time.monotonic() >= deadline or self.stopping.is_set():
+                break
+            time.sleep(0.1)
+        if silent:
+            log.warning(
+                "cluster: after reconnecting, no state from %s (%.1f s); comparing without it",
+                ", ".join(sorted(silent)),
+                self.settings.catchup_timeout_s,
+            )
         self._merge_running(f)
         with self._control_mutex:
             newer = []
