@@ -509,6 +509,30 @@ class ClusterPlane:
         out.discard(self.instance_id)
         return frozenset(out)
 
+    def _fetch_answered(
+        self, expected: frozenset[str], with_maps: bool
+    ) -> tuple[Fetched, frozenset[str]]:
+        """:func:`fetch_state` of every instance, asked again (every 0.1 s, within
+        ``catchup_timeout_s``) until each of ``expected`` (instances whose tokens are live)
+        has answered; returns the last answer and those still silent. Right after a token
+        appears the router may not route to that instance yet (a CI run that asked 0.23 s
+        after a reconnection restarted 1 of the 2 robots the others had served). An instance
+        that knows no robot sends no state, so with one the asking takes that long."""
+        deadline = time.monotonic() + self.settings.catchup_timeout_s
+        while True:
+            f = fetch_state(
+                self.session,
+                self.prefix,
+                "*",
+                self.instance_id,
+                self.settings.catchup_timeout_s,
+                with_maps=with_maps,
+            )
+            silent = frozenset(expected - f.instances - {self.instance_id})
+            if not silent or time.monotonic() >= deadline or self.stopping.is_set():
+                return f, silent
+            time.sleep(0.1)
+
     def _catch_up(self) -> frozenset[str]:
         """Before restoring: if other instances are alive, merge their maps, robot configs
         and last poses into the store (:func:`merge_into_store`); returns their ids."""
@@ -521,14 +545,13 @@ class ClusterPlane:
                 log.info("cluster: no other instance alive; starting from the own state")
                 return peers
             t0 = time.monotonic()
-            f = fetch_state(
-                self.session,
-                self.prefix,
-                "*",
-                self.instance_id,
-                self.settings.catchup_timeout_s,
-                with_maps=True,
-            )
+            f, silent = self._fetch_answered(peers, with_maps=True)
+            if silent:
+                log.warning(
+                    "cluster: catch-up: no state from %s (%.1f s); going on without it",
+                    ", ".join(sorted(silent)),
+                    self.settings.catchup_timeout_s,
+                )
         except StateError:
             raise
         except Exception as e:  # no liveliness/get (old router, access control): go on alone
@@ -721,25 +744,9 @@ class ClusterPlane:
         meanwhile and let go when our token came back. Each robot for which another instance
         knows a pose newer than ours when we were cut off restarts from that pose (ours may
         have been computed since from the stale localiser); robots configured meanwhile are
-        learnt. ``expected``: the instances whose tokens are live; asked again (every 0.1 s,
-        within ``catchup_timeout_s``) until each has answered: right after a reconnection
-        the router may not route to all of them yet (a CI run that asked 0.23 s after the
-        tokens came back restarted 1 of the 2 robots the others had served). An instance
-        that knows no robot sends no state, so with one the comparison waits that long."""
-        deadline = time.monotonic() + self.settings.catchup_timeout_s
-        while True:
-            f = fetch_state(
-                self.session,
-                self.prefix,
-                "*",
-                self.instance_id,
-                self.settings.catchup_timeout_s,
-                with_maps=False,
-            )
-            silent = expected - f.instances - {self.instance_id}
-            if not silent or time.monotonic() >= deadline or self.stopping.is_set():
-                break
-            time.sleep(0.1)
+        learnt. ``expected``: the instances whose tokens are live, each heard from
+        (:meth:`_fetch_answered`)."""
+        f, silent = self._fetch_answered(expected, with_maps=False)
         if silent:
             log.warning(
                 "cluster: after reconnecting, no state from %s (%.1f s); comparing without it",
