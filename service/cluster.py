@@ -509,12 +509,11 @@ class ClusterPlane:
         out.discard(self.instance_id)
         return frozenset(out)
 
-    def _fetch_answered(
-        self, expected: frozenset[str], with_maps: bool
-    ) -> tuple[Fetched, frozenset[str]]:
+    def _fetch_answered(self, expected: frozenset[str], with_maps: bool, when: str) -> Fetched:
         """:func:`fetch_state` of every instance, asked again (every 0.1 s, within
         ``catchup_timeout_s``) until each of ``expected`` (instances whose tokens are live)
-        has answered; returns the last answer and those still silent. Right after a token
+        has answered; returns the last answer (those still silent are logged, ``when``
+        saying at which step). Right after a token
         appears the router may not route to that instance yet (a CI run that asked 0.23 s
         after a reconnection restarted 1 of the 2 robots the others had served). An instance
         that knows no robot sends no state, so with one the asking takes that long."""
@@ -528,10 +527,18 @@ class ClusterPlane:
                 self.settings.catchup_timeout_s,
                 with_maps=with_maps,
             )
-            silent = frozenset(expected - f.instances - {self.instance_id})
+            silent = expected - f.instances - {self.instance_id}
             if not silent or time.monotonic() >= deadline or self.stopping.is_set():
-                return f, silent
+                break
             time.sleep(0.1)
+        if silent:
+            log.warning(
+                "cluster: %s, no state from %s within %.1f s; going on without it",
+                when,
+                ", ".join(sorted(silent)),
+                self.settings.catchup_timeout_s,
+            )
+        return f
 
     def _catch_up(self) -> frozenset[str]:
         """Before restoring: if other instances are alive, merge their maps, robot configs
@@ -545,13 +552,7 @@ class ClusterPlane:
                 log.info("cluster: no other instance alive; starting from the own state")
                 return peers
             t0 = time.monotonic()
-            f, silent = self._fetch_answered(peers, with_maps=True)
-            if silent:
-                log.warning(
-                    "cluster: catch-up: no state from %s (%.1f s); going on without it",
-                    ", ".join(sorted(silent)),
-                    self.settings.catchup_timeout_s,
-                )
+            f = self._fetch_answered(peers, with_maps=True, when="catching up")
         except StateError:
             raise
         except Exception as e:  # no liveliness/get (old router, access control): go on alone
@@ -746,13 +747,7 @@ class ClusterPlane:
         have been computed since from the stale localiser); robots configured meanwhile are
         learnt. ``expected``: the instances whose tokens are live, each heard from
         (:meth:`_fetch_answered`)."""
-        f, silent = self._fetch_answered(expected, with_maps=False)
-        if silent:
-            log.warning(
-                "cluster: after reconnecting, no state from %s (%.1f s); comparing without it",
-                ", ".join(sorted(silent)),
-                self.settings.catchup_timeout_s,
-            )
+        f = self._fetch_answered(expected, with_maps=False, when="after reconnecting")
         self._merge_running(f)
         with self._control_mutex:
             newer = []
