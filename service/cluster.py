@@ -513,10 +513,10 @@ class ClusterPlane:
         """:func:`fetch_state` of every instance, asked again (every 0.1 s, within
         ``catchup_timeout_s``) until each of ``expected`` (instances whose tokens are live)
         has answered; returns the last answer (those still silent are logged, ``when``
-        saying at which step). Right after a token
-        appears the router may not route to that instance yet (a CI run that asked 0.23 s
-        after a reconnection restarted 1 of the 2 robots the others had served). An instance
-        that knows no robot sends no state, so with one the asking takes that long."""
+        saying at which step). Right after a token appears the router may not route to that
+        instance yet (a CI run that asked 0.23 s after a reconnection restarted 1 of the 2
+        robots the others had served). An instance that knows no robot sends no state, so
+        with one the asking takes that long."""
         deadline = time.monotonic() + self.settings.catchup_timeout_s
         while True:
             f = fetch_state(
