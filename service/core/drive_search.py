@@ -15,7 +15,7 @@ import numpy as np
 
 from service.core import evidence as ev_mod
 from service.core import hypotheses as hyp_mod
-from service.core.configuration import Configuration
+from service.core.configuration import Configuration, scan_configuration
 from service.core.global_search import (
     ambiguity,
     scan_information,
@@ -212,6 +212,13 @@ class DriveSearch:
                 confirmed, informative, amb = True, True, 0.0
                 fix_cost = max(fix_cost, g.drive_max_cost)
                 extras["drive_rule"] = 1.0
+                if g.window_polish and odom_now is not None:
+                    # the pose the tracker confirms: pinned by the whole window, not by the
+                    # re-scoring of one scan (GlobalConfig.window_polish)
+                    lead.pose = ev_mod.window_polish(
+                        self.index, lead.pose, self._frames, odom_now, g
+                    )
+                    lead.hyp.pose = lead.pose.copy()
             elif lead is not None and lead.twin_ok is None:
                 # the drive's best explanation is the one whose twins must be held
                 target = lead
@@ -417,6 +424,28 @@ class DriveSearch:
         self._add_keyframe(r, a, odom_now)
         self.work_ms = self._backfill(odom_now, float(g.search_budget_ms) * g.evidence_share)
 
+    def _probation_search(self, r: np.ndarray, a: np.ndarray) -> None:
+        """The search goes on during a single-scan winner's probation
+        (``GlobalConfig.probation_search``) on this scan, seeded by the kept hypotheses,
+        with what the budget leaves after the tracker's update and the drive's evidence; a
+        finished search's places join the hypotheses (moved by the odometry since its scan)
+        and are judged on the drive's keyframes with the winner."""
+        g = self.gconfig
+        budget = float(g.search_budget_ms or 0.0)
+        spent = self.work_ms + hyp_mod.CONFIRM_MS
+        if spent >= budget:
+            return
+        if self._job is None:
+            P = scan_configuration(r, a, self.config.extraction())
+            steps = search_steps(self.index, r, a, self.config, g, seeds=self._seeds(), P=P)
+            self._job = hyp_mod.Job(steps, self._odom_copy())
+        spent, done, res = hyp_mod.advance(self._job, spent, budget)
+        self.work_ms = spent - hyp_mod.CONFIRM_MS
+        if done:
+            move = hyp_mod.odometry_move(self._job.odom, self._last_odom)
+            self._tracks = hyp_mod.merge(self._tracks, res.hypotheses, move, g.keep)
+            self._job = None
+
     def _add_keyframe(self, r: np.ndarray, a: np.ndarray, odom_now: np.ndarray) -> None:
         """This scan becomes a keyframe of the drive's evidence when it is due
         (:func:`service.core.evidence.keyframe_due`); the window keeps the recent ones."""
@@ -480,6 +509,8 @@ class DriveSearch:
             p.left -= self._move_kept(delta)
             if drive_won or g.probation_verdict:
                 self._probation_evidence(r, a)
+            if g.probation_search and g.probation_verdict and not drive_won:
+                self._probation_search(r, a)
         struck = collapsed or p.rejected >= g.probation_rejects
         if (
             struck
@@ -511,7 +542,12 @@ class DriveSearch:
                 extras["probation_beaten"] = 1.0
             amb = ambiguity([t.hyp for t in self._tracks], self.gconfig)
             return self._unresolved(self._tracks[0], amb, extras)
-        if p.left > 0.0:
+        if p.left > 0.0 or (g.probation_verdict and "rejected" in est.extras):
+            # a probation passes only on a scan the tracker accepted; on a rejected one it
+            # goes on (the rejection counts towards probation_rejects) rather than publish
+            # a pose the scan did not fit (tuning building 17, start 0, with
+            # evidence_short_scale: a place 8.4 m off passed on a rejected scan and was lost
+            # on the next)
             return self._on_probation(est)
         self._probation = None
         self._since_fix = 0

@@ -47,7 +47,7 @@ from service.core.global_config import GlobalConfig
 from service.core.global_search import WORK_MS, _distinct, _near, beams_ms, polish_ms
 from service.core.hypotheses import Track
 from service.core.localizer import ShapeConfig
-from service.core.pose import compose, invert
+from service.core.pose import compose, invert, transform_points
 from service.core.pose_scoring import _beam_cost, _beam_fractions, _polish, _predict, _subsample
 from service.core.types import wrap_angle
 from service.core.view_index import ViewIndex
@@ -129,14 +129,36 @@ def frame_cost(
 ) -> float:
     """:func:`service.core.pose_scoring.verify`'s cost of ``pose`` on keyframe ``kf``'s
     beams, clipped at ``evidence_clip`` (one bad keyframe, e.g. a person in front of the
-    laser, must not outweigh the rest of the drive)."""
+    laser, must not outweigh the rest of the drive), a short return graded by how far in
+    front of the predicted wall it lies (``GlobalConfig.evidence_short_scale``)."""
     if kf.ranges.size == 0:
         return g.evidence_clip
     tol = config.support_tolerance
     pred, landed = _predict(index, pose, kf.ranges, kf.angles, tol, config.view_max_range, g)
-    hit, viol, short = _beam_fractions(kf.ranges, pred, tol, g, landed)
+    hit, viol, short = _beam_fractions(
+        kf.ranges, pred, tol, g, landed, short_scale=g.evidence_short_scale
+    )
     cost = _beam_cost(hit, viol, short, g) + g.cost_floor
     return float(min(cost, g.evidence_clip))
+
+
+def window_polish(
+    index: ViewIndex,
+    pose: np.ndarray,
+    frames: list[Keyframe],
+    odom_now: np.ndarray,
+    g: GlobalConfig,
+) -> np.ndarray:
+    """``pose`` (the robot's now) polished on the distance field with the points of every
+    keyframe of ``frames`` at once, each placed by the odometry between it and now
+    (``odom_now``): a window that spans metres and turns pins a pose that one scan leaves
+    free along a corridor. Stages as a track's first keyframe's (+-0.3 m / +-7 degrees,
+    then finer), the field score's scale ``fine_scale``."""
+    inv = invert(np.asarray(odom_now, dtype=np.float64))
+    pts = np.vstack([transform_points(compose(inv, kf.odom), kf.points) for kf in frames])
+    start = np.asarray(pose, dtype=np.float64)[None, :]
+    out, _ = _polish(index, start, pts, g.fine_scale, _WIDE)
+    return out[0]
 
 
 def median(track: Track, frames: list[Keyframe]) -> float:

@@ -309,6 +309,16 @@ class GlobalConfig(BaseModel):
         description="A keyframe's cost counts at most this much (one bad keyframe, e.g. a "
         "person in front of the laser, must not outweigh the rest of the drive).",
     )
+    evidence_short_scale: float = Field(
+        0.0,
+        ge=0,
+        description="On the drive's keyframes a return short of the predicted wall counts "
+        "exp(-(predicted - measured) / this) of short_credit (m; 0: all of it). Furniture "
+        "stands just in front of the walls of its room; a place that puts the walls far "
+        "behind the same returns explains them by nothing, and with the flat credit scored "
+        "as well as the true place (tuning log fr079's east hall, floor plan: offices 8.2 m "
+        "apart within 0.003-0.011 over 20 keyframes). Schematic: 1.0 (2.0 measured alike).",
+    )
     evidence_drop: float = Field(
         0.3,
         gt=0,
@@ -454,6 +464,25 @@ class GlobalConfig(BaseModel):
         "alias 31 m away that fits the corridor's scans better beat it at the probation's "
         "end). Schematic: on. Metric maps have no probation.",
     )
+    probation_search: bool = Field(
+        False,
+        description="The search goes on during the probation of a winner of the single-scan "
+        "rules, within the budget the tracker and the drive's evidence leave; the places it "
+        "finds join the hypotheses, are scored on the drive's keyframes and can beat the "
+        "winner at the probation's end (probation_verdict). Without it a place not found "
+        "before the probation cannot contest it: tuning log intel 7147 (floor plan, 55 ms, "
+        "evidence_short_scale 1 m), a place 10 m off passed, ahead of the 8 other "
+        "hypotheses by 0.17 or more, the true place not among them. Schematic: on.",
+    )
+    window_polish: bool = Field(
+        False,
+        description="A winner of the evidence rule is polished on the points of every keyframe "
+        "of the window at once, placed by the odometry (:func:`service.core.evidence."
+        "window_polish`), before the tracker confirms it: one scan leaves a pose free along "
+        "a corridor that metres of driving and turns pin down. Tuning log intel 8414 (floor "
+        "plan, 45 ms, evidence_short_scale 1 m): the rule named a track 0.23-0.28 m and 5 "
+        "degrees off, and the probation published it 0.50 m off. Schematic: on.",
+    )
     drive_travel: float = Field(
         1.0, ge=0, description="Evidence rule: the window spans at least this travel (m)."
     )
@@ -533,5 +562,8 @@ class GlobalConfig(BaseModel):
                 fix_min_found=2,
                 probation_verdict=True,
                 confirm_drive_prior=True,
+                evidence_short_scale=1.0,
+                probation_search=True,
+                window_polish=True,
             )
         raise LocalizationError(f"unknown map kind {kind!r}; expected metric or schematic")

@@ -147,6 +147,7 @@ def _beam_fractions(
     tol: float,
     gconfig: GlobalConfig,
     landed: np.ndarray | None = None,
+    short_scale: float = 0.0,
 ) -> tuple[float, float, float]:
     """Fractions of beams (measured ``r``, map-predicted ``pred``, NaN = nothing within range)
     that hit (within ``tol``), violate (return beyond the predicted wall by more than
@@ -154,14 +155,22 @@ def _beam_fractions(
     With ``landed`` (``gconfig.see_through``: the beams whose return lies on a mapped surface
     the beam crosses) a beam that passed the predicted wall and ended on mapped structure
     behind it is no violation: the map holds an object the laser now sees past (a chair or
-    cabinet that moved, a door open), not a wall the pose puts in the way."""
+    cabinet that moved, a door open), not a wall the pose puts in the way.
+
+    With ``short_scale`` > 0 (``GlobalConfig.evidence_short_scale``) a short return counts
+    ``exp(-(pred - r) / short_scale)`` of one: furniture stands just in front of the walls
+    of the room it is in, while a pose that puts the walls far behind the returns is
+    explained by nothing; 0 counts every short return as one."""
     hit = float(np.mean(np.abs(r - pred) <= tol))  # NaN prediction compares False
     through = np.isfinite(pred) & (r > pred + max(tol, gconfig.violation_margin))
     if landed is not None:
         through &= ~landed
     viol = float(np.mean(through))
-    short = float(np.mean(r < pred - tol))
-    return hit, viol, short
+    below = r < pred - tol
+    if short_scale > 0.0:
+        gap = np.where(below, pred - r, np.inf)
+        return hit, viol, float(np.mean(np.exp(-gap / short_scale)))
+    return hit, viol, float(np.mean(below))
 
 
 def _predict(

@@ -5,14 +5,17 @@ hypothesis before unjudged newcomers."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from service.core import evidence as ev
 from service.core import global_search as gs
 from service.core import hypotheses as hy
+from service.core import pose_scoring as ps
 from service.core.global_config import GlobalConfig
 from service.core.global_localization import load_or_build_index
 from service.core.localizer import ShapeConfig
 from service.core.pose import compose, invert
+from service.core.types import wrap_angle
 from sim_publisher.scenario import make_setup
 
 
@@ -214,3 +217,52 @@ def test_a_single_scan_winner_is_beaten_by_an_alternative_that_explains_the_driv
     assert not ev.beaten(best, [best, alias], frames, g)
     alias.ev = {k: 0.30 for k in range(2, 6)}  # four of the winner's six: judged
     assert ev.beaten(best, [best, alias], frames, g)
+
+
+def test_a_short_return_counts_by_how_far_in_front_of_the_predicted_wall_it_lies() -> None:
+    """``GlobalConfig.evidence_short_scale`` (floor plans: 1 m): with the flat credit a
+    return 0.5 m in front of the predicted wall (furniture along the wall of its room) and
+    one 4 m in front of it (a pose that puts the walls far behind the returns) count the
+    same; graded, the first counts exp(-0.5) of a short return, the second exp(-4)."""
+    g = GlobalConfig.for_kind("schematic")
+    assert g.evidence_short_scale == 1.0
+    r = np.full(10, 2.0)
+    near, far = np.full(10, 2.5), np.full(10, 6.0)
+    tol = 0.2
+    flat = [ps._beam_fractions(r, pred, tol, g) for pred in (near, far)]
+    assert flat[0] == flat[1] == (0.0, 0.0, 1.0)
+    graded = [ps._beam_fractions(r, p, tol, g, short_scale=1.0) for p in (near, far)]
+    assert graded[0][2] == pytest.approx(np.exp(-0.5))
+    assert graded[1][2] == pytest.approx(np.exp(-4.0))
+    # hits, violations and beams with nothing predicted are counted as before
+    mixed = ps._beam_fractions(
+        np.array([5.0, 9.0, 3.0, 1.0]), np.array([5.1, 5.0, np.nan, 2.0]), tol, g, short_scale=1.0
+    )
+    assert mixed == pytest.approx((0.25, 0.25, np.exp(-1.0) / 4))
+
+
+def test_window_polish_pins_the_pose_on_the_keyframes_of_the_drive() -> None:
+    """``GlobalConfig.window_polish``: a winner 0.25 m and 3 degrees off is polished on the
+    points of the window's keyframes at once, each placed by the odometry, and lands within
+    5 cm and 1.5 degrees of the true pose (office floor plan, the tour's scans 270-300)."""
+    su = make_setup(2)
+    md = su.map_data
+    cfg = ShapeConfig.for_kind(md.kind)
+    g = GlobalConfig.for_kind(md.kind)
+    idx = load_or_build_index(md, cfg, g)
+    frames: list[ev.Keyframe] = []
+    travel = 0.0
+    last = 300
+    for i in range(270, last + 1):
+        if i > 270:
+            d = compose(invert(su.odom[i - 1]), su.odom[i])
+            travel += float(np.hypot(d[0], d[1]))
+        if ev.keyframe_due(frames, su.odom[i], travel, g):
+            frames.append(ev.make_keyframe(len(frames), *su.scan(i), su.odom[i], travel, g))
+    frames = ev.window(frames, g)
+    truth = su.truth[last]
+    for off in ([0.25, 0.0, 0.05], [0.0, -0.2, -0.05], [-0.15, 0.15, 0.0]):
+        start = compose(truth, np.array(off))
+        got = ev.window_polish(idx, start, frames, su.odom[last], g)
+        assert np.hypot(*(got[:2] - truth[:2])) < 0.05, (off, got, truth)
+        assert abs(wrap_angle(float(got[2] - truth[2]))) < np.deg2rad(1.5), (off, got, truth)
