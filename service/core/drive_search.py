@@ -44,6 +44,8 @@ class Probation:
     ambiguity: float
     extras: dict[str, float] = field(default_factory=dict)
     rejected: int = 0
+    #: searches finished during the probation (``GlobalConfig.probation_searches``)
+    searches: int = 0
     #: the confirmed pose and the odometry reading it was confirmed on (the reference the
     #: tracked pose is checked against, ``GlobalConfig.probation_slide``)
     start: np.ndarray | None = None
@@ -425,8 +427,8 @@ class DriveSearch:
         self.work_ms = self._backfill(odom_now, float(g.search_budget_ms) * g.evidence_share)
 
     def _probation_search(self, r: np.ndarray, a: np.ndarray) -> None:
-        """The search goes on during a single-scan winner's probation
-        (``GlobalConfig.probation_search``) on this scan, seeded by the kept hypotheses,
+        """A search goes on during a single-scan winner's probation
+        (``GlobalConfig.probation_searches``) on this scan, seeded by the kept hypotheses,
         with what the budget leaves after the tracker's update and the drive's evidence; a
         finished search's places join the hypotheses (moved by the odometry since its scan)
         and are judged on the drive's keyframes with the winner."""
@@ -445,6 +447,8 @@ class DriveSearch:
             move = hyp_mod.odometry_move(self._job.odom, self._last_odom)
             self._tracks = hyp_mod.merge(self._tracks, res.hypotheses, move, g.keep)
             self._job = None
+            if self._probation is not None:
+                self._probation.searches += 1
 
     def _add_keyframe(self, r: np.ndarray, a: np.ndarray, odom_now: np.ndarray) -> None:
         """This scan becomes a keyframe of the drive's evidence when it is due
@@ -509,7 +513,7 @@ class DriveSearch:
             p.left -= self._move_kept(delta)
             if drive_won or g.probation_verdict:
                 self._probation_evidence(r, a)
-            if g.probation_search and g.probation_verdict and not drive_won:
+            if p.searches < g.probation_searches and g.probation_verdict and not drive_won:
                 self._probation_search(r, a)
         struck = collapsed or p.rejected >= g.probation_rejects
         if (

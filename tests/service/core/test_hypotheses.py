@@ -430,30 +430,33 @@ def test_a_probation_passes_only_on_a_scan_the_tracker_accepted() -> None:
     assert "probation" in outs[1].extras and outs[2].extras.get("probation_failed") == 1.0
 
 
-@pytest.mark.parametrize("on", [True, False])
-def test_the_search_goes_on_during_a_single_scan_winners_probation(on: bool) -> None:
-    """``GlobalConfig.probation_search`` (floor plans): on a single-scan winner's probation
-    the search keeps running within the budget the tracker and the evidence leave; what it
-    finds joins the hypotheses (here it finds the winner's place again and other places),
-    so a place not found before the probation can still beat the winner at its end."""
+@pytest.mark.parametrize("searches", [1, 0])
+def test_a_search_goes_on_during_a_single_scan_winners_probation(searches: int) -> None:
+    """``GlobalConfig.probation_searches`` (floor plans: 1): on a single-scan winner's
+    probation a search keeps running within the budget the tracker and the evidence leave;
+    what it finds joins the hypotheses (here it finds the winner's place again and other
+    places), so a place not found before the probation can still beat the winner at its
+    end. Only that many searches: the probation's other scans cost what they did."""
     su = make_setup(2)
     loc = _budgeted(su.map_data, 50.0)
-    assert loc.gconfig.probation_search
-    loc.gconfig = loc.gconfig.model_copy(update={"probation_search": on})
+    assert loc.gconfig.probation_searches == 1
+    loc.gconfig = loc.gconfig.model_copy(update={"probation_searches": searches})
     i0, _est = _to_probation(loc, su, 250, 120)
     p = loc._probation
     assert p is not None and "drive_rule" not in p.extras
     found, kept = p.track.found, len(loc._tracks)
-    most = kept
+    most, searched_after = kept, 0
     for i in range(i0 + 1, i0 + 200):
         est = loc.update(*su.scan(i), su.odom[i])
         if loc._probation is None:
             break
         most = max(most, len(loc._tracks))
         assert loc.work_ms <= 50.0
+        searched_after += p.searches >= searches and loc._job is not None
     assert est.status == "tracking" and _ok(est.pose, su.truth[i])
-    if on:
-        assert p.track.found >= found + 2 and most > kept
+    assert p.searches == searches and searched_after == 0
+    if searches:
+        assert p.track.found == found + 1 and most > kept
     else:
         assert p.track.found == found and most == kept
 
