@@ -475,7 +475,7 @@ class GlobalConfig(BaseModel):
         "plan, 55 ms, evidence_short_scale 1 m), a place 10 m off passed, ahead of the 8 "
         "other hypotheses by 0.17 or more, the true place not among them; one search fixes "
         "it at the true place. Searching all the probation long did the same and put the "
-        "floor plans' CPU to a fix from 0.4-0.9 s to 1.1-1.3 s (p50). Schematic: 1.",
+        "floor plans' CPU to a fix (p50) from 0.41-0.88 s to 1.06-1.29 s. Schematic: 1.",
     )
     window_polish: bool = Field(
         False,
