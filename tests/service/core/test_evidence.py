@@ -49,27 +49,32 @@ def test_keyframes_every_spacing_or_turn_and_a_bounded_window() -> None:
     assert ev.window([], g) == []
 
 
+def _office_window(first: int, last: int):  # type: ignore[no-untyped-def]
+    """The office floor plan's tour and index, and the window of keyframes its scans
+    ``first``..``last`` give with odometry: (setup, shape config, global config, index,
+    keyframes)."""
+    su = make_setup(2)
+    cfg = ShapeConfig.for_kind(su.map_data.kind)
+    g = GlobalConfig.for_kind(su.map_data.kind)
+    idx = load_or_build_index(su.map_data, cfg, g)
+    frames: list[ev.Keyframe] = []
+    travel = 0.0
+    for i in range(first, last + 1):
+        if i > first:
+            d = compose(invert(su.odom[i - 1]), su.odom[i])
+            travel += float(np.hypot(d[0], d[1]))
+        if ev.keyframe_due(frames, su.odom[i], travel, g):
+            frames.append(ev.make_keyframe(len(frames), *su.scan(i), su.odom[i], travel, g))
+    return su, cfg, g, idx, ev.window(frames, g)
+
+
 def test_backfill_judges_a_hypothesis_on_the_scans_before_it_was_found() -> None:
     """Office floor plan, odometry: a hypothesis at the true pose of the last scan explains
     the keyframes of the last metres (it is moved back by the odometry); one 1.5 m off along
     the robot's heading, which a search could have found on the last scan alone, does not.
     Every track ends up scored on every keyframe, newest first."""
-    su = make_setup(2)
-    md = su.map_data
-    cfg = ShapeConfig.for_kind(md.kind)
-    g = GlobalConfig.for_kind(md.kind)
-    idx = load_or_build_index(md, cfg, g)
-    frames: list[ev.Keyframe] = []
-    travel = 0.0
     last = 300
-    for i in range(270, last + 1):
-        if i > 270:
-            d = compose(invert(su.odom[i - 1]), su.odom[i])
-            travel += float(np.hypot(d[0], d[1]))
-        if ev.keyframe_due(frames, su.odom[i], travel, g):
-            r, a = su.scan(i)
-            frames.append(ev.make_keyframe(len(frames), r, a, su.odom[i], travel, g))
-    frames = ev.window(frames, g)
+    su, cfg, g, idx, frames = _office_window(270, last)
     assert len(frames) >= 6
     truth = su.truth[last]
     off = compose(truth, np.array([1.5, 0.0, 0.0]))
@@ -245,21 +250,8 @@ def test_window_polish_pins_the_pose_on_the_keyframes_of_the_drive() -> None:
     """``GlobalConfig.window_polish``: a winner 0.25 m and 3 degrees off is polished on the
     points of the window's keyframes at once, each placed by the odometry, and lands within
     5 cm and 1.5 degrees of the true pose (office floor plan, the tour's scans 270-300)."""
-    su = make_setup(2)
-    md = su.map_data
-    cfg = ShapeConfig.for_kind(md.kind)
-    g = GlobalConfig.for_kind(md.kind)
-    idx = load_or_build_index(md, cfg, g)
-    frames: list[ev.Keyframe] = []
-    travel = 0.0
     last = 300
-    for i in range(270, last + 1):
-        if i > 270:
-            d = compose(invert(su.odom[i - 1]), su.odom[i])
-            travel += float(np.hypot(d[0], d[1]))
-        if ev.keyframe_due(frames, su.odom[i], travel, g):
-            frames.append(ev.make_keyframe(len(frames), *su.scan(i), su.odom[i], travel, g))
-    frames = ev.window(frames, g)
+    su, _cfg, g, idx, frames = _office_window(270, last)
     truth = su.truth[last]
     for off in ([0.25, 0.0, 0.05], [0.0, -0.2, -0.05], [-0.15, 0.15, 0.0]):
         start = compose(truth, np.array(off))
