@@ -196,7 +196,7 @@ def test_a_winner_of_the_drive_is_confirmed_under_the_prior_the_drive_gives(
     try (a third of the scan lies on the plan) and the start was never fixed in 20 m. Under
     the prior the drive gives (``GlobalConfig.confirm_drive_prior``) it is confirmed, and its
     probation tracks the true place. Both on stop 35's drive (``STOP35``); with the defaults
-    (the winner polished on the window, ``window_polish``) it is confirmed either way."""
+    (the winner polished on the window, ``window_polish``) it is confirmed and tracked too."""
     md = load_map_file(DATA / "fr079.schematic.geojson", kind="schematic")
     z = np.load(DATA / "fr079.4361-4510.npz")
     first = 4371 - 4361
