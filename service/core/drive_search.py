@@ -8,6 +8,7 @@ drive"."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
@@ -143,16 +144,14 @@ class DriveSearch:
         if run_twin:
             spent, twin_done, twin = hyp_mod.advance(self._twin_job, spent, budget)
         if (not run_twin or twin_done) and spent < budget and not confirming:
-            if self._job is None:
+
+            def steps() -> Any:
                 seeds = self._seeds() + self._anchor_seeds(odometry)
-                steps = search_steps(self.index, rs, as_, self.config, g, seeds=seeds, P=P)
-                self._job = hyp_mod.Job(steps, self._odom_copy())
-            spent, done, res = hyp_mod.advance(self._job, spent, budget)
-            if done:
-                move = hyp_mod.odometry_move(self._job.odom, self._last_odom)
-                self._tracks = hyp_mod.merge(self._tracks, res.hypotheses, move, g.keep)
+                return search_steps(self.index, rs, as_, self.config, g, seeds=seeds, P=P)
+
+            spent, res = self._advance_search(spent, budget, steps)
+            if res is not None:
                 self._candidates = res.candidates
-                self._job = None
                 extras["search_done"] = 1.0
         self.work_ms = spent
         max_amb = g.fused_fix_ambiguity if fused else g.max_fix_ambiguity
@@ -437,18 +436,32 @@ class DriveSearch:
         spent = self.work_ms + hyp_mod.CONFIRM_MS
         if spent >= budget:
             return
-        if self._job is None:
+
+        def steps() -> Any:
             P = scan_configuration(r, a, self.config.extraction())
-            steps = search_steps(self.index, r, a, self.config, g, seeds=self._seeds(), P=P)
-            self._job = hyp_mod.Job(steps, self._odom_copy())
-        spent, done, res = hyp_mod.advance(self._job, spent, budget)
+            return search_steps(self.index, r, a, self.config, g, seeds=self._seeds(), P=P)
+
+        spent, res = self._advance_search(spent, budget, steps)
         self.work_ms = spent - hyp_mod.CONFIRM_MS
-        if done:
-            move = hyp_mod.odometry_move(self._job.odom, self._last_odom)
-            self._tracks = hyp_mod.merge(self._tracks, res.hypotheses, move, g.keep)
-            self._job = None
-            if self._probation is not None:
-                self._probation.searches += 1
+        if res is not None and self._probation is not None:
+            self._probation.searches += 1
+
+    def _advance_search(
+        self, spent: float, budget: float, steps: Callable[[], Any]
+    ) -> tuple[float, Any]:
+        """Advance the pending search, or a new one on ``steps()``, until the scan's work
+        ``spent`` reaches ``budget``; a finished search's hypotheses, moved by the odometry
+        since its scan, join the kept ones. Returns the work spent and the finished search's
+        result (``None`` while it is pending)."""
+        if self._job is None:
+            self._job = hyp_mod.Job(steps(), self._odom_copy())
+        spent, done, res = hyp_mod.advance(self._job, spent, budget)
+        if not done:
+            return spent, None
+        move = hyp_mod.odometry_move(self._job.odom, self._last_odom)
+        self._tracks = hyp_mod.merge(self._tracks, res.hypotheses, move, self.gconfig.keep)
+        self._job = None
+        return spent, res
 
     def _add_keyframe(self, r: np.ndarray, a: np.ndarray, odom_now: np.ndarray) -> None:
         """This scan becomes a keyframe of the drive's evidence when it is due
