@@ -77,6 +77,9 @@ def hrw_owner(robot_id: str, members: Iterable[str]) -> str | None:
     return None if best is None else best[1]
 
 
+_STALL_S = 1.0  # a membership-loop turn this much later than its wait: the process stalled
+
+
 def _fresher(a: PoseMsg, b: PoseMsg | None) -> bool:
     """Whether pose ``a`` answers a later scan than ``b`` (stamp, then seq)."""
     return b is None or (a.stamp, a.seq) > (b.stamp, b.seq)
@@ -648,6 +651,13 @@ class ClusterPlane:
         refresh_at: float | None = None  # after isolation: take newer poses of our robots
         was_isolated = False
         reconnect_s = 2 * self.settings.reconnect_max_ms / 1000.0
+        # Our poses as of the last loop turn that ran on time. A frozen process (SIGSTOP, a
+        # suspended VM) learns it was cut off only after it runs again, and by then it may
+        # have computed poses from fresh scans with its stale localiser; those must not count
+        # as newer than what the others computed while we were away (a CI run restarted only
+        # 1 of 2 robots). After a stall the snapshot is held for a while.
+        on_time_poses: dict[str, PoseMsg] = {}
+        hold_until = 0.0
         while not self.stopping.is_set():
             now = time.monotonic()
             due = [d for d in (lost_at, settle_at, refresh_at) if d is not None]
@@ -660,6 +670,10 @@ class ClusterPlane:
             with contextlib.suppress(queue.Empty):
                 while True:
                     events.append(self._member_q.get_nowait())
+            stalled = time.monotonic() - now - wait
+            if stalled > _STALL_S:
+                log.warning("cluster: this process did not run for %.1f s (frozen?)", stalled)
+                hold_until = time.monotonic() + reconnect_s + self.settings.takeover_grace_s
             cut = False  # our own token vanished (even if it is back in the same batch)
             for put, key in events:
                 try:
@@ -684,7 +698,7 @@ class ClusterPlane:
             if (isolated or cut) and not was_isolated:
                 log.warning("cluster: cut off from the other instances; taking nobody over")
                 with self.lock:  # what we knew when cut off (a frozen process learns it late)
-                    self._cut_poses = dict(self.poses)
+                    self._cut_poses = dict(on_time_poses)
                     # until compared with what the others did meanwhile, no pose from them
                     self.suspended = frozenset(self.configs)
                 was_isolated = True
@@ -701,6 +715,9 @@ class ClusterPlane:
                     log.warning("cluster: could not compare poses after reconnecting: %s", e)
                 finally:
                     self.suspended = frozenset()
+            if not was_isolated and time.monotonic() >= hold_until:
+                with self.lock:
+                    on_time_poses = dict(self.poses)
             members = self._view.members
             target = set(live)
             if me in members or now >= self._join_at:

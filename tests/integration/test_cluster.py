@@ -438,6 +438,7 @@ def test_frozen_instance_is_taken_over_and_resumes_without_stale_poses(
             errs = [float(np.hypot(*(m.pose[:2] - robots.truth(r, m.seq)[:2]))) for m in late]
             assert late and max(errs) < 0.15, (r, errs)
         b_log = frozen.log()
+        assert "this process did not run for" in b_log, b_log[-3000:]  # the freeze was seen
         assert f"{len(moved)} of our robots restart from a newer pose" in b_log, b_log[-3000:]
         print(f"frozen instance: its robots served by the others {took:.1f} s after SIGSTOP")
     finally:
