@@ -308,6 +308,35 @@ def evidence_margin(
     return out
 
 
+def recent_margin(
+    best: Track, tracks: list[Track], frames: list[Keyframe], g: GlobalConfig
+) -> float:
+    """The evidence rule's second way (``GlobalConfig.drive_recent_frames`` = k): how much
+    better ``best`` explains the newest k keyframes of ``frames`` than any distinct
+    alternative, each scored on all k (else ``-inf``); also ``-inf`` if an alternative
+    explains the window's older keyframes (those both were scored on) better than ``best`` by
+    more than ``drive_recent_tie``: the newest keyframes may only settle what the older ones
+    left tied, not overrule them (tuning building 1, start 13: a place 15 m off and turned
+    180 degrees led the newest 8 keyframes by 0.24, the true place had led the 5 before by
+    about 0.37, and the window's mean was a tie)."""
+    k = g.drive_recent_frames
+    if k <= 0 or len(frames) < k:
+        return float("-inf")
+    newest, older = frames[-k:], frames[:-k]
+    out = float("inf")
+    for t in tracks:
+        if t is best or not _distinct(t.pose, best.pose, g):
+            continue
+        mine, theirs, n = _common_means(best, t, newest)
+        if n < k:
+            return float("-inf")
+        mine_old, theirs_old, n_old = _common_means(best, t, older)
+        if n_old and theirs_old - mine_old < -g.drive_recent_tie:
+            return float("-inf")
+        out = min(out, theirs - mine)
+    return out
+
+
 def beaten(best: Track, tracks: list[Track], frames: list[Keyframe], g: GlobalConfig) -> bool:
     """Whether a distinct alternative explains the drive better than ``best``: a lower mean
     cost over the keyframes both were scored on, at least ``evidence_drop_frames`` of them

@@ -459,10 +459,13 @@ class GlobalConfig(BaseModel):
         "probation passed without a rejected scan) and intel 12318 (3.5 m / 80 degrees off, "
         "leading by 0.02 when confirmed) were published wrong; both are beaten at the "
         "probation's end and fixed at the true place 2-3 m later. Not for a winner of the "
-        "evidence rule: its 6 m window slides during the probation past what told it apart "
-        "(fr079 fed every 3rd scan, starts 1174 and 1201: the true place won by 0.18, and an "
-        "alias 31 m away that fits the corridor's scans better beat it at the probation's "
-        "end). Schematic: on. Metric maps have no probation.",
+        "evidence rule's window mean: its 6 m window slides during the probation past what "
+        "told it apart (fr079 fed every 3rd scan, starts 1174 and 1201: the true place won "
+        "by 0.18, and an alias 31 m away that fits the corridor's scans better beat it at "
+        "the probation's end); but for one of the newest keyframes (drive_recent_frames), "
+        "whose deciding keyframes stay in the window (tuning building 1, start 13: a place "
+        "15 m off won so, and 2 m later the true place explained the window better by "
+        "0.16). Schematic: on. Metric maps have no probation.",
     )
     probation_searches: int = Field(
         0,
@@ -491,6 +494,35 @@ class GlobalConfig(BaseModel):
     )
     drive_margin: float = Field(
         0.15, gt=0, description="Evidence rule: the margin over every alternative."
+    )
+    drive_recent_frames: int = Field(
+        0,
+        ge=0,
+        description="Evidence rule, second way to win (0: off): the leader over the whole "
+        "window also wins if it explains the newest this many keyframes better than every "
+        "distinct alternative, each scored on all of them, by drive_recent_margin (the cost "
+        "bars on the whole window still apply). A window-wide mean lags what tells two "
+        "places apart by the window's length: on the tuning log fr079 (floor plan, east "
+        "hall, starts 4109 and 4112) congruent offices 8.2 m apart tied within 0.011 over "
+        "20 keyframes until the robot left them at ~10 m, and the mean reached the margin "
+        "only at 13.7-14 m. Longer windows (10 m / 40 keyframes, or 40 keyframes) lost "
+        "three tuning starts there; this fixed four more. Schematic: 8.",
+    )
+    drive_recent_margin: float = Field(
+        0.18,
+        gt=0,
+        description="See drive_recent_frames: fewer keyframes, so a higher bar than "
+        "drive_margin (chosen on replays of the tuning sets' rule evaluations: 0.18 over 8 "
+        "named one wrong leader more than the rule alone, which the confirmation and the "
+        "probation then caught).",
+    )
+    drive_recent_tie: float = Field(
+        0.05,
+        ge=0,
+        description="See drive_recent_frames: no distinct alternative may explain the "
+        "window's older keyframes better than the leader by more than this (the newest "
+        "keyframes settle a tie, they do not overrule the older ones; "
+        ":func:`service.core.evidence.recent_margin`).",
     )
     drive_max_cost: float = Field(
         0.85,
@@ -568,5 +600,6 @@ class GlobalConfig(BaseModel):
                 evidence_short_scale=1.0,
                 probation_searches=1,
                 window_polish=True,
+                drive_recent_frames=8,
             )
         raise LocalizationError(f"unknown map kind {kind!r}; expected metric or schematic")

@@ -394,8 +394,10 @@ def test_a_single_scan_winner_the_drive_explains_worse_fails_at_its_probation_en
     """``GlobalConfig.probation_verdict``: at the end of the probation of a winner of the
     single-scan rules, a distinct alternative with the lower mean cost on the drive's
     keyframes fails it and the search goes on; an alternative that explains them worse does
-    not, and a winner of the evidence rule is not judged so (its window slides past what
-    told it apart; fr079 every 3rd scan, starts 1174 / 1201)."""
+    not, and a winner of the evidence rule's window mean is not judged so (its window slides
+    past what told it apart; fr079 every 3rd scan, starts 1174 / 1201). A winner of the
+    newest keyframes (``drive_recent``) is: what named it is still in the window (tuning
+    building 1, start 13)."""
     su = make_setup(2)
     scan = su.scan(250)
     beaten = _judged_probation(su.map_data, scan, {}, alt_cost=0.4)
@@ -406,6 +408,11 @@ def test_a_single_scan_winner_the_drive_explains_worse_fails_at_its_probation_en
     assert ahead.status == "tracking" and ahead.extras.get("probation_passed") == 1.0
     drive = _judged_probation(su.map_data, scan, {"drive_rule": 1.0}, alt_cost=0.4)
     assert drive.status == "tracking" and drive.extras.get("probation_passed") == 1.0
+    recent = {"drive_rule": 1.0, "drive_recent": 1.0}
+    beaten = _judged_probation(su.map_data, scan, recent, alt_cost=0.4)
+    assert beaten.status != "tracking" and beaten.extras.get("probation_beaten") == 1.0
+    ahead = _judged_probation(su.map_data, scan, recent, alt_cost=0.6)
+    assert ahead.status == "tracking" and ahead.extras.get("probation_passed") == 1.0
 
 
 def test_a_probation_passes_only_on_a_scan_the_tracker_accepted() -> None:
@@ -484,3 +491,50 @@ def test_a_drive_winner_is_held_while_no_alternative_has_caught_up() -> None:
     assert not holds(0.5, 0.5)  # caught up
     assert not holds(0.5, 0.45)  # overtaken
     assert not holds(0.9, 1.2)  # explains the drive too poorly (drive_max_cost 0.85)
+
+
+def test_the_evidence_rule_also_names_the_leader_that_the_newest_keyframes_tell_apart() -> None:
+    """Two congruent places tie on most of the window; once the robot drives out of the
+    congruent part the newest keyframes tell them apart, which the window's mean shows only
+    a window later (fr079's east hall). The leader over the whole window wins if it beats
+    every distinct alternative by ``drive_recent_margin`` on the newest
+    ``drive_recent_frames`` keyframes, each alternative scored on all of them; the cost bars
+    on the whole window still apply."""
+    su = make_setup(2)
+    g = GlobalConfig.for_kind("schematic")
+    assert (g.drive_recent_frames, g.drive_recent_margin, g.drive_margin) == (8, 0.18, 0.15)
+    frames = [
+        ev.Keyframe(k, np.ones(3), np.zeros(3), np.ones((3, 2)), np.zeros(3), 0.3 * k)
+        for k in range(20)
+    ]
+
+    def won(  # type: ignore[no-untyped-def]
+        gaps_recent: float,
+        cfg: GlobalConfig,
+        lead_cost: float = 0.5,
+        scored=range(20),
+        older_gap: float = 0.005,
+    ):
+        tracks = []
+        for x in (0.0, 8.2):
+            pose = np.array([x, 0.0, 0.0])
+            t = hy.Track(pose, [lead_cost], gs.Hypothesis(pose=pose.copy(), cost=lead_cost))
+            t.ev = {k: lead_cost + (older_gap if x else 0.0) for k in range(12)}  # a tie
+            t.ev.update({k: lead_cost + (gaps_recent if x else 0.0) for k in range(12, 20)})
+            tracks.append(t)
+        tracks[1].ev = {k: v for k, v in tracks[1].ev.items() if k in scored}
+        loc = GlobalShapeLocalizer(su.map_data, None, gconfig=cfg)
+        loc._frames, loc._tracks = frames, tracks
+        extras: dict[str, float] = {}
+        out = loc._evidence_won(tracks[0], extras)
+        assert extras["drive_margin"] < g.drive_margin  # the window's mean alone: no win
+        assert ("drive_recent" in extras) == out  # its probation ends with a verdict
+        return out
+
+    assert won(0.25, g)  # 0.25 on the newest 8: the mean over 20 is only ~0.10
+    assert not won(0.25, g, older_gap=-0.1)  # the older keyframes named the alternative
+    assert won(0.25, g, older_gap=-0.04)  # ... a tie within drive_recent_tie (0.05)
+    assert not won(0.15, g)  # below drive_recent_margin
+    assert not won(0.25, g.model_copy(update={"drive_recent_frames": 0}))  # off: as before
+    assert not won(0.25, g, lead_cost=0.9)  # explains the drive too poorly
+    assert not won(0.25, g, scored=range(19))  # the alternative lacks the newest keyframe
