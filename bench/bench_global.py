@@ -312,18 +312,31 @@ class DriveMap:
         """The scenario setup (1 metric, 2 schematic) of a simulated tour, None on real logs."""
         return None if self.group == "real" else (1 if self.kind == "metric" else 2)
 
+    @property
+    def seed(self) -> int:
+        """A building's seed (``world`` is "<seed>" or "<seed>@<clutter>")."""
+        return int(self.world.split("@")[0])
+
+    @property
+    def clutter(self) -> float | None:
+        """A building's furniture density when not the generator's default (``--clutter``)."""
+        return float(self.world.split("@")[1]) if "@" in self.world else None
+
     def code(self) -> list[int]:
-        """Integers naming this map in the start-choice seed (stable across runs)."""
+        """Integers naming this map in the start-choice seed (stable across runs; a building
+        with ``--clutter`` draws the same start scans as without)."""
         w = REAL_LOGS.index(self.world) if self.group == "real" else 0
         if self.group == "worlds":
-            w = int(self.world)
+            w = self.seed
         return [GROUPS.index(self.group), w, 0 if self.kind == "metric" else 1]
 
     def label(self) -> str:
         if self.group == "real":
             split = " (HELD-OUT)" if self.world == "mit-csail" else ""
             return f"{self.world}{split} {'metric' if self.kind == 'metric' else 'schematised'}"
-        name = "office" if self.group == "office" else f"building {self.world}"
+        name = "office" if self.group == "office" else f"building {self.seed}"
+        if self.clutter is not None:
+            name += f" (clutter {self.clutter:g})"
         return f"{name} setup {self.setup} ({self.kind})"
 
 
@@ -592,7 +605,7 @@ def drive_source(m: DriveMap, data: Path, stride: int = 1) -> DriveSource:
 
             from sim_publisher.scenario import building_setup
 
-            su = building_setup(_building(int(m.world), 0), setup, seed=0)
+            su = building_setup(_building(m.seed, 0, m.clutter), setup, seed=0)
         src = DriveSource(
             map_data=su.map_data,
             travel=cumulative_travel(su.truth[:, :2]),
@@ -889,9 +902,11 @@ def drive_table(trials: Sequence[DriveTrial], maps: Sequence[DriveMap]) -> str:
     rows = []
     for m, ts in table_groups(trials, maps):
         if m.group == "worlds":
-            seeds = sorted({int(t.world) for t in ts})
+            seeds = sorted({DriveMap(t.group, t.world, t.map).seed for t in ts})
             split = "held-out" if min(seeds) >= HELD_OUT_FIRST_SEED else "incl. TUNING seeds"
             name = f"{len(seeds)} {split} worlds ({_seed_list(seeds)}) setup {m.setup} ({m.kind})"
+            if m.clutter is not None:
+                name += f", clutter {m.clutter:g}"
         else:
             name = m.label()
         rows.append(drive_row(m.group, name, summarise_drive(ts)))
@@ -971,15 +986,18 @@ def drive_maps(
     seeds: Sequence[int],
     logs: Sequence[str],
     kinds: Sequence[str] = ("metric", "schematic"),
+    clutter: float | None = None,
 ) -> list[DriveMap]:
-    """The maps of the selected groups and map kinds, in table order."""
+    """The maps of the selected groups and map kinds, in table order; the buildings with
+    furniture density ``clutter`` instead of the generator's default when given."""
     out: list[DriveMap] = []
+    tag = "" if clutter is None else f"@{clutter:g}"
     for g in groups:
         for kind in (k for k in ("metric", "schematic") if k in kinds):
             if g == "office":
                 out.append(DriveMap("office", "office", kind))
             elif g == "worlds":
-                out += [DriveMap("worlds", str(s), kind) for s in seeds]
+                out += [DriveMap("worlds", f"{s}{tag}", kind) for s in seeds]
             else:
                 out += [DriveMap("real", log, kind) for log in logs]
     if "real" in groups:  # real rows: log by log, metric then schematised
@@ -1030,7 +1048,7 @@ def drive_main(args: argparse.Namespace, argv: Sequence[str]) -> int:
     kinds = [k.strip() for k in args.kinds.split(",") if k.strip()]
     if not kinds or any(k not in ("metric", "schematic") for k in kinds):
         raise SystemExit(f"--kinds: metric and/or schematic, got {args.kinds!r}")
-    maps = drive_maps(groups, seeds, logs, kinds)
+    maps = drive_maps(groups, seeds, logs, kinds, args.clutter)
     cap = args.quick if args.quick is not None else 1 << 30
     cache = str(Path(args.cache).resolve())
     data = str(Path(args.data).resolve())
@@ -1065,7 +1083,7 @@ def drive_main(args: argparse.Namespace, argv: Sequence[str]) -> int:
         if m.group == "office":
             want = args.starts
         elif m.group == "worlds":
-            want = per_world[m.kind][int(m.world)]
+            want = per_world[m.kind][m.seed]
         else:
             want = args.real_starts
         want = min(want, cap)
@@ -1214,6 +1232,14 @@ def main(argv: list[str] | None = None) -> int:
     )
     drive.add_argument(
         "--kinds", default="metric,schematic", help="map kinds: metric and/or schematic"
+    )
+    drive.add_argument(
+        "--clutter",
+        type=float,
+        default=None,
+        help="the buildings' furniture density (generator's BuildingParams.clutter, at most "
+        "0.25; default the office's 0.089): the floor plan is the same, the scans see more "
+        "furniture (a plan share below 0.5 on some tours, as in real furnished halls)",
     )
     drive.add_argument("--real-starts", type=int, default=40, help="starts per real log and map")
     drive.add_argument("--logs", default=",".join(REAL_LOGS), help="real logs")

@@ -71,10 +71,13 @@ class Run:
 
 
 @lru_cache(maxsize=4)
-def _building(seed: int, people: int):
+def _building(seed: int, people: int, clutter: float | None = None):
+    """The generated building of ``seed`` (``clutter``: furniture density, default the
+    generator's)."""
     from sim_publisher.generator import BuildingParams, generate_building
 
-    return generate_building(seed, BuildingParams(people=people))
+    extra = {} if clutter is None else {"clutter": clutter}
+    return generate_building(seed, BuildingParams(people=people, **extra))
 
 
 def run_one(

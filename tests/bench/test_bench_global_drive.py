@@ -162,3 +162,24 @@ def test_share_table_splits_found_trials_by_plan_share(bg) -> None:
     ts.append(trial(float("nan"), True))  # no reference: in neither column
     row = bg.share_table(ts, [m]).splitlines()[2]
     assert row == "| real fr079 schematic | 1/2 | 2/2 |"
+
+
+def test_clutter_names_the_same_buildings_and_starts_with_more_furniture(bg) -> None:
+    """``--clutter``: the same seeds (and start choice) with a denser furnishing; the floor
+    plan is unchanged, the scans see more furniture (a lower plan share)."""
+    plain = bg.drive_maps(["worlds"], [3], [], ["schematic"])
+    dense = bg.drive_maps(["worlds"], [3], [], ["schematic"], clutter=0.25)
+    assert [m.world for m in plain] == ["3"] and [m.world for m in dense] == ["3@0.25"]
+    m, d = plain[0], dense[0]
+    assert (d.seed, d.clutter, m.clutter) == (3, 0.25, None)
+    assert d.code() == m.code()
+    assert d.label() == "building 3 (clutter 0.25) setup 2 (schematic)"
+    sys.path.insert(0, str(BENCH))
+    try:
+        bw = importlib.import_module("bench_worlds")
+    finally:
+        sys.path.remove(str(BENCH))
+    b0, b1 = bw._building(1, 0), bw._building(1, 0, 0.25)
+    assert b1.clutter > b0.clutter + 0.05
+    p0, p1 = b0.schematic().map_data.polylines, b1.schematic().map_data.polylines
+    assert len(p0) == len(p1) and all(np.array_equal(a, b) for a, b in zip(p0, p1, strict=True))
