@@ -559,7 +559,7 @@ class DriveSearch:
             and p.left <= 0.0
             and g.probation_verdict
             and verdict
-            and ev_mod.beaten(p.track, self._tracks, self._frames, g)
+            and ev_mod.beaten(p.track, self._tracks, self._frames, g, g.probation_verdict_margin)
         )
         if failed or beaten:
             self._probation = None

@@ -337,12 +337,19 @@ def recent_margin(
     return out
 
 
-def beaten(best: Track, tracks: list[Track], frames: list[Keyframe], g: GlobalConfig) -> bool:
-    """Whether a distinct alternative explains the drive better than ``best``: a lower mean
-    cost over the keyframes both were scored on, at least ``evidence_drop_frames`` of them
-    (or all of ``frames`` if fewer)."""
+def beaten(
+    best: Track,
+    tracks: list[Track],
+    frames: list[Keyframe],
+    g: GlobalConfig,
+    margin: float = 0.0,
+) -> bool:
+    """Whether a distinct alternative explains the drive better than ``best``, or not worse
+    by ``margin``: its mean cost over the keyframes both were scored on, at least
+    ``evidence_drop_frames`` of them (or all of ``frames`` if fewer), is lower than
+    ``best``'s + ``margin``."""
     need = min(g.evidence_drop_frames, len(frames))
-    return need > 0 and any(n >= need and gap < 0 for gap, n in _gaps(best, tracks, frames, g))
+    return need > 0 and any(n >= need and gap < margin for gap, n in _gaps(best, tracks, frames, g))
 
 
 def _better_twin(young: Track, old: Track, frames: list[Keyframe], g: GlobalConfig) -> bool:

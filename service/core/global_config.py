@@ -467,6 +467,16 @@ class GlobalConfig(BaseModel):
         "15 m off won so, and 2 m later the true place explained the window better by "
         "0.16). Schematic: on. Metric maps have no probation.",
     )
+    probation_verdict_margin: float = Field(
+        0.0,
+        ge=0,
+        description="probation_verdict: the winner fails unless it explains the drive's "
+        "keyframes better than every distinct alternative by this much (0: only an "
+        "alternative that explains them better fails it). A cluttered building "
+        "(tuning building 1 at clutter 0.25, start 12, bench_global --clutter 0.25): a "
+        "single-scan winner 11.6 m off passed, leading the true place by 0.02 on the 20 "
+        "keyframes. Schematic: 0.05.",
+    )
     probation_searches: int = Field(
         0,
         ge=0,
@@ -599,6 +609,7 @@ class GlobalConfig(BaseModel):
                 confirm_drive_prior=True,
                 evidence_short_scale=1.0,
                 probation_searches=1,
+                probation_verdict_margin=0.05,
                 window_polish=True,
                 drive_recent_frames=8,
             )
