@@ -300,15 +300,16 @@ class DriveSearch:
         # (tuning building 7: a translated copy of a corridor 28 m away fitted the last 4 of
         # 20 keyframes, cost 1.0 on the rest, mean 0.82 against alternatives at 1.0)
         won = margin > 0.0 if keep else margin >= g.drive_margin
+        explains = max(mean, med) <= g.drive_max_cost
         if not won and not keep and g.drive_recent_frames > 0:
             # what tells two places apart shows on the newest keyframes first; the window's
             # mean lags it by the window's length (GlobalConfig.drive_recent_frames)
             recent = ev_mod.recent_margin(lead, self._tracks, frames, g)
             extras["drive_recent_margin"] = max(-9.0, min(recent, 9.0))
             won = recent >= g.drive_recent_margin
-            if won and max(mean, med) <= g.drive_max_cost:
+            if won and explains:
                 extras["drive_recent"] = 1.0  # its probation ends with a verdict
-        return max(mean, med) <= g.drive_max_cost and won
+        return explains and won
 
     def _twin_result(
         self, twin: Hypothesis | None, max_amb: float, extras: dict[str, float]

@@ -322,18 +322,14 @@ def recent_margin(
     k = g.drive_recent_frames
     if k <= 0 or len(frames) < k:
         return float("-inf")
-    newest, older = frames[-k:], frames[:-k]
+    older = _gaps(best, tracks, frames[:-k], g)
+    if any(n and gap < -g.drive_recent_tie for gap, n in older):
+        return float("-inf")
     out = float("inf")
-    for t in tracks:
-        if t is best or not _distinct(t.pose, best.pose, g):
-            continue
-        mine, theirs, n = _common_means(best, t, newest)
+    for gap, n in _gaps(best, tracks, frames[-k:], g):
         if n < k:
             return float("-inf")
-        mine_old, theirs_old, n_old = _common_means(best, t, older)
-        if n_old and theirs_old - mine_old < -g.drive_recent_tie:
-            return float("-inf")
-        out = min(out, theirs - mine)
+        out = min(out, gap)
     return out
 
 
