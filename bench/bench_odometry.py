@@ -3,7 +3,9 @@ odometry increment is from the reference's, as received and as corrected.
 
 For every pair of scans ``(j, i)`` that both have a reference pose -- consecutive scans
 (``gap 1``), scans 10 apart (``gap 10``), or on intel, whose flag-1 references are sparse,
-each flag-1 scan and the previous flag-1 scan at most 30 scans before it (``gap ref``) --
+each flag-1 scan and the previous flag-1 scan at most 30 scans before it (``gap ref``); and
+the tours fed every k-th scan only (``--strides``; ``1 of 3``: consecutive fed scans, 3 scans
+apart in the log, the odometry's increment 3 times as long) --
 the increment ``odom_j^-1 (+) odom_i`` is compared with the reference's ``ref_j^-1 (+) ref_i``:
 translation error (m) and heading error (deg), percentiles over all pairs, and how many pairs
 the correction made worse / better by more than 5 cm. Also the share of scans whose
@@ -93,23 +95,29 @@ def _row(
     )
 
 
-def real_rows(data: Path, logs: list[str], motion: MotionConfig) -> list[str]:
+def real_rows(
+    data: Path, logs: list[str], motion: MotionConfig, strides: tuple[int, ...] = (1,)
+) -> list[str]:
+    """Rows of the real logs; for each ``stride`` k > 1 the tour fed every k-th scan
+    (a robot whose scans come farther apart: the increments are k times longer), its
+    consecutive fed scans compared (label ``1 of k``, or ``ref of k`` on intel)."""
     from bench_real import load_log
 
     rows = []
-    for name in logs:
+    for name, k in itertools.product(logs, strides):
         log = load_log(data, name, None)
-        keep = [i for i, o in enumerate(log.odom) if o is not None]
+        keep = [i for i, o in enumerate(log.odom) if o is not None][::k]
         scans = [(log.ranges[i], log.angles[i]) for i in keep]
         odom = np.array([log.odom[i] for i in keep])
         ref = log.reference[keep]
         flags = log.ok[keep]
         fixed, share, ms = run_tour(scans, odom, motion)
         split = "held-out" if name in HELD_OUT_LOGS else "tuning"
-        gaps: list[tuple[str, int | None]] = [("1", 1), ("10", 10)]
+        gaps: list[tuple[str, int | None]] = [("1", 1), ("10", 10)] if k == 1 else [("1", 1)]
         if len(_pairs(flags, 1)) < 100:
             gaps = [("ref", None)]
         for label, gap in gaps:
+            label = label if k == 1 else f"{label} of {k}"
             pairs = _pairs(flags, gap)
             rows.append(
                 _row(
@@ -185,6 +193,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--logs", default="intel,fr079,mit-csail", help="'' for none")
     ap.add_argument("--worlds", default="0-19,1000-1007", help="seeds, e.g. 0-19,1000-1007")
     ap.add_argument("--out", type=Path, default=ROOT / "docs")
+    ap.add_argument(
+        "--strides", default="1,3", help="real logs also fed every k-th scan, e.g. 1,2,3"
+    )
     args = ap.parse_args(argv)
     seeds: list[int] = []
     for part in filter(None, args.worlds.split(",")):
@@ -198,7 +209,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{args.data} not found (not part of a clone): the real logs are left out")
         logs = []
     if logs:
-        rows += real_rows(args.data, logs, motion)
+        strides = [int(v) for v in args.strides.split(",") if v]
+        rows += real_rows(args.data, logs, motion, tuple(strides))
     if seeds:
         rows += world_rows(seeds, motion)
     head = (
