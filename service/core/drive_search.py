@@ -51,6 +51,9 @@ class Probation:
     #: tracked pose is checked against, ``GlobalConfig.probation_slide``)
     start: np.ndarray | None = None
     start_odom: np.ndarray | None = None
+    #: odometry travel (m) of the scans the tracker accepted since its last rejection
+    #: (``GlobalConfig.probation_relock``)
+    relock: float = 0.0
 
 
 class DriveSearch:
@@ -531,8 +534,13 @@ class DriveSearch:
         g = self.gconfig
         p.rejected += "rejected" in est.extras
         drive_won = "drive_rule" in p.extras
+        if "rejected" in est.extras:
+            p.relock = 0.0
         if delta is not None:
-            p.left -= self._move_kept(delta)
+            moved = self._move_kept(delta)
+            p.left -= moved
+            if "rejected" not in est.extras:
+                p.relock += moved
             if drive_won or g.probation_verdict:
                 self._probation_evidence(r, a)
             if p.searches < g.probation_searches and g.probation_verdict and not drive_won:
@@ -574,12 +582,19 @@ class DriveSearch:
                 extras["probation_beaten"] = 1.0
             amb = ambiguity([t.hyp for t in self._tracks], self.gconfig)
             return self._unresolved(self._tracks[0], amb, extras)
-        if p.left > 0.0 or (g.probation_verdict and "rejected" in est.extras):
+        held = p.rejected >= g.probation_rejects and p.relock < g.probation_relock
+        if p.left > 0.0 or (g.probation_verdict and "rejected" in est.extras) or held:
             # a probation passes only on a scan the tracker accepted; on a rejected one it
             # goes on (the rejection counts towards probation_rejects) rather than publish
             # a pose the scan did not fit (tuning building 17, start 0, with
             # evidence_short_scale: a place 8.4 m off passed on a rejected scan and was lost
-            # on the next)
+            # on the next). A probation held through the tracker's rejections
+            # (probation_hold_violation) passes only once the tracker has accepted the scans
+            # again over probation_relock metres: while it rejected them it followed the
+            # odometry alone, and one accepted scan does not show it found the place again
+            # (tuning log fr079, floor plan, fed every 3rd scan, start 1174: the robot backs
+            # up for 3 m while its odometry counts forward; held through 5 rejections, the
+            # probation passed on the next accepted scan 1.29 m off)
             return self._on_probation(est)
         self._probation = None
         self._since_fix = 0

@@ -393,6 +393,16 @@ class GlobalConfig(BaseModel):
         le=1,
         description="See probation_slide: the excess share of beams through walls.",
     )
+    probation_relock: float = Field(
+        0.5,
+        ge=0,
+        description="A probation whose scans the tracker rejected probation_rejects times or "
+        "more (held through them, probation_hold_violation) passes only after the tracker has "
+        "accepted every scan of the last this many metres of odometry travel: while it "
+        "rejected the scans it followed the odometry alone, which can be wrong (the tuning "
+        "log fr079 counts forward while the robot backs up), and a single accepted scan "
+        "after that does not show the tracker has the place again (0 = off).",
+    )
     probation_hold_violation: float = Field(
         0.1,
         ge=0,

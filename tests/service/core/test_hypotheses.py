@@ -444,6 +444,39 @@ def test_a_probation_passes_only_on_a_scan_the_tracker_accepted() -> None:
     assert "probation" in outs[1].extras and outs[2].extras.get("probation_failed") == 1.0
 
 
+def test_a_held_probation_passes_only_after_the_tracker_has_relocked() -> None:
+    """``GlobalConfig.probation_relock``: a drive winner's probation held through
+    ``probation_rejects`` rejected scans (the evidence still names it, the scan does not run
+    through walls) passes only once the tracker has accepted the scans of 0.5 m of travel in
+    a row; a rejection restarts the count. While it rejected them it followed the odometry
+    alone (tuning log fr079, every 3rd scan, start 1174: the odometry counts forward while
+    the robot backs up; the probation passed on the first accepted scan, 1.29 m off)."""
+    su = make_setup(2)
+    scan = su.scan(250)
+    g = GlobalConfig.for_kind("schematic")
+    assert g.probation_relock == 0.5
+
+    def step(loc: GlobalShapeLocalizer, rejected: bool) -> Estimate:
+        extras = {"rejected": 1.0} if rejected else {}
+        est = Estimate(pose=su.reference[250].copy(), status="tracking", score=0.9, extras=extras)
+        return loc._probation_step(est, np.array([0.1, 0.0, 0.0]), False, *scan)
+
+    loc = _ending_probation(su.map_data, {"drive_rule": 1.0}, alt_cost=0.7)
+    held = [step(loc, rejected=True) for _ in range(3)]
+    assert held[-1].extras.get("probation_held") == 1.0 and loc._probation is not None
+    outs = [step(loc, rejected=False) for _ in range(4)]  # 0.4 m accepted
+    assert all(o.status != "tracking" for o in outs) and loc._probation is not None
+    assert step(loc, rejected=True).status != "tracking"  # the count starts again
+    outs = [step(loc, rejected=False) for _ in range(5)]
+    assert [o.status == "tracking" for o in outs] == [False] * 4 + [True]
+    assert outs[-1].extras.get("probation_passed") == 1.0
+
+    # never held (fewer rejections than the bar): the first accepted scan passes, as before
+    loc = _ending_probation(su.map_data, {"drive_rule": 1.0}, alt_cost=0.7)
+    assert step(loc, rejected=True).status != "tracking"
+    assert step(loc, rejected=False).extras.get("probation_passed") == 1.0
+
+
 @pytest.mark.parametrize("searches", [1, 0])
 def test_a_search_goes_on_during_a_single_scan_winners_probation(searches: int) -> None:
     """``GlobalConfig.probation_searches`` (floor plans: 1): on a single-scan winner's
