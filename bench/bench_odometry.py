@@ -196,12 +196,21 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--strides", default="1,3", help="real logs also fed every k-th scan, e.g. 1,2,3"
     )
+    ap.add_argument(
+        "--fallback-sigma",
+        type=float,
+        default=None,
+        help="ScanOdometryConfig.fallback_sigma (default: the config's, off)",
+    )
     args = ap.parse_args(argv)
     seeds: list[int] = []
     for part in filter(None, args.worlds.split(",")):
         lo, _, hi = part.partition("-")
         seeds += list(range(int(lo), int(hi or lo) + 1))
     motion = MotionConfig()
+    if args.fallback_sigma is not None:
+        check = motion.scan_odometry.model_copy(update={"fallback_sigma": args.fallback_sigma})
+        motion = motion.model_copy(update={"scan_odometry": check})
     t0 = time.perf_counter()
     rows = []
     logs = [s for s in args.logs.split(",") if s]

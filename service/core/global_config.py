@@ -394,14 +394,18 @@ class GlobalConfig(BaseModel):
         description="See probation_slide: the excess share of beams through walls.",
     )
     probation_relock: float = Field(
-        0.5,
+        0.0,
         ge=0,
         description="A probation whose scans the tracker rejected probation_rejects times or "
         "more (held through them, probation_hold_violation) passes only after the tracker has "
         "accepted every scan of the last this many metres of odometry travel: while it "
         "rejected the scans it followed the odometry alone, which can be wrong (the tuning "
         "log fr079 counts forward while the robot backs up), and a single accepted scan "
-        "after that does not show the tracker has the place again (0 = off).",
+        "after that does not show the tracker has the place again. 0 = off, the default: "
+        "the case that showed it (tuning log fr079 fed every 3rd scan, start 1174, 1.29 m "
+        "off) came with a search setting not kept, and at 0.5 m it delayed 23 of 1000 "
+        "tuning fixes by 0.2-2.2 m without changing a first fix (docs/global.md, "
+        "'Stop 38').",
     )
     probation_hold_violation: float = Field(
         0.1,

@@ -113,21 +113,28 @@ class ScanOdometryConfig(BaseModel):
         "(else the raw increment is used: the scans do not overlap enough).",
     )
     fallback_sigma: float = Field(
-        0.5,
+        0.0,
         ge=0,
         description="A fit that explains less than min_inliers of the points is tried again "
         "from no translation (the odometry's turn kept) under this position sigma (m): the "
         "odometry's own increment may be what is wrong (the tuning log fr079 counts forward "
         "while the robot backs up; a wheel slips). Kept when it explains at least "
-        "min_inliers and fallback_gain more than the first fit (0 = off).",
+        "min_inliers and fallback_gain more than the first fit. 0 = off, the default; 0.5 "
+        "for a robot whose odometry can be wrong by more than 0.5 m between two scans "
+        "(scans far apart, encoders that do not count backwards): on the tuning log fr079 "
+        "fed every 3rd scan it corrects 11 of the 14 increments left > 0.2 m off. Off by "
+        "default because on intel fed every scan it breaks a self-cancelling odometry "
+        "glitch (scans 12710-12712: 0.7 m back, 0.8 m forward; only the second is "
+        "replaced), and the drive bench then has 9 tracking poses off after a fix "
+        "(docs/global.md, 'Stop 38').",
     )
     fallback_gain: float = Field(
         0.2,
         ge=0,
         le=1,
         description="See fallback_sigma: the share of the points the fallback fit must "
-        "explain beyond the first fit. On the tuning logs the fits that found a backward "
-        "drive or an odometry jump gained 0.30-0.89; the two on intel fed every scan that "
+        "explain beyond the first fit. On fr079 fed every 2nd / 3rd scan the fits that "
+        "found its backward drives gained 0.30-0.59; the two on intel fed every scan that "
         "gained 0.05 and 0.12 moved a robot whose odometry turned on the spot, or stood, "
         "0.2 m (translation p99 of intel's increments 0.160 -> 0.181 m with them).",
     )

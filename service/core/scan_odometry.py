@@ -299,8 +299,9 @@ class ScanOdometry:
         fr079 fed every 3rd scan it corrects 11 of the 14 increments that stayed more than
         0.2 m off (the robot backing up while the odometry counts forward: the odometry's
         increment is 0.6 m from the truth, beyond the association gate); fed every scan it
-        changes nothing there, and on intel it replaces one increment (an odometry jump of
-        0.82 m where the robot moved 0.05 m)."""
+        changes nothing there; on intel it replaces one increment, the second half of a
+        0.7 m back-and-forth jump of the odometry, which then no longer cancels (one
+        reference pair 5 cm worse)."""
         s_trans, s_rot = odometry_sigmas(delta, self.motion)
         sigma = max(self.config.fallback_sigma, s_trans)
         start = np.array([0.0, 0.0, float(delta[2])])

@@ -21,15 +21,14 @@ DATA = Path(__file__).resolve().parents[2] / "data" / "real"
 #: The drive as stop 35 ran it: keyframes with the flat short credit, no search during a
 #: probation, no polish on the window, the evidence rule on the window's mean only. The
 #: mechanisms below were found on that drive and are checked on it; with the defaults since
-#: stop 36 (``GlobalConfig.evidence_short_scale``, ``probation_searches``, ``window_polish``),
-#: 37 (``drive_recent_frames``) and 38 (``probation_relock``) several of
-#: these starts are fixed at the true place without reaching them, which each test checks too.
+#: stop 36 (``GlobalConfig.evidence_short_scale``, ``probation_searches``, ``window_polish``)
+#: and 37 (``drive_recent_frames``) several of these starts are fixed at the true place
+#: without reaching them, which each test checks too.
 STOP35 = {
     "evidence_short_scale": 0.0,
     "probation_searches": 0,
     "window_polish": False,
     "drive_recent_frames": 0,
-    "probation_relock": 0.0,
 }
 
 

@@ -445,23 +445,29 @@ def test_a_probation_passes_only_on_a_scan_the_tracker_accepted() -> None:
 
 
 def test_a_held_probation_passes_only_after_the_tracker_has_relocked() -> None:
-    """``GlobalConfig.probation_relock``: a drive winner's probation held through
-    ``probation_rejects`` rejected scans (the evidence still names it, the scan does not run
-    through walls) passes only once the tracker has accepted the scans of 0.5 m of travel in
-    a row; a rejection restarts the count. While it rejected them it followed the odometry
-    alone (tuning log fr079, every 3rd scan, start 1174: the odometry counts forward while
-    the robot backs up; the probation passed on the first accepted scan, 1.29 m off)."""
+    """``GlobalConfig.probation_relock`` (off by default; here 0.5 m): a drive winner's
+    probation held through ``probation_rejects`` rejected scans (the evidence still names
+    it, the scan does not run through walls) passes only once the tracker has accepted the
+    scans of 0.5 m of travel in a row; a rejection restarts the count. While it rejected them
+    it followed the odometry alone (tuning log fr079, every 3rd scan, start 1174, with a
+    wider search shortlist: the odometry counts forward while the robot backs up; the
+    probation passed on the first accepted scan, 1.29 m off). Off, or never held, the first
+    accepted scan passes."""
     su = make_setup(2)
     scan = su.scan(250)
-    g = GlobalConfig.for_kind("schematic")
-    assert g.probation_relock == 0.5
+    assert GlobalConfig.for_kind("schematic").probation_relock == 0.0
 
     def step(loc: GlobalShapeLocalizer, rejected: bool) -> Estimate:
         extras = {"rejected": 1.0} if rejected else {}
         est = Estimate(pose=su.reference[250].copy(), status="tracking", score=0.9, extras=extras)
         return loc._probation_step(est, np.array([0.1, 0.0, 0.0]), False, *scan)
 
-    loc = _ending_probation(su.map_data, {"drive_rule": 1.0}, alt_cost=0.7)
+    def ending(relock: float) -> GlobalShapeLocalizer:
+        loc = _ending_probation(su.map_data, {"drive_rule": 1.0}, alt_cost=0.7)
+        loc.gconfig = loc.gconfig.model_copy(update={"probation_relock": relock})
+        return loc
+
+    loc = ending(0.5)
     held = [step(loc, rejected=True) for _ in range(3)]
     assert held[-1].extras.get("probation_held") == 1.0 and loc._probation is not None
     outs = [step(loc, rejected=False) for _ in range(4)]  # 0.4 m accepted
@@ -471,8 +477,11 @@ def test_a_held_probation_passes_only_after_the_tracker_has_relocked() -> None:
     assert [o.status == "tracking" for o in outs] == [False] * 4 + [True]
     assert outs[-1].extras.get("probation_passed") == 1.0
 
-    # never held (fewer rejections than the bar): the first accepted scan passes, as before
-    loc = _ending_probation(su.map_data, {"drive_rule": 1.0}, alt_cost=0.7)
+    loc = ending(0.0)  # the default: held, then passed on the first accepted scan
+    assert [step(loc, rejected=True) for _ in range(3)][-1].extras.get("probation_held") == 1.0
+    assert step(loc, rejected=False).extras.get("probation_passed") == 1.0
+
+    loc = ending(0.5)  # never held (fewer rejections than the bar)
     assert step(loc, rejected=True).status != "tracking"
     assert step(loc, rejected=False).extras.get("probation_passed") == 1.0
 
