@@ -403,7 +403,7 @@ class GlobalConfig(BaseModel):
         "log fr079 counts forward while the robot backs up), and a single accepted scan "
         "after that does not show the tracker has the place again. 0 = off, the default: "
         "the case that showed it (tuning log fr079 fed every 3rd scan, start 1174, 1.29 m "
-        "off) came with a search setting not kept, and at 0.5 m it delayed 23 of 1000 "
+        "off) came with a search setting not kept, and at 0.5 m it delayed 23 of 880 "
         "tuning fixes by 0.2-2.2 m without changing a first fix (docs/global.md, "
         "'Stop 38').",
     )
