@@ -104,33 +104,34 @@ def real_rows(
     from bench_real import load_log
 
     rows = []
-    for name, k in itertools.product(logs, strides):
+    for name in logs:
         log = load_log(data, name, None)
-        keep = [i for i, o in enumerate(log.odom) if o is not None][::k]
-        scans = [(log.ranges[i], log.angles[i]) for i in keep]
-        odom = np.array([log.odom[i] for i in keep])
-        ref = log.reference[keep]
-        flags = log.ok[keep]
-        fixed, share, ms = run_tour(scans, odom, motion)
-        split = "held-out" if name in HELD_OUT_LOGS else "tuning"
-        gaps: list[tuple[str, int | None]] = [("1", 1), ("10", 10)] if k == 1 else [("1", 1)]
-        if len(_pairs(flags, 1)) < 100:
-            gaps = [("ref", None)]
-        for label, gap in gaps:
-            label = label if k == 1 else f"{label} of {k}"
-            pairs = _pairs(flags, gap)
-            rows.append(
-                _row(
-                    name,
-                    split,
-                    label,
-                    _errors(odom, ref, pairs),
-                    _errors(fixed, ref, pairs),
-                    share,
-                    ms,
+        for k in strides:
+            keep = [i for i, o in enumerate(log.odom) if o is not None][::k]
+            scans = [(log.ranges[i], log.angles[i]) for i in keep]
+            odom = np.array([log.odom[i] for i in keep])
+            ref = log.reference[keep]
+            flags = log.ok[keep]
+            fixed, share, ms = run_tour(scans, odom, motion)
+            split = "held-out" if name in HELD_OUT_LOGS else "tuning"
+            gaps: list[tuple[str, int | None]] = [("1", 1), ("10", 10)] if k == 1 else [("1", 1)]
+            if len(_pairs(flags, 1)) < 100:
+                gaps = [("ref", None)]
+            for label, gap in gaps:
+                label = label if k == 1 else f"{label} of {k}"
+                pairs = _pairs(flags, gap)
+                rows.append(
+                    _row(
+                        name,
+                        split,
+                        label,
+                        _errors(odom, ref, pairs),
+                        _errors(fixed, ref, pairs),
+                        share,
+                        ms,
+                    )
                 )
-            )
-            print(rows[-1], flush=True)
+                print(rows[-1], flush=True)
     return rows
 
 

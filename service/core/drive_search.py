@@ -532,15 +532,13 @@ class DriveSearch:
         p = self._probation
         assert p is not None
         g = self.gconfig
-        p.rejected += "rejected" in est.extras
+        rejected = "rejected" in est.extras
+        p.rejected += rejected
         drive_won = "drive_rule" in p.extras
-        if "rejected" in est.extras:
-            p.relock = 0.0
         if delta is not None:
             moved = self._move_kept(delta)
             p.left -= moved
-            if "rejected" not in est.extras:
-                p.relock += moved
+            p.relock = 0.0 if rejected else p.relock + moved
             if drive_won or g.probation_verdict:
                 self._probation_evidence(r, a)
             if p.searches < g.probation_searches and g.probation_verdict and not drive_won:
@@ -582,8 +580,8 @@ class DriveSearch:
                 extras["probation_beaten"] = 1.0
             amb = ambiguity([t.hyp for t in self._tracks], self.gconfig)
             return self._unresolved(self._tracks[0], amb, extras)
-        held = p.rejected >= g.probation_rejects and p.relock < g.probation_relock
-        if p.left > 0.0 or (g.probation_verdict and "rejected" in est.extras) or held:
+        relocking = p.rejected >= g.probation_rejects and p.relock < g.probation_relock
+        if p.left > 0.0 or (g.probation_verdict and rejected) or relocking:
             # a probation passes only on a scan the tracker accepted; on a rejected one it
             # goes on (the rejection counts towards probation_rejects) rather than publish
             # a pose the scan did not fit (tuning building 17, start 0, with
