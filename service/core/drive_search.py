@@ -568,7 +568,17 @@ class DriveSearch:
             and verdict
             and ev_mod.beaten(p.track, self._tracks, self._frames, g, g.probation_verdict_margin)
         )
-        if failed or beaten:
+        # a winner of the window's mean is not judged so (its deciding keyframes slide out
+        # during the probation) but fails if the drive has turned: the newest keyframes now
+        # name a distinct alternative by the second way's margin, the window not against it
+        overturned = (
+            not failed
+            and p.left <= 0.0
+            and g.probation_reversal
+            and not verdict
+            and ev_mod.overturned(p.track, self._tracks, self._frames, g)
+        )
+        if failed or beaten or overturned:
             self._probation = None
             self._searching = True
             self._history = []
@@ -578,6 +588,8 @@ class DriveSearch:
             extras = {"probation_failed": 1.0, "hypotheses": float(len(self._tracks))}
             if beaten:
                 extras["probation_beaten"] = 1.0
+            if overturned:
+                extras["probation_overturned"] = 1.0
             amb = ambiguity([t.hyp for t in self._tracks], self.gconfig)
             return self._unresolved(self._tracks[0], amb, extras)
         relocking = p.rejected >= g.probation_rejects and p.relock < g.probation_relock

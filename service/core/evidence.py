@@ -333,6 +333,28 @@ def recent_margin(
     return out
 
 
+def overturned(best: Track, tracks: list[Track], frames: list[Keyframe], g: GlobalConfig) -> bool:
+    """Whether the drive now names a distinct alternative instead of ``best`` by the evidence
+    rule's second way (``GlobalConfig.probation_reversal``): the alternative explains the
+    newest ``drive_recent_frames`` keyframes (both scored on all of them) better than
+    ``best`` by ``drive_recent_margin``, and the keyframes of the whole window that both
+    were scored on at least as well."""
+    k = g.drive_recent_frames
+    if k <= 0 or len(frames) < k:
+        return False
+    newest = frames[-k:]
+    for t in tracks:
+        if t is best or not _distinct(t.pose, best.pose, g):
+            continue
+        mine, theirs, n = _common_means(best, t, newest)
+        if n < k or not theirs <= mine - g.drive_recent_margin:
+            continue
+        mine_all, theirs_all, _n = _common_means(best, t, frames)
+        if theirs_all <= mine_all:
+            return True
+    return False
+
+
 def beaten(
     best: Track,
     tracks: list[Track],

@@ -491,6 +491,17 @@ class GlobalConfig(BaseModel):
         "single-scan winner 11.6 m off passed, leading the true place by 0.02 on the 20 "
         "keyframes. Schematic: 0.05.",
     )
+    probation_reversal: bool = Field(
+        False,
+        description="A winner of the evidence rule's window mean (drive_margin), which the "
+        "verdict does not judge, fails at its probation's end if the drive has turned against "
+        "it: a distinct alternative explains the newest drive_recent_frames keyframes better "
+        "by drive_recent_margin (the bar of the rule's second way) and the window at least as "
+        "well (:func:`service.core.evidence.overturned`); the search goes on. Generated "
+        "buildings 20-59 (tuning, floor plans, 45 ms): places 13 m off (turned 90 degrees) "
+        "and 7 m off (turned 180) won by 0.16 and passed although by the probation's end the "
+        "true place explained the window as well or better. Schematic: on.",
+    )
     probation_searches: int = Field(
         0,
         ge=0,
@@ -624,6 +635,7 @@ class GlobalConfig(BaseModel):
                 evidence_short_scale=1.0,
                 probation_searches=1,
                 probation_verdict_margin=0.05,
+                probation_reversal=True,
                 window_polish=True,
                 drive_recent_frames=8,
             )

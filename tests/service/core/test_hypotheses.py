@@ -422,6 +422,51 @@ def test_a_single_scan_winner_the_drive_explains_worse_fails_at_its_probation_en
     assert ahead.status == "tracking" and ahead.extras.get("probation_passed") == 1.0
 
 
+def test_a_drive_winner_fails_its_probation_when_the_newest_keyframes_name_another() -> None:
+    """``GlobalConfig.probation_reversal`` (floor plans): a winner of the evidence rule's
+    window mean fails at its probation's end when a distinct alternative explains the newest
+    ``drive_recent_frames`` keyframes better by ``drive_recent_margin`` and the whole window
+    at least as well (generated tuning buildings 32 start 25 and 40 start 35 at 45 ms: places
+    7 m and 13 m off won by 0.16 and passed, the true place then ahead on the window by 0.18
+    and 0.01 and on the newest keyframes by far). It passes when the alternative leads the
+    newest keyframes by less, or leads them but explains the window worse (the older
+    keyframes, which named the winner, still count), or with the rule off."""
+    su = make_setup(2)
+    scan = su.scan(250)
+    g = GlobalConfig.for_kind("schematic")
+    assert g.probation_reversal and g.drive_recent_frames == 8 and g.drive_recent_margin == 0.18
+
+    def ending(older: list[float], newest: float, on: bool = True) -> Estimate:
+        loc = GlobalShapeLocalizer(su.map_data, None, gconfig=g)
+        loc.gconfig = g.model_copy(update={"probation_reversal": on})
+        n = len(older) + 8
+        frames = [
+            ev.Keyframe(k, np.ones(3), np.zeros(3), np.ones((3, 2)), np.zeros(3), 0.3 * k)
+            for k in range(n)
+        ]
+        costs = [*older, *([newest] * 8)]
+        tracks = []
+        for x, cs in ((0.0, [0.5] * n), (7.0, costs)):
+            pose = np.array([x, 0.0, 0.0])
+            t = hy.Track(pose, [cs[-1]], gs.Hypothesis(pose=pose.copy(), cost=cs[-1]))
+            t.ev = {f.key: c for f, c in zip(frames, cs, strict=True)}
+            tracks.append(t)
+        loc._frames, loc._tracks, loc._searching = frames, tracks, False
+        loc._probation = Probation(tracks[0], 0.05, 0.0, {"drive_rule": 1.0})
+        return _probation_scan(loc, scan)
+
+    turned = ending([0.7, 0.7], 0.3)  # newest by 0.2, window 0.38 against 0.5
+    assert turned.status != "tracking" and turned.extras.get("probation_failed") == 1.0
+    assert turned.extras.get("probation_overturned") == 1.0
+    for older, newest, on in (
+        ([0.7, 0.7], 0.35, True),  # newest by 0.15 only
+        ([0.75] * 8, 0.3, True),  # newest by 0.2, but the window 0.525 against 0.5
+        ([0.7, 0.7], 0.3, False),  # the rule off
+    ):
+        out = ending(older, newest, on)
+        assert out.status == "tracking" and out.extras.get("probation_passed") == 1.0, older
+
+
 def test_a_probation_passes_only_on_a_scan_the_tracker_accepted() -> None:
     """A probation whose travel is done on a rejected scan goes on (each rejection counts
     towards ``probation_rejects``): passed on the next accepted scan, failed if the
