@@ -491,6 +491,16 @@ class GlobalConfig(BaseModel):
         "single-scan winner 11.6 m off passed, leading the true place by 0.02 on the 20 "
         "keyframes. Schematic: 0.05.",
     )
+    rescore_keep_moved: bool = Field(
+        False,
+        description="With odometry, the re-scoring verifies a kept hypothesis both where the "
+        "odometry moved it and where the distance-field polish took it, and keeps the pose "
+        "with the lower cost (one more verification per hypothesis and scan, counted in the "
+        "budget). On a floor plan furniture returns pull the polish off the walls: generated "
+        "tuning building 46, a hypothesis at the exact pose was polished 0.07-0.17 m away at "
+        "up to twice the cost; its keyframes then scored 0.2-0.3 worse than a congruent room "
+        "8 m away, which won (3 wrong first fixes at 50 ms). Schematic: on.",
+    )
     probation_reversal: bool = Field(
         False,
         description="A winner of the evidence rule's window mean (drive_margin), which the "
@@ -636,6 +646,7 @@ class GlobalConfig(BaseModel):
                 probation_searches=1,
                 probation_verdict_margin=0.05,
                 probation_reversal=True,
+                rescore_keep_moved=True,
                 window_polish=True,
                 drive_recent_frames=8,
             )

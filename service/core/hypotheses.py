@@ -114,13 +114,16 @@ def rescore(
     odometry the tracks were moved by it and a polish on the distance field (+-0.1 m,
     +-0.04 rad) absorbs its error; without, the point-to-line refinement (wider basin) has to
     follow the robot's motion. With odometry the moved pose is the polish's motion prior
-    (``gconfig.rescore_prior``). Returns the work spent."""
+    (``gconfig.rescore_prior``), and with ``gconfig.rescore_keep_moved`` the moved pose is
+    verified too and kept when it explains the scan better than the polished one. Returns
+    the work spent."""
     if not tracks:
         return 0.0
     pts = np.vstack([f.points for f in P.features]) if P.features else np.zeros((0, 2))
     sp = _subsample(pts, gconfig.support_points)
     fit_ms = polish_ms(len(sp)) if odometry else refine_ms(index)
-    each = fit_ms + _verify_ms(index, gconfig)
+    both = odometry and gconfig.rescore_keep_moved
+    each = fit_ms + _verify_ms(index, gconfig) * (2 if both else 1)
     n = max(1, min(len(tracks), int(limit // each)))
     order = sorted(range(len(tracks)), key=lambda k: tracks[k].hyp.cost)
     chosen = [tracks[k] for k in order[:n]]
@@ -136,8 +139,12 @@ def rescore(
         fitted, _ = _polish(index, poses, sp, gconfig.fine_scale, prior=gconfig.rescore_prior)
     else:
         fitted = _refine(index, poses, sp, config, gconfig)
-    for t, p in zip(chosen, fitted, strict=True):
+    for k, (t, p) in enumerate(zip(chosen, fitted, strict=True)):
         h = verify(index, p, ranges, angles, P, config, gconfig)
+        if odometry and gconfig.rescore_keep_moved:
+            moved = verify(index, poses[k], ranges, angles, P, config, gconfig)
+            if moved.cost < h.cost:
+                h = moved
         t.pose = h.pose.copy()
         t.hyp = h
         t.costs.append(h.cost)
