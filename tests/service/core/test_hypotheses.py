@@ -98,20 +98,20 @@ def test_rescore_fits_each_track_to_the_scan_and_ranks_the_true_pose_first() -> 
 
 
 def test_rescore_keeps_the_odometry_moved_pose_where_the_beams_explain_it_better() -> None:
-    """``GlobalConfig.rescore_keep_moved`` (floor plans): with odometry a kept hypothesis is
+    """``GlobalConfig.rescore_keep_moved`` (opt-in): with odometry a kept hypothesis is
     polished on the distance field, which furniture returns pull off a floor plan's walls;
     the pose the odometry moved it to is verified too and kept when its cost is lower.
     Generated tuning building 46 (floor plan), a track at the exact pose on scans 8-19 of its
     tour: the polish alone moves it 0.07-0.17 m and up to doubles its cost (its keyframes
     then score 0.2-0.3 worse than a congruent room 8 m away, which won: 3 wrong first fixes
-    at 50 ms); kept, it stays put wherever that verifies better."""
+    at 50 ms); kept, it stays put wherever that verifies better. Off by default."""
     from sim_publisher.generator import BuildingParams, generate_building
     from sim_publisher.scenario import building_setup
 
     su = building_setup(generate_building(46, BuildingParams(people=0)), 2, seed=0)
     cfg = ShapeConfig.for_kind("schematic")
     g = GlobalConfig.for_kind("schematic")
-    assert g.rescore_keep_moved
+    assert not g.rescore_keep_moved
     idx = load_or_build_index(su.map_data, cfg, g)
     off, stayed = [], 0
     for i in range(8, 20):
