@@ -106,14 +106,15 @@ def real_rows(
     rows = []
     for name in logs:
         log = load_log(data, name, None)
+        valid = [i for i, o in enumerate(log.odom) if o is not None]
+        split = "held-out" if name in HELD_OUT_LOGS else "tuning"
         for k in strides:
-            keep = [i for i, o in enumerate(log.odom) if o is not None][::k]
+            keep = valid[::k]
             scans = [(log.ranges[i], log.angles[i]) for i in keep]
             odom = np.array([log.odom[i] for i in keep])
             ref = log.reference[keep]
             flags = log.ok[keep]
             fixed, share, ms = run_tour(scans, odom, motion)
-            split = "held-out" if name in HELD_OUT_LOGS else "tuning"
             gaps: list[tuple[str, int | None]] = [("1", 1), ("10", 10)] if k == 1 else [("1", 1)]
             if len(_pairs(flags, 1)) < 100:
                 gaps = [("ref", None)]

@@ -561,9 +561,9 @@ class DriveSearch:
         # 13: a place 15 m off won on the newest 8 keyframes; 2 m later the true place
         # explained the window better by 0.16, and the probation passed)
         verdict = not drive_won or "drive_recent" in p.extras
+        ended = not failed and p.left <= 0.0
         beaten = (
-            not failed
-            and p.left <= 0.0
+            ended
             and g.probation_verdict
             and verdict
             and ev_mod.beaten(p.track, self._tracks, self._frames, g, g.probation_verdict_margin)
@@ -572,8 +572,7 @@ class DriveSearch:
         # during the probation) but fails if the drive has turned: the newest keyframes now
         # name a distinct alternative by the second way's margin, the window not against it
         overturned = (
-            not failed
-            and p.left <= 0.0
+            ended
             and g.probation_reversal
             and not verdict
             and ev_mod.overturned(p.track, self._tracks, self._frames, g)

@@ -347,7 +347,7 @@ def overturned(best: Track, tracks: list[Track], frames: list[Keyframe], g: Glob
         if t is best or not _distinct(t.pose, best.pose, g):
             continue
         mine, theirs, n = _common_means(best, t, newest)
-        if n < k or not theirs <= mine - g.drive_recent_margin:
+        if n < k or theirs > mine - g.drive_recent_margin:
             continue
         mine_all, theirs_all, _n = _common_means(best, t, frames)
         if theirs_all <= mine_all:

@@ -141,7 +141,7 @@ def rescore(
         fitted = _refine(index, poses, sp, config, gconfig)
     for k, (t, p) in enumerate(zip(chosen, fitted, strict=True)):
         h = verify(index, p, ranges, angles, P, config, gconfig)
-        if odometry and gconfig.rescore_keep_moved:
+        if both:
             moved = verify(index, poses[k], ranges, angles, P, config, gconfig)
             if moved.cost < h.cost:
                 h = moved
