@@ -174,6 +174,8 @@ class GlobalShapeLocalizer(DriveSearch):
         self.cache_dir = None if cache_dir is None else Path(cache_dir)
         self.tracker = ShapeLocalizer(map_data, initial_pose, self.config)
         self._scan_odometry = ScanOdometry(self.config.motion.scan_odometry, self.config.motion)
+        #: the reading this scan's corrected increment was scan-matched from (or ``None``)
+        self._matched_from: np.ndarray | None = None
         self._index: ViewIndex | None = None
         self._tracks: list[_Track] = []
         self._searching = False
@@ -287,7 +289,7 @@ class GlobalShapeLocalizer(DriveSearch):
                 # a turn the shape tracker cannot bridge (e.g. a look-around spin that goes on
                 # after the fix): trust the odometry's heading change for the prior
                 self.tracker.predict(delta)
-            est = self.tracker.update(r, a, odom)
+            est = self.tracker.update(r, a, odom, self._matched_from)
             # The tracker's own ambiguity compares its step-2 hypotheses, which often converge
             # to the same pose (a "tie" of one pose with itself): not an integrity signal.
             # It stays in extras; the published ambiguity is the global one (None here).
@@ -323,13 +325,16 @@ class GlobalShapeLocalizer(DriveSearch):
         """The scan's odometry pose corrected by matching the scan to the previous one
         (:class:`service.core.scan_odometry.ScanOdometry`), or as received when that is off;
         a scan without odometry makes the next reading start afresh."""
+        self._matched_from = None
         if odom is None:
             self._scan_odometry.reset(None)
             return None
         o = check_pose3(odom, "odom")
         if not self.config.motion.scan_odometry.enabled:
             return o
-        return self._scan_odometry.correct(r, a, o)
+        out = self._scan_odometry.correct(r, a, o)
+        self._matched_from = self._scan_odometry.matched_from
+        return out
 
     def _remember_odom(self, odom: np.ndarray | None) -> np.ndarray | None:
         """Odometry delta since the previous scan (robot frame) or ``None``."""
@@ -618,7 +623,7 @@ class GlobalShapeLocalizer(DriveSearch):
         ``>= reacquire_support``; ``None`` meanwhile (the anchor follows the accepted fits)."""
         g = self.gconfig
         self.tracker.reset(start, prev_odom)
-        est = self.tracker.update(r, a, odom)
+        est = self.tracker.update(r, a, odom, self._matched_from)
         good = (
             est.status == "tracking"
             and "rejected" not in est.extras

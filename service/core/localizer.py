@@ -256,10 +256,16 @@ class ShapeLocalizer:
         return self._typical is not None and f.loglik < self._typical - cfg.doubt_loglik
 
     def update(
-        self, ranges: np.ndarray, angles: np.ndarray, odom: np.ndarray | None = None
+        self,
+        ranges: np.ndarray,
+        angles: np.ndarray,
+        odom: np.ndarray | None = None,
+        matched_from: np.ndarray | None = None,
     ) -> Estimate:
         """Localise one scan. ``ranges`` metres (NaN = no return), ``angles`` radians in the
-        robot frame (same length), ``odom`` optional odometry pose (own frame).
+        robot frame (same length), ``odom`` optional odometry pose (own frame);
+        ``matched_from`` the reading ``odom``'s increment was measured from by a scan-to-scan
+        fit, if it was (:meth:`service.core.motion.MotionModel.predict`).
 
         Raises :class:`LocalizationError` on empty, mismatched, non-finite-angle or negative
         range input.
@@ -271,7 +277,7 @@ class ShapeLocalizer:
                 check_pose3(odom, "odom")
             return Estimate(pose=np.zeros(3), status="initializing", score=0.0)
         cfg = self.config
-        pred = self.motion.predict(self._pose, odom)
+        pred = self.motion.predict(self._pose, odom, matched_from)
         P = scan_configuration(r, a, self._params)
         pts, nrm, own = self._fit_points(P)
         if len(pts) < 3:

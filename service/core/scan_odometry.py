@@ -278,6 +278,10 @@ class ScanOdometry:
         self.explained = math.nan
         #: whether the last reading's increment was replaced by the fit
         self.corrected = False
+        #: the corrected reading that increment was measured from (``None``: not replaced);
+        #: a motion model passed it knows its increment from there is scan-matched
+        #: (``MotionConfig.matched_turn_noise``)
+        self.matched_from: np.ndarray | None = None
 
     def reset(self, odom: np.ndarray | None = None) -> None:
         self._raw = None if odom is None else np.asarray(odom, dtype=np.float64).copy()
@@ -322,6 +326,7 @@ class ScanOdometry:
         odometry pose ``odom`` (finite ``[x, y, theta]``, checked by the caller)."""
         raw = np.asarray(odom, dtype=np.float64).reshape(3)
         self.explained, self.corrected = math.nan, False
+        self.matched_from = None
         if self._raw is not None and self._out is not None and np.array_equal(raw, self._raw):
             return self._out.copy()  # stale: repeated as received
         pts, nrm = _surface_points(ranges, angles, self.config)
@@ -346,6 +351,7 @@ class ScanOdometry:
                 self.explained = share
                 if share >= self.config.min_inliers and np.all(np.isfinite(fit)):
                     use, self.corrected = fit, True
+                    self.matched_from = self._out.copy()
             out = compose(self._out, use)
         self._points, self._normals = pts, nrm
         self._raw = raw.copy()

@@ -28,6 +28,34 @@ def test_odometry_increment_is_applied_in_the_robot_frame() -> None:
     assert s[0] > first.sigma[0]
 
 
+def test_a_scan_matched_turn_is_not_given_the_raw_odometrys_turn_noise() -> None:
+    """``MotionConfig.matched_turn_noise``: an increment measured by a kept scan-to-scan fit
+    from the motion model's previous reading gets the sigmas of a straight step; a raw one,
+    or one matched from another reading, keeps the turn terms."""
+    c = MotionConfig()
+    first = np.array([0.0, 0.0, 0.0])
+    turned = np.array([-0.07, -0.04, -2.6])  # a 150 deg turn between two scans
+
+    def prior(matched_from: np.ndarray | None) -> np.ndarray:
+        m = Motion(c)
+        m.predict(np.zeros(3), first)
+        return m.predict(np.zeros(3), turned, matched_from).sigma
+
+    raw, matched, elsewhere = prior(None), prior(first.copy()), prior(np.array([0.0, 0.0, 0.1]))
+    d = float(np.hypot(0.07, 0.04))
+    assert raw[2] == pytest.approx(
+        c.sigma_theta_floor + 2.6 * c.alpha_rot_rot + d * c.alpha_rot_trans
+    )
+    assert matched[2] == pytest.approx(c.sigma_theta_floor + d * c.alpha_rot_trans)
+    assert matched[0] == pytest.approx(c.sigma_xy_floor + d * c.alpha_trans_trans)
+    assert raw[2] > 5 * matched[2] and raw[0] > 3 * matched[0]
+    np.testing.assert_allclose(elsewhere, raw)
+    # the share kept is configurable: 1 gives the raw model back
+    m = Motion(c.model_copy(update={"matched_turn_noise": 1.0}))
+    m.predict(np.zeros(3), first)
+    np.testing.assert_allclose(m.predict(np.zeros(3), turned, first.copy()).sigma, raw)
+
+
 def test_a_stale_reading_holds_and_the_catch_up_is_not_counted_twice() -> None:
     """mit-csail's odometry freezes for a few scans and then jumps: the held scans follow the
     scan, and the jump is applied from where the frozen reading was taken."""
