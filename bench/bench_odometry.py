@@ -66,13 +66,10 @@ def _errors(poses: np.ndarray, ref: np.ndarray, pairs: list[tuple[int, int]]) ->
 #: turn bins (rad) of the heading-error-by-turn table
 TURN_BINS = ((0.0, 0.05), (0.05, 0.15), (0.15, 0.3), (0.3, 0.6), (0.6, 4.0))
 
-#: rows of the heading-error-by-turn table, filled by :func:`real_rows` and :func:`world_rows`
-TURN_ROWS: list[str] = []
-
 
 def _turn_rows(
     name: str, ref: np.ndarray, pairs: list[tuple[int, int]], raw: np.ndarray, fix: np.ndarray
-) -> None:
+) -> list[str]:
     """Heading error (deg) p50 / p90 / p99 of the raw and the checked increments by the
     reference's turn between the two scans (:data:`TURN_BINS`); bins with < 5 pairs left out.
     Why: ``MotionConfig.matched_turn_noise`` (a checked increment's error does not grow with
@@ -80,16 +77,18 @@ def _turn_rows(
     turn = np.array(
         [abs(math.remainder(compose(invert(ref[j]), ref[i])[2], 2 * math.pi)) for j, i in pairs]
     )
+    rows = []
     for lo, hi in TURN_BINS:
         sel = (turn >= lo) & (turn < hi)
         if sel.sum() < 5:
             continue
         r = np.degrees(np.percentile(raw[sel, 1], [50, 90, 99]))
         f = np.degrees(np.percentile(fix[sel, 1], [50, 90, 99]))
-        TURN_ROWS.append(
+        rows.append(
             f"| {name} | {lo:.2f}-{hi:.2f} | {int(sel.sum())} | {r[0]:.2f} / {r[1]:.2f} / "
             f"{r[2]:.2f} | {f[0]:.2f} / {f[1]:.2f} / {f[2]:.2f} |"
         )
+    return rows
 
 
 def run_tour(
@@ -126,13 +125,14 @@ def _row(
 
 def real_rows(
     data: Path, logs: list[str], motion: MotionConfig, strides: tuple[int, ...] = (1,)
-) -> list[str]:
-    """Rows of the real logs; for each ``stride`` k > 1 the tour fed every k-th scan
+) -> tuple[list[str], list[str]]:
+    """Rows of the real logs, and of their heading error by turn (:func:`_turn_rows`, the
+    first gap of each tour); for each ``stride`` k > 1 the tour fed every k-th scan
     (a robot whose scans come farther apart: the increments are k times longer), its
     consecutive fed scans compared (label ``1 of k``, or ``ref of k`` on intel)."""
     from bench_real import load_log
 
-    rows = []
+    rows, turns = [], []
     for name in logs:
         log = load_log(data, name, None)
         valid = [i for i, o in enumerate(log.odom) if o is not None]
@@ -150,40 +150,26 @@ def real_rows(
             for n_gap, (label, gap) in enumerate(gaps):
                 label = label if k == 1 else f"{label} of {k}"
                 pairs = _pairs(flags, gap)
+                raw, fix = _errors(odom, ref, pairs), _errors(fixed, ref, pairs)
                 if n_gap == 0:
-                    _turn_rows(
-                        f"{name} ({split}), gap {label}",
-                        ref,
-                        pairs,
-                        _errors(odom, ref, pairs),
-                        _errors(fixed, ref, pairs),
-                    )
-                rows.append(
-                    _row(
-                        name,
-                        split,
-                        label,
-                        _errors(odom, ref, pairs),
-                        _errors(fixed, ref, pairs),
-                        share,
-                        ms,
-                    )
-                )
+                    turns += _turn_rows(f"{name} ({split}), gap {label}", ref, pairs, raw, fix)
+                rows.append(_row(name, split, label, raw, fix, share, ms))
                 print(rows[-1], flush=True)
-    return rows
+    return rows, turns
 
 
-def world_rows(seeds: list[int], motion: MotionConfig) -> list[str]:
+def world_rows(seeds: list[int], motion: MotionConfig) -> tuple[list[str], list[str]]:
+    """Rows of the generated buildings (one per split), and of their heading error by turn
+    (:func:`_turn_rows`)."""
     from bench_worlds import _building
 
     from sim_publisher.scenario import building_setup
 
-    raws, fixes, shares, times = [], [], [], []
     groups: dict[str, list[int]] = {
         "tuning": [s for s in seeds if s < 1000],
         "held-out": [s for s in seeds if s >= 1000],
     }
-    rows = []
+    rows, turns = [], []
     for split, group in groups.items():
         if not group:
             continue
@@ -201,20 +187,11 @@ def world_rows(seeds: list[int], motion: MotionConfig) -> list[str]:
             shares.append(share)
             times.append(ms)
         name = f"buildings {group[0]}-{group[-1]} ({len(group)}), setup 2, 2 people"
-        _turn_rows(f"{name} ({split})", np.vstack(refs), idx, np.vstack(raws), np.vstack(fixes))
-        rows.append(
-            _row(
-                name,
-                split,
-                "1",
-                np.vstack(raws),
-                np.vstack(fixes),
-                float(np.mean(shares)),
-                np.concatenate(times),
-            )
-        )
+        raw, fix = np.vstack(raws), np.vstack(fixes)
+        turns += _turn_rows(f"{name} ({split})", np.vstack(refs), idx, raw, fix)
+        rows.append(_row(name, split, "1", raw, fix, float(np.mean(shares)), np.concatenate(times)))
         print(rows[-1], flush=True)
-    return rows
+    return rows, turns
 
 
 def _commit() -> str:
@@ -255,16 +232,21 @@ def main(argv: list[str] | None = None) -> int:
         check = motion.scan_odometry.model_copy(update={"fallback_sigma": args.fallback_sigma})
         motion = motion.model_copy(update={"scan_odometry": check})
     t0 = time.perf_counter()
-    rows = []
+    rows: list[str] = []
+    turns: list[str] = []
     logs = [s for s in args.logs.split(",") if s]
     if logs and not args.data.is_dir():
         print(f"{args.data} not found (not part of a clone): the real logs are left out")
         logs = []
     if logs:
         strides = [int(v) for v in args.strides.split(",") if v]
-        rows += real_rows(args.data, logs, motion, tuple(strides))
+        more, turned = real_rows(args.data, logs, motion, tuple(strides))
+        rows += more
+        turns += turned
     if seeds:
-        rows += world_rows(seeds, motion)
+        more, turned = world_rows(seeds, motion)
+        rows += more
+        turns += turned
     head = (
         "| tour | split | gap | pairs | odometry: translation p50 / p90 / p99 m | heading p50 / "
         "p90 / p99 deg | checked: translation p50 / p90 / p99 m | heading p50 / p90 / p99 deg "
@@ -283,7 +265,7 @@ def main(argv: list[str] | None = None) -> int:
         + "\n\nHeading error of the increments (gap 1, every scan; intel: gap ref) by the "
         "reference's turn between the two scans (`MotionConfig.matched_turn_noise`):\n\n"
         "| tour | turn rad | pairs | odometry heading p50 / p90 / p99 deg | checked heading "
-        "p50 / p90 / p99 deg |\n|---|---|---|---|---|\n" + "\n".join(TURN_ROWS) + "\n"
+        "p50 / p90 / p99 deg |\n|---|---|---|---|---|\n" + "\n".join(turns) + "\n"
     )
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "odometry.md").write_text(text)

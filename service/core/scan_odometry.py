@@ -276,12 +276,15 @@ class ScanOdometry:
         self._normals: np.ndarray | None = None
         #: share of the points the last fit explained (NaN: no fit on the last reading)
         self.explained = math.nan
-        #: whether the last reading's increment was replaced by the fit
-        self.corrected = False
-        #: the corrected reading that increment was measured from (``None``: not replaced);
-        #: a motion model passed it knows its increment from there is scan-matched
-        #: (``MotionConfig.matched_turn_noise``)
+        #: the corrected reading the last reading's increment was measured from by the fit
+        #: (``None``: the increment was not replaced); a motion model passed it knows its
+        #: increment from there is scan-matched (``MotionConfig.matched_turn_noise``)
         self.matched_from: np.ndarray | None = None
+
+    @property
+    def corrected(self) -> bool:
+        """Whether the last reading's increment was replaced by the fit."""
+        return self.matched_from is not None
 
     def reset(self, odom: np.ndarray | None = None) -> None:
         self._raw = None if odom is None else np.asarray(odom, dtype=np.float64).copy()
@@ -325,7 +328,7 @@ class ScanOdometry:
         """The corrected odometry pose of the scan ``ranges`` / ``angles`` taken at the raw
         odometry pose ``odom`` (finite ``[x, y, theta]``, checked by the caller)."""
         raw = np.asarray(odom, dtype=np.float64).reshape(3)
-        self.explained, self.corrected = math.nan, False
+        self.explained = math.nan
         self.matched_from = None
         if self._raw is not None and self._out is not None and np.array_equal(raw, self._raw):
             return self._out.copy()  # stale: repeated as received
@@ -350,7 +353,7 @@ class ScanOdometry:
                     fit, share = self._fallback(pts[::step], nrm[::step], delta, fit, share)
                 self.explained = share
                 if share >= self.config.min_inliers and np.all(np.isfinite(fit)):
-                    use, self.corrected = fit, True
+                    use = fit
                     self.matched_from = self._out.copy()
             out = compose(self._out, use)
         self._points, self._normals = pts, nrm
