@@ -163,7 +163,14 @@ class ServiceNode(ClusterPlane, ControlPlane):
         if self.settings.workers == 0:
             return InlineWorker(index, cache_dir, budget)
         nice = self.settings.search_worker_nice if index >= self.settings.workers else 0
-        return ProcessWorker(index, self.settings.log_level, cache_dir, budget, nice)
+        return ProcessWorker(
+            index,
+            self.settings.log_level,
+            cache_dir,
+            budget,
+            nice,
+            start_timeout_s=self.settings.worker_start_timeout_s,
+        )
 
     def start(self) -> None:
         """Open and restore the state, start workers and threads, then declare the Zenoh

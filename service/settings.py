@@ -87,6 +87,7 @@ class ServiceSettings(BaseModel):
     reconnect_max_ms: int = Field(default=1000, ge=100)
     max_robots: int = Field(default=1000, ge=1)
     worker_timeout_s: float = Field(default=30.0, gt=0.0)
+    worker_start_timeout_s: float = Field(default=120.0, gt=0.0)
     search_budget_ms: float = Field(default=50.0, ge=0.0, le=10_000.0)
     search_worker: bool = True
     search_worker_nice: int = Field(default=19, ge=0, le=19)

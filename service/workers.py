@@ -359,6 +359,8 @@ def _worker_main(
             with contextlib.suppress(OSError):
                 os.sched_setscheduler(0, os.SCHED_BATCH, os.sched_param(0))
     core = WorkerCore(cache_dir, search_budget_ms)
+    # start-up (interpreter, imports) is over: the parent's per-request timeout starts now
+    conn.send(("ready", os.getpid()))
     while True:
         try:
             req = conn.recv()
@@ -374,7 +376,11 @@ class ProcessWorker:
     """A :class:`WorkerCore` in a ``spawn``-ed child process; one request in flight at a time.
 
     :meth:`call` raises :class:`WorkerDiedError` if the child exits, or :class:`ServiceTimeout` (and
-    kills the child) if a reply takes longer than ``timeout_s`` seconds.
+    kills the child) if a reply takes longer than ``timeout_s`` seconds. The child's start-up
+    (a new interpreter and the imports) is not charged to its first request: the child says
+    ``("ready", pid)`` when it can serve, and the first :meth:`call` waits up to
+    ``start_timeout_s`` for that before its own ``timeout_s`` starts. A search worker at nice 19
+    beside other busy processes can take more than the 30 s request timeout just to start.
     """
 
     def __init__(
@@ -384,9 +390,12 @@ class ProcessWorker:
         cache_dir: Path | None = None,
         search_budget_ms: float | None = None,
         nice: int = 0,
+        start_timeout_s: float = 120.0,
     ) -> None:
         self.index = index
         self._log_level = log_level
+        self._start_timeout_s = start_timeout_s
+        self._ready = False
         ctx = mp.get_context("spawn")
         self._conn, child = ctx.Pipe(duplex=True)
         self._proc = ctx.Process(
@@ -407,20 +416,43 @@ class ProcessWorker:
         """Whether the child process is running."""
         return self._proc.is_alive()
 
-    def call(self, req: tuple[Any, ...], timeout_s: float | None = None) -> Reply:
-        """Send one request and wait for its reply."""
+    def wait_ready(self) -> None:
+        """Wait (at most ``start_timeout_s``) until the child has started; kill it and raise
+        :class:`ServiceTimeout` if it has not, :class:`WorkerDiedError` if it exited."""
+        if self._ready:
+            return
         try:
-            self._conn.send(req)
-            if not self._conn.poll(timeout_s):
-                self.kill()
-                raise ServiceTimeout(
-                    f"worker {self.index} took longer than {timeout_s:.1f} s on a "
-                    f"{req[0]} request; restarted"
-                )
-            return self._conn.recv()
+            started = self._conn.poll(self._start_timeout_s)
+            msg = self._conn.recv() if started else None
         except (EOFError, OSError, BrokenPipeError) as e:
             code = self._proc.exitcode
             raise WorkerDiedError(f"worker {self.index} died (exit code {code}): {e}") from e
+        if not started:
+            self.kill()
+            raise ServiceTimeout(
+                f"worker {self.index} did not start within {self._start_timeout_s:g} s; restarted"
+            )
+        if not (isinstance(msg, tuple) and msg and msg[0] == "ready"):
+            self.kill()
+            raise WorkerDiedError(f"worker {self.index} sent {msg!r} instead of ready")
+        self._ready = True
+
+    def call(self, req: tuple[Any, ...], timeout_s: float | None = None) -> Reply:
+        """Send one request and wait for its reply (after the child's start-up, see
+        :meth:`wait_ready`, which is not charged to ``timeout_s``)."""
+        self.wait_ready()
+        try:
+            self._conn.send(req)
+            if self._conn.poll(timeout_s):
+                return self._conn.recv()
+        except (EOFError, OSError, BrokenPipeError) as e:
+            code = self._proc.exitcode
+            raise WorkerDiedError(f"worker {self.index} died (exit code {code}): {e}") from e
+        self.kill()
+        raise ServiceTimeout(
+            f"worker {self.index} took longer than {timeout_s:.1f} s on a {req[0]} request; "
+            "restarted"
+        )
 
     def kill(self) -> None:
         """Terminate the child at once."""
