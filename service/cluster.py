@@ -791,7 +791,7 @@ class ClusterPlane:
                 waits.append(self._link_of(rid).submit(req))
             for fut in waits:
                 with contextlib.suppress(Exception):
-                    fut.result(timeout=self.settings.worker_timeout_s * 2 + 5)
+                    fut.result(timeout=self.settings.reply_wait_s)
         log.info(
             "cluster: after reconnecting, %d of our robots restart from a newer pose known "
             "elsewhere (%s)",
@@ -858,7 +858,7 @@ class ClusterPlane:
                 odom_start = None if start is None or odom is None else list(odom)
                 req = ("config", r, cfg.method, cfg.map_id, init, start, odom_start)
                 adopted.append((r, cfg, pm, odom, link.submit(req)))
-            t = self.settings.worker_timeout_s * 2 + 5
+            t = self.settings.reply_wait_s
             for _r, fut in waits:
                 with contextlib.suppress(Exception):
                     fut.result(timeout=t)

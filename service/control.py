@@ -196,7 +196,7 @@ class ControlPlane:
 
     def _broadcast(self, req: tuple[Any, ...]) -> list[tuple[str, Any]]:
         futs = [link.submit(req) for link in self.links]
-        t = self.settings.worker_timeout_s * 2 + 5
+        t = self.settings.reply_wait_s
         return [f.result(timeout=t) for f in futs]
 
     def _handle_map(self, item: Inbound) -> None:
@@ -281,14 +281,14 @@ class ControlPlane:
                 if not new:
                     self.links[idx].slots.discard(robot_id)
                     self.links[idx].submit(("forget", robot_id)).result(
-                        timeout=self.settings.worker_timeout_s * 2 + 5
+                        timeout=self.settings.reply_wait_s
                     )
                 self.assignment.move(robot_id, search.index)
                 idx = search.index
             link = self.links[idx]
             status, why = link.submit(
                 ("config", robot_id, cfg.method, cfg.map_id, as_list(cfg.initial_pose), None, None)
-            ).result(timeout=self.settings.worker_timeout_s * 2 + 5)
+            ).result(timeout=self.settings.reply_wait_s)
             if status != "ok" and new:
                 self.assignment.release(robot_id)
         if status != "ok":

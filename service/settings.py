@@ -97,6 +97,13 @@ class ServiceSettings(BaseModel):
     handover_delay_s: float = Field(default=0.2, ge=0.0, le=30.0)
     catchup_timeout_s: float = Field(default=2.0, gt=0.0, le=60.0)
 
+    @property
+    def reply_wait_s(self) -> float:
+        """How long a thread waits for a worker's reply to a request it queued: the worker
+        may first have to start (``worker_start_timeout_s``), then time out on a request
+        before this one and be restarted (``worker_timeout_s`` each), plus 5 s of slack."""
+        return self.worker_start_timeout_s + 2.0 * self.worker_timeout_s + 5.0
+
     @field_validator("prefix")
     @classmethod
     def _check_prefix(cls, v: str) -> str:

@@ -48,6 +48,14 @@ def test_env_overrides_defaults() -> None:
     assert s.pose_save_interval_s == 0.25
 
 
+def test_a_queued_request_waits_for_a_worker_start_and_a_timed_out_request_before_it() -> None:
+    s = load_settings(
+        [], {"SHAPELOC_WORKER_START_TIMEOUT_S": "60", "SHAPELOC_WORKER_TIMEOUT_S": "10"}
+    )
+    assert s.worker_start_timeout_s == 60.0
+    assert s.reply_wait_s == 60.0 + 2 * 10.0 + 5.0
+
+
 def test_env_json_list() -> None:
     s = load_settings([], {"SHAPELOC_CONNECT": '["tcp/127.0.0.1:5", "tcp/127.0.0.1:6"]'})
     assert s.connect == ["tcp/127.0.0.1:5", "tcp/127.0.0.1:6"]
