@@ -471,8 +471,19 @@ class DriveSearch:
         if not done:
             return spent, None
         move = hyp_mod.odometry_move(self._job.odom, self._last_odom)
-        self._tracks = hyp_mod.merge(self._tracks, res.hypotheses, move, self.gconfig.keep)
+        refound: list[tuple[Track, np.ndarray]] = []
+        self._tracks = hyp_mod.merge(self._tracks, res.hypotheses, move, self.gconfig.keep, refound)
         self._job = None
+        if refound and self._frames and self._last_odom is not None:
+            spent += ev_mod.adopt_refound(
+                self.index,
+                refound,
+                self._frames,
+                self._last_odom,
+                self.config,
+                self.gconfig,
+                budget - spent,
+            )
         return spent, res
 
     def _add_keyframe(self, r: np.ndarray, a: np.ndarray, odom_now: np.ndarray) -> None:

@@ -161,6 +161,51 @@ def window_polish(
     return out[0]
 
 
+def adopt_refound(
+    index: ViewIndex,
+    refound: list[tuple[Track, np.ndarray]],
+    frames: list[Keyframe],
+    odom_now: np.ndarray,
+    config: ShapeConfig,
+    g: GlobalConfig,
+    limit: float,
+) -> float:
+    """A kept track that a finished search found again (``refound``: the track and the
+    search's pose, moved to now) takes the search's pose when that differs from its own by
+    more than ``refound_offset`` / ``refound_turn`` and, placed on the newest keyframe the
+    track was scored on as :func:`backfill` places it, costs ``refound_margin`` less there;
+    the track's keyframe scores are then dropped, so :func:`backfill` redoes them from the
+    new pose. The re-scoring only polishes a track within +-0.13 m of where the odometry
+    moved it, while the search refines its seeds (the kept poses among them) with the
+    wider point-to-line fit: a track induced 0.18 m off is otherwise judged off for the whole
+    drive. Tracks are checked in ``refound``'s order (the search's, best first) while the
+    work stays within ``limit`` reference ms (at least one is checked). Returns the work
+    spent."""
+    if g.refound_margin <= 0.0 or not frames:
+        return 0.0
+    spent = 0.0
+    inv = invert(np.asarray(odom_now, dtype=np.float64))
+    for t, pose in refound:
+        d = np.asarray(pose, dtype=np.float64) - t.pose
+        if np.hypot(d[0], d[1]) <= g.refound_offset and abs(wrap_angle(d[2])) <= g.refound_turn:
+            continue
+        scored = [f for f in frames if f.key in t.ev]
+        if not scored:
+            continue
+        if spent > 0.0 and spent + pair_ms(index, g) > limit:
+            break
+        kf = scored[-1]
+        start = compose(pose, compose(inv, kf.odom))
+        narrow, _ = _polish(index, start[None, :], kf.points, g.fine_scale, prior=g.rescore_prior)
+        spent += pair_ms(index, g)
+        if frame_cost(index, narrow[0], kf, config, g) < t.ev[kf.key] - g.refound_margin:
+            t.pose = np.asarray(pose, dtype=np.float64).copy()
+            t.ev.clear()
+            t.ev_pose.clear()
+            t.ev_odom.clear()
+    return spent
+
+
 def median(track: Track, frames: list[Keyframe]) -> float:
     """A track's median cost over the keyframes of ``frames`` it has been scored on."""
     costs = [track.ev[f.key] for f in frames if f.key in track.ev]

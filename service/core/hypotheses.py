@@ -157,12 +157,14 @@ def merge(
     hyps: list[Hypothesis],
     move: np.ndarray | None,
     keep: int,
+    refound: list[tuple[Track, np.ndarray]] | None = None,
 ) -> list[Track]:
     """Add the best ``keep`` of a finished search's hypotheses (found on an earlier scan;
     ``move`` the robot-frame odometry motion since, or ``None``) to ``tracks`` unless one
     already holds that pose. New tracks carry the search's cost and age 0: they are decided
     on only after a re-scoring on a scan of their own; a track the search found again counts
-    it in ``found``."""
+    it in ``found``, and ``(track, the search's pose moved to now)`` is appended to
+    ``refound`` if given (:func:`service.core.evidence.adopt_refound`)."""
     out = list(tracks)
     found: list[Track] = []
     for h in hyps[:keep]:
@@ -173,6 +175,8 @@ def merge(
                 if t not in found:
                     t.found += 1
                     found.append(t)
+                    if refound is not None:
+                        refound.append((t, pose.copy()))
             continue
         hyp = Hypothesis(
             pose=pose.copy(),
