@@ -258,3 +258,42 @@ def test_window_polish_pins_the_pose_on_the_keyframes_of_the_drive() -> None:
         got = ev.window_polish(idx, start, frames, su.odom[last], g)
         assert np.hypot(*(got[:2] - truth[:2])) < 0.05, (off, got, truth)
         assert abs(wrap_angle(float(got[2] - truth[2]))) < np.deg2rad(1.5), (off, got, truth)
+
+
+def test_a_track_found_again_at_a_better_pose_takes_it_and_is_judged_again() -> None:
+    """``GlobalConfig.refound_margin``: a kept track whose keyframe scores were taken at a
+    pose the distance field's polish left off (here 0.3 m along the heading, its newest
+    keyframe costing 0.6) takes the pose a later search found it at when that pose explains
+    the newest keyframe 0.1 better, and its keyframe scores are dropped (``backfill`` redoes
+    them); a search pose that explains less, or one within 5 cm and 1 degree, changes
+    nothing (office floor plan, the tour's scans 270-300)."""
+    last = 300
+    su, cfg, g, idx, frames = _office_window(270, last)
+    truth = su.truth[last]
+    odom = su.odom[last]
+    kf = frames[-1]
+    off = compose(truth, np.array([0.3, 0.0, 0.0]))
+
+    biased = _track(off)
+    biased.ev[kf.key], biased.ev_pose[kf.key], biased.ev_odom[kf.key] = 0.6, off, kf.odom
+    spent = ev.adopt_refound(idx, [(biased, truth.copy())], frames, odom, cfg, g, limit=100.0)
+    assert spent > 0.0
+    assert np.allclose(biased.pose, truth)
+    assert biased.ev == {} and biased.ev_pose == {} and biased.ev_odom == {}
+
+    right = _track(truth)
+    ev.backfill(idx, [right], frames, odom, cfg, g, limit=1e9)
+    scores = dict(right.ev)
+    assert scores[kf.key] < 0.2
+    ev.adopt_refound(idx, [(right, off)], frames, odom, cfg, g, limit=100.0)
+    assert np.allclose(right.pose, truth) and right.ev == scores
+
+    near = compose(truth, np.array([0.03, 0.0, 0.01]))
+    assert ev.adopt_refound(idx, [(right, near)], frames, odom, cfg, g, limit=100.0) == 0.0
+    assert np.allclose(right.pose, truth)
+
+    off_g = g.model_copy(update={"refound_margin": 0.0})
+    kept = _track(off)
+    kept.ev[kf.key] = 0.6
+    assert ev.adopt_refound(idx, [(kept, truth.copy())], frames, odom, cfg, off_g, 100.0) == 0.0
+    assert np.allclose(kept.pose, off)
