@@ -335,18 +335,22 @@ class GlobalConfig(BaseModel):
         "pruned (its scoring would take the search's budget).",
     )
     refound_margin: float = Field(
-        0.1,
+        0.0,
         ge=0,
-        description="A kept hypothesis that a later search finds again at a pose more than "
-        "refound_offset m or refound_turn rad from its own takes the search's pose if that "
-        "pose costs this much less on the newest keyframe the hypothesis was scored on; its "
-        "keyframe scores are then redone from the new pose. Without it the search's "
-        "refined pose was dropped and the hypothesis stayed where the re-scoring's narrow "
-        "polish (+-0.13 m) holds it: building 65 (seed below 1000, never tuned on), the "
-        "true place's hypothesis sat 0.18 m off for 40 scans, cost 0.5-1.0 per keyframe "
-        "against 0.1-0.3 at the true pose, and a congruent room 4.6 m away won the drive "
-        "and was tracked to the end, while a search had found the true place 0.04 m off. "
-        "0 = off.",
+        description="Opt-in (0 = off; 0.1 measured). A kept hypothesis that a later search "
+        "finds again at a pose more than refound_offset m or refound_turn rad from its own "
+        "takes the search's pose if that pose costs this much less on the newest keyframe "
+        "the hypothesis was scored on; its keyframe scores are then redone from the new "
+        "pose. Without it the search's refined pose is dropped and the hypothesis stays "
+        "where the re-scoring's narrow polish (+-0.13 m) holds it: on building 65 (never "
+        "tuned on before stop 41) the true place's hypothesis sat 0.18 m off for 40 scans, "
+        "cost 0.5-1.0 per keyframe against 0.1-0.3 at the true pose, and a congruent room "
+        "4.6 m away won the drive and was tracked to the end, while a search had found the "
+        "true place 0.04 m off. At 0.1 on tuning buildings 20-59 (800 floor-plan drives, "
+        "50 ms) fixes came sooner (p90 5.81 -> 5.45 m) with the same 6 wrong first fixes, "
+        "but fr079's east-hall starts reshuffled (4123 and 4361 no longer found in 20 m, "
+        "4109 and 4112 within 15 m); off until the full drive bench is run with it "
+        "(docs/global.md, Stop 41).",
     )
     refound_offset: float = Field(0.05, gt=0, description="See refound_margin.")
     refound_turn: float = Field(0.02, gt=0, description="See refound_margin.")
