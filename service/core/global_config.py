@@ -337,18 +337,19 @@ class GlobalConfig(BaseModel):
     refound_margin: float = Field(
         0.0,
         ge=0,
-        description="A kept hypothesis that a later search finds again at a pose more than "
-        "refound_offset m or refound_turn rad from its own takes the search's pose if that "
-        "pose costs this much less on the newest keyframe the hypothesis was scored on; its "
-        "keyframe scores are then redone from the new pose. Schematic: 0.1; 0 = off "
-        "(metric: not measured there). Without it the search's refined pose is dropped and "
-        "the hypothesis stays where the re-scoring's narrow polish (+-0.13 m) holds it: on "
+        description="Opt-in (0 = off; 0.1 measured on floor plans). A kept hypothesis that a "
+        "later search finds again at a pose more than refound_offset m or refound_turn rad "
+        "from its own takes the search's pose if that pose costs this much less on the "
+        "newest keyframe the hypothesis was scored on; its keyframe scores are then redone "
+        "from the new pose. Without it the search's refined pose is dropped and the "
+        "hypothesis stays where the re-scoring's narrow polish (+-0.13 m) holds it: on "
         "building 65 (never tuned on before stop 41) the true place's hypothesis sat 0.18 m "
-        "off for 40 scans, cost 0.5-1.0 per keyframe against 0.1-0.3 at the true pose, and a "
-        "congruent room 4.6 m away won the drive and was tracked to the end, while a search "
-        "had found the true place 0.04 m off. On the tuning buildings' floor plans the same "
-        "or fewer wrong first fixes and sooner fixes (buildings 20-59, 50 ms: fix p90 5.81 "
-        "-> 5.45 m); fr079's east hall reshuffles (docs/global.md, Stop 41).",
+        "off for 40 scans and a congruent room 4.6 m away was fixed and tracked to the end. "
+        "At 0.1 the generated buildings' floor plans gain fixes and lose wrong ones "
+        "(buildings 60-99: 796 -> 799 of 800 within 15 m, 2 -> 1 wrong), but it helps a "
+        "wrong place as much as the true one: on the tuning log intel (start 3636) a wrong "
+        "place 24 m off, re-found at a better pose, won the drive by 0.16 (0.11 before) and "
+        "was fixed. Off by default (docs/global.md, Stop 41).",
     )
     refound_offset: float = Field(0.05, gt=0, description="See refound_margin.")
     refound_turn: float = Field(0.02, gt=0, description="See refound_margin.")
@@ -668,6 +669,5 @@ class GlobalConfig(BaseModel):
                 probation_reversal=True,
                 window_polish=True,
                 drive_recent_frames=8,
-                refound_margin=0.1,
             )
         raise LocalizationError(f"unknown map kind {kind!r}; expected metric or schematic")

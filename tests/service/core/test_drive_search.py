@@ -13,7 +13,7 @@ def test_a_true_place_found_again_at_a_better_pose_wins_over_the_congruent_room(
     17 with no initial pose, odometry and a 50 ms search budget. The true place's hypothesis
     was induced 0.17 m off and the re-scoring's narrow polish kept it there; a congruent room
     4.6 m west then explained the drive better and was tracked to the end of the tour
-    (measured: fixed on scan 59, 4.6 m off). With ``refound_margin`` at 0.1 (floor plans) the
+    (measured: fixed on scan 59, 4.6 m off). With ``refound_margin`` (opt-in) at 0.1 the
     hypothesis takes the pose a later search found it at (0.04 m off) and the true place is
     fixed (scan 78)."""
     from sim_publisher.generator import BuildingParams, generate_building

@@ -261,7 +261,7 @@ def test_window_polish_pins_the_pose_on_the_keyframes_of_the_drive() -> None:
 
 
 def test_a_track_found_again_at_a_better_pose_takes_it_and_is_judged_again() -> None:
-    """``GlobalConfig.refound_margin`` (0.1 on floor plans): a kept track whose keyframe
+    """``GlobalConfig.refound_margin`` (opt-in, at 0.1): a kept track whose keyframe
     scores were taken at a pose the distance field's polish left off (here 0.3 m along the
     heading, its newest keyframe costing 0.6) takes the pose a later search found it at when
     that pose explains the newest keyframe 0.1 better, and its keyframe scores are dropped
