@@ -68,7 +68,7 @@ from bench_service import (  # noqa: E402
 
 from schemas.codec import decode, encode  # noqa: E402
 from schemas.messages import Health, RobotConfig  # noqa: E402
-from service.cluster import hrw_owner  # noqa: E402
+from service.mirror import hrw_owner  # noqa: E402
 
 P = "shapeloc"
 NONE = zenoh.QueryConsolidation(zenoh.ConsolidationMode.NONE)

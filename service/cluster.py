@@ -33,21 +33,20 @@ Zenoh callbacks only queue events or copy bytes; the membership thread does the 
 from __future__ import annotations
 
 import contextlib
-import hashlib
 import logging
 import queue
 import threading
 import time
 from collections import Counter
-from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
-from schemas import codec, keys
-from schemas.limits import MAX_PAYLOAD_BYTES
-from schemas.messages import Map, PoseMsg, RobotConfig
-from service.errors import InvalidMessage, ShapelocError, StateError
-from service.state import SavedPose, StateStore
+from schemas import keys
+from schemas.messages import PoseMsg, RobotConfig
+from service.catchup import Fetched, fetch_state, merge_into_store
+from service.errors import ShapelocError, StateError
+from service.mirror import MAX_POSE_BYTES, Mirror, fresher, hrw_owner, odom_of, pose_matches
+from service.state import StateStore
 
 if TYPE_CHECKING:
     from service.scheduler import WorkerLink
@@ -56,334 +55,7 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("shapeloc.service")
 
-#: Largest pose sample mirrored from another instance (a pose is ~200 bytes).
-MAX_POSE_BYTES = 64 * 1024
-
-
-def hrw_score(instance_id: str, robot_id: str) -> int:
-    """Rendezvous weight of ``robot_id`` on ``instance_id`` (BLAKE2b, the same everywhere)."""
-    h = hashlib.blake2b(f"{instance_id}\x00{robot_id}".encode(), digest_size=8).digest()
-    return int.from_bytes(h, "big")
-
-
-def hrw_owner(robot_id: str, members: Iterable[str]) -> str | None:
-    """The member with the highest weight for ``robot_id`` (ties: the larger id); ``None``
-    without members."""
-    best: tuple[int, str] | None = None
-    for m in members:
-        k = (hrw_score(m, robot_id), m)
-        if best is None or k > best:
-            best = k
-    return None if best is None else best[1]
-
-
 _STALL_S = 1.0  # a membership-loop turn this much later than its wait: the process stalled
-
-
-def _fresher(a: PoseMsg, b: PoseMsg | None) -> bool:
-    """Whether pose ``a`` answers a later scan than ``b`` (stamp, then seq)."""
-    return b is None or (a.stamp, a.seq) > (b.stamp, b.seq)
-
-
-def _odom_of(pm: PoseMsg | None) -> tuple[float, float, float] | None:
-    if pm is None or pm.odom is None:
-        return None
-    return (float(pm.odom[0]), float(pm.odom[1]), float(pm.odom[2]))
-
-
-def pose_matches(pm: PoseMsg, robot_id: str, cfg: RobotConfig) -> bool:
-    """A pose belongs to a robot's current configuration (same robot, map and method)."""
-    return pm.robot_id == robot_id and pm.map_id == cfg.map_id and pm.method == cfg.method
-
-
-class Mirror:
-    """Configurations and last poses of the robots this instance knows but does not serve.
-
-    ``offer_raw`` is called from the Zenoh callback with a pose sample's bytes (O(1), only
-    for robots whose configuration is mirrored); the bytes are decoded and validated later
-    (:meth:`settle`), and invalid ones are counted in ``invalid``. Thread-safe.
-    """
-
-    def __init__(self, capacity: int) -> None:
-        self.capacity = capacity
-        self._lock = threading.Lock()
-        self.configs: dict[str, RobotConfig] = {}
-        self.poses: dict[str, PoseMsg] = {}
-        self.odoms: dict[str, tuple[float, float, float]] = {}
-        self._raw: dict[str, tuple[bytes, str | None]] = {}
-        self._dirty: set[str] = set()
-        self.invalid = 0
-
-    def __len__(self) -> int:
-        return len(self.configs)
-
-    def known(self, robot_id: str) -> bool:
-        """Whether the robot's configuration is mirrored."""
-        return robot_id in self.configs
-
-    def offer_raw(self, robot_id: str, payload: bytes, encoding: str | None) -> None:
-        """Keep the newest pose sample of a mirrored robot (callback side)."""
-        with self._lock:
-            if robot_id in self.configs:
-                self._raw[robot_id] = (payload, encoding)
-
-    def set_config(self, robot_id: str, cfg: RobotConfig) -> bool:
-        """Mirror a (new) configuration; its last pose is forgotten (a config put resets the
-        robot). ``False`` if the mirror is full."""
-        with self._lock:
-            if robot_id not in self.configs and len(self.configs) >= self.capacity:
-                return False
-            self.configs[robot_id] = cfg
-            self.poses.pop(robot_id, None)
-            self.odoms.pop(robot_id, None)
-            self._raw.pop(robot_id, None)
-            self._dirty.discard(robot_id)
-            return True
-
-    def put(
-        self,
-        robot_id: str,
-        cfg: RobotConfig,
-        pose: PoseMsg | None,
-        odom: tuple[float, float, float] | None,
-        dirty: bool = False,
-    ) -> None:
-        """Mirror a robot with its last pose (restored, or handed over by this instance)."""
-        with self._lock:
-            self.configs[robot_id] = cfg
-            self._raw.pop(robot_id, None)
-            self.poses.pop(robot_id, None)
-            self.odoms.pop(robot_id, None)
-            if pose is not None:
-                self.poses[robot_id] = pose
-                if odom is not None:
-                    self.odoms[robot_id] = odom
-            if dirty and pose is not None:
-                self._dirty.add(robot_id)
-
-    def offer_pose(self, robot_id: str, pm: PoseMsg) -> bool:
-        """Take a pose learnt from another instance if it is newer than the mirrored one and
-        belongs to the mirrored configuration."""
-        self.settle(robot_id)
-        with self._lock:
-            cfg = self.configs.get(robot_id)
-            if cfg is None or not pose_matches(pm, robot_id, cfg):
-                return False
-            if not _fresher(pm, self.poses.get(robot_id)):
-                return False
-            self.poses[robot_id] = pm
-            self.odoms.pop(robot_id, None)
-            if (o := _odom_of(pm)) is not None:
-                self.odoms[robot_id] = o
-            self._dirty.add(robot_id)
-            return True
-
-    def forget(self, robot_id: str) -> bool:
-        """Drop a robot (config deleted, or served here now); whether it was mirrored."""
-        with self._lock:
-            self.poses.pop(robot_id, None)
-            self.odoms.pop(robot_id, None)
-            self._raw.pop(robot_id, None)
-            self._dirty.discard(robot_id)
-            return self.configs.pop(robot_id, None) is not None
-
-    def settle(self, robot_id: str) -> None:
-        """Decode the newest pose sample of ``robot_id`` (if any) into ``poses``."""
-        with self._lock:
-            raw = self._raw.pop(robot_id, None)
-            cfg = self.configs.get(robot_id)
-        if raw is None or cfg is None:
-            return
-        try:
-            pm = codec.decode(PoseMsg, raw[0], raw[1])
-            if not pose_matches(pm, robot_id, cfg):
-                raise InvalidMessage("pose does not match the mirrored configuration")
-        except ShapelocError as e:
-            log.debug("mirrored pose of %s ignored: %s", robot_id, e)
-            with self._lock:
-                self.invalid += 1
-            return
-        with self._lock:
-            if self.configs.get(robot_id) is not cfg:
-                return  # reconfigured meanwhile
-            self.poses[robot_id] = pm
-            self.odoms.pop(robot_id, None)
-            if (o := _odom_of(pm)) is not None:
-                self.odoms[robot_id] = o
-            self._dirty.add(robot_id)
-
-    def take(
-        self, robot_id: str
-    ) -> tuple[RobotConfig, PoseMsg | None, tuple[float, float, float] | None] | None:
-        """Remove a robot for serving it here: its config, newest pose and odometry."""
-        self.settle(robot_id)
-        with self._lock:
-            cfg = self.configs.pop(robot_id, None)
-            pm = self.poses.pop(robot_id, None)
-            odom = self.odoms.pop(robot_id, None)
-            self._dirty.discard(robot_id)
-        return None if cfg is None else (cfg, pm, odom)
-
-    def snapshot(
-        self,
-    ) -> list[tuple[str, RobotConfig, PoseMsg | None, tuple[float, float, float] | None]]:
-        """Every mirrored robot with its newest pose (decoding what arrived)."""
-        with self._lock:
-            pending = list(self._raw)
-        for rid in pending:
-            self.settle(rid)
-        with self._lock:
-            return [
-                (rid, cfg, self.poses.get(rid), self.odoms.get(rid))
-                for rid, cfg in self.configs.items()
-            ]
-
-    def saves(self) -> dict[str, SavedPose]:
-        """The mirrored poses that changed since the last call, for the state store."""
-        with self._lock:
-            pending = list(self._raw)
-        for rid in pending:
-            self.settle(rid)
-        with self._lock:
-            dirty, self._dirty = self._dirty, set()
-        out: dict[str, SavedPose] = {}
-        for rid in dirty:
-            with self._lock:
-                pm = self.poses.get(rid)
-                odom = self.odoms.get(rid)
-            if pm is not None:
-                x, y, th = (float(v) for v in pm.pose)
-                out[rid] = SavedPose(pm.map_id, x, y, th, pm.seq, pm.stamp, pm.status, odom)
-        return out
-
-    def mark_dirty(self, robot_ids: Iterable[str]) -> None:
-        """Save these again next time (after a failed write)."""
-        with self._lock:
-            self._dirty.update(r for r in robot_ids if r in self.configs)
-
-
-@dataclass
-class Fetched:
-    """What other instances told a catching-up instance: maps, robot configurations and
-    the newest pose per robot (each pose belongs to the configuration chosen)."""
-
-    maps: dict[str, Map] = field(default_factory=dict)
-    configs: dict[str, RobotConfig] = field(default_factory=dict)
-    poses: dict[str, PoseMsg] = field(default_factory=dict)
-    instances: set[str] = field(default_factory=set)
-    invalid: int = 0
-
-
-def _reply_sample(reply: Any) -> Any:
-    ok = reply.ok
-    if ok is None:
-        return None
-    if len(ok.payload) > MAX_PAYLOAD_BYTES:
-        raise InvalidMessage(f"reply of {len(ok.payload)} bytes exceeds {MAX_PAYLOAD_BYTES}")
-    return ok
-
-
-def fetch_state(
-    session: Any, prefix: str, instance: str, me: str, timeout_s: float, with_maps: bool
-) -> Fetched:
-    """Ask the live instances (``instance``: one id, or ``*``) for the robots they know
-    (``get <prefix>/service/state/<instance>/**``) and, with ``with_maps``, for the maps
-    (``get <prefix>/maps/*``). Every reply is validated; invalid ones are counted and
-    skipped. Per robot the configuration comes from the instance holding the newest pose for
-    it (stamp, then seq; without any pose, the smallest instance id)."""
-    import zenoh
-
-    out = Fetched()
-    cfgs: dict[str, dict[str, RobotConfig]] = {}
-    poses: dict[str, dict[str, PoseMsg]] = {}
-    none = zenoh.QueryConsolidation(zenoh.ConsolidationMode.NONE)
-    for reply in session.get(
-        keys.state_selector(prefix, instance), timeout=timeout_s, consolidation=none
-    ):
-        try:
-            ok = _reply_sample(reply)
-            if ok is None:
-                continue
-            inst, kind, rid = keys.parse_state_key(prefix, str(ok.key_expr))
-            if inst == me:
-                continue
-            data, enc = ok.payload.to_bytes(), str(ok.encoding)
-            if kind == "config":
-                cfgs.setdefault(rid, {})[inst] = codec.decode(RobotConfig, data, enc)
-            else:
-                pm = codec.decode(PoseMsg, data, enc)
-                if pm.robot_id != rid:
-                    raise InvalidMessage(f"pose of {pm.robot_id!r} under the key of {rid!r}")
-                poses.setdefault(rid, {})[inst] = pm
-            out.instances.add(inst)
-        except ShapelocError as e:
-            out.invalid += 1
-            log.debug("invalid state reply ignored: %s", e)
-    for rid, by_inst in cfgs.items():
-        best: tuple[str, RobotConfig, PoseMsg | None] | None = None
-        for inst in sorted(by_inst):
-            cfg = by_inst[inst]
-            pm = poses.get(rid, {}).get(inst)
-            if pm is not None and not pose_matches(pm, rid, cfg):
-                pm = None
-            if best is None or (pm is not None and _fresher(pm, best[2])):
-                best = (inst, cfg, pm)
-        assert best is not None
-        out.configs[rid] = best[1]
-        if best[2] is not None:
-            out.poses[rid] = best[2]
-    if with_maps:
-        for reply in session.get(keys.maps_wildcard(prefix), timeout=timeout_s):
-            try:
-                ok = _reply_sample(reply)
-                if ok is None:
-                    continue
-                mid = keys.parse_map_key(prefix, str(ok.key_expr))
-                m = codec.decode(Map, ok.payload.to_bytes(), str(ok.encoding))
-                codec.check_key_id(m.map_id, mid, "map_id")
-                out.maps[mid] = m
-            except ShapelocError as e:
-                out.invalid += 1
-                log.debug("invalid map reply ignored: %s", e)
-    return out
-
-
-def merge_into_store(store: StateStore, f: Fetched) -> Counter[str]:
-    """A (re)starting instance adopts what the live instances know: their maps and robot
-    configurations replace its own where they differ (a changed configuration drops the saved
-    pose, as a config put does), and a newer pose replaces the saved one. Nothing is deleted:
-    something deleted while this instance was down stays in its store (docs/cluster.md)."""
-    changed: Counter[str] = Counter()
-    have_maps = store.maps()
-    for mid, m in f.maps.items():
-        wire = have_maps.get(mid)
-        if wire is None or _parse_or_none(Map, wire) != m:
-            store.put_map(mid, m.to_wire())
-            changed["maps"] += 1
-    have_robots = store.robots()
-    for rid, cfg in f.configs.items():
-        wire = have_robots.get(rid)
-        if wire is None or _parse_or_none(RobotConfig, wire) != cfg:
-            store.put_robot(rid, cfg.to_wire())
-            changed["configs"] += 1
-    saved = store.poses()
-    news: dict[str, SavedPose] = {}
-    for rid, pm in f.poses.items():
-        sp = saved.get(rid)
-        if sp is None or (pm.stamp, pm.seq) > (sp.stamp, sp.seq) or sp.map_id != pm.map_id:
-            x, y, th = (float(v) for v in pm.pose)
-            news[rid] = SavedPose(pm.map_id, x, y, th, pm.seq, pm.stamp, pm.status, _odom_of(pm))
-    if news:
-        store.save_poses(news)
-        changed["poses"] += len(news)
-    return changed
-
-
-def _parse_or_none(model: Any, wire: Any) -> Any:
-    try:
-        return model.parse(wire)
-    except ShapelocError:
-        return None
 
 
 @dataclass(frozen=True)
@@ -773,17 +445,17 @@ class ClusterPlane:
                     cfg = self.configs.get(rid)
                     if cfg is None or f.configs.get(rid) != cfg or not pose_matches(pm, rid, cfg):
                         continue
-                    if _fresher(pm, self._cut_poses.get(rid)):
+                    if fresher(pm, self._cut_poses.get(rid)):
                         self.poses[rid] = pm
                         self.odoms.pop(rid, None)
-                        if (o := _odom_of(pm)) is not None:
+                        if (o := odom_of(pm)) is not None:
                             self.odoms[rid] = o
                         self._dirty.add(rid)
                         newer.append((rid, cfg, pm))
             waits = []
             for rid, cfg, pm in newer:
                 init = None if cfg.initial_pose is None else [float(v) for v in cfg.initial_pose]
-                odom = _odom_of(pm)
+                odom = odom_of(pm)
                 req = (
                     "config", rid, cfg.method, cfg.map_id, init,
                     [float(v) for v in pm.pose], None if odom is None else list(odom),

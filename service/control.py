@@ -36,7 +36,7 @@ from service.state import SavedPose, StateStore
 from service.workers import Assignment
 
 if TYPE_CHECKING:
-    from service.cluster import Mirror
+    from service.mirror import Mirror
     from service.scheduler import WorkerLink
     from service.settings import ServiceSettings
 
