@@ -416,6 +416,9 @@ class ProcessWorker:
         """Whether the child process is running."""
         return self._proc.is_alive()
 
+    def _died(self, e: BaseException) -> WorkerDiedError:
+        return WorkerDiedError(f"worker {self.index} died (exit code {self._proc.exitcode}): {e}")
+
     def wait_ready(self) -> None:
         """Wait (at most ``start_timeout_s``) until the child has started; kill it and raise
         :class:`ServiceTimeout` if it has not, :class:`WorkerDiedError` if it exited."""
@@ -425,8 +428,7 @@ class ProcessWorker:
             started = self._conn.poll(self._start_timeout_s)
             msg = self._conn.recv() if started else None
         except (EOFError, OSError, BrokenPipeError) as e:
-            code = self._proc.exitcode
-            raise WorkerDiedError(f"worker {self.index} died (exit code {code}): {e}") from e
+            raise self._died(e) from e
         if not started:
             self.kill()
             raise ServiceTimeout(
@@ -446,8 +448,7 @@ class ProcessWorker:
             if self._conn.poll(timeout_s):
                 return self._conn.recv()
         except (EOFError, OSError, BrokenPipeError) as e:
-            code = self._proc.exitcode
-            raise WorkerDiedError(f"worker {self.index} died (exit code {code}): {e}") from e
+            raise self._died(e) from e
         self.kill()
         raise ServiceTimeout(
             f"worker {self.index} took longer than {timeout_s:.1f} s on a {req[0]} request; "

@@ -142,6 +142,16 @@ def frame_cost(
     return float(min(cost, g.evidence_clip))
 
 
+def _narrow_cost(
+    index: ViewIndex, start: np.ndarray, kf: Keyframe, config: ShapeConfig, g: GlobalConfig
+) -> tuple[np.ndarray, float]:
+    """A pose placed on keyframe ``kf`` (``start``), polished on the distance field with
+    ``start`` as the motion prior (``rescore_prior``, as the re-scoring does), and its
+    :func:`frame_cost` there."""
+    narrow, _ = _polish(index, start[None, :], kf.points, g.fine_scale, prior=g.rescore_prior)
+    return narrow[0], frame_cost(index, narrow[0], kf, config, g)
+
+
 def window_polish(
     index: ViewIndex,
     pose: np.ndarray,
@@ -195,10 +205,9 @@ def adopt_refound(
         if spent > 0.0 and spent + pair_ms(index, g) > limit:
             break
         kf = scored[-1]
-        start = compose(pose, compose(inv, kf.odom))
-        narrow, _ = _polish(index, start[None, :], kf.points, g.fine_scale, prior=g.rescore_prior)
+        _, cost = _narrow_cost(index, compose(pose, compose(inv, kf.odom)), kf, config, g)
         spent += pair_ms(index, g)
-        if frame_cost(index, narrow[0], kf, config, g) < t.ev[kf.key] - g.refound_margin:
+        if cost < t.ev[kf.key] - g.refound_margin:
             t.pose = np.asarray(pose, dtype=np.float64).copy()
             t.ev.clear()
             t.ev_pose.clear()
@@ -298,11 +307,7 @@ def backfill(
             if spent >= limit:
                 return spent
             start = _start_pose(t, kf, odom_now)
-            narrow, _ = _polish(
-                index, start[None, :], kf.points, g.fine_scale, prior=g.rescore_prior
-            )
-            pose = narrow[0]
-            cost = frame_cost(index, pose, kf, config, g)
+            pose, cost = _narrow_cost(index, start, kf, config, g)
             if not t.ev:
                 # a track's first keyframe: also a wider polish without a prior, and the pose
                 # as given; the one the beams explain best is kept. A hypothesis some degrees
