@@ -244,6 +244,7 @@ class GlobalShapeLocalizer(Confirmation, DriveSearch):
         self._since_fix = self.gconfig.settle_scans  # a given pose needs no settling
         self._search_status = "initializing"
         self._unfit = 0  # consecutive tracked scans that did not fit the map at all
+        self._broken = False  # the scan-to-scan fit failed since the map explained a scan
         self._episode = 0
         self._anchor: np.ndarray | None = None  # dead-reckoned last tracked pose after a loss
         self._anchor_travel = 0.0
@@ -270,6 +271,8 @@ class GlobalShapeLocalizer(Confirmation, DriveSearch):
         r, a = check_scan(ranges, angles)
         odom = self._corrected_odom(r, a, odom)
         if not self._searching:
+            if self._scan_odometry.explained < self.config.motion.scan_odometry.min_inliers:
+                self._broken = True  # (NaN: no scan-to-scan fit on this scan, no news)
             self._since_fix += 1
             delta = self._remember_odom(odom)
             if (
@@ -292,7 +295,15 @@ class GlobalShapeLocalizer(Confirmation, DriveSearch):
             # without an odometry prior, ``lost_after`` in a row with one (a furnished room on
             # a floor plan, or a crowd, can leave a scan unexplained while odometry holds)
             odometry_prior = odom is not None and self.tracker.config.motion.use_odometry
-            unfit = rejected and est.score < self.gconfig.collapse_score
+            low = est.score < self.gconfig.collapse_score
+            unfit = rejected and low
+            if odometry_prior and self._probation is None and self.gconfig.collapse_violation >= 0:
+                # bridged by the odometry unless the scan contradicts the pose; after a break
+                # in the laser's view even an accepted scan must fit (the tracker accepts a
+                # kidnapped scan that a floor plan's outline happens to half explain)
+                unfit = low and (self._broken or (rejected and self._contradicted(r, a, est)))
+            if not low:
+                self._broken = False  # the map explains the scan again
             self._unfit = self._unfit + 1 if unfit else 0
             need = self.tracker.config.lost_after if odometry_prior else 1
             collapsed = self._unfit >= need
@@ -310,6 +321,23 @@ class GlobalShapeLocalizer(Confirmation, DriveSearch):
         return self._search(r, a, odom)
 
     # ---------------------------------------------------------------- internals
+    #: The scan-to-scan fit failed to match a scan to the one before since the map last
+    #: explained a tracked scan (:meth:`_contradicted`); a class default, so a state pickled
+    #: before it existed loads.
+    _broken: bool = False
+
+    def _contradicted(self, r: np.ndarray, a: np.ndarray, est: Estimate) -> bool:
+        """Whether a rejected scan that does not fit the map contradicts the tracked pose:
+        more than ``GlobalConfig.collapse_violation`` of the tracker's violation beams return
+        from beyond a mapped wall. ``False``: the odometry bridges it (``extras['bridged']``)."""
+        g = self.gconfig
+        share = self.tracker.violations(r, a, [est.pose])[0]
+        est.extras["pose_violation"] = share
+        if share > g.collapse_violation:
+            return True
+        est.extras["bridged"] = 1.0
+        return False
+
     def _corrected_odom(
         self, r: np.ndarray, a: np.ndarray, odom: np.ndarray | None
     ) -> np.ndarray | None:
@@ -378,6 +406,7 @@ class GlobalShapeLocalizer(Confirmation, DriveSearch):
         self._searching = True
         self._probation = None
         self._unfit = 0
+        self._broken = False
         self._search_status = "lost"
         self._episode = 0
         self._tracks = []

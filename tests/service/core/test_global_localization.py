@@ -353,14 +353,19 @@ def _sim_run(start: float, scans: int) -> list[tuple[str, bool, bool]]:
 
 
 @pytest.mark.parametrize("start", [0.35, 0.45])
-def test_look_around_start_fixes_within_three_scans_and_keeps_tracking(start: float) -> None:
+def test_look_around_start_fixes_within_four_scans_and_keeps_tracking(start: float) -> None:
     # 0.45: the fix comes on the 2nd scan and the robot still turns 90 degrees after it, which
     # the tracker alone cannot follow: the odometry's heading change bridges it. On this
     # floor plan the winner is tracked on probation until the robot has driven 1 m
     # (GlobalConfig.probation_travel), then published.
+    # The composite holds all three look-around scans from the third scan on; the decision
+    # may wait one scan more (a winner must be best on two scans): at 0.35 the true place and
+    # a wrong one are within 0.03 on the second scan, and which of them leads there differs
+    # between machines (the last bits of numpy's vector kernels: x86-64 v3 here, where the
+    # fix comes on the fourth scan; on the machines before stop 42, on the third).
     run = _sim_run(start, 40)
     decided = [s == "tracking" or p for s, _ok, p in run]
-    assert True in decided[:3], run
+    assert True in decided[:4], run
     first = decided.index(True)
     assert all(d and ok for d, (_s, ok, _p) in zip(decided[first:], run[first:], strict=True)), run
     statuses = [s for s, _ok, _p in run]
