@@ -82,3 +82,21 @@ def test_a_kidnapped_robot_is_still_lost_within_three_scans(tmp_path: Path, at: 
         if "lost" in statuses and est.status == "tracking":
             assert np.hypot(*(est.pose[:2] - w["reference"][j][:2])) < 0.5, j
     assert "lost" in statuses[:3], statuses
+
+
+def test_a_state_saved_before_the_break_flag_existed_still_loads(tmp_path: Path) -> None:
+    """A robot's localiser persisted by an earlier version (no ``_broken`` in its state) is
+    restored and tracks on: the flag falls back to its class default (no break seen)."""
+    z = np.load(DATA / "fr079.4100-4199.npz")
+    loc = _localizer(tmp_path, z["reference"][0])
+    for i in range(5):
+        loc.update(z["ranges"][i], z["angles"][i], z["odom"][i])
+    state = loc.__getstate__()
+    del state["_broken"]
+    old = GlobalShapeLocalizer.__new__(GlobalShapeLocalizer)
+    old.__dict__.update(state)
+    assert old._broken is False
+    for i in range(5, 15):
+        est = old.update(z["ranges"][i], z["angles"][i], z["odom"][i])
+        assert est.status == "tracking"
+        assert np.hypot(*(est.pose[:2] - z["reference"][i][:2])) < 0.3
