@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import logging
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
@@ -113,19 +114,10 @@ def merge_into_store(store: StateStore, f: Fetched) -> Counter[str]:
     configurations replace its own where they differ (a changed configuration drops the saved
     pose, as a config put does), and a newer pose replaces the saved one. Nothing is deleted:
     something deleted while this instance was down stays in its store (docs/cluster.md)."""
-    changed: Counter[str] = Counter()
-    have_maps = store.maps()
-    for mid, m in f.maps.items():
-        wire = have_maps.get(mid)
-        if wire is None or _parse_or_none(Map, wire) != m:
-            store.put_map(mid, m.to_wire())
-            changed["maps"] += 1
-    have_robots = store.robots()
-    for rid, cfg in f.configs.items():
-        wire = have_robots.get(rid)
-        if wire is None or _parse_or_none(RobotConfig, wire) != cfg:
-            store.put_robot(rid, cfg.to_wire())
-            changed["configs"] += 1
+    changed: Counter[str] = +Counter(  # (unary +: only what changed, as a count above 0)
+        maps=_adopt(store.maps(), f.maps, Map, store.put_map),
+        configs=_adopt(store.robots(), f.configs, RobotConfig, store.put_robot),
+    )
     saved = store.poses()
     news: dict[str, SavedPose] = {}
     for rid, pm in f.poses.items():
@@ -137,6 +129,20 @@ def merge_into_store(store: StateStore, f: Fetched) -> Counter[str]:
         store.save_poses(news)
         changed["poses"] += len(news)
     return changed
+
+
+def _adopt(
+    have: dict[str, Any], fetched: dict[str, Any], model: Any, put: Callable[[str, Any], None]
+) -> int:
+    """Store every fetched message (``model``) that ``have`` (key -> stored wire) lacks or
+    holds differently, with ``put``; how many were stored."""
+    n = 0
+    for key, msg in fetched.items():
+        wire = have.get(key)
+        if wire is None or _parse_or_none(model, wire) != msg:
+            put(key, msg.to_wire())
+            n += 1
+    return n
 
 
 def _parse_or_none(model: Any, wire: Any) -> Any:
