@@ -304,6 +304,7 @@ class GlobalConfig(DriveConfig):
                 confirm_drive_prior=True,
                 evidence_short_scale=1.0,
                 probation_searches=1,
+                verdict_refine=True,
                 probation_verdict_margin=0.05,
                 probation_reversal=True,
                 window_polish=True,

@@ -252,6 +252,7 @@ class GlobalShapeLocalizer(Confirmation, DriveSearch):
         self._speed: np.ndarray | None = None  # the tracker's known speed before the loss
         self._job: hyp_mod.Job | None = None  # budgeted search in progress
         self._twin_job: hyp_mod.Job | None = None  # budgeted self-similarity check
+        self._rule_refine = None  # budgeted: a refinement before the evidence rule's verdict
         self._confirm_next = False  # budgeted: the tracker confirms a winner on the next scan
         self._search_turn = False  # budgeted: a pending search's turn before a twin check's
         self._travel = 0.0  # odometry travel (m) since the search started
@@ -416,6 +417,7 @@ class GlobalShapeLocalizer(Confirmation, DriveSearch):
         self._reacquired = 0
         self._job = None
         self._twin_job = None
+        self._rule_refine = None
         self._confirm_next = False
         self._search_turn = False
         self._travel = 0.0

@@ -51,7 +51,8 @@ class Track:
     ``twin_ok`` the outcome of its self-similarity check (``None``: not checked);
     ``twin_held`` whether a check of it found a twin that then joined the hypotheses (so the
     drive's evidence judges the two on the same keyframes); ``found`` how many searches found
-    it (the one it came from, and later ones that found it again)."""
+    it (the one it came from, and later ones that found it again); ``refined`` the newest
+    keyframe when :mod:`service.core.window_refine` last placed it."""
 
     pose: np.ndarray
     costs: list[float]
@@ -64,6 +65,9 @@ class Track:
     ev: dict[int, float] = field(default_factory=dict)
     ev_pose: dict[int, np.ndarray] = field(default_factory=dict)
     ev_odom: dict[int, np.ndarray] = field(default_factory=dict)
+    #: the newest keyframe key when a refinement last placed it (``GlobalConfig.
+    #: verdict_refine``; -1: never)
+    refined: int = -1
 
 
 @dataclass(eq=False)
