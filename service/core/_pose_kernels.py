@@ -3,7 +3,7 @@
 expression, no ``fastmath``).
 
 - :func:`fit_blocks`: the ΔA fits of many (polyline pair, block) candidates at once, for
-  :func:`service.core.pose.fit_pairs_stacked`;
+  :func:`service.core.pose_batch.fit_pairs_stacked`;
 - :func:`pose_iterations`: the robust Gauss-Newton loop of
   :func:`service.core.pose.pose_from_matches`.
 
@@ -36,7 +36,7 @@ def fit_blocks(
     robust_scale: float,
     damping: float,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Kernel of :func:`service.core.pose.fit_pairs_stacked`.
+    """Kernel of :func:`service.core.pose_batch.fit_pairs_stacked`.
 
     ``P`` ``(N, 2)`` points; pair ``k``'s points are ``P[pt_order[pt_beg[k] : pt_end[k]]]``
     (in increasing row order, as numpy's ``bincount`` sums them) and its

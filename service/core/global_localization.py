@@ -22,7 +22,7 @@ Without a prior, this module compares the scan with abstract sensor readings fro
    complex units are compared by S* with the view units at a compatible range; every similar
    pair induces an alignment (:func:`service.core.matching.induced_alignment`), i.e. a pose
    hypothesis. Hypotheses are ranked by support (distance field), refined by a point-to-line
-   fit (:func:`service.core.pose.fit_pairs`) and verified beam by beam against the map
+   fit (:func:`service.core.pose_batch.fit_pairs`) and verified beam by beam against the map
    (returns where the map predicts them, no beam passing through a map wall). The result is a
    ranked list of distinct hypotheses with an ambiguity in [0, 1] (1 = tie).
 4. :class:`GlobalShapeLocalizer` — the :class:`~service.core.types.Localizer` the factory

@@ -19,7 +19,8 @@ from service.core.configuration import (
 from service.core.global_config import GlobalConfig
 from service.core.localizer import ShapeConfig
 from service.core.matching import induced_alignment
-from service.core.pose import fit_pairs, transform_points
+from service.core.pose import transform_points
+from service.core.pose_batch import fit_pairs
 from service.core.pose_scoring import (
     Hypothesis,
     _beam_costs,

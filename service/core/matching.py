@@ -30,11 +30,8 @@ import numpy as np
 
 from service.core import _kernels, _shape_kernels
 from service.core.configuration import Configuration, Feature
-from service.core.pose import (
-    StackedPairs,
-    fit_pairs_ranges,
-    transform_points,
-)
+from service.core.pose import StackedPairs, transform_points
+from service.core.pose_batch import fit_pairs_ranges
 from service.core.similarity import (
     prepare,
     shape_alignment,

@@ -32,11 +32,8 @@ from service.core.matching import (
     match_with_cost,
     matched_stack,
 )
-from service.core.pose import (
-    fit_pairs,
-    pose_from_matches,
-    transform_points,
-)
+from service.core.pose import pose_from_matches, transform_points
+from service.core.pose_batch import fit_pairs
 from service.core.similarity import (
     complexity_of,
     shape_complexity,

@@ -11,6 +11,7 @@ import pytest
 from service.core.configuration import Configuration, map_view, scan_configuration
 from service.core.localizer import ShapeConfig
 from service.core.mapmodel import MapModel
+from service.core.pose import invert, transform_points
 from service.core.types import MapData
 from sim_publisher.scenario import make_setup
 
@@ -51,3 +52,48 @@ def real_scene() -> Callable[[int, int], RealScene]:
         return RealScene(P, Q, cfg, np.asarray(s.truth), r, a, s.map_data)
 
     return make
+
+
+def _room_pairs(truth: np.ndarray, rng: np.random.Generator, noise: float):
+    """Scan points (robot frame) of three walls of a 6 x 4 m room, paired with the walls."""
+    walls = [
+        np.array([[0.0, 0.0, 6.0, 0.0]]),
+        np.array([[6.0, 0.0, 6.0, 4.0]]),
+        np.array([[6.0, 4.0, 0.0, 4.0]]),
+    ]
+    inv = invert(truth)
+    pairs = []
+    for w in walls:
+        t = rng.uniform(0.05, 0.95, size=40)
+        pts = w[0, :2] + t[:, None] * (w[0, 2:] - w[0, :2])
+        pts = pts + rng.normal(0.0, noise, size=pts.shape)
+        pairs.append((transform_points(inv, pts), w))
+    return pairs
+
+
+def _random_pairs(rng: np.random.Generator, k: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Random walls: a few connected segments per pair, noisy points near them (robot frame
+    = map frame shifted a little, so the fits have something to do)."""
+    out = []
+    for _ in range(k):
+        v = np.cumsum(rng.uniform(-1.0, 1.0, size=(int(rng.integers(2, 6)), 2)), axis=0)
+        segs = np.column_stack([v[:-1], v[1:]])
+        u = rng.uniform(0, 1, size=int(rng.integers(3, 20)))
+        s = rng.integers(0, len(segs), size=len(u))
+        pts = segs[s, 0:2] + u[:, None] * (segs[s, 2:4] - segs[s, 0:2])
+        pts += rng.normal(0, 0.02, size=pts.shape) + np.array([0.05, -0.03])
+        out.append((pts, segs))
+    return out
+
+
+@pytest.fixture
+def room_pairs() -> Callable:
+    """``room_pairs(truth, rng, noise)``: matched pairs of three walls of a room
+    (:func:`_room_pairs`)."""
+    return _room_pairs
+
+
+@pytest.fixture
+def random_pairs() -> Callable:
+    """``random_pairs(rng, k)``: ``k`` random wall pairs (:func:`_random_pairs`)."""
+    return _random_pairs

@@ -11,7 +11,6 @@ from service.core import _kernels
 from service.core import pose as pose_mod
 from service.core.pose import (
     compose,
-    fit_pairs,
     invert,
     pose_from_matches,
     rigid_transform_2d,
@@ -72,27 +71,10 @@ def test_compose_and_invert_are_consistent() -> None:
     assert np.allclose(compose(a, invert(a)), np.zeros(3), atol=1e-12)
 
 
-def _room_pairs(truth: np.ndarray, rng: np.random.Generator, noise: float):
-    """Scan points (robot frame) of three walls of a 6 x 4 m room, paired with the walls."""
-    walls = [
-        np.array([[0.0, 0.0, 6.0, 0.0]]),
-        np.array([[6.0, 0.0, 6.0, 4.0]]),
-        np.array([[6.0, 4.0, 0.0, 4.0]]),
-    ]
-    inv = invert(truth)
-    pairs = []
-    for w in walls:
-        t = rng.uniform(0.05, 0.95, size=40)
-        pts = w[0, :2] + t[:, None] * (w[0, 2:] - w[0, :2])
-        pts = pts + rng.normal(0.0, noise, size=pts.shape)
-        pairs.append((transform_points(inv, pts), w))
-    return pairs
-
-
-def test_pose_from_matches_recovers_pose_within_1mm_and_005deg() -> None:
+def test_pose_from_matches_recovers_pose_within_1mm_and_005deg(room_pairs: Callable) -> None:
     rng = np.random.default_rng(3)
     truth = np.array([2.5, 1.7, 0.6])
-    pairs = _room_pairs(truth, rng, noise=0.0)
+    pairs = room_pairs(truth, rng, noise=0.0)
     start = truth + np.array([0.15, -0.12, 0.08])  # 15 cm / 4.6 deg off
     fit = pose_from_matches(pairs, start)
     assert np.hypot(*(fit.pose[:2] - truth[:2])) < 1e-3
@@ -102,21 +84,21 @@ def test_pose_from_matches_recovers_pose_within_1mm_and_005deg() -> None:
     assert fit.covariance is not None and fit.covariance.shape == (3, 3)
 
 
-def test_pose_from_matches_with_1cm_noise_stays_within_3mm() -> None:
+def test_pose_from_matches_with_1cm_noise_stays_within_3mm(room_pairs: Callable) -> None:
     rng = np.random.default_rng(4)
     truth = np.array([3.0, 2.0, -0.4])
-    pairs = _room_pairs(truth, rng, noise=0.01)
+    pairs = room_pairs(truth, rng, noise=0.01)
     fit = pose_from_matches(pairs, truth + np.array([-0.1, 0.1, -0.05]))
     assert np.hypot(*(fit.pose[:2] - truth[:2])) < 3e-3
     assert abs(np.rad2deg(fit.pose[2] - truth[2])) < 0.1
     assert 0.005 < fit.rms < 0.02
 
 
-def test_pose_from_matches_uses_each_pair_only_with_its_own_segments() -> None:
+def test_pose_from_matches_uses_each_pair_only_with_its_own_segments(room_pairs: Callable) -> None:
     """A scan wall paired with the WRONG wall pulls the pose there: pairs are not mixed."""
     rng = np.random.default_rng(5)
     truth = np.array([2.0, 2.0, 0.0])
-    pairs = _room_pairs(truth, rng, noise=0.0)
+    pairs = room_pairs(truth, rng, noise=0.0)
     # Swap the segments of the bottom and top walls (parallel, 4 m apart).
     bad = [(pairs[0][0], pairs[2][1]), pairs[1], (pairs[2][0], pairs[0][1])]
     fit = pose_from_matches(bad, truth, inlier_distance=10.0, robust_scale=10.0)
@@ -130,68 +112,12 @@ def test_pose_from_matches_rejects_empty_pairs() -> None:
         pose_from_matches([(np.zeros((0, 2)), np.zeros((1, 4)))], np.zeros(3))
 
 
-def test_fit_pairs_fits_each_pair_independently() -> None:
-    rng = np.random.default_rng(6)
-    truth = np.array([1.0, 1.0, 0.3])
-    pairs = _room_pairs(truth, rng, noise=0.0)
-    corner_pts = np.vstack([pairs[0][0], pairs[1][0]])
-    corner_segs = np.vstack([pairs[0][1], pairs[1][1]])
-    # pair 0: a corner (fully observable); pair 1: the same corner shifted by 0.5 m in x.
-    shifted = corner_segs + np.array([0.5, 0.0, 0.5, 0.0])
-    start = truth + np.array([0.05, -0.05, 0.03])
-    poses, rms = fit_pairs(
-        [corner_pts, corner_pts], [corner_segs, shifted], start, iterations=15, damping=1e-4
-    )
-    assert np.allclose(poses[0], truth, atol=2e-3)
-    assert np.allclose(poses[1], truth + np.array([0.5, 0.0, 0.0]), atol=2e-3)
-    assert np.all(rms < 5e-3)
-
-
-def _random_pairs(rng: np.random.Generator, k: int) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Random walls: a few connected segments per pair, noisy points near them (robot frame
-    = map frame shifted a little, so the fits have something to do)."""
-    out = []
-    for _ in range(k):
-        v = np.cumsum(rng.uniform(-1.0, 1.0, size=(int(rng.integers(2, 6)), 2)), axis=0)
-        segs = np.column_stack([v[:-1], v[1:]])
-        u = rng.uniform(0, 1, size=int(rng.integers(3, 20)))
-        s = rng.integers(0, len(segs), size=len(u))
-        pts = segs[s, 0:2] + u[:, None] * (segs[s, 2:4] - segs[s, 0:2])
-        pts += rng.normal(0, 0.02, size=pts.shape) + np.array([0.05, -0.03])
-        out.append((pts, segs))
-    return out
-
-
 @pytest.mark.skipif(not _kernels.HAVE_NUMBA, reason="numba kernels not installed")
-def test_compiled_fit_pairs_agrees_with_the_numpy_reference() -> None:
-    rng = np.random.default_rng(11)
-    for trial in range(20):
-        pairs = _random_pairs(rng, int(rng.integers(1, 12)))
-        pts = [p for p, _ in pairs]
-        segs = [s for _, s in pairs]
-        init = rng.normal(0, 0.05, size=(len(pairs), 3)) if trial % 2 else np.zeros(3)
-        counts = [len(p) for p in pts]
-        own = np.repeat(np.arange(len(pts)), counts)
-        smax = max(len(s) for s in segs)
-        Sg = np.zeros((len(segs), smax, 4))
-        valid = np.zeros((len(segs), smax), dtype=bool)
-        for k, s in enumerate(segs):
-            Sg[k, : len(s)] = s
-            valid[k, : len(s)] = True
-        ref = pose_mod._fit_pairs_stacked_numpy(
-            np.vstack(pts), own, Sg, valid, init, iterations=3, robust_scale=0.1, damping=0.05
-        )
-        got = fit_pairs(pts, segs, init, iterations=3, robust_scale=0.1, damping=0.05)
-        assert np.allclose(got[0], ref[0], rtol=0, atol=1e-9)
-        assert np.allclose(got[1], ref[1], rtol=0, atol=1e-9)
-
-
-@pytest.mark.skipif(not _kernels.HAVE_NUMBA, reason="numba kernels not installed")
-def test_compiled_pose_from_matches_agrees_with_the_numpy_reference() -> None:
+def test_compiled_pose_from_matches_agrees_with_the_numpy_reference(random_pairs: Callable) -> None:
     rng = np.random.default_rng(12)
     well_posed = 0
     for trial in range(20):
-        pairs = _random_pairs(rng, int(rng.integers(1, 8)))
+        pairs = random_pairs(rng, int(rng.integers(1, 8)))
         start = rng.normal(0, 0.05, size=3)
         kw = {"prior": np.zeros(3), "prior_weight": 2.0} if trial % 3 == 0 else {}
         ref = pose_mod._pose_from_matches_numpy(pairs, start, robust_scale=0.05, **kw)
@@ -213,36 +139,3 @@ def test_compiled_pose_from_matches_agrees_with_the_numpy_reference() -> None:
                 assert np.linalg.eigvalsh(0.5 * (got.covariance + got.covariance.T))[-1] > 1e6
                 assert np.linalg.eigvalsh(0.5 * (ref.covariance + ref.covariance.T))[-1] > 1e6
     assert well_posed >= 10
-
-
-@pytest.mark.skipif(not _kernels.HAVE_NUMBA, reason="numba kernels not installed")
-@pytest.mark.parametrize(("setup_id", "scan"), [(2, 40), (1, 80)])
-def test_compiled_fit_of_real_candidate_blocks_agrees_with_the_numpy_reference(
-    setup_id: int, scan: int, real_scene: Callable, monkeypatch: pytest.MonkeyPatch
-) -> None:
-    """The ΔA fits of every block of up to 3 features (1:1, 1:2, 2:1, ...) of a real scan
-    against its map view, as match_with_cost forms them (sampled scan points, the blocks'
-    map segments): the compiled kernel, which tries each segment for all points of a block at
-    once, and the numpy reference agree to 1e-9, from the truth and from a pose 0.3 m /
-    0.2 rad off (schematic floor plan and metric map)."""
-    from service.core import matching, stacked
-
-    sc = real_scene(setup_id, scan)
-    P, Q, cfg = sc.P, sc.Q, sc.config
-    p_all, p_off = stacked.scan_samples(P, max(3, cfg.align_points // 2))
-    for est in (sc.truth[scan], sc.truth[scan] + np.array([0.3, -0.2, 0.2])):
-        q_ord, _ = matching._map_order_arrays(Q, est)
-        q_all, q_off = stacked.view_segments(Q, q_ord)
-        ca = _kernels.block_candidates(np.ones((len(P), len(q_ord)), dtype=bool), 3, True)
-        assert len(ca) > 200
-        args = (p_all, p_off[ca[:, 0]], p_off[ca[:, 1] + 1], q_all)
-        seg = (q_off[ca[:, 2]], q_off[ca[:, 3] + 1] - q_off[ca[:, 2]])
-        kw = {"iterations": 3, "robust_scale": cfg.align_robust_scale, "damping": 0.05}
-        got = pose_mod.fit_pairs_ranges(*args, *seg, est, **kw)
-        with monkeypatch.context() as m:
-            m.setattr(pose_mod._kernels, "HAVE_NUMBA", False)
-            ref = pose_mod.fit_pairs_ranges(*args, *seg, est, **kw)
-        assert np.allclose(got[0], ref[0], rtol=0, atol=1e-9)
-        assert np.allclose(got[1], ref[1], rtol=0, atol=1e-9)
-        moved = np.hypot(got[0][:, 0] - est[0], got[0][:, 1] - est[1])
-        assert np.ptp(moved) > 0.1  # real fits: the blocks pull the pose different ways
