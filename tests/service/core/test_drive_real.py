@@ -29,6 +29,7 @@ STOP35 = {
     "probation_searches": 0,
     "window_polish": False,
     "drive_recent_frames": 0,
+    "verdict_refine": False,
 }
 
 
