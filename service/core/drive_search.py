@@ -10,7 +10,7 @@ probation is :mod:`service.core.probation`. docs/global.md, "Search over a drive
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
@@ -27,46 +27,27 @@ from service.core.global_search import (
 from service.core.hypotheses import Track
 from service.core.pose import compose
 from service.core.pose_scoring import Hypothesis
-from service.core.probation import Probation, ProbationSteps
-from service.core.types import Estimate
 
-if TYPE_CHECKING:
-    from service.core.global_config import GlobalConfig
-    from service.core.localizer import ShapeConfig
-    from service.core.view_index import ViewIndex
+# Probation is named here too: localiser states pickled before it moved to
+# service.core.probation (stop 43) refer to service.core.drive_search.Probation
+from service.core.probation import Probation, ProbationSteps  # noqa: F401
+from service.core.types import Estimate
 
 
 class DriveSearch(ProbationSteps):
     """Mixin of :class:`~service.core.global_localization.GlobalShapeLocalizer`: the search
     over a drive within a per-scan budget (see the module docstring)."""
 
-    # provided by the localiser
-    gconfig: GlobalConfig
-    config: ShapeConfig
-    index: ViewIndex
-    _tracks: list[Track]
-    _history: list[tuple[np.ndarray, np.ndarray, np.ndarray]]
-    _job: hyp_mod.Job | None
-    _twin_job: hyp_mod.Job | None
+    # provided by the localiser (besides those :class:`ProbationSteps` declares)
     #: a refinement before the evidence rule's verdict (``GlobalConfig.verdict_refine``);
     #: a class default, so a state pickled before it existed loads
     _rule_refine: wr_mod.Refinement | None = None
-    _confirm_next: bool
     _candidates: int
     _travel: float
     _episode: int
     _anchor: np.ndarray | None
-    _last_odom: np.ndarray | None
-    work_ms: float
     _search_turn: bool
-    _frames: list[ev_mod.Keyframe]
-    _probation: Probation | None
-    _searching: bool
-    _search_status: str
-    _since_fix: int
     _anchor_travel: float
-    _unfit: int
-    tracker: Any
     _frame_key: int
     # and the methods _seeds, _anchor_seeds, _near_track, _confirmed, _confirm, _unresolved,
     # _no_hypothesis
@@ -118,9 +99,9 @@ class DriveSearch(ProbationSteps):
         confirming = self._confirm_next
         self._confirm_next = False
         # a refinement before the evidence rule's verdict takes the scan's rest first
-        pending = self._rule_refine
-        refining = pending is not None and not confirming
-        if refining and pending is not None:
+        pending = None if confirming else self._rule_refine
+        refining = pending is not None
+        if pending is not None:
             spent, done = wr_mod.advance(pending, self.index, self.config, g, spent, budget)
             if done:
                 self._rule_refine = None

@@ -50,7 +50,7 @@ from service.core.configuration import (
     scan_configuration,
 )
 from service.core.confirmation import Confirmation
-from service.core.drive_search import DriveSearch, Probation
+from service.core.drive_search import DriveSearch
 from service.core.global_config import GlobalConfig
 from service.core.global_search import (
     SearchResult,
@@ -63,6 +63,7 @@ from service.core.localizer import ShapeConfig, ShapeLocalizer
 from service.core.motion import check_pose3
 from service.core.pose import compose, invert
 from service.core.pose_scoring import Hypothesis, _field_scores, verify
+from service.core.probation import Probation
 from service.core.scan_odometry import ScanOdometry
 from service.core.types import Estimate, MapData, Status, check_scan, wrap_angle
 from service.core.view_index import (

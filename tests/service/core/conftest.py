@@ -8,10 +8,13 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
+from service.core import evidence as ev
 from service.core.configuration import Configuration, map_view, scan_configuration
+from service.core.global_config import GlobalConfig
+from service.core.global_localization import load_or_build_index
 from service.core.localizer import ShapeConfig
 from service.core.mapmodel import MapModel
-from service.core.pose import invert, transform_points
+from service.core.pose import compose, invert, transform_points
 from service.core.types import MapData
 from sim_publisher.scenario import make_setup
 
@@ -97,3 +100,29 @@ def room_pairs() -> Callable:
 def random_pairs() -> Callable:
     """``random_pairs(rng, k)``: ``k`` random wall pairs (:func:`_random_pairs`)."""
     return _random_pairs
+
+
+def _office_window(first: int, last: int):  # type: ignore[no-untyped-def]
+    """The office floor plan's tour and index, and the window of keyframes its scans
+    ``first``..``last`` give with odometry: (setup, shape config, global config, index,
+    keyframes)."""
+    su = make_setup(2)
+    cfg = ShapeConfig.for_kind(su.map_data.kind)
+    g = GlobalConfig.for_kind(su.map_data.kind)
+    idx = load_or_build_index(su.map_data, cfg, g)
+    frames: list[ev.Keyframe] = []
+    travel = 0.0
+    for i in range(first, last + 1):
+        if i > first:
+            d = compose(invert(su.odom[i - 1]), su.odom[i])
+            travel += float(np.hypot(d[0], d[1]))
+        if ev.keyframe_due(frames, su.odom[i], travel, g):
+            frames.append(ev.make_keyframe(len(frames), *su.scan(i), su.odom[i], travel, g))
+    return su, cfg, g, idx, ev.window(frames, g)
+
+
+@pytest.fixture
+def office_window() -> Callable:
+    """``office_window(first, last)``: the office floor plan's drive window over its tour's
+    scans ``first``..``last`` (:func:`_office_window`)."""
+    return _office_window

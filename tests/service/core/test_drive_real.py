@@ -9,10 +9,10 @@ from pathlib import Path
 
 import numpy as np
 
-from service.core.drive_search import Probation
 from service.core.factory import create_localizer
 from service.core.global_localization import GlobalShapeLocalizer
 from service.core.pose import compose, invert
+from service.core.probation import Probation
 from service.core.types import Estimate, wrap_angle
 from service.maps.files import load_map_file
 

@@ -75,3 +75,13 @@ def test_the_evidence_rule_names_a_winner_after_its_rivals_are_placed_where_the_
     assert scan > 0 and err < 0.5, (scan, err)
     scan, err = first_fix(False)
     assert err > 10.0, (scan, err)  # the place 15 m off
+
+
+def test_a_probation_pickled_before_it_moved_module_still_loads() -> None:
+    """Localiser states saved before stop 43 name ``service.core.drive_search.Probation``;
+    that name still resolves to the class now in :mod:`service.core.probation`."""
+    import pickle
+
+    from service.core.probation import Probation
+
+    assert pickle.loads(b"cservice.core.drive_search\nProbation\n.") is Probation

@@ -4,6 +4,8 @@ hypothesis before unjudged newcomers."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 import pytest
 
@@ -12,11 +14,8 @@ from service.core import global_search as gs
 from service.core import hypotheses as hy
 from service.core import pose_scoring as ps
 from service.core.global_config import GlobalConfig
-from service.core.global_localization import load_or_build_index
-from service.core.localizer import ShapeConfig
-from service.core.pose import compose, invert
+from service.core.pose import compose
 from service.core.types import wrap_angle
-from sim_publisher.scenario import make_setup
 
 
 def _track(pose: np.ndarray, cost: float = 0.5) -> hy.Track:
@@ -49,32 +48,15 @@ def test_keyframes_every_spacing_or_turn_and_a_bounded_window() -> None:
     assert ev.window([], g) == []
 
 
-def _office_window(first: int, last: int):  # type: ignore[no-untyped-def]
-    """The office floor plan's tour and index, and the window of keyframes its scans
-    ``first``..``last`` give with odometry: (setup, shape config, global config, index,
-    keyframes)."""
-    su = make_setup(2)
-    cfg = ShapeConfig.for_kind(su.map_data.kind)
-    g = GlobalConfig.for_kind(su.map_data.kind)
-    idx = load_or_build_index(su.map_data, cfg, g)
-    frames: list[ev.Keyframe] = []
-    travel = 0.0
-    for i in range(first, last + 1):
-        if i > first:
-            d = compose(invert(su.odom[i - 1]), su.odom[i])
-            travel += float(np.hypot(d[0], d[1]))
-        if ev.keyframe_due(frames, su.odom[i], travel, g):
-            frames.append(ev.make_keyframe(len(frames), *su.scan(i), su.odom[i], travel, g))
-    return su, cfg, g, idx, ev.window(frames, g)
-
-
-def test_backfill_judges_a_hypothesis_on_the_scans_before_it_was_found() -> None:
+def test_backfill_judges_a_hypothesis_on_the_scans_before_it_was_found(
+    office_window: Callable,
+) -> None:
     """Office floor plan, odometry: a hypothesis at the true pose of the last scan explains
     the keyframes of the last metres (it is moved back by the odometry); one 1.5 m off along
     the robot's heading, which a search could have found on the last scan alone, does not.
     Every track ends up scored on every keyframe, newest first."""
     last = 300
-    su, cfg, g, idx, frames = _office_window(270, last)
+    su, cfg, g, idx, frames = office_window(270, last)
     assert len(frames) >= 6
     truth = su.truth[last]
     off = compose(truth, np.array([1.5, 0.0, 0.0]))
@@ -246,12 +228,12 @@ def test_a_short_return_counts_by_how_far_in_front_of_the_predicted_wall_it_lies
     assert mixed == pytest.approx((0.25, 0.25, np.exp(-1.0) / 4))
 
 
-def test_window_polish_pins_the_pose_on_the_keyframes_of_the_drive() -> None:
+def test_window_polish_pins_the_pose_on_the_keyframes_of_the_drive(office_window: Callable) -> None:
     """``GlobalConfig.window_polish``: a winner 0.25 m and 3 degrees off is polished on the
     points of the window's keyframes at once, each placed by the odometry, and lands within
     5 cm and 1.5 degrees of the true pose (office floor plan, the tour's scans 270-300)."""
     last = 300
-    su, _cfg, g, idx, frames = _office_window(270, last)
+    su, _cfg, g, idx, frames = office_window(270, last)
     truth = su.truth[last]
     for off in ([0.25, 0.0, 0.05], [0.0, -0.2, -0.05], [-0.15, 0.15, 0.0]):
         start = compose(truth, np.array(off))
@@ -260,7 +242,9 @@ def test_window_polish_pins_the_pose_on_the_keyframes_of_the_drive() -> None:
         assert abs(wrap_angle(float(got[2] - truth[2]))) < np.deg2rad(1.5), (off, got, truth)
 
 
-def test_a_track_found_again_at_a_better_pose_takes_it_and_is_judged_again() -> None:
+def test_a_track_found_again_at_a_better_pose_takes_it_and_is_judged_again(
+    office_window: Callable,
+) -> None:
     """``GlobalConfig.refound_margin`` (opt-in, at 0.1): a kept track whose keyframe
     scores were taken at a pose the distance field's polish left off (here 0.3 m along the
     heading, its newest keyframe costing 0.6) takes the pose a later search found it at when
@@ -268,7 +252,7 @@ def test_a_track_found_again_at_a_better_pose_takes_it_and_is_judged_again() -> 
     (``backfill`` redoes them); a search pose that explains less, or one within 5 cm and 1
     degree, changes nothing; at 0 nothing is checked (office floor plan, scans 270-300)."""
     last = 300
-    su, cfg, g0, idx, frames = _office_window(270, last)
+    su, cfg, g0, idx, frames = office_window(270, last)
     g = g0.model_copy(update={"refound_margin": 0.1})
     truth = su.truth[last]
     odom = su.odom[last]

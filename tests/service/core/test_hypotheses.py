@@ -10,11 +10,11 @@ from service.core import evidence as ev
 from service.core import global_search as gs
 from service.core import hypotheses as hy
 from service.core.configuration import scan_configuration
-from service.core.drive_search import Probation
 from service.core.factory import create_localizer
 from service.core.global_config import GlobalConfig
 from service.core.global_localization import GlobalShapeLocalizer, load_or_build_index
 from service.core.localizer import ShapeConfig
+from service.core.probation import Probation
 from service.core.types import Estimate, MapData, wrap_angle
 from service.core.view_index import build_index
 from sim_publisher.laser import LaserSimulator

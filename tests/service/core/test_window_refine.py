@@ -5,6 +5,7 @@ budget, resumable after a pickle."""
 from __future__ import annotations
 
 import pickle
+from collections.abc import Callable
 
 import numpy as np
 
@@ -13,9 +14,6 @@ from service.core import global_search as gs
 from service.core import hypotheses as hy
 from service.core import window_refine as wr
 from service.core.global_config import GlobalConfig
-from service.core.global_localization import load_or_build_index
-from service.core.localizer import ShapeConfig
-from sim_publisher.scenario import make_setup
 
 
 def _scored_track(idx, su, frames, cfg, g, offset):  # type: ignore[no-untyped-def]
@@ -38,21 +36,6 @@ def _index_of(su, f: ev.Keyframe) -> int:  # type: ignore[no-untyped-def]
     return int(np.argmin(np.linalg.norm(su.odom[:, :2] - f.odom[:2], axis=1)))
 
 
-def _window(first: int, last: int):  # type: ignore[no-untyped-def]
-    su = make_setup(2)
-    cfg = ShapeConfig.for_kind(su.map_data.kind)
-    g = GlobalConfig.for_kind(su.map_data.kind)
-    idx = load_or_build_index(su.map_data, cfg, g)
-    frames: list[ev.Keyframe] = []
-    travel = 0.0
-    for i in range(first, last + 1):
-        if i > first:
-            travel += float(np.hypot(*(su.odom[i][:2] - su.odom[i - 1][:2])))
-        if ev.keyframe_due(frames, su.odom[i], travel, g):
-            frames.append(ev.make_keyframe(len(frames), *su.scan(i), su.odom[i], travel, g))
-    return su, cfg, g, idx, ev.window(frames, g)
-
-
 def test_rigid_move_turns_about_the_pivot_and_translates() -> None:
     pose = np.array([2.0, 1.0, 0.3])
     got = wr.moved(pose, np.array([1.0, 1.0]), np.array([0.5, -0.2, np.pi / 2]))
@@ -60,13 +43,15 @@ def test_rigid_move_turns_about_the_pivot_and_translates() -> None:
     assert np.allclose(wr.moved(pose, np.zeros(2), np.zeros(3)), pose)
 
 
-def test_a_track_held_off_the_place_is_moved_onto_it_and_judged_there() -> None:
+def test_a_track_held_off_the_place_is_moved_onto_it_and_judged_there(
+    office_window: Callable,
+) -> None:
     """Office floor plan, the tour's scans 270-300: a track whose keyframe poses all sit
     0.23 m off the truth costs clearly more than the truth; refined, its poses are within
     6 cm of the truth on every keyframe and its mean cost is the truth's within 0.03. A
     track already at the truth is not moved (no shift gains ``_MIN_GAIN`` there). The pose
     the track goes on from is moved with its keyframes."""
-    su, cfg, g, idx, frames = _window(270, 300)
+    su, cfg, g, idx, frames = office_window(270, 300)
     assert len(frames) >= 6
     truth = _scored_track(idx, su, frames, cfg, g, [0.0, 0.0, 0.0])
     held = _scored_track(idx, su, frames, cfg, g, [0.12, 0.2, 0.0])
@@ -88,11 +73,13 @@ def test_a_track_held_off_the_place_is_moved_onto_it_and_judged_there() -> None:
         assert abs(held.ev[f.key] - ev.frame_cost(idx, held.ev_pose[f.key], f, cfg, g)) < 1e-12
 
 
-def test_spread_over_calls_and_pickled_midway_it_ends_where_one_call_ends() -> None:
+def test_spread_over_calls_and_pickled_midway_it_ends_where_one_call_ends(
+    office_window: Callable,
+) -> None:
     """Work is counted and bounded per call (at least one probe each); a refinement pickled
     between calls (a localiser moved to another worker) resumes; both end with the same
     poses and scores as one unbounded call."""
-    su, cfg, g, idx, frames = _window(270, 300)
+    su, cfg, g, idx, frames = office_window(270, 300)
     whole = _scored_track(idx, su, frames, cfg, g, [0.1, -0.15, 0.03])
     wr.advance(wr.Refinement(queue=[whole], frames=list(frames)), idx, cfg, g, 0.0, np.inf)
 
