@@ -411,6 +411,14 @@ class DriveConfig(BaseModel):
         "split (worlds 0-19, floor plans, 200 drive starts): 96.0 against 93.0 % fixed "
         "within 15 m, no wrong fix in either (the search finds the true place sooner).",
     )
+    twin_hold_kept: bool = Field(
+        False,
+        description="With a budget: once a track's self-similarity check has found a twin "
+        "that is now kept among the hypotheses, the check is not run again while that twin "
+        "stays kept; on each scan that re-scores both, the track passes as a check would "
+        "when the twin trails it by the ambiguity bar. A repeated check searches the map "
+        "for the twin the hypotheses already hold (docs/global.md, stop 44).",
+    )
     rescore_prior: float = Field(
         0.02,
         ge=0,

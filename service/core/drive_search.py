@@ -89,9 +89,12 @@ class DriveSearch(ProbationSteps):
         odom_now = self._last_odom if odometry else None
         if odom_now is not None:
             self._add_keyframe(r, a, odom_now)
+        ages = [t.age for t in self._tracks]
         spent = hyp_mod.rescore(
             self.index, self._tracks, rs, as_, P, self.config, g, budget * g.rescore_share, odometry
         )
+        # the tracks re-scored on this scan (GlobalConfig.twin_hold_kept)
+        rescored = {id(t) for t, age in zip(self._tracks, ages, strict=True) if t.age > age}
         if odom_now is not None:
             spent += self._backfill(odom_now, budget * g.evidence_share)
         extras: dict[str, float] = {}
@@ -134,6 +137,8 @@ class DriveSearch(ProbationSteps):
         for t in self._tracks:
             t.costs = t.costs[-g.window :]
             t.hyp.cost = t.costs[-1] if fused else float(np.mean(t.costs))
+        if g.twin_hold_kept:
+            self._judge_kept_twins(rescored, max_amb, extras)
         if odom_now is not None:
             self._tracks = ev_mod.prune(self._tracks, self._frames, g.keep, g)
         else:
@@ -229,6 +234,7 @@ class DriveSearch(ProbationSteps):
         if (
             target.twin_ok is None
             and self._twin_job is None
+            and not self._twin_kept(target)
             and target.hyp.cost <= lead_cost
             and (informative or odometry)
         ):
@@ -325,6 +331,43 @@ class DriveSearch(ProbationSteps):
         track.twin_held = True
         move = hyp_mod.odometry_move(job.odom, self._last_odom)
         self._tracks = hyp_mod.merge(self._tracks, [twin], move, 1)
+        if self.gconfig.twin_hold_kept:
+            at = compose(twin.pose, move) if move is not None else twin.pose
+            held = [t for t in self._tracks if t is not track and hyp_mod._near(t.pose, at)]
+            track.twin = held[0] if held else None
+
+    def _twin_kept(self, track: Track) -> bool:
+        """Whether the twin a check of ``track`` found is still kept among the hypotheses
+        (``GlobalConfig.twin_hold_kept``): the check is then not run again."""
+        tw = track.twin
+        return (
+            self.gconfig.twin_hold_kept
+            and tw is not None
+            and tw is not track
+            and any(t is tw for t in self._tracks)
+        )
+
+    def _judge_kept_twins(
+        self, rescored: set[int], max_amb: float, extras: dict[str, float]
+    ) -> None:
+        """A track whose checked twin is kept passes the check, as a check on this scan
+        would, once both were re-scored on this scan and the twin trails it by the ambiguity
+        bar (``GlobalConfig.twin_hold_kept``)."""
+        for t in self._tracks:
+            if t.twin_ok is not None or not self._twin_kept(t) or t.twin is None:
+                continue
+            if id(t) not in rescored or id(t.twin) not in rescored:
+                continue
+            amb = ambiguity(
+                [
+                    Hypothesis(pose=t.pose, cost=t.hyp.cost),
+                    Hypothesis(pose=t.twin.pose, cost=t.twin.costs[-1]),
+                ],
+                self.gconfig,
+            )
+            if amb <= max_amb:
+                t.twin_ok = True
+                extras["twin_kept_passed"] = 1.0
 
     def _odom_copy(self) -> np.ndarray | None:
         return None if self._last_odom is None else self._last_odom.copy()

@@ -52,7 +52,8 @@ class Track:
     ``twin_held`` whether a check of it found a twin that then joined the hypotheses (so the
     drive's evidence judges the two on the same keyframes); ``found`` how many searches found
     it (the one it came from, and later ones that found it again); ``refined`` the newest
-    keyframe when :mod:`service.core.window_refine` last placed it."""
+    keyframe when :mod:`service.core.window_refine` last placed it; ``twin`` the kept track
+    holding the twin its check found (``GlobalConfig.twin_hold_kept``)."""
 
     pose: np.ndarray
     costs: list[float]
@@ -68,6 +69,9 @@ class Track:
     #: the newest keyframe key when a refinement last placed it (``GlobalConfig.
     #: verdict_refine``; -1: never)
     refined: int = -1
+    #: the kept track that holds the twin a check of this one found
+    #: (``GlobalConfig.twin_hold_kept``; ``None``: none)
+    twin: Track | None = None
 
 
 @dataclass(eq=False)

@@ -33,6 +33,22 @@ def test_table_scores_equal_the_direct_kernel_bit_for_bit(sigma: float) -> None:
     assert idx.score_table(sigma, 10.0)[0] is table  # built once
 
 
+def test_table_scores_with_repeated_headings_equal_the_direct_kernel() -> None:
+    # a polish's grids: each base pose's 5 headings recur 25 times, interleaved, and 12 base
+    # poses bring 60 distinct headings (more than the kernel keeps rotated at once)
+    idx = load_or_build_index(office_schematic_map())
+    rng = np.random.default_rng(9)
+    grid = gs._grid(0.05, 0.02)
+    poses = (_poses(rng, 12)[:, None, :] + grid[None, :, :]).reshape(-1, 3)
+    shuffled = poses[rng.permutation(len(poses))]
+    pts = rng.uniform(-6, 6, size=(80, 2))
+    args = (float(idx.origin[0]), float(idx.origin[1]), float(idx.resolution))
+    table, outside = idx.score_table(0.05, 10.0)
+    for ps in (poses, shuffled):
+        direct = _search_kernels.field_scores(idx.dist, *args, ps, pts, 0.05, 10.0)
+        assert np.array_equal(direct, _search_kernels.table_scores(table, outside, *args, ps, pts))
+
+
 def test_support_kernel_equals_the_numpy_reference(monkeypatch: pytest.MonkeyPatch) -> None:
     idx = load_or_build_index(office_schematic_map())
     rng = np.random.default_rng(8)
