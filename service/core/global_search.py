@@ -123,15 +123,21 @@ def _refine(
     return fine(refined)
 
 
+# _distinct and _near run for every pair of poses a search or a merge compares: scalar
+# element differences into the same np.hypot (no temporary arrays)
+
+
 def _distinct(a: np.ndarray, b: np.ndarray, gconfig: GlobalConfig) -> bool:
     return bool(
-        np.hypot(*(a[:2] - b[:2])) > gconfig.distinct_distance
-        or abs(wrap_angle(a[2] - b[2])) > gconfig.distinct_angle
+        np.hypot(a[0] - b[0], a[1] - b[1]) > gconfig.distinct_distance
+        or abs(wrap_angle(float(a[2] - b[2]))) > gconfig.distinct_angle
     )
 
 
 def _near(a: np.ndarray, b: np.ndarray, dist: float = 0.3, ang: float = 0.15) -> bool:
-    return bool(np.hypot(*(a[:2] - b[:2])) < dist and abs(wrap_angle(a[2] - b[2])) < ang)
+    return bool(
+        np.hypot(a[0] - b[0], a[1] - b[1]) < dist and abs(wrap_angle(float(a[2] - b[2]))) < ang
+    )
 
 
 def global_search(
@@ -324,7 +330,7 @@ def search_steps(
             scored.sort()
             top = scored[: gconfig.pairs_budget // len(chosen)]
             for _s, u in top:
-                poses.append(induced_alignment(pu, index.verts(u)))
+                poses.append(induced_alignment(pa, index.arcs(u)))
                 n_induced += 1
             if scored and cornered:
                 # every view of a similar group fixes a pose by the anchors (corner vertex

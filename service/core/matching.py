@@ -33,6 +33,7 @@ from service.core.configuration import Configuration, Feature
 from service.core.pose import StackedPairs, transform_points
 from service.core.pose_batch import fit_pairs_ranges
 from service.core.similarity import (
+    ShapeArcs,
     prepare,
     shape_alignment,
     shape_distance,
@@ -118,13 +119,14 @@ def pose_consistency(
     return float(math.hypot(d[0], d[1]) + rot_weight * abs(wrap_angle(float(dphi))))
 
 
-def induced_alignment(p: np.ndarray, q: np.ndarray) -> np.ndarray:
+def induced_alignment(p: np.ndarray | ShapeArcs, q: np.ndarray | ShapeArcs) -> np.ndarray:
     """``A(P, Q)`` (§5.2): the rigid transform ``[tx, ty, phi]`` that lays polyline ``p`` onto
     its corresponding polyline ``q`` (``x_q ~ R(phi) x_p + t``), from the optimal arc
     correspondence of S* (:func:`service.core.similarity.shape_alignment`).
 
     With ``p`` a scan polyline in the robot frame and ``q`` a map polyline in the map frame the
-    result is the robot pose this pair alone implies.
+    result is the robot pose this pair alone implies. Either may be given already prepared
+    (:class:`~service.core.similarity.ShapeArcs`; the same result, without preparing it again).
     """
     ang, t = shape_alignment(p, q)
     return np.array([float(t[0]), float(t[1]), float(wrap_angle(ang))])
