@@ -99,10 +99,20 @@ def _field_scores(index: ViewIndex, poses: np.ndarray, pts: np.ndarray, sigma: f
 
 
 @lru_cache(maxsize=64)
-def _grid(step_xy: float, step_th: float) -> np.ndarray:
-    """The 5 x 5 x 5 offsets ``(125, 3)`` of one :func:`_polish` stage (kept: few recur)."""
+def _axes(step_xy: float, step_th: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The offsets along x, y and heading of one :func:`_polish` stage (5 each)."""
     o = np.arange(-2, 3)
-    dx, dy, dth = np.meshgrid(o * step_xy, o * step_xy, o * step_th, indexing="ij")
+    axes = (o * step_xy, o * step_xy, o * step_th)
+    for a in axes:
+        a.setflags(write=False)
+    return axes
+
+
+@lru_cache(maxsize=64)
+def _grid(step_xy: float, step_th: float) -> np.ndarray:
+    """The 5 x 5 x 5 offsets ``(125, 3)`` of one :func:`_polish` stage (kept: few recur),
+    heading fastest (``meshgrid(*_axes(...), indexing="ij")``)."""
+    dx, dy, dth = np.meshgrid(*_axes(step_xy, step_th), indexing="ij")
     grid = np.column_stack([dx.ravel(), dy.ravel(), dth.ravel()])
     grid.setflags(write=False)
     return grid
@@ -134,7 +144,22 @@ def _polish(
         s_eff = max(sigma, step_xy)
         delta = _grid(float(step_xy), float(step_th))
         cand = (out[:, None, :] + delta[None, :, :]).reshape(-1, 3)
-        score = _field_scores(index, cand, pts, s_eff).reshape(len(out), -1)
+        if _kernels.HAVE_NUMBA and len(pts) and len(out):
+            # the grid's scores with each point's field row and column computed once per
+            # heading and offset (the same bits as _field_scores on cand)
+            table, outside = index.score_table(float(s_eff), _FIELD_CAP)
+            score = _search_kernels.grid_scores(
+                table,
+                outside,
+                float(index.origin[0]),
+                float(index.origin[1]),
+                float(index.resolution),
+                np.ascontiguousarray(out),
+                *_axes(float(step_xy), float(step_th)),
+                np.ascontiguousarray(pts, dtype=np.float64),
+            )
+        else:
+            score = _field_scores(index, cand, pts, s_eff).reshape(len(out), -1)
         obj = score
         if prior > 0.0:
             off = cand.reshape(len(out), -1, 3) - start[:, None, :]

@@ -49,6 +49,36 @@ def test_table_scores_with_repeated_headings_equal_the_direct_kernel() -> None:
         assert np.array_equal(direct, _search_kernels.table_scores(table, outside, *args, ps, pts))
 
 
+@pytest.mark.parametrize("steps", [(0.05, 0.02), (0.015, 0.006), (0.15, 0.06)])
+def test_grid_scores_equal_the_scores_of_every_grid_pose(steps: tuple[float, float]) -> None:
+    # the polish's grid kernel computes each point's field row and column once per heading
+    # and offset: the scores of the 125 poses must be those the per-pose kernels give
+    idx = load_or_build_index(office_schematic_map())
+    rng = np.random.default_rng(10)
+    base, pts = _poses(rng, 12), rng.uniform(-6, 6, size=(80, 2))
+    cand = (base[:, None, :] + gs._grid(*steps)[None, :, :]).reshape(-1, 3)
+    args = (float(idx.origin[0]), float(idx.origin[1]), float(idx.resolution))
+    table, outside = idx.score_table(0.05, 10.0)
+    grid = _search_kernels.grid_scores(table, outside, *args, base, *gs._axes(*steps), pts)
+    direct = _search_kernels.field_scores(idx.dist, *args, cand, pts, 0.05, 10.0)
+    assert grid.shape == (12, 125)
+    assert np.array_equal(grid.reshape(-1), direct)
+    assert np.ptp(direct) > 0.02
+
+
+def test_polish_with_the_grid_kernel_equals_the_numpy_reference(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    idx = load_or_build_index(office_schematic_map())
+    rng = np.random.default_rng(11)
+    poses, pts = _poses(rng, 20), rng.uniform(-6, 6, size=(80, 2))
+    got, got_score = gs._polish(idx, poses, pts, 0.05, prior=0.02)
+    monkeypatch.setattr(gs._kernels, "HAVE_NUMBA", False)
+    ref, ref_score = gs._polish(idx, poses, pts, 0.05, prior=0.02)
+    assert np.array_equal(got, ref)
+    assert np.max(np.abs(got_score - ref_score)) < 1e-12
+
+
 def test_support_kernel_equals_the_numpy_reference(monkeypatch: pytest.MonkeyPatch) -> None:
     idx = load_or_build_index(office_schematic_map())
     rng = np.random.default_rng(8)
