@@ -23,13 +23,15 @@ DATA = Path(__file__).resolve().parents[2] / "data" / "real"
 #: mechanisms below were found on that drive and are checked on it; with the defaults since
 #: stop 36 (``GlobalConfig.evidence_short_scale``, ``probation_searches``, ``window_polish``)
 #: and 37 (``drive_recent_frames``) several of these starts are fixed at the true place
-#: without reaching them, which each test checks too.
+#: without reaching them, which each test checks too. Stop 43's refinement and stop 44's
+#: held twins (``verdict_refine``, ``twin_hold_kept``) came later too.
 STOP35 = {
     "evidence_short_scale": 0.0,
     "probation_searches": 0,
     "window_polish": False,
     "drive_recent_frames": 0,
     "verdict_refine": False,
+    "twin_hold_kept": False,
 }
 
 

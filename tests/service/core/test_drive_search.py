@@ -17,7 +17,10 @@ def test_a_true_place_held_off_its_pose_still_wins_over_the_congruent_room() -> 
     refinement (``verdict_refine``, on for floor plans: at the probation's end the hypothesis
     is moved onto the place its keyframes' beams fit, the congruent room is beaten and the
     true place is fixed at 10.8 m), and ``refound_margin`` (opt-in) at 0.1, with which the
-    hypothesis takes the pose a later search found it at (0.04 m off; fixed on scan 78)."""
+    hypothesis takes the pose a later search found it at (0.04 m off; fixed on scan 78).
+    Checked with stop 43's twin checks (``twin_hold_kept`` off): with stop 44's the searches
+    that re-checks took run instead, and the drive no longer reaches the congruent room even
+    without either mechanism (measured: fixed on scan 69, 0.11 m off)."""
     from sim_publisher.generator import BuildingParams, generate_building
     from sim_publisher.scenario import building_setup
 
@@ -27,7 +30,7 @@ def test_a_true_place_held_off_its_pose_still_wins_over_the_congruent_room() -> 
         """The tracking estimates' (scan, position error m, heading error deg)."""
         loc = create_localizer("shape", su.map_data, None, search_budget_ms=50.0)
         assert loc.gconfig.verdict_refine
-        update = {"refound_margin": margin, "verdict_refine": refine}
+        update = {"refound_margin": margin, "verdict_refine": refine, "twin_hold_kept": False}
         loc.gconfig = loc.gconfig.model_copy(update=update)
         out = []
         for i in range(17, 125):
@@ -53,7 +56,10 @@ def test_the_evidence_rule_names_a_winner_after_its_rivals_are_placed_where_the_
     0.17 m off (0.750); the probation passed and it was published 18 m off. With
     ``verdict_refine`` the rule waits for the refinement of the leader and its closest rivals
     (scans 91-95): the true place then explains the drive at 0.398 against 0.562, and it is
-    the one fixed (scan 117, 0.03 m)."""
+    the one fixed (scan 117, 0.03 m). Checked with stop 43's twin checks (``twin_hold_kept``
+    off): with stop 44's, more searches run and the drive is not fixed before scan 140 (traced
+    from scan 30 of the same building: they find places 14-18 m off that tie the true place
+    on single scans, 0.219 against 0.219 on scan 102, where stop 43's drive had none)."""
     from sim_publisher.generator import BuildingParams, generate_building
     from sim_publisher.scenario import building_setup
 
@@ -61,7 +67,8 @@ def test_the_evidence_rule_names_a_winner_after_its_rivals_are_placed_where_the_
 
     def first_fix(refine: bool) -> tuple[int, float]:
         loc = create_localizer("shape", su.map_data, None, search_budget_ms=50.0)
-        loc.gconfig = loc.gconfig.model_copy(update={"verdict_refine": refine})
+        update = {"verdict_refine": refine, "twin_hold_kept": False}
+        loc.gconfig = loc.gconfig.model_copy(update=update)
         refining = 0
         for i in range(29, 140):
             est = loc.update(*su.scan(i), su.odom[i])
