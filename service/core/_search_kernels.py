@@ -6,7 +6,9 @@ The polish (:func:`service.core.pose_scoring._polish`) scores 125 poses per stag
 hypothesis, each over ~80 scan points: ``exp(-d² / 2 s²)`` of the distance-field value ``d``
 under every point. The value depends on the field cell alone, so :func:`score_table` computes
 it once per cell and sigma (the same expression, so the same bits) and :func:`table_scores`
-only looks it up: the exponentials leave the inner loop.
+only looks it up: the exponentials leave the inner loop. The polish itself runs
+:func:`grid_scores`, which also computes each point's field row and column once per heading
+and offset of its grid.
 """
 
 from __future__ import annotations
@@ -94,10 +96,6 @@ def score_table(dist: np.ndarray, sigma: float, cap: float) -> np.ndarray:
     return out
 
 
-#: Headings whose rotated points :func:`table_scores` keeps (a polish stage's grid has 5).
-_HEADINGS = 8
-
-
 @njit(cache=True, nogil=True)
 def table_scores(
     table: np.ndarray,
@@ -110,44 +108,20 @@ def table_scores(
 ) -> np.ndarray:
     """:func:`field_scores` with the per-cell scores looked up in ``table``
     (:func:`score_table`) and ``outside`` for points beyond the field: the same sums in the
-    same order, so the same results to the bit. The points rotated by a heading are kept for
-    the last few distinct headings (a polish grid repeats each of its 5 headings 25 times);
-    ``rotated + position`` is the expression :func:`_cell` evaluates."""
+    same order, so the same results to the bit."""
     m = poses.shape[0]
     k = pts.shape[0]
     h = table.shape[0]
     w = table.shape[1]
     out = np.empty(m)
-    rx = np.empty((_HEADINGS, k))
-    ry = np.empty((_HEADINGS, k))
-    heads = np.empty(_HEADINGS)
-    kept = 0
-    slot_next = 0
     for i in range(m):
-        th = poses[i, 2]
-        slot = -1
-        for q in range(kept):
-            if heads[q] == th:
-                slot = q
-                break
-        if slot < 0:
-            slot = slot_next
-            slot_next = (slot_next + 1) % _HEADINGS
-            kept = min(kept + 1, _HEADINGS)
-            heads[slot] = th
-            c = math.cos(th)
-            s = math.sin(th)
-            for j in range(k):
-                rx[slot, j] = c * pts[j, 0] - s * pts[j, 1]
-                ry[slot, j] = s * pts[j, 0] + c * pts[j, 1]
-        x0 = poses[i, 0]
-        y0 = poses[i, 1]
+        c = math.cos(poses[i, 2])
+        s = math.sin(poses[i, 2])
         acc = 0.0
         for j in range(k):
-            ci = math.floor((rx[slot, j] + x0 - ox) / res)
-            cj = math.floor((ry[slot, j] + y0 - oy) / res)
-            if ci >= 0 and ci < w and cj >= 0 and cj < h:
-                acc += table[int(cj), int(ci)]
+            r, q = _cell(c, s, poses[i], pts[j, 0], pts[j, 1], ox, oy, res, h, w)
+            if r >= 0:
+                acc += table[r, q]
             else:
                 acc += outside
         out[i] = acc / k

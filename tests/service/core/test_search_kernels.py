@@ -34,8 +34,8 @@ def test_table_scores_equal_the_direct_kernel_bit_for_bit(sigma: float) -> None:
 
 
 def test_table_scores_with_repeated_headings_equal_the_direct_kernel() -> None:
-    # a polish's grids: each base pose's 5 headings recur 25 times, interleaved, and 12 base
-    # poses bring 60 distinct headings (more than the kernel keeps rotated at once)
+    # a polish's grids as poses: each base pose's 5 headings recur 25 times, interleaved (12
+    # base poses, 60 distinct headings), in order and shuffled
     idx = load_or_build_index(office_schematic_map())
     rng = np.random.default_rng(9)
     grid = gs._grid(0.05, 0.02)
