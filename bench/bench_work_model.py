@@ -13,6 +13,9 @@ Items (per pose, on scans of the map's tour at their reference poses, perturbed 
 - ``polish``: a distance-field polish of 12 poses in one call; ``polish1``: of one pose
   (a keyframe's score);
 - ``support``: the point support of 800 poses;
+- ``field40``: the shortlist's violation ranking of 800 poses, 40 beams marched on the
+  distance field (``GlobalConfig.shortlist_violation_beams``; on every map, though only the
+  floor plans run it);
 - ``beams90``: the shortlist's 90-beam check;
 - ``refine``: the four-stage refinement;
 - ``verify``: a verification over ``verify_beams`` beams;
@@ -56,6 +59,7 @@ from service.core.global_search import (
 )
 from service.core.pose_scoring import (
     _beam_costs,
+    _field_violations,
     _polish,
     _subsample,
     _support_many,
@@ -81,6 +85,7 @@ def model(loc: Any, points: int) -> dict[str, float]:
         "polish": polish_ms(points),
         "polish1": WORK_MS["polish_call"] + polish_ms(points),
         "support": points * WORK_MS["support"],
+        "field40": 40 * WORK_MS["field_beam"],
         "beams90": 90 * WORK_MS["beam"] + cast_ms(idx),
         "refine": refine_ms(idx),
         "verify": _verify_ms(idx, g),
@@ -121,6 +126,11 @@ def measure(m: bg.DriveMap, data: Path, scans: int, seed: int) -> tuple[dict[str
             t0 = clock()
             _support_many(idx, many, sp, cfg.support_tolerance)
             laps.append(("support", len(many), clock() - t0))
+            beams = _subsample(np.flatnonzero(np.isfinite(r)), 40)
+            margin = max(cfg.support_tolerance, g.violation_margin)
+            t0 = clock()
+            _field_violations(idx, many, r[beams], a[beams], margin)
+            laps.append(("field40", len(many), clock() - t0))
             t0 = clock()
             _beam_costs(idx, poses, r, a, 90, cfg, g)
             laps.append(("beams90", len(poses), clock() - t0))

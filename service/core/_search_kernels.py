@@ -222,6 +222,50 @@ def support_counts(
     return out
 
 
+@njit(cache=True, nogil=True)
+def field_crossings(
+    dist: np.ndarray,
+    ox: float,
+    oy: float,
+    res: float,
+    px: np.ndarray,
+    py: np.ndarray,
+    cos_b: np.ndarray,
+    sin_b: np.ndarray,
+    lim: np.ndarray,
+    max_steps: int,
+) -> np.ndarray:
+    """Kernel of :func:`service.core.pose_scoring._field_violations` (the same steps): per
+    pose ``i`` (sensor at ``px[i], py[i]``) the number of beams ``j`` (direction
+    ``cos_b[i, j], sin_b[i, j]``) that meet a drawn wall before ``lim[j]`` metres, marching
+    along the beam by each cell's clearance (sphere tracing on the distance field)."""
+    m = cos_b.shape[0]
+    k = cos_b.shape[1]
+    h = dist.shape[0]
+    w = dist.shape[1]
+    wall = res
+    least = 0.5 * res
+    out = np.zeros(m, dtype=np.int64)
+    for i in range(m):
+        n = 0
+        for j in range(k):
+            t = 0.0
+            steps = 0
+            while t < lim[j] and steps < max_steps:
+                ci = math.floor((px[i] + t * cos_b[i, j] - ox) / res)
+                cj = math.floor((py[i] + t * sin_b[i, j] - oy) / res)
+                if ci < 0 or ci >= w or cj < 0 or cj >= h:
+                    break
+                d = float(dist[int(cj), int(ci)])
+                if d <= wall:
+                    n += 1
+                    break
+                t += max(d - 1.5 * res, least)
+                steps += 1
+        out[i] = n
+    return out
+
+
 def warm_up(p: np.ndarray) -> None:
     """Compile (or load) every kernel of this module on tiny inputs."""
     field = np.ones((2, 2), dtype=np.float32)
@@ -232,6 +276,8 @@ def warm_up(p: np.ndarray) -> None:
     g = np.zeros(1)
     grid_scores(table, 0.0, 0.0, 0.0, 0.5, z, g, g, g, p)
     support_counts(field, 0.0, 0.0, 0.5, np.ones(1), np.zeros(1), z, p, 0.1)
+    one = np.ones((1, 1))
+    field_crossings(field, 0.0, 0.0, 0.5, g, g, one, one, np.ones(1), 4)
     near_mask(np.zeros((1, 4)), p, 0.1)
 
 

@@ -64,6 +64,16 @@ class GlobalConfig(DriveConfig):
     shortlist_cell: float = Field(0.4, gt=0, description="Coarse pose cell size (m).")
     shortlist_angle: float = Field(0.2, gt=0, description="Coarse pose cell heading width (rad).")
     shortlist_beams: int = Field(90, ge=8, description="Beams of the shortlist's quick check.")
+    shortlist_violation_beams: int = Field(
+        0,
+        ge=0,
+        description="Beams marched on the distance field to rank the coarse pose cells for "
+        "the shortlist by support less violation_weight x the share of beams through a drawn "
+        "wall (pose_scoring._field_violations); 0 = by support alone. Schematic: 40 (where the "
+        "plan shows less than half of a scan, wrong places whose walls the furniture fits "
+        "out-rank the true pose on support, but let a third to two thirds of their beams "
+        "through walls, the true pose 0-15 %: fr079's east hall, docs/global.md 'Stop 45').",
+    )
     refine_top: int = Field(
         16, ge=1, description="Hypotheses refined and verified. Schematic: 32 (twin rooms)."
     )
@@ -296,6 +306,7 @@ class GlobalConfig(DriveConfig):
                 fused_single_ambiguity=0.0,
                 fused_fix_cost=0.45,
                 shortlist=150,
+                shortlist_violation_beams=40,
                 verify_beams=720,
                 violation_margin=0.5,
                 probation_travel=2.0,

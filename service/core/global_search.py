@@ -24,6 +24,7 @@ from service.core.pose_batch import fit_pairs
 from service.core.pose_scoring import (
     Hypothesis,
     _beam_costs,
+    _field_violations,
     _polish,
     _subsample,
     _support_many,
@@ -173,6 +174,7 @@ WORK_MS = {
     "sstar": 0.0105,  # one S* comparison (shape_distance with an upper bound)
     "induced": 0.045,  # one S*-induced alignment
     "support": 0.000012,  # one pose x one point of the support ranking
+    "field_beam": 0.00012,  # one pose x one beam marched on the distance field
     "polish": 0.000006,  # one pose x grid cell x point of a distance-field polish ...
     "polish_call": 0.15,  # ... and one call's fixed part (a keyframe polishes one pose)
     "beam": 0.0023,  # one pose x one beam of a ray cast check ...
@@ -371,7 +373,22 @@ def search_steps(
                 np.floor((wrap_angle(H[:, 2]) + np.pi) / gconfig.shortlist_angle),
             ]
         )
-        short = order[_first_rows(cells[order])][: gconfig.shortlist]
+        reps = order[_first_rows(cells[order])]
+        beams = _subsample(np.nonzero(np.isfinite(r))[0], gconfig.shortlist_violation_beams)
+        if gconfig.shortlist_violation_beams > 0 and beams.size and len(reps):
+            # Where the plan shows little of what the laser sees, wrong places whose walls
+            # the furniture happens to fit out-score the true one on support; most of their
+            # other beams pass through a drawn wall, the true pose's hardly any. The cells are
+            # ranked by support less the verification's weight times that share.
+            margin = max(config.support_tolerance, gconfig.violation_margin)
+            vparts = []
+            for i in range(0, len(reps), _CHUNK_POSES):
+                block = H[reps[i : i + _CHUNK_POSES]]
+                vparts.append(_field_violations(index, block, r[beams], a[beams], margin))
+                yield len(block) * beams.size * WORK_MS["field_beam"]
+            score = sup[reps] - gconfig.violation_weight * np.concatenate(vparts)
+            reps = reps[np.argsort(-score, kind="stable")]
+        short = reps[: gconfig.shortlist]
         polished_parts = []
         quick_parts = []
         for i in range(0, len(short), _CHUNK_POLISH):

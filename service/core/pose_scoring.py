@@ -70,6 +70,61 @@ def _support_many(index: ViewIndex, poses: np.ndarray, pts: np.ndarray, tol: flo
     return np.mean(d <= tol, axis=1)
 
 
+#: Steps of a beam's march on the distance field (:func:`_field_violations`) before it is
+#: given up as crossing nothing (a beam along a wall advances by a few centimetres per step).
+_MARCH_STEPS = 200
+
+
+def _field_violations(
+    index: ViewIndex,
+    poses: np.ndarray,
+    ranges: np.ndarray,
+    angles: np.ndarray,
+    margin: float,
+) -> np.ndarray:
+    """Fraction of beams (robot-frame ``angles``, measured ``ranges``, all finite) that pass
+    through a drawn wall at each of ``poses`` ``(m, 3)``: the beam reaches a cell next to a
+    wall (field value at most one cell) more than ``margin`` before its return. Each beam
+    marches from the sensor by the field's clearance under it less 1.5 cells (the field is
+    quantised to cells: such a step never enters a wall cell), at least half a cell, for at
+    most :data:`_MARCH_STEPS` steps; leaving the field ends it. The distance-field
+    counterpart of :func:`verify`'s violation (a ray cast of the same beams costs ~20x more
+    in the search's work model), cheap enough for every coarse pose cell of
+    a search. A numba kernel when available, else this numpy reference (the same steps)."""
+    poses = np.asarray(poses, dtype=np.float64)
+    k = len(ranges)
+    if len(poses) == 0 or k == 0:
+        return np.zeros(len(poses))
+    th = poses[:, 2:3] + np.asarray(angles, dtype=np.float64)[None, :]
+    cb, sb = np.cos(th), np.sin(th)
+    lim = np.asarray(ranges, dtype=np.float64) - margin
+    ox, oy, res = float(index.origin[0]), float(index.origin[1]), float(index.resolution)
+    px, py = np.ascontiguousarray(poses[:, 0]), np.ascontiguousarray(poses[:, 1])
+    if _kernels.HAVE_NUMBA:
+        n = _search_kernels.field_crossings(
+            index.dist, ox, oy, res, px, py, cb, sb, lim, _MARCH_STEPS
+        )
+        return n / k
+    h, w = index.dist.shape
+    t = np.zeros(cb.shape)
+    live = np.ones(cb.shape, dtype=bool)
+    crossed = np.zeros(cb.shape, dtype=bool)
+    for _ in range(_MARCH_STEPS):
+        live &= t < lim[None, :]
+        if not live.any():
+            break
+        ci = np.floor((px[:, None] + t * cb - ox) / res)
+        cj = np.floor((py[:, None] + t * sb - oy) / res)
+        live &= (ci >= 0) & (ci < w) & (cj >= 0) & (cj < h)
+        d = np.zeros(cb.shape)
+        d[live] = index.dist[cj[live].astype(np.int64), ci[live].astype(np.int64)]
+        hit = live & (d <= res)
+        crossed |= hit
+        live &= ~hit
+        t = np.where(live, t + np.maximum(d - 1.5 * res, 0.5 * res), t)
+    return np.count_nonzero(crossed, axis=1) / k
+
+
 #: Distance-field values are capped at this (m) in the polish's score.
 _FIELD_CAP = 10.0
 

@@ -20,7 +20,10 @@ def test_a_true_place_held_off_its_pose_still_wins_over_the_congruent_room() -> 
     hypothesis takes the pose a later search found it at (0.04 m off; fixed on scan 78).
     Checked with stop 43's twin checks (``twin_hold_kept`` off): with stop 44's the searches
     that re-checks took run instead, and the drive no longer reaches the congruent room even
-    without either mechanism (measured: fixed on scan 69, 0.11 m off)."""
+    without either mechanism (measured: fixed on scan 69, 0.11 m off). And with the shortlist
+    ranked by support alone (``shortlist_violation_beams`` 0, before stop 45): with stop 45's
+    ranking the true place's search finds it sooner and neither mechanism is needed either
+    (measured: fixed on scan 46, 0.11 m off)."""
     from sim_publisher.generator import BuildingParams, generate_building
     from sim_publisher.scenario import building_setup
 
@@ -30,7 +33,12 @@ def test_a_true_place_held_off_its_pose_still_wins_over_the_congruent_room() -> 
         """The tracking estimates' (scan, position error m, heading error deg)."""
         loc = create_localizer("shape", su.map_data, None, search_budget_ms=50.0)
         assert loc.gconfig.verdict_refine
-        update = {"refound_margin": margin, "verdict_refine": refine, "twin_hold_kept": False}
+        update = {
+            "refound_margin": margin,
+            "verdict_refine": refine,
+            "twin_hold_kept": False,
+            "shortlist_violation_beams": 0,
+        }
         loc.gconfig = loc.gconfig.model_copy(update=update)
         out = []
         for i in range(17, 125):
@@ -59,7 +67,9 @@ def test_the_evidence_rule_names_a_winner_after_its_rivals_are_placed_where_the_
     the one fixed (scan 117, 0.03 m). Checked with stop 43's twin checks (``twin_hold_kept``
     off): with stop 44's, more searches run and the drive is not fixed before scan 140 (traced
     from scan 30 of the same building: they find places 14-18 m off that tie the true place
-    on single scans, 0.219 against 0.219 on scan 102, where stop 43's drive had none)."""
+    on single scans, 0.219 against 0.219 on scan 102, where stop 43's drive had none). And
+    with the shortlist ranked by support alone (``shortlist_violation_beams`` 0): with stop
+    45's ranking the true place is fixed without the refinement (measured: scan 92, 0.06 m)."""
     from sim_publisher.generator import BuildingParams, generate_building
     from sim_publisher.scenario import building_setup
 
@@ -67,7 +77,7 @@ def test_the_evidence_rule_names_a_winner_after_its_rivals_are_placed_where_the_
 
     def first_fix(refine: bool) -> tuple[int, float]:
         loc = create_localizer("shape", su.map_data, None, search_budget_ms=50.0)
-        update = {"verdict_refine": refine, "twin_hold_kept": False}
+        update = {"verdict_refine": refine, "twin_hold_kept": False, "shortlist_violation_beams": 0}
         loc.gconfig = loc.gconfig.model_copy(update=update)
         refining = 0
         for i in range(29, 140):

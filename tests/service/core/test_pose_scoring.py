@@ -54,3 +54,35 @@ def test_a_beam_past_a_gone_object_onto_a_mapped_wall_is_no_violation() -> None:
     assert off_see.violation > 0.05
     assert off_see.violation <= off_plain.violation
     assert off_see.cost > true_see.cost + 0.2
+
+
+def test_field_violations_agree_with_the_ray_casters() -> None:
+    """The search's cheap violation share (beams marched on the distance field) is the exact
+    ray cast's within a beam or two, at the true pose (none: the beams end at the walls they
+    came from) and at poses across the partition of two rooms (beams through it)."""
+    partition = np.array([[5.0, 0.0], [5.0, 6.0]])
+    md = MapData.from_lists("two", "schematic", [ROOM, partition])
+    cfg = ShapeConfig.for_kind("schematic")
+    g = GlobalConfig.for_kind("schematic")
+    idx = load_or_build_index(md, cfg, g)
+    truth = np.array([2.0, 3.0, 0.3])
+    angles = np.linspace(-np.pi, np.pi, 40, endpoint=False)
+    ranges = idx.caster.cast(truth, angles, 15.0)
+    margin = max(cfg.support_tolerance, g.violation_margin)
+    rng = np.random.default_rng(3)
+    poses = np.vstack(
+        [
+            truth,
+            np.column_stack(
+                [rng.uniform(0.5, 9.5, 30), rng.uniform(0.5, 5.5, 30), rng.uniform(-3, 3, 30)]
+            ),
+        ]
+    )
+    field = gs._field_violations(idx, poses, ranges, angles, margin)
+    tol = cfg.support_tolerance
+    exact = np.array(
+        [gs._beam_fractions(ranges, idx.caster.cast(p, angles, 15.0), tol, g)[1] for p in poses]
+    )
+    assert field[0] == 0.0 and exact[0] == 0.0
+    assert exact.max() > 0.3  # poses whose beams cross the partition or the outer walls
+    assert np.max(np.abs(field - exact)) <= 2 / 40

@@ -88,3 +88,18 @@ def test_support_kernel_equals_the_numpy_reference(monkeypatch: pytest.MonkeyPat
     ref = gs._support_many(idx, poses, pts, 0.1)
     assert np.array_equal(got, ref)
     assert np.ptp(ref) > 0.05
+
+
+def test_field_crossings_equal_the_numpy_reference(monkeypatch: pytest.MonkeyPatch) -> None:
+    # the beams' march on the distance field: the kernel's count per pose must be the numpy
+    # reference's, on poses inside and outside the office and beams of every length
+    idx = load_or_build_index(office_schematic_map())
+    rng = np.random.default_rng(11)
+    poses = _poses(rng, 300)
+    angles = np.sort(rng.uniform(-np.pi, np.pi, 40))
+    ranges = rng.uniform(0.3, 25.0, 40)
+    compiled = gs._field_violations(idx, poses, ranges, angles, 0.5)
+    monkeypatch.setattr(_kernels, "HAVE_NUMBA", False)
+    reference = gs._field_violations(idx, poses, ranges, angles, 0.5)
+    assert np.array_equal(compiled, reference)
+    assert compiled.min() == 0.0 and compiled.max() > 0.3  # crossing and clear poses occur
