@@ -303,6 +303,17 @@ class DriveConfig(BaseModel):
         "and 7 m off (turned 180) won by 0.16 and passed although by the probation's end the "
         "true place explained the window as well or better. Schematic: on.",
     )
+    probation_contest_all: bool = Field(
+        False,
+        description="A winner of the evidence rule's window mean gets what a single-scan "
+        "winner's probation has: the probation_searches, whose places join the hypotheses, and "
+        "probation_verdict at its end. Without it a place the searches had not found before "
+        "the window named a winner cannot contest it: generated building 65 (tuning, floor "
+        "plan, 50 ms, start 29), a congruent room 4.6 m off won the window by 0.18 at 1.7 m "
+        "of travel, the true place never among the hypotheses, and passed its probation; "
+        "with it a probation search finds the true place, which beats the room, and it is "
+        "fixed at 9.6 m. Schematic: on.",
+    )
     verdict_refine: bool = Field(
         False,
         description="Before a verdict on the drive's keyframes -- the evidence rule naming a "

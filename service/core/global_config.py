@@ -318,6 +318,7 @@ class GlobalConfig(DriveConfig):
                 verdict_refine=True,
                 probation_verdict_margin=0.05,
                 probation_reversal=True,
+                probation_contest_all=True,
                 window_polish=True,
                 drive_recent_frames=8,
             )

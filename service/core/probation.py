@@ -241,7 +241,8 @@ class ProbationSteps:
         once the rejections have reached the bar, every later scan of the probation must hold
         so. A winner of the single-scan rules fails at the probation's end if a distinct
         alternative then explains the drive's keyframes, those of the probation included,
-        better (``GlobalConfig.probation_verdict``)."""
+        better (``GlobalConfig.probation_verdict``); with ``probation_contest_all`` so does a
+        winner of the window's mean, and its probation searches as theirs does."""
         p = self._probation
         assert p is not None
         g = self.gconfig
@@ -256,7 +257,8 @@ class ProbationSteps:
             # while the verdict's refinement runs, the keyframes it judges stay as they are
             if (drive_won or g.probation_verdict) and p.refine is None:
                 self._probation_evidence(r, a)
-            if p.searches < g.probation_searches and g.probation_verdict and not drive_won:
+            contested = not drive_won or g.probation_contest_all
+            if p.searches < g.probation_searches and g.probation_verdict and contested:
                 self._probation_search(r, a)
         struck = collapsed or p.rejected >= g.probation_rejects
         if (
@@ -275,7 +277,7 @@ class ProbationSteps:
         # show it was a stretch where a wrong place fitted better (tuning building 1, start
         # 13: a place 15 m off won on the newest 8 keyframes; 2 m later the true place
         # explained the window better by 0.16, and the probation passed)
-        verdict = not drive_won or "drive_recent" in p.extras
+        verdict = not drive_won or "drive_recent" in p.extras or g.probation_contest_all
         ended = not failed and p.left <= 0.0
         judged = ended and g.probation_verdict and verdict
         frames = self._frames

@@ -25,7 +25,8 @@ DATA = Path(__file__).resolve().parents[2] / "data" / "real"
 #: and 37 (``drive_recent_frames``) several of these starts are fixed at the true place
 #: without reaching them, which each test checks too. Stop 43's refinement and stop 44's
 #: held twins (``verdict_refine``, ``twin_hold_kept``) came later too, and so did stop 45's
-#: shortlist ranked by violations (``shortlist_violation_beams``).
+#: shortlist ranked by violations (``shortlist_violation_beams``) and its contested window
+#: winners (``probation_contest_all``).
 STOP35 = {
     "evidence_short_scale": 0.0,
     "probation_searches": 0,
@@ -34,6 +35,7 @@ STOP35 = {
     "verdict_refine": False,
     "twin_hold_kept": False,
     "shortlist_violation_beams": 0,
+    "probation_contest_all": False,
 }
 
 

@@ -23,7 +23,8 @@ def test_a_true_place_held_off_its_pose_still_wins_over_the_congruent_room() -> 
     without either mechanism (measured: fixed on scan 69, 0.11 m off). And with the shortlist
     ranked by support alone (``shortlist_violation_beams`` 0, before stop 45): with stop 45's
     ranking the true place's search finds it sooner and neither mechanism is needed either
-    (measured: fixed on scan 46, 0.11 m off)."""
+    (measured: fixed on scan 46, 0.11 m off); checked without stop 45's contested window
+    winners too (``probation_contest_all``), which also end the wrong fix here."""
     from sim_publisher.generator import BuildingParams, generate_building
     from sim_publisher.scenario import building_setup
 
@@ -38,6 +39,7 @@ def test_a_true_place_held_off_its_pose_still_wins_over_the_congruent_room() -> 
             "verdict_refine": refine,
             "twin_hold_kept": False,
             "shortlist_violation_beams": 0,
+            "probation_contest_all": False,
         }
         loc.gconfig = loc.gconfig.model_copy(update=update)
         out = []
@@ -131,3 +133,32 @@ def test_a_held_twin_that_is_kept_is_not_searched_for_again() -> None:
     assert plain[1] > 0 and plain[2] < 0.5, plain
     assert held[1] > 0 and held[2] < 0.5, held
     assert held[0] * 3 <= plain[0], (held, plain)
+
+
+def test_a_window_winner_is_contested_by_a_place_its_probation_search_finds() -> None:
+    """Building 65's floor plan (setup 2, tuning), from scan 29 with no initial pose,
+    odometry and a 50 ms budget. The drive's window named a congruent room 4.6 m off by 0.18
+    at 1.7 m of travel, while the true place had never been among the hypotheses; a winner of
+    the window's mean had no search and no verdict on its probation, so the room passed and
+    was tracked to the end of the tour (measured). With ``probation_contest_all`` its
+    probation searches as a single-scan winner's does, the true place joins, beats the room
+    on the drive's keyframes, and is the one fixed (measured: scan 121, 0.06 m)."""
+    from sim_publisher.generator import BuildingParams, generate_building
+    from sim_publisher.scenario import building_setup
+
+    su = building_setup(generate_building(65, BuildingParams(people=0)), 2, seed=0)
+
+    def first_fix(contest: bool) -> tuple[int, float]:
+        loc = create_localizer("shape", su.map_data, None, search_budget_ms=50.0)
+        assert loc.gconfig.probation_contest_all
+        loc.gconfig = loc.gconfig.model_copy(update={"probation_contest_all": contest})
+        for i in range(29, 160):
+            est = loc.update(*su.scan(i), su.odom[i])
+            if est.status == "tracking":
+                return i, float(np.hypot(*(est.pose[:2] - su.truth[i][:2])))
+        return -1, float("inf")
+
+    scan, err = first_fix(True)
+    assert scan > 0 and err < 0.5, (scan, err)
+    scan, err = first_fix(False)
+    assert 4.0 < err < 5.5, (scan, err)  # the congruent room
