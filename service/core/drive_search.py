@@ -278,17 +278,24 @@ class DriveSearch(ProbationSteps):
             self.gconfig.evidence_min_frames
         )
 
-    def _evidence_won(self, lead: Track, extras: dict[str, float], keep: bool = False) -> bool:
+    def _evidence_won(
+        self,
+        lead: Track,
+        extras: dict[str, float],
+        keep: bool = False,
+        tracks: list[Track] | None = None,
+    ) -> bool:
         """The evidence rule (``GlobalConfig.evidence_min_frames``) for the track that best
-        explains the drive's keyframes; with ``keep``, the bar for keeping a winner instead
-        (a margin above 0, :meth:`_drive_holds`)."""
+        explains the drive's keyframes against ``tracks`` (default: all kept); with ``keep``,
+        the bar for keeping a winner instead (a margin above 0, :meth:`_drive_holds`)."""
         g = self.gconfig
         frames = self._frames
         if frames[-1].travel - frames[0].travel < g.drive_travel:
             return False
         mean, _ = ev_mod.evidence(lead, frames)
         med = ev_mod.median(lead, frames)
-        margin = ev_mod.evidence_margin(lead, self._tracks, frames, g)
+        others = self._tracks if tracks is None else tracks
+        margin = ev_mod.evidence_margin(lead, others, frames, g)
         extras["drive_cost"] = mean
         extras["drive_median"] = med
         extras["drive_margin"] = max(-9.0, min(margin, 9.0))
@@ -300,7 +307,7 @@ class DriveSearch(ProbationSteps):
         if not won and not keep and g.drive_recent_frames > 0:
             # what tells two places apart shows on the newest keyframes first; the window's
             # mean lags it by the window's length (GlobalConfig.drive_recent_frames)
-            recent = ev_mod.recent_margin(lead, self._tracks, frames, g)
+            recent = ev_mod.recent_margin(lead, others, frames, g)
             extras["drive_recent_margin"] = max(-9.0, min(recent, 9.0))
             won = recent >= g.drive_recent_margin
             if won and explains:

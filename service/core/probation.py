@@ -50,6 +50,10 @@ class Probation:
     relock: float = 0.0
     #: the verdict's refinement in progress (``GlobalConfig.verdict_refine``)
     refine: wr_mod.Refinement | None = None
+    #: the tracks kept when the probation began: the hold through rejections
+    #: (:meth:`ProbationSteps._drive_holds`) weighs the winner against these only; places a
+    #: probation search finds later are the verdict's to judge at the probation's end
+    rivals: tuple[Track, ...] = ()
 
 
 class ProbationSteps:
@@ -108,6 +112,7 @@ class ProbationSteps:
             dict(extras),
             start=est.pose.copy(),
             start_odom=self._odom_copy(),
+            rivals=tuple(self._tracks),
         )
         # the pending jobs belong to earlier scans; a failed probation starts a new search
         self._job = None
@@ -201,7 +206,15 @@ class ProbationSteps:
         0.11 and more and is fixed at 16.3 m)."""
         if not self._frames or track not in self._tracks:
             return False
-        return self._evidence_won(track, extras, keep=True)
+        p = self._probation
+        rivals = self._tracks
+        if p is not None and p.rivals:
+            # a place found during the probation has a few keyframes scored yet and can tie
+            # the winner there; it is judged on the whole window by the verdict at the end
+            # (tuning log fr079 fed every 3rd scan, start 4327: the true place, held through
+            # three rejections, failed its probation to places its search had just found)
+            rivals = [t for t in self._tracks if any(t is r for r in p.rivals)]
+        return self._evidence_won(track, extras, keep=True, tracks=rivals)
 
     def _refine_verdict(self, p: Probation) -> bool:
         """Advance the verdict's refinement (``GlobalConfig.verdict_refine``,
