@@ -257,7 +257,8 @@ def build_maps(n: int) -> None:
 #: ``bench/bench_global.py --real-stride 4`` feeds them), a start whose evidence-rule winner
 #: lies 1.37 m along a corridor from the true place; fr079 scans 4100-4199, the robot driving
 #: into the east hall, which the floor plan draws as its outline (the track must be bridged by
-#: the odometry there, GlobalConfig.collapse_violation).
+#: the odometry there, GlobalConfig.collapse_violation); fr079 scans 4327-4539 fed one in three,
+#: a start in the east hall whose winner is held through rejections on its probation.
 WINDOWS = (
     ("fr079", 846, 20, 1),
     ("fr079", 1174, 156, 1),
@@ -265,6 +266,7 @@ WINDOWS = (
     ("fr079", 2871, 115, 1),
     ("intel", 8329, 320, 4),
     ("fr079", 4100, 100, 1),
+    ("fr079", 4327, 213, 3),
 )
 
 
