@@ -394,12 +394,13 @@ def _two_tracks(win_cost: float, alt_cost: float) -> tuple[list[ev.Keyframe], li
 
 
 def _ending_probation(
-    md: MapData, extras: dict[str, float], alt_cost: float
+    md: MapData, extras: dict[str, float], alt_cost: float, contest: bool = True
 ) -> GlobalShapeLocalizer:
     """A localiser 0.05 m before the end of a probation whose winner scored 0.5 on each of 4
     keyframes and a distinct alternative 5 m away ``alt_cost``; no budget, so the evidence
-    is what is given here."""
-    loc = GlobalShapeLocalizer(md, None, gconfig=GlobalConfig.for_kind("schematic"))
+    is what is given here. ``contest``: ``GlobalConfig.probation_contest_all``."""
+    g = GlobalConfig.for_kind("schematic").model_copy(update={"probation_contest_all": contest})
+    loc = GlobalShapeLocalizer(md, None, gconfig=g)
     frames, tracks = _two_tracks(0.5, alt_cost)
     loc._frames, loc._tracks, loc._searching = frames, tracks, False
     loc._probation = Probation(tracks[0], 0.05, 0.0, dict(extras))
@@ -417,21 +418,26 @@ def _probation_scan(
 
 
 def _judged_probation(
-    md: MapData, scan: tuple[np.ndarray, np.ndarray], extras: dict[str, float], alt_cost: float
+    md: MapData,
+    scan: tuple[np.ndarray, np.ndarray],
+    extras: dict[str, float],
+    alt_cost: float,
+    contest: bool = True,
 ) -> Estimate:
     """The last scan of a probation (:func:`_ending_probation`), the tracker accepting it."""
-    return _probation_scan(_ending_probation(md, extras, alt_cost), scan)
+    return _probation_scan(_ending_probation(md, extras, alt_cost, contest), scan)
 
 
 def test_a_single_scan_winner_the_drive_explains_worse_fails_at_its_probation_end() -> None:
     """``GlobalConfig.probation_verdict``: at the end of the probation of a winner of the
     single-scan rules, a distinct alternative with the lower mean cost on the drive's
     keyframes fails it and the search goes on; an alternative that explains them worse does
-    not, nor one that trails it by ``probation_verdict_margin`` or more; a winner of the
-    evidence rule's window mean is not judged so (its window slides
-    past what told it apart; fr079 every 3rd scan, starts 1174 / 1201). A winner of the
-    newest keyframes (``drive_recent``) is: what named it is still in the window (tuning
-    building 1, start 13)."""
+    not, nor one that trails it by ``probation_verdict_margin`` or more. Without
+    ``probation_contest_all`` a winner of the evidence rule's window mean is not judged so
+    (its window slides past what told it apart; fr079 every 3rd scan, starts 1174 / 1201);
+    with it (floor plans since stop 45) it is, as a winner of the newest keyframes
+    (``drive_recent``) always was: what named it is still in the window (tuning building 1,
+    start 13)."""
     su = make_setup(2)
     scan = su.scan(250)
     beaten = _judged_probation(su.map_data, scan, {}, alt_cost=0.4)
@@ -440,7 +446,11 @@ def test_a_single_scan_winner_the_drive_explains_worse_fails_at_its_probation_en
     assert beaten.extras.get("probation_beaten") == 1.0
     ahead = _judged_probation(su.map_data, scan, {}, alt_cost=0.6)
     assert ahead.status == "tracking" and ahead.extras.get("probation_passed") == 1.0
-    drive = _judged_probation(su.map_data, scan, {"drive_rule": 1.0}, alt_cost=0.4)
+    drive = _judged_probation(su.map_data, scan, {"drive_rule": 1.0}, 0.4, contest=False)
+    assert drive.status == "tracking" and drive.extras.get("probation_passed") == 1.0
+    contested = _judged_probation(su.map_data, scan, {"drive_rule": 1.0}, alt_cost=0.4)
+    assert contested.status != "tracking" and contested.extras.get("probation_beaten") == 1.0
+    drive = _judged_probation(su.map_data, scan, {"drive_rule": 1.0}, alt_cost=0.6)
     assert drive.status == "tracking" and drive.extras.get("probation_passed") == 1.0
     # a lead of a hair is not enough (probation_verdict_margin, 0.05 on floor plans: a
     # cluttered tuning building, 1 at clutter 0.25 start 12, passed a place 11.6 m off that
@@ -463,15 +473,21 @@ def test_a_drive_winner_fails_its_probation_when_the_newest_keyframes_name_anoth
     7 m and 13 m off won by 0.16 and passed, the true place then ahead on the window by 0.18
     and 0.01 and on the newest keyframes by far). It passes when the alternative leads the
     newest keyframes by less, or leads them but explains the window worse (the older
-    keyframes, which named the winner, still count), or with the rule off."""
+    keyframes, which named the winner, still count), or with the rule off. Checked without
+    ``probation_contest_all`` (with it, the floor plans' default since stop 45, such a winner
+    is judged by the verdict instead, which fails it where the alternative explains the
+    window better by ``probation_verdict_margin``)."""
     su = make_setup(2)
     scan = su.scan(250)
     g = GlobalConfig.for_kind("schematic")
     assert g.probation_reversal and g.drive_recent_frames == 8 and g.drive_recent_margin == 0.18
 
-    def ending(older: list[float], newest: float, on: bool = True) -> Estimate:
+    def ending(
+        older: list[float], newest: float, on: bool = True, contest: bool = False
+    ) -> Estimate:
         loc = GlobalShapeLocalizer(su.map_data, None, gconfig=g)
-        loc.gconfig = g.model_copy(update={"probation_reversal": on})
+        update = {"probation_reversal": on, "probation_contest_all": contest}
+        loc.gconfig = g.model_copy(update=update)
         n = len(older) + 8
         frames = [
             ev.Keyframe(k, np.ones(3), np.zeros(3), np.ones((3, 2)), np.zeros(3), 0.3 * k)
@@ -498,6 +514,13 @@ def test_a_drive_winner_fails_its_probation_when_the_newest_keyframes_name_anoth
     ):
         out = ending(older, newest, on)
         assert out.status == "tracking" and out.extras.get("probation_passed") == 1.0, older
+    # contested (the default): the verdict fails the turned winner (window 0.38 against 0.5)
+    # and one the alternative trails by less than probation_verdict_margin (0.525), and
+    # passes one the window names by that margin (0.6 against 0.5)
+    for older, failed in (([0.7, 0.7], True), ([0.75] * 8, True), ([0.9] * 8, False)):
+        out = ending(older, 0.3, contest=True)
+        assert (out.status != "tracking") == failed, (older, out.extras)
+        assert out.extras.get("probation_beaten" if failed else "probation_passed") == 1.0
 
 
 def test_a_probation_passes_only_on_a_scan_the_tracker_accepted() -> None:
