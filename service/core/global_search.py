@@ -378,8 +378,9 @@ def search_steps(
             ]
         )
         reps = order[_first_rows(cells[order])]
-        beams = _subsample(np.nonzero(np.isfinite(r))[0], gconfig.shortlist_violation_beams)
-        if gconfig.shortlist_violation_beams > 0 and beams.size and len(reps):
+        nb = gconfig.shortlist_violation_beams
+        beams = _subsample(np.flatnonzero(np.isfinite(r)), nb) if nb > 0 else np.zeros(0, int)
+        if beams.size and len(reps):
             # Where the plan shows little of what the laser sees, wrong places whose walls
             # the furniture happens to fit out-score the true one on support; most of their
             # other beams pass through a drawn wall, the true pose's hardly any. The cells are

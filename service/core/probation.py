@@ -213,7 +213,8 @@ class ProbationSteps:
             # the winner there; it is judged on the whole window by the verdict at the end
             # (tuning log fr079 fed every 3rd scan, start 4327: the true place, held through
             # three rejections, failed its probation to places its search had just found)
-            rivals = [t for t in self._tracks if any(t is r for r in p.rivals)]
+            ids = {id(r) for r in p.rivals}
+            rivals = [t for t in self._tracks if id(t) in ids]
         return self._evidence_won(track, extras, keep=True, tracks=rivals)
 
     def _refine_verdict(self, p: Probation) -> bool:
