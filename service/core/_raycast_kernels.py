@@ -30,15 +30,20 @@ _TWO_PI = 2.0 * math.pi
 @njit(cache=True, nogil=True)
 def near_segments(
     a: np.ndarray, e: np.ndarray, ee: np.ndarray, poses: np.ndarray, max_range: float
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Per pose (in order) the segments whose distance to the sensor is within
     ``max_range``: their index, their pose and whether they touch the sensor (distance
-    <= 1e-12), as :meth:`service.core.raycast.RayCaster._distances` computes the distance."""
+    <= 1e-12), as :meth:`service.core.raycast.RayCaster._distances` computes the distance;
+    and the vectors from the sensor to each one's start and end, ``[ax - px,
+    ay - py, (ax + ex) - px, (ay + ey) - py]`` (the ``arctan2`` arguments of the bearings,
+    the reference's operations in its order), as ``(4, m)`` (each row contiguous, as the
+    reference's arrays are)."""
     n_pose = poses.shape[0]
     n_seg = a.shape[0]
     idx = np.empty(n_pose * n_seg, dtype=np.intp)
     owner = np.empty(n_pose * n_seg, dtype=np.intp)
     touching = np.empty(n_pose * n_seg, dtype=np.bool_)
+    ends = np.empty((4, n_pose * n_seg))
     m = 0
     for k in range(n_pose):
         x = poses[k, 0]
@@ -53,8 +58,12 @@ def near_segments(
                 idx[m] = j
                 owner[m] = k
                 touching[m] = d <= 1e-12
+                ends[0, m] = a[j, 0] - x
+                ends[1, m] = a[j, 1] - y
+                ends[2, m] = (a[j, 0] + e[j, 0]) - x
+                ends[3, m] = (a[j, 1] + e[j, 1]) - y
                 m += 1
-    return idx[:m], owner[:m], touching[:m]
+    return idx[:m], owner[:m], touching[:m], ends[:, :m]
 
 
 @njit(cache=True, nogil=True)
@@ -163,7 +172,7 @@ def warm_up() -> None:
     seg = np.array([[1.0, -1.0]])
     e = np.array([[0.0, 2.0]])
     poses = np.zeros((1, 3))
-    idx, owner, touching = near_segments(seg, e, np.array([4.0]), poses, 5.0)
+    idx, owner, touching, _ = near_segments(seg, e, np.array([4.0]), poses, 5.0)
     ang = np.zeros(1)
     best = np.full((1, 1), np.inf)
     nearest_hits(

@@ -198,7 +198,7 @@ def _polish(
     for step_xy, step_th in stages:
         s_eff = max(sigma, step_xy)
         delta = _grid(float(step_xy), float(step_th))
-        cand = (out[:, None, :] + delta[None, :, :]).reshape(-1, 3)
+        cand = out[:, None, :] + delta[None, :, :]  # (k, 125, 3)
         if _kernels.HAVE_NUMBA and len(pts) and len(out):
             # the grid's scores with each point's field row and column computed once per
             # heading and offset (the same bits as _field_scores on cand)
@@ -214,17 +214,18 @@ def _polish(
                 np.ascontiguousarray(pts, dtype=np.float64),
             )
         else:
-            score = _field_scores(index, cand, pts, s_eff).reshape(len(out), -1)
+            score = _field_scores(index, cand.reshape(-1, 3), pts, s_eff).reshape(len(out), -1)
         obj = score
         if prior > 0.0:
-            off = cand.reshape(len(out), -1, 3) - start[:, None, :]
+            off = cand - start[:, None, :]
             obj = score - prior * (
                 (off[..., 0] ** 2 + off[..., 1] ** 2) / _PRIOR_XY**2
                 + (off[..., 2] / _PRIOR_TH) ** 2
             )
         best = np.argmax(obj, axis=1)
-        best_score = score[np.arange(len(out)), best]
-        out = cand.reshape(len(out), -1, 3)[np.arange(len(out)), best]
+        rows = np.arange(len(out))
+        best_score = score[rows, best]
+        out = cand[rows, best]
     out[:, 2] = wrap_angle(out[:, 2])
     return out, best_score
 
@@ -308,7 +309,14 @@ def _beam_costs(
     r = ranges[sel]
     ang = angles[sel]
     tol = config.support_tolerance
-    for k, pose in enumerate(np.asarray(poses, dtype=np.float64)):
+    poses = np.asarray(poses, dtype=np.float64)
+    if not gconfig.see_through and len(poses):
+        # all poses in one cast (each pose's ranges have the bits of its own cast)
+        preds = index.caster.cast_many(poses, ang, config.view_max_range)
+        for k, pred in enumerate(preds):
+            out[k] = _beam_cost(*_beam_fractions(r, pred, tol, gconfig), gconfig)
+        return out
+    for k, pose in enumerate(poses):
         pred, landed = _predict(index, pose, r, ang, tol, config.view_max_range, gconfig)
         hit, viol, short = _beam_fractions(r, pred, tol, gconfig, landed)
         out[k] = _beam_cost(hit, viol, short, gconfig)

@@ -29,6 +29,10 @@ _TWO_PI = 2.0 * np.pi
 _ANG_EPS = 1e-9
 # Relative tolerance on the segment parameter u so that rays through a shared vertex hit.
 _U_EPS = 1e-12
+# Distinct beam sets whose bearing order a caster keeps (RayCaster._beam_order).
+_ORDER_CACHE = 256
+# The compiled kernel's measured ranges when there are none (it reads them only with tol >= 0).
+_NO_RANGES = np.zeros(0)
 
 
 class _Spans(NamedTuple):
@@ -67,6 +71,7 @@ class RayCaster:
         self._e = self._seg[:, 2:4] - self._seg[:, 0:2]
         self._ee = np.einsum("ij,ij->i", self._e, self._e)
         self._a_c = np.ascontiguousarray(self._a)  # the kernels' copy
+        self._orders: dict[bytes, tuple[float, np.ndarray, np.ndarray]] = {}
 
     @property
     def segments(self) -> np.ndarray:
@@ -90,9 +95,9 @@ class RayCaster:
         ring catch such rays).
         """
         pose = np.asarray(pose, dtype=np.float64)
-        if pose.shape != (3,) or not np.all(np.isfinite(pose)):
+        if pose.shape != (3,):
             raise LocalizationError(f"pose: expected 3 finite values, got shape {pose.shape}")
-        return self.cast_many(pose.reshape(1, 3), angles, max_range)[0]
+        return self.cast_many(pose.reshape(1, 3), angles, max_range)[0]  # checks finiteness
 
     def cast_many(self, poses: np.ndarray, angles: np.ndarray, max_range: float) -> np.ndarray:
         """:meth:`cast` from each of ``poses`` ``(P, 3)`` with the same ``angles``, ``(P, n)``:
@@ -173,20 +178,14 @@ class RayCaster:
     ) -> None:
         """:meth:`_nearest` by the kernels of :mod:`service.core._raycast_kernels` (the same
         steps as :meth:`_spans` and :meth:`_pairs`; the bearings' ``arctan2`` in numpy)."""
-        idx, owner, touching = _raycast_kernels.near_segments(
+        idx, owner, touching, ends = _raycast_kernels.near_segments(
             self._a_c, self._e, self._ee, poses, float(max_range)
         )
         if idx.shape[0] == 0:
             return
-        a = self._a_c[idx]
-        b = a + self._e[idx]
-        px = poses[owner, 0]
-        py = poses[owner, 1]
-        bearing0 = np.arctan2(a[:, 1] - py, a[:, 0] - px)
-        bearing1 = np.arctan2(b[:, 1] - py, b[:, 0] - px)
-        base = ang[0]
-        rel = np.mod(ang - base, _TWO_PI)
-        order = np.argsort(rel, kind="stable")
+        bearing0 = np.arctan2(ends[1], ends[0])
+        bearing1 = np.arctan2(ends[3], ends[2])
+        base, rel_sorted, order = self._beam_order(ang)
         world = ang[None, :] + poses[:, 2][:, None]
         _raycast_kernels.nearest_hits(
             self._a_c,
@@ -197,29 +196,48 @@ class RayCaster:
             bearing0,
             bearing1,
             poses,
-            float(base),
-            rel[order],
+            base,
+            rel_sorted,
             order,
             np.cos(world),
             np.sin(world),
             float(max_range),
             _ANG_EPS,
             _U_EPS,
-            np.full(ang.shape[0], np.nan) if ranges is None else ranges,
+            _NO_RANGES if ranges is None else ranges,
             float(tol) if ranges is not None else -1.0,
             best,
             on_map,
         )
 
+    def _beam_order(self, ang: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+        """The first beam's angle, the beams' angles relative to it folded into ``[0, 2pi)``
+        and sorted, and that order (as :meth:`_spans` computes them). Kept per distinct
+        ``ang`` (at most :data:`_ORDER_CACHE` of them): the core casts the same beams of a
+        keyframe or scan from many poses."""
+        key = ang.tobytes()
+        hit = self._orders.get(key)
+        if hit is not None:
+            return hit
+        base = ang[0]
+        rel = np.mod(ang - base, _TWO_PI)
+        order = np.argsort(rel, kind="stable")
+        out = (float(base), rel[order], order)
+        if len(self._orders) >= _ORDER_CACHE:
+            self._orders.clear()
+        self._orders[key] = out
+        return out
+
     @staticmethod
     def _check(poses: np.ndarray, angles: np.ndarray, max_range: float) -> np.ndarray:
         """The beam angles as float64, after checking the arguments of a cast."""
         ang = np.asarray(angles, dtype=np.float64)
-        if poses.ndim != 2 or poses.shape[1] != 3 or not np.all(np.isfinite(poses)):
+        # (the arrays' own .all(): these run for every cast of a search)
+        if poses.ndim != 2 or poses.shape[1] != 3 or not np.isfinite(poses).all():
             raise LocalizationError(f"poses: expected (P, 3) finite values, got {poses.shape}")
         if ang.ndim != 1:
             raise LocalizationError(f"angles: expected a 1-D array, got shape {ang.shape}")
-        if not np.all(np.isfinite(ang)):
+        if not np.isfinite(ang).all():
             raise LocalizationError("angles: non-finite value")
         if not (np.isfinite(max_range) and max_range > 0.0):
             raise LocalizationError(f"max_range must be finite and > 0, got {max_range}")

@@ -508,11 +508,16 @@ def _alignment(
             sq.append((o_q[0] + uqx * s, o_q[1] + uqy * s))
     if not sp:
         return 0.0, np.zeros(2)
-    W = sum(s[2] for s in sp)
-    mpx = sum(s[0] * s[2] for s in sp) / W
-    mpy = sum(s[1] * s[2] for s in sp) / W
-    mqx = sum(q[0] * s[2] for s, q in zip(sp, sq, strict=True)) / W
-    mqy = sum(q[1] * s[2] for s, q in zip(sp, sq, strict=True)) / W
+    # the weighted sums in one pass, each accumulated in sample order (the bits of summing
+    # each one separately)
+    W = wpx = wpy = wqx = wqy = 0.0
+    for (px, py, w), (qx, qy) in zip(sp, sq, strict=True):
+        W += w
+        wpx += px * w
+        wpy += py * w
+        wqx += qx * w
+        wqy += qy * w
+    mpx, mpy, mqx, mqy = wpx / W, wpy / W, wqx / W, wqy / W
     sxx = sxy = 0.0
     for (px, py, w), (qx, qy) in zip(sp, sq, strict=True):
         px -= mpx
