@@ -2,7 +2,7 @@
 numba; conventions of :mod:`service.core._kernels`). The numpy reference is
 :func:`service.core.scan_odometry._match_numpy`; both associate every point with the
 *nearest* previous point within the gate whose surface normal agrees with the point's (here
-through the buckets of :func:`service.core._kernels.grid_build`, whose cell is the largest
+through the buckets of :func:`service.core._grid_kernels.grid_build`, whose cell is the largest
 gate; there among the KD-tree's 16 nearest), so both take the same steps up to ties,
 rounding and crowds of more than 16 closer points with the wrong orientation.
 """
@@ -37,7 +37,7 @@ def _nearest(
     """Index of the previous point nearest to ``(x, y)`` within ``gate`` (<= ``cell``) whose
     normal lies within the normal gate of ``(mx, my)`` (either sign), -1 for none."""
     cx = math.floor((x - ox) / cell)
-    cy = math.floor((y - oy) / cell)  # cells of :func:`service.core._kernels.grid_build`
+    cy = math.floor((y - oy) / cell)  # cells of :func:`service.core._grid_kernels.grid_build`
     best = -1
     bd = gate * gate
     for gy in range(max(cy - 1, 0), min(cy + 2, ny)):

@@ -1,12 +1,12 @@
 """Compiled batch kernels of the shape matching (implementation details, numba).
 
-The per-pair kernels of S* (:func:`service.core._kernels.arc_tables` and
-:func:`service.core._kernels.shape_dp`) run here over many polyline pairs in one call, so that a
-matcher pays one call instead of a Python loop per pair. Each kernel is called by exactly one
-public function that owns the concept, its docstring and the numpy / Python reference
-(:func:`service.core.similarity.shape_distances`); the arithmetic is that of the per-pair
-kernels, which are called unchanged, so results are identical to them. Beside it, the mean
-points of step 1's joined units (:func:`piece_means`). Without numba
+The per-pair kernels of S* (:func:`service.core._similarity_kernels.arc_tables` and
+:func:`service.core._similarity_kernels.shape_dp`) run here over many polyline pairs in one
+call, so that a matcher pays one call instead of a Python loop per pair. Each kernel is called
+by exactly one public function that owns the concept, its docstring and the numpy / Python
+reference (:func:`service.core.similarity.shape_distances`); the arithmetic is that of the
+per-pair kernels, which are called unchanged, so results are identical to them. Beside it, the
+mean points of step 1's joined units (:func:`piece_means`). Without numba
 (``_kernels.HAVE_NUMBA`` is ``False``) the callers run their references.
 """
 
@@ -14,7 +14,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from service.core._kernels import arc_tables, njit, order_dp, shape_dp
+from service.core._kernels import njit
+from service.core._matching_kernels import order_dp
+from service.core._similarity_kernels import arc_tables, shape_dp
 
 
 @njit(cache=True, nogil=True)
@@ -193,9 +195,9 @@ def order_dp_blocks(
     j_e: np.ndarray,
     cost: np.ndarray,
 ) -> tuple[float, np.ndarray]:
-    """:func:`service.core._kernels.order_dp` for blocks in any order: they are grouped by
-    the cell they end at, keeping their order within a cell (a stable counting sort, as
-    :func:`service.core.matching.order_preserving_dp` sorts them), then the same DP."""
+    """:func:`service.core._matching_kernels.order_dp` for blocks in any order: they are
+    grouped by the cell they end at, keeping their order within a cell (a stable counting sort,
+    as :func:`service.core.matching.order_preserving_dp` sorts them), then the same DP."""
     n = skip_p.shape[0]
     m = skip_q.shape[0]
     B = i_s.shape[0]

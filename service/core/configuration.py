@@ -131,7 +131,7 @@ def split_pieces(keep: np.ndarray, points: np.ndarray, piece_length: float) -> l
     if piece_length <= 0 or len(points) < 3:
         return [keep]
     if _kernels.HAVE_NUMBA:
-        single, v, bounds = _kernels.split_cuts(
+        single, v, bounds = _extract_kernels.split_cuts(
             np.ascontiguousarray(keep, dtype=np.intp),
             np.ascontiguousarray(points, dtype=np.float64),
             float(piece_length),
@@ -307,7 +307,7 @@ def _hit_segments(points: np.ndarray, segments: np.ndarray, chunk: int = 256) ->
     """Index of the segment nearest to each point (the segment a ray hit), ``(k,)``.
     A numba kernel when available (same arithmetic and ties), else chunked numpy."""
     if _kernels.HAVE_NUMBA:
-        return _kernels.nearest_segment(
+        return _extract_kernels.nearest_segment(
             np.ascontiguousarray(points, dtype=np.float64),
             np.ascontiguousarray(segments, dtype=np.float64),
         )

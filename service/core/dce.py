@@ -20,7 +20,7 @@ from itertools import accumulate
 
 import numpy as np
 
-from service.core import _kernels
+from service.core import _dce_kernels, _kernels
 from service.errors import LocalizationError
 
 #: Default first-stage stop threshold (metres) of the fixed-threshold DCE, for 1 cm range noise.
@@ -194,7 +194,7 @@ def dce(points: np.ndarray, threshold: float = DCE_NOISE_THRESHOLD) -> np.ndarra
     (eq. 2) while that relevance is below ``threshold`` metres. The result always contains
     ``0`` and ``k - 1``.
 
-    Runs the compiled kernel :func:`service.core._kernels.dce_kept` (same removal order as
+    Runs the compiled kernel :func:`service.core._dce_kernels.dce_kept` (same removal order as
     :class:`CurveEvolution`) when numba is available.
     """
     if _kernels.HAVE_NUMBA:
@@ -203,7 +203,7 @@ def dce(points: np.ndarray, threshold: float = DCE_NOISE_THRESHOLD) -> np.ndarra
             raise LocalizationError(f"expected (k >= 2, 2) points, got {p.shape}")
         if not np.all(np.isfinite(p)):
             raise LocalizationError("DCE input has non-finite coordinates")
-        return _kernels.dce_kept(np.ascontiguousarray(p), float(threshold))
+        return _dce_kernels.dce_kept(np.ascontiguousarray(p), float(threshold))
     ce = CurveEvolution(points)
     ce.evolve_to(threshold)
     return ce.kept_indices()

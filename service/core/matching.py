@@ -28,7 +28,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from service.core import _kernels, _shape_kernels
+from service.core import _kernels, _matching_kernels, _shape_kernels
 from service.core.configuration import Configuration, Feature
 from service.core.pose import StackedPairs, transform_points
 from service.core.pose_batch import fit_pairs_ranges
@@ -363,7 +363,7 @@ def _map_order_arrays(Q: Configuration, estimate: np.ndarray) -> tuple[np.ndarra
         return np.zeros(0, dtype=np.intp), np.zeros((0, 2))
     if _kernels.HAVE_NUMBA:
         pts, off = stacked_points(Q)
-        arr = _kernels.angular_intervals(pts, off, np.asarray(estimate, dtype=np.float64))
+        arr = _matching_kernels.angular_intervals(pts, off, np.asarray(estimate, dtype=np.float64))
     else:
         arr = np.array([_angular_interval(f.points, estimate) for f in Q.features])
     mids = wrap_angle(arr[:, 0] + 0.5 * arr[:, 1])
@@ -434,7 +434,7 @@ def match_with_cost(
     # first and last singles overlap, in the order (i_s, j_s) row-major, then a, then b.
     K = config.max_join
     if _kernels.HAVE_NUMBA:
-        ca = _kernels.block_candidates(single, K, config.join_total)
+        ca = _matching_kernels.block_candidates(single, K, config.join_total)
     else:
         combos = [(a, b) for a in range(K) for b in range(K - a if config.join_total else K)]
         ii, jj = np.nonzero(single)
@@ -478,7 +478,7 @@ def match_with_cost(
         damping=config.align_damping,
     )
     if _kernels.HAVE_NUMBA:
-        cen = _kernels.range_means(p_all, p_beg.astype(np.intp), p_end.astype(np.intp))
+        cen = _matching_kernels.range_means(p_all, p_beg.astype(np.intp), p_end.astype(np.intp))
     else:
         p_len = p_end - p_beg
         own = np.repeat(np.arange(len(cand)), p_len)

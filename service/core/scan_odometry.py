@@ -33,7 +33,7 @@ import math
 import numpy as np
 from scipy.spatial import cKDTree
 
-from service.core import _kernels, _odometry_kernels
+from service.core import _grid_kernels, _kernels, _odometry_kernels
 from service.core.baselines import scan_points
 from service.core.motion import MotionConfig, ScanOdometryConfig, odometry_sigmas
 from service.core.pose import compose, invert, transform_points
@@ -127,7 +127,7 @@ def match_increment(
         return d0, 0.0
     if _kernels.HAVE_NUMBA:
         cell = max(config.gate_initial, config.gate_final)
-        ox, oy, nx, ny, start, items = _kernels.grid_build(prev_points, cell)
+        ox, oy, nx, ny, start, items = _grid_kernels.grid_build(prev_points, cell)
         x, share, normal, total = _odometry_kernels.match_iterations(
             prev_points,
             prev_normals,

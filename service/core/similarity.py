@@ -50,7 +50,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from service.core import _kernels, _shape_kernels
+from service.core import _kernels, _shape_kernels, _similarity_kernels
 from service.core.dce import DCE_NOISE_THRESHOLD, CurveEvolution, dce
 from service.errors import LocalizationError
 
@@ -96,7 +96,9 @@ class ShapeArcs:
         self.cum_a: np.ndarray | None = None
         self.tab: np.ndarray | None = None
         if _kernels.HAVE_NUMBA:
-            status, xa, ya, cum_a, tab = _kernels.arc_tables(np.ascontiguousarray(p), max_merge)
+            status, xa, ya, cum_a, tab = _similarity_kernels.arc_tables(
+                np.ascontiguousarray(p), max_merge
+            )
             if status == 1:
                 raise LocalizationError("polyline has non-finite coordinates")
             if status == 2:
@@ -238,12 +240,12 @@ def _dp(
     reaches the best complete cost so far, or ``upper_bound``, are pruned; the result is exact
     whenever it is below ``upper_bound`` (else ``inf``).
 
-    Runs the compiled kernel :func:`service.core._kernels.shape_dp` when both polylines carry
-    numpy tables (numba available), else :func:`_dp_python` (the reference).
+    Runs the compiled kernel :func:`service.core._similarity_kernels.shape_dp` when both
+    polylines carry numpy tables (numba available), else :func:`_dp_python` (the reference).
     """
     if P.tab is None or Q.tab is None:
         return _dp_python(P, Q, max_merge, end_weight, skip_weight, want_path, upper_bound)
-    best, s, s2, back = _kernels.shape_dp(
+    best, s, s2, back = _similarity_kernels.shape_dp(
         P.cum_a,
         P.tab,
         Q.cum_a,

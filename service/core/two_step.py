@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from scipy.spatial import cKDTree
 
-from service.core import _kernels
+from service.core import _grid_kernels, _kernels
 from service.core.configuration import Configuration, Feature
 from service.core.matching import (
     ConfigurationMatch,
@@ -87,12 +87,12 @@ def _near(Q: Configuration, x: np.ndarray, y: np.ndarray, tol: float) -> np.ndar
     if grid is None:
         pts = stacked_points(Q)[0]
         cell = 1.01 * tol  # > tol, so the 3 x 3 neighbouring cells hold every near point
-        x0, y0, nx, ny, start, order = _kernels.grid_build(pts, cell)
+        x0, y0, nx, ny, start, order = _grid_kernels.grid_build(pts, cell)
         sx, sy = (np.ascontiguousarray(pts[order, k]) for k in (0, 1))
         grid = (sx, sy, x0, y0, nx, ny, start, cell)
         Q.__dict__[key] = grid
     sx, sy, x0, y0, nx, ny, start, cell = grid
-    return _kernels.grid_near(
+    return _grid_kernels.grid_near(
         sx,
         sy,
         x0,

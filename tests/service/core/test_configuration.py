@@ -12,7 +12,7 @@ from collections.abc import Callable
 import numpy as np
 import pytest
 
-from service.core import _kernels
+from service.core import _extract_kernels, _kernels
 from service.core import configuration as conf_mod
 from service.core.configuration import (
     ExtractionParams,
@@ -137,7 +137,7 @@ def test_compiled_hit_segments_agree_with_numpy() -> None:
         v = rng.uniform(-5, 5, size=(int(rng.integers(3, 40)), 2))
         segs = np.column_stack([v, np.roll(v, -1, axis=0)])
         pts = np.vstack([rng.uniform(-6, 6, size=(300, 2)), v])
-        got = _kernels.nearest_segment(pts, segs)
+        got = _extract_kernels.nearest_segment(pts, segs)
         flag = _kernels.HAVE_NUMBA
         try:
             _kernels.HAVE_NUMBA = False

@@ -8,7 +8,7 @@ from collections.abc import Callable
 import numpy as np
 import pytest
 
-from service.core import _kernels, pose_batch
+from service.core import _kernels, _matching_kernels, pose_batch
 from service.core.pose_batch import fit_pairs
 
 
@@ -71,7 +71,7 @@ def test_compiled_fit_of_real_candidate_blocks_agrees_with_the_numpy_reference(
     for est in (sc.truth[scan], sc.truth[scan] + np.array([0.3, -0.2, 0.2])):
         q_ord, _ = matching._map_order_arrays(Q, est)
         q_all, q_off = stacked.view_segments(Q, q_ord)
-        ca = _kernels.block_candidates(np.ones((len(P), len(q_ord)), dtype=bool), 3, True)
+        ca = _matching_kernels.block_candidates(np.ones((len(P), len(q_ord)), dtype=bool), 3, True)
         assert len(ca) > 200
         args = (p_all, p_off[ca[:, 0]], p_off[ca[:, 1] + 1], q_all)
         seg = (q_off[ca[:, 2]], q_off[ca[:, 3] + 1] - q_off[ca[:, 2]])

@@ -14,7 +14,7 @@ from collections.abc import Callable
 import numpy as np
 import pytest
 
-from service.core import _kernels
+from service.core import _kernels, _matching_kernels
 from service.core import similarity as sim
 from service.core.configuration import Configuration
 from service.core.similarity import shape_distance, shape_distances
@@ -153,7 +153,7 @@ def test_interval_gates_and_block_pieces_equal_the_numpy_expressions(
             assert np.array_equal(inside, matching._overlaps(qiv[:, 0], qiv[:, 1], lo, hi))
     assert 0 < single.sum() < single.size and np.ptp(inside) > 0
     K, M, m = cfg.max_join, len(Q.features) + 1, len(q_ord)
-    cs = _kernels.block_candidates(np.ones((len(P), m), dtype=bool), K, cfg.join_total)
+    cs = _matching_kernels.block_candidates(np.ones((len(P), m), dtype=bool), K, cfg.join_total)
     pp, qp, keys = sk.block_pieces(cs, q_ord, K, M)
     steps = np.arange(K)
     want_p = np.where(steps <= cs[:, 1:2] - cs[:, 0:1], cs[:, 0:1] + steps, -1)
