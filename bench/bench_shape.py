@@ -43,6 +43,7 @@ import numpy as np
 import service.core.configuration as conf_mod
 import service.core.localizer as loc_mod
 import service.core.matching as match_mod
+import service.core.shape_cost as cost_mod
 from service.core._kernels import HAVE_NUMBA
 from sim_publisher.scenario import make_setup
 
@@ -66,8 +67,8 @@ def _install() -> None:
     conf_mod.MapViewCache.view = _timed("map view", conf_mod.MapViewCache.view)
     match_mod.heading_hypotheses = _timed("heading", match_mod.heading_hypotheses)
     match_mod.support = _timed("heading", match_mod.support)
-    match_mod.shape_distance = _timed("S*", match_mod.shape_distance)
-    match_mod.prepare = _timed("S*", match_mod.prepare)
+    cost_mod.shape_distance = _timed("S*", cost_mod.shape_distance)
+    cost_mod.prepare = _timed("S*", cost_mod.prepare)
     match_mod.fit_pairs = _timed("ΔA fits", match_mod.fit_pairs)
     match_mod.fit_pairs_ranges = _timed("ΔA fits", match_mod.fit_pairs_ranges)
     match_mod.order_preserving_dp = _timed("DP", match_mod.order_preserving_dp)

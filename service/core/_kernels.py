@@ -10,7 +10,7 @@ the concept and its docstring:
 - :mod:`service.core._extract_kernels`: the cut into pieces, the map view's hit segments and
   the DCE and cut of a whole reading (:mod:`service.core.configuration`);
 - :mod:`service.core._matching_kernels`: eq. 5's angular intervals, candidate blocks, their
-  centroids and the extended DP (:mod:`service.core.matching`);
+  centroids and the extended DP (:mod:`service.core.matching`, :mod:`service.core.order_dp`);
 - :mod:`service.core._shape_kernels`: the same, batched over many pairs / blocks in one call;
 - :mod:`service.core._grid_kernels`: an exact bucket grid of points
   (:mod:`service.core.two_step`, :mod:`service.core.scan_odometry`);

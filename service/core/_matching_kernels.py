@@ -7,7 +7,7 @@ Python references expression by expression, no ``fastmath``).
 - :func:`block_candidates` and :func:`range_means`: the candidate blocks and the centroids of
   their scan points, for :func:`service.core.matching.match_with_cost`;
 - :func:`order_dp`: the extended DP of §5.2, for
-  :func:`service.core.matching.order_preserving_dp` (called by
+  :func:`service.core.order_dp.order_preserving_dp` (called by
   :func:`service.core._shape_kernels.order_dp_blocks`, which groups the blocks by end cell).
 """
 
@@ -115,7 +115,7 @@ def order_dp(
     b_js: np.ndarray,
     b_cost: np.ndarray,
 ) -> tuple[float, np.ndarray]:
-    """Kernel of :func:`service.core.matching.order_preserving_dp` (eq. 5), same recurrence
+    """Kernel of :func:`service.core.order_dp.order_preserving_dp` (eq. 5), same recurrence
     and tie order. Blocks ending at cell ``(i_e, j_e)`` are ``cell_start[i_e * m + j_e] ..
     cell_start[i_e * m + j_e + 1] - 1`` of ``b_is, b_js, b_cost`` (in their original order).
     Returns ``(cost, path (L, 4) rows (i_s, i_e, j_s, j_e))``."""

@@ -197,7 +197,7 @@ def order_dp_blocks(
 ) -> tuple[float, np.ndarray]:
     """:func:`service.core._matching_kernels.order_dp` for blocks in any order: they are
     grouped by the cell they end at, keeping their order within a cell (a stable counting sort,
-    as :func:`service.core.matching.order_preserving_dp` sorts them), then the same DP."""
+    as :func:`service.core.order_dp.order_preserving_dp` sorts them), then the same DP."""
     n = skip_p.shape[0]
     m = skip_q.shape[0]
     B = i_s.shape[0]

@@ -13,46 +13,35 @@ Functions, with their place in the paper:
   angular size in the field of view.
 * :func:`pose_consistency` — eq. 4, ``D(dt, dPhi) = ||dt|| + 10 |dPhi|``.
 * :func:`induced_alignment` — ``A(P, Q)`` from the shape correspondence of S* (§5.1/§5.2).
-* :func:`order_preserving_dp` — the extended dynamic programme of §5.2 solving eq. 5.
 * :func:`match_configurations` — eq. 5 for two configurations given an estimate.
 
-The two-step matching of §5.3 built on these is :mod:`service.core.two_step`.
+The extended dynamic programme of §5.2 that solves eq. 5,
+:func:`service.core.order_dp.order_preserving_dp`, is :mod:`service.core.order_dp`; S* as the
+shape cost of eq. 5 (single pairs, gated, batched) is :mod:`service.core.shape_cost`. The
+two-step matching of §5.3 built on these is :mod:`service.core.two_step`.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from service.core import _kernels, _matching_kernels, _shape_kernels
 from service.core.configuration import Configuration, Feature
+from service.core.order_dp import BlockArrays, order_preserving_dp
 from service.core.pose import StackedPairs, transform_points
 from service.core.pose_batch import fit_pairs_ranges
-from service.core.similarity import (
-    ShapeArcs,
-    prepare,
-    shape_alignment,
-    shape_distance,
-    shape_distances,
-)
-from service.core.stacked import (
-    scan_intervals,
-    scan_samples,
-    stacked_points,
-    stacked_vertices,
-    view_segments,
-)
+from service.core.shape_cost import ShapeCost, _batched_shape_cost, _gated_shape_cost, _shape_arcs
+from service.core.similarity import ShapeArcs, shape_alignment
+from service.core.stacked import scan_intervals, scan_samples, stacked_points, view_segments
 from service.core.types import Match, wrap_angle
 
 if TYPE_CHECKING:
     from service.core.localizer import ShapeConfig
-
-#: A shape distance S*: ``(p (k, 2), q (l, 2)) -> metres >= 0``.
-ShapeCost = Callable[[Any, Any], float]
 
 _TWO_PI = 2.0 * math.pi
 
@@ -143,124 +132,6 @@ def alignment_difference(
 
 
 # --------------------------------------------------------------------------------------------
-# The extended dynamic programme (§5.2)
-# --------------------------------------------------------------------------------------------
-
-#: Candidate correspondences for the DP: ``{(i_end, j_end): [(i_start, j_start, cost), ...]}``
-#: meaning ``P[i_start..i_end] ~ Q[j_start..j_end]`` (inclusive, concatenated) at ``cost``.
-Blocks = dict[tuple[int, int], list[tuple[int, int, float]]]
-
-
-@dataclass(frozen=True)
-class BlockArrays:
-    """:data:`Blocks` as flat arrays (what :func:`match_with_cost` builds): block ``t`` is
-    ``P[i_s[t]..i_e[t]] ~ Q[j_s[t]..j_e[t]]`` at ``cost[t]``; blocks ending at the same cell
-    are tried in array order (as the lists of a :data:`Blocks` dict)."""
-
-    i_s: np.ndarray
-    i_e: np.ndarray
-    j_s: np.ndarray
-    j_e: np.ndarray
-    cost: np.ndarray
-
-
-def _blocks_to_arrays(blocks: Blocks) -> BlockArrays:
-    rows = [(ie, je, i_s, j_s, c) for (ie, je), lst in blocks.items() for i_s, j_s, c in lst]
-    if not rows:
-        z = np.zeros(0, dtype=np.intp)
-        return BlockArrays(z, z, z, z, np.zeros(0))
-    ie, je, i_s, j_s, c = zip(*rows, strict=True)
-    a = [np.asarray(x, dtype=np.intp) for x in (i_s, ie, j_s, je)]
-    return BlockArrays(*a, np.asarray(c, dtype=np.float64))
-
-
-def order_preserving_dp(
-    skip_p: Sequence[float], skip_q: Sequence[float], blocks: Blocks | BlockArrays
-) -> tuple[float, list[tuple[int, int, int, int]]]:
-    """Solve eq. 5 over two linearly ordered vectors of polylines (§5.2's extended DP).
-
-    ``skip_p[i]`` / ``skip_q[j]`` are the penalties ``R`` of leaving ``p_i`` / ``q_j``
-    unmatched; ``blocks`` the admissible correspondences with their cost ``S + ΔA``. Cell
-    ``C[i][j]`` is the optimal cost of the prefixes ``p_1..p_i`` and ``q_1..q_j``:
-
-        C[i][j] = min( C[i-1][j] + R(p_i),  C[i][j-1] + R(q_j),
-                       min over blocks ending at (i, j):  C[i_s - 1][j_s - 1] + cost )
-
-    A block ``P[i_s..i] ~ Q[j_s..j]`` with more than one polyline on a side is the paper's
-    *update step*: when ``q_j`` is considered, the correspondence of the previous polyline
-    ``q_{j-1}`` with ``p_i`` is reconsidered and may be replaced by ``p_i ~ (q_{j-1}, q_j)``
-    concatenated (1:n, n:1 and n:m), so a split object is still matched. Order is a hard
-    constraint by construction. Returns ``(total cost, [(i_s, i_e, j_s, j_e), ...])`` in order.
-
-    ``blocks`` may also be a :class:`BlockArrays`. With numba the blocks are grouped by end
-    cell and the recurrence runs in one compiled call
-    (:func:`service.core._shape_kernels.order_dp_blocks`), else in
-    :func:`_order_preserving_dp_python` (the reference; same recurrence and tie order).
-    """
-    if not _kernels.HAVE_NUMBA:
-        if isinstance(blocks, BlockArrays):
-            d: Blocks = {}
-            for i_s, i_e, j_s, j_e, c in zip(
-                blocks.i_s.tolist(),
-                blocks.i_e.tolist(),
-                blocks.j_s.tolist(),
-                blocks.j_e.tolist(),
-                blocks.cost.tolist(),
-                strict=True,
-            ):
-                d.setdefault((i_e, j_e), []).append((i_s, j_s, c))
-            blocks = d
-        return _order_preserving_dp_python(skip_p, skip_q, blocks)
-    ba = blocks if isinstance(blocks, BlockArrays) else _blocks_to_arrays(blocks)
-    total, path = _shape_kernels.order_dp_blocks(
-        np.asarray(skip_p, dtype=np.float64).reshape(-1),
-        np.asarray(skip_q, dtype=np.float64).reshape(-1),
-        *(np.ascontiguousarray(x, dtype=np.intp) for x in (ba.i_s, ba.i_e, ba.j_s, ba.j_e)),
-        np.ascontiguousarray(ba.cost, dtype=np.float64),
-    )
-    return float(total), [tuple(r) for r in path.tolist()]  # type: ignore[misc]
-
-
-def _order_preserving_dp_python(
-    skip_p: Sequence[float], skip_q: Sequence[float], blocks: Blocks
-) -> tuple[float, list[tuple[int, int, int, int]]]:
-    """Pure-Python reference of :func:`order_preserving_dp` for a :data:`Blocks` dict."""
-    n, m = len(skip_p), len(skip_q)
-    C = np.empty((n + 1, m + 1))
-    back: list[list[tuple[int, int, int, int] | None]] = [[None] * (m + 1) for _ in range(n + 1)]
-    C[0, 0] = 0.0
-    for i in range(1, n + 1):
-        C[i, 0] = C[i - 1, 0] + skip_p[i - 1]
-        back[i][0] = (i - 1, 0, -1, -1)
-    for j in range(1, m + 1):
-        C[0, j] = C[0, j - 1] + skip_q[j - 1]
-        back[0][j] = (0, j - 1, -1, -1)
-    for i in range(1, n + 1):
-        sp = skip_p[i - 1]
-        for j in range(1, m + 1):
-            best = C[i - 1, j] + sp
-            arg = (i - 1, j, -1, -1)
-            c = C[i, j - 1] + skip_q[j - 1]
-            if c < best:
-                best, arg = c, (i, j - 1, -1, -1)
-            for i_s, j_s, cost in blocks.get((i - 1, j - 1), ()):
-                c = C[i_s, j_s] + cost
-                if c < best:
-                    best, arg = c, (i_s, j_s, 1, 1)
-            C[i, j] = best
-            back[i][j] = arg
-    out: list[tuple[int, int, int, int]] = []
-    i, j = n, m
-    while i > 0 or j > 0:
-        pi, pj, flag, _ = back[i][j]  # type: ignore[misc]
-        if flag == 1:
-            out.append((pi, i - 1, pj, j - 1))
-        i, j = pi, pj
-    out.reverse()
-    return float(C[n, m]), out
-
-
-# --------------------------------------------------------------------------------------------
 # Configuration matching (eq. 5)
 # --------------------------------------------------------------------------------------------
 
@@ -275,71 +146,8 @@ class ConfigurationMatch:
     induced: list[np.ndarray] = field(default_factory=list)
 
 
-def shape_cost_for(config: ShapeConfig) -> ShapeCost:
-    """S* with the partial-matching weights of ``config`` (``shape_end_weight``,
-    ``shape_skip_weight``; see :func:`service.core.similarity.shape_distance`)."""
-    ew, sw = config.shape_end_weight, config.shape_skip_weight
-
-    def cost(p: Any, q: Any) -> float:
-        return shape_distance(p, q, end_weight=ew, skip_weight=sw)
-
-    return cost
-
-
-def _gated_shape_cost(config: ShapeConfig, gate: float) -> ShapeCost:
-    """:func:`shape_cost_for` for a caller that drops pairs with S* above ``gate``: the
-    search is pruned at the gate (``upper_bound``), values <= ``gate`` are exact and larger
-    ones come back as ``inf``."""
-    ew, sw = config.shape_end_weight, config.shape_skip_weight
-    bound = math.nextafter(gate, math.inf)
-
-    def cost(p: Any, q: Any) -> float:
-        return shape_distance(p, q, end_weight=ew, skip_weight=sw, upper_bound=bound)
-
-    return cost
-
-
-def _batched_shape_cost(
-    P: Configuration,
-    Q: Configuration,
-    p_rows: np.ndarray,
-    q_rows: np.ndarray,
-    config: ShapeConfig,
-    gate: float,
-) -> list[float]:
-    """:func:`_gated_shape_cost` of many pairs in one compiled call: pair ``r`` joins the
-    features ``p_rows[r]`` of ``P`` and ``q_rows[r]`` of ``Q`` (``-1`` = none); values above
-    ``gate`` come back as ``inf``."""
-    pv, pvo = stacked_vertices(P)
-    qv, qvo = stacked_vertices(Q)
-    return shape_distances(
-        pv,
-        pvo,
-        p_rows,
-        qv,
-        qvo,
-        q_rows,
-        end_weight=config.shape_end_weight,
-        skip_weight=config.shape_skip_weight,
-        upper_bound=math.nextafter(gate, math.inf),
-    ).tolist()
-
-
 def _concat(feats: Sequence[Feature], attr: str) -> np.ndarray:
     return np.vstack([getattr(f, attr) for f in feats])
-
-
-def _shape_arcs(
-    f: Feature | tuple, verts: np.ndarray | Callable[[], np.ndarray], cache: dict
-) -> Any:
-    """S*-prepared polyline, cached under ``f`` (a feature or a key); ``verts`` may be a
-    callable building the vertices only on a cache miss."""
-    key = id(f) if isinstance(f, Feature) else f
-    arcs = cache.get(key)
-    if arcs is None:
-        arcs = prepare(verts() if callable(verts) else verts)
-        cache[key] = arcs
-    return arcs
 
 
 def map_order(

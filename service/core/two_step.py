@@ -24,16 +24,13 @@ from service.core import _grid_kernels, _kernels
 from service.core.configuration import Configuration, Feature
 from service.core.matching import (
     ConfigurationMatch,
-    ShapeCost,
-    _batched_shape_cost,
-    _gated_shape_cost,
-    _shape_arcs,
     induced_alignment,
     match_with_cost,
     matched_stack,
 )
 from service.core.pose import pose_from_matches, transform_points
 from service.core.pose_batch import fit_pairs
+from service.core.shape_cost import ShapeCost, _batched_shape_cost, _gated_shape_cost, _shape_arcs
 from service.core.similarity import (
     complexity_of,
     shape_complexity,

@@ -1,4 +1,5 @@
-"""Configuration matching (service/core/matching.py): eq. 4, penalty R, the eq. 5 DP; and the
+"""Configuration matching (service/core/matching.py): eq. 4, penalty R, the eq. 5 DP
+(service/core/order_dp.py), S* as its shape cost (service/core/shape_cost.py); and the
 parts of the two-step matching (service/core/two_step.py) that check it bit for bit.
 
 Runs in about a second.
@@ -13,7 +14,7 @@ from collections.abc import Callable
 import numpy as np
 import pytest
 
-from service.core import _kernels, matching, two_step
+from service.core import _kernels, matching, order_dp, shape_cost, two_step
 from service.core.configuration import Configuration, Feature
 from service.core.localizer import ShapeConfig
 from service.core.matching import (
@@ -21,10 +22,10 @@ from service.core.matching import (
     induced_alignment,
     match_configurations,
     match_with_cost,
-    order_preserving_dp,
     penalty_R,
     pose_consistency,
 )
+from service.core.order_dp import order_preserving_dp
 from service.core.pose import invert, pose_from_matches, transform_points
 from service.core.similarity import shape_distance
 
@@ -254,7 +255,7 @@ def test_compiled_dp_agrees_with_the_python_reference_including_ties() -> None:
             c = float(rng.integers(0, 6)) if trial % 2 else float(rng.uniform(0, 5))
             blocks.setdefault((i_e, j_e), []).append((i_s, j_s, c))
         got = order_preserving_dp(skip_p, skip_q, blocks)
-        ref = matching._order_preserving_dp_python(skip_p, skip_q, blocks)
+        ref = order_dp._order_preserving_dp_python(skip_p, skip_q, blocks)
         assert got[0] == ref[0]
         assert got[1] == ref[1]
 
@@ -295,7 +296,7 @@ def test_batched_shape_distances_give_the_per_pair_match(
     from the previous pose and from an estimate 0.2 m / 0.15 rad off."""
     sc = real_scene(setup_id, scan)
     P, Q, cfg, truth = sc.P, sc.Q, sc.config, sc.truth
-    loop_cost = matching._gated_shape_cost(cfg, cfg.max_shape_distance)
+    loop_cost = shape_cost._gated_shape_cost(cfg, cfg.max_shape_distance)
     off = truth[scan] + np.array([0.2, -0.1, 0.15])
     c1: dict = {}  # one cache over the estimates, as two_step_match keeps it for a scan
     c2: dict = {}
@@ -325,7 +326,7 @@ def test_step1_batched_shape_distances_equal_the_per_pair_distances(
         pairs = zip(pp, qp, strict=True)
         return np.array([shape_distance(join(pv, po, a), join(qv, qo, b), **kw) for a, b in pairs])
 
-    monkeypatch.setattr(matching, "shape_distances", per_pair)
+    monkeypatch.setattr(shape_cost, "shape_distances", per_pair)
     Q.__dict__.pop("_step1_units", None)
     ref = two_step.step1_hypotheses(P, Q, prior, cfg, {})
     assert len(got) == len(ref) >= 4
