@@ -5,7 +5,7 @@ expression by expression, no ``fastmath``).
 - :func:`arc_tables`: a polyline without its repeated vertices and its chord tables, for
   :class:`service.core.similarity.ShapeArcs`;
 - :func:`shape_dp`: the DP of S* over two such tables, for :func:`service.core.similarity._dp`
-  (its pure-Python reference is :func:`service.core.similarity._dp_python`).
+  (its pure-Python reference is :func:`service.core.similarity_reference._dp_python`).
 
 :func:`service.core._shape_kernels.shape_distances` runs both over many polyline pairs in one
 call.
