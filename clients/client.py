@@ -6,24 +6,28 @@ when nothing listens at the given endpoints) or wraps a session the caller owns.
 ``reply_err`` answers become :class:`~service.errors.RemoteError`, or
 :class:`~service.errors.UnknownRobot` / :class:`~service.errors.UnknownMap` when the service
 says so. Poses and maps are in the map frame (metres, radians, REP 103).
+
+The Zenoh configuration helpers (:func:`zenoh_config`, :func:`config_endpoints`,
+:func:`open_session`) live in :mod:`clients.session` and :class:`Stream` in
+:mod:`clients.stream`; both are re-exported here.
 """
 
 from __future__ import annotations
 
 import contextlib
 import json
-import queue
-import threading
 import time
-from collections.abc import Callable, Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
-from typing import Any, Generic, TypeVar
+from typing import Any
 
 import msgpack
 import numpy as np
 import zenoh
 from pydantic import BaseModel
 
+from clients.session import config_endpoints, open_session, zenoh_config
+from clients.stream import M, Stream, _encoding_of
 from schemas import keys
 from schemas.codec import MSGPACK_ENCODING, decode, encode
 from schemas.messages import ErrorNotice, Health, Map, PoseMsg, RobotConfig, Scan, Truth
@@ -40,83 +44,20 @@ from service.errors import (
 )
 from service.maps.files import load_map_file
 
+__all__ = [
+    "DEFAULT_CONNECT",
+    "DEFAULT_PREFIX",
+    "DEFAULT_TIMEOUT",
+    "ShapelocClient",
+    "Stream",
+    "config_endpoints",
+    "open_session",
+    "zenoh_config",
+]
+
 DEFAULT_CONNECT = "tcp/127.0.0.1:7447"
 DEFAULT_PREFIX = "shapeloc"
 DEFAULT_TIMEOUT = 2.0
-
-M = TypeVar("M", bound=BaseModel)
-
-
-def zenoh_config(
-    mode: str | None = "client",
-    connect: Sequence[str] = (),
-    listen: Sequence[str] = (),
-    multicast: bool = False,
-    config_file: str | Path | None = None,
-    default_connect: Sequence[str] = (),
-) -> zenoh.Config:
-    """Build a Zenoh config with explicit endpoints and (by default) no multicast scouting.
-
-    ``mode`` is ``client`` (needs a reachable router/peer in ``connect``; fails at once
-    otherwise), ``peer`` or ``router``. Scouting delay is 0 so opening is immediate.
-
-    ``config_file``: a Zenoh JSON5 configuration (TLS, mutual TLS, user/password, access
-    control, ...) used as the base. The arguments are applied on top of it: a given ``mode``
-    and non-empty ``connect`` / ``listen`` lists **replace** the file's values, while
-    ``mode=None`` and empty lists keep them (``mode=None`` without a file means ``client``).
-    ``default_connect`` is used only in client mode when neither ``connect`` nor the file
-    names a connect endpoint. Multicast scouting is off unless ``multicast`` is true,
-    whatever the file says.
-    Raises :class:`InvalidMessage` naming the file if it cannot be read or parsed.
-    """
-    if mode is not None and mode not in ("client", "peer", "router"):
-        raise ValueError(f"zenoh mode must be client, peer or router, not {mode!r}")
-    if config_file is not None:
-        try:
-            conf = zenoh.Config.from_file(str(config_file))
-        except Exception as exc:  # zenoh raises ZError (or IOError) with the parser's reason
-            raise InvalidMessage(f"zenoh config {config_file}: {exc}") from exc
-    else:
-        conf = zenoh.Config()
-        mode = mode or "client"
-    if mode is not None:
-        conf.insert_json5("mode", json.dumps(mode))
-    conf.insert_json5("scouting/multicast/enabled", "true" if multicast else "false")
-    conf.insert_json5("scouting/delay", "0")
-    if connect:
-        conf.insert_json5("connect/endpoints", json.dumps(list(connect)))
-    elif (
-        default_connect
-        and not config_endpoints(conf, "connect")
-        and json.loads(str(conf)).get("mode") == "client"
-    ):
-        conf.insert_json5("connect/endpoints", json.dumps(list(default_connect)))
-    if listen:
-        conf.insert_json5("listen/endpoints", json.dumps(list(listen)))
-    return conf
-
-
-def config_endpoints(conf: zenoh.Config, which: str = "connect") -> list[str]:
-    """The ``connect`` (or ``listen``) endpoints a Zenoh config holds (for messages)."""
-    try:
-        eps = (json.loads(str(conf)).get(which) or {}).get("endpoints") or []
-    except (ValueError, AttributeError):
-        return []
-    if isinstance(eps, dict):  # per-mode form {"router": [...], "peer": [...], ...}
-        eps = [e for v in eps.values() for e in (v or [])]
-    return [str(e) for e in eps]
-
-
-def open_session(conf: zenoh.Config, endpoints: Sequence[str] = ()) -> zenoh.Session:
-    """Open a Zenoh session, turning a connection failure into :class:`Unreachable`."""
-    try:
-        return zenoh.open(conf)
-    except zenoh.ZError as exc:
-        where = ", ".join(endpoints) if endpoints else "the configured endpoints"
-        reason = str(exc).split(" at /", 1)[0].strip()
-        raise Unreachable(
-            f"cannot reach a zenoh router or shapeloc service at {where} ({reason})"
-        ) from exc
 
 
 def _remote_error(key: str, payload: bytes) -> ShapelocError:
@@ -143,101 +84,6 @@ def _remote_error(key: str, payload: bytes) -> ShapelocError:
     if kind == "UnknownMap" or "unknown map" in low:
         return UnknownMap(text)
     return RemoteError(msg)
-
-
-def _encoding_of(sample: Any) -> str | None:
-    enc = getattr(sample, "encoding", None)
-    return None if enc is None else str(enc)
-
-
-class Stream(Generic[M]):
-    """Decoded samples of a subscription, as an iterator (blocking) or via :meth:`get`.
-
-    The Zenoh callback only queues raw payloads; decoding happens in the consumer. Undecodable
-    samples are counted in :attr:`rejected` and skipped; messages failing ``accept`` are
-    dropped. Close it (or use ``with``) to undeclare the subscriber.
-    """
-
-    def __init__(
-        self,
-        session: zenoh.Session,
-        key_expr: str,
-        model: type[M],
-        accept: Callable[[M], bool] | None = None,
-        key_filter: Callable[[str], bool] | None = None,
-    ) -> None:
-        self._model = model
-        self._accept = accept
-        self._key_filter = key_filter
-        self._queue: queue.Queue[tuple[str, bytes, str | None]] = queue.Queue()
-        self.rejected = 0
-        self._closed = threading.Event()
-        self._sub = session.declare_subscriber(key_expr, self._on_sample)
-
-    def _on_sample(self, sample: Any) -> None:
-        key = str(sample.key_expr)
-        if self._key_filter is None or self._key_filter(key):
-            self._queue.put((key, sample.payload.to_bytes(), _encoding_of(sample)))
-
-    def _decode(self, item: tuple[str, bytes, str | None]) -> tuple[str, M] | None:
-        key, payload, enc = item
-        try:
-            msg = decode(self._model, payload, enc)
-        except InvalidMessage:
-            self.rejected += 1
-            return None
-        if self._accept is not None and not self._accept(msg):
-            return None
-        return key, msg
-
-    def get(self, timeout: float | None = None) -> tuple[str, M] | None:
-        """Next ``(key, message)``; ``None`` if nothing valid arrives within ``timeout`` s
-        (``None``: wait until closed)."""
-        end = None if timeout is None else time.monotonic() + timeout
-        while not self._closed.is_set():
-            wait = 0.2 if end is None else min(0.2, max(0.0, end - time.monotonic()))
-            try:
-                item = self._queue.get(timeout=wait)
-            except queue.Empty:
-                if end is not None and time.monotonic() >= end:
-                    return None
-                continue
-            got = self._decode(item)
-            if got is not None:
-                return got
-        return None
-
-    def drain(self) -> list[tuple[str, M]]:
-        """Everything already received, without waiting."""
-        out = []
-        while True:
-            try:
-                item = self._queue.get_nowait()
-            except queue.Empty:
-                return out
-            got = self._decode(item)
-            if got is not None:
-                out.append(got)
-
-    def __iter__(self) -> Iterator[tuple[str, M]]:
-        while True:
-            item = self.get(timeout=None)
-            if item is None:
-                return
-            yield item
-
-    def close(self) -> None:
-        """Undeclare the subscriber (idempotent)."""
-        if not self._closed.is_set():
-            self._closed.set()
-            with contextlib.suppress(zenoh.ZError):
-                self._sub.undeclare()
-
-    def __enter__(self) -> Stream[M]:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
 
 
 def _robot_of_key(key: str) -> str:
