@@ -32,7 +32,8 @@ from service.core.pose_scoring import (
 )
 from service.core.similarity import prepare, shape_complexity, shape_distance
 from service.core.types import wrap_angle
-from service.core.view_index import ViewIndex, _anchor, _joined
+from service.core.view_index import ViewIndex
+from service.core.view_index.build import _anchor, _joined
 
 T = TypeVar("T")
 

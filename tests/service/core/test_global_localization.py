@@ -12,6 +12,7 @@ import pytest
 from service.core import global_localization as gl
 from service.core.factory import create_localizer
 from service.core.types import MapData, wrap_angle
+from service.core.view_index import cache as view_index_cache
 from sim_publisher.laser import LaserSimulator
 from sim_publisher.office import office_metric_map, office_schematic_map, office_world
 from sim_publisher.publisher import SimFleet, fleet_specs, random_free_poses
@@ -89,7 +90,8 @@ def test_index_cache_round_trip_invalidation_and_corrupt_file(
     def no_build(*_a: object, **_k: object) -> gl.ViewIndex:
         raise AssertionError("index rebuilt although a valid cache file exists")
 
-    monkeypatch.setattr(gl, "build_index", no_build)
+    # load_or_build_index looks build_index up in its own module
+    monkeypatch.setattr(view_index_cache, "build_index", no_build)
     loaded = gl.load_or_build_index(md, cache_dir=tmp_path)
     assert loaded.key == built.key
     np.testing.assert_array_equal(loaded.viewpoints, built.viewpoints)
