@@ -5,8 +5,9 @@
 * :class:`WorkerLink`: one worker plus the thread that feeds it: control requests (maps,
   configs) first, then the next robot with a pending scan, one request in flight.
 
-The node (:class:`service.node.ServiceNode`) implements :class:`LinkHost`: it decides what a
-scan's result means (publishing the pose) and how a dead worker is restarted.
+The node (:class:`service.node.ServiceNode`) implements :class:`LinkHost` (in its
+:class:`~service.compute.ComputePlane` part): it decides what a scan's result means
+(publishing the pose) and how a dead worker is restarted.
 """
 
 from __future__ import annotations
