@@ -44,7 +44,8 @@ import service.core.configuration as conf_mod
 import service.core.localizer as loc_mod
 import service.core.matching as match_mod
 import service.core.shape_cost as cost_mod
-from service.core._kernels import HAVE_NUMBA
+import service.core.two_step as step_mod
+from service.core import _kernels
 from sim_publisher.scenario import make_setup
 
 STAGES = ("extraction", "map view", "heading", "S*", "ΔA fits", "DP", "pose", "fit", "walls")
@@ -63,16 +64,17 @@ def _timed(stage: str, fn: Callable[..., Any]) -> Callable[..., Any]:
 
 
 def _install() -> None:
+    """Wrap each stage's function where the localiser looks it up (the module that calls it)."""
     loc_mod.scan_configuration = _timed("extraction", loc_mod.scan_configuration)
     conf_mod.MapViewCache.view = _timed("map view", conf_mod.MapViewCache.view)
-    match_mod.heading_hypotheses = _timed("heading", match_mod.heading_hypotheses)
-    match_mod.support = _timed("heading", match_mod.support)
+    step_mod.heading_hypotheses = _timed("heading", step_mod.heading_hypotheses)
+    step_mod.support = _timed("heading", step_mod.support)
     cost_mod.shape_distance = _timed("S*", cost_mod.shape_distance)
     cost_mod.prepare = _timed("S*", cost_mod.prepare)
-    match_mod.fit_pairs = _timed("ΔA fits", match_mod.fit_pairs)
+    step_mod.fit_pairs = _timed("ΔA fits", step_mod.fit_pairs)
     match_mod.fit_pairs_ranges = _timed("ΔA fits", match_mod.fit_pairs_ranges)
     match_mod.order_preserving_dp = _timed("DP", match_mod.order_preserving_dp)
-    match_mod.pose_from_matches = _timed("pose", match_mod.pose_from_matches)
+    step_mod.pose_from_matches = _timed("pose", step_mod.pose_from_matches)
     loc_mod.refine_pose = _timed("fit", loc_mod.refine_pose)
     if hasattr(loc_mod.ShapeLocalizer, "_violations"):  # (absent before commit 6c1da5b)
         loc_mod.ShapeLocalizer._violations = _timed("walls", loc_mod.ShapeLocalizer._violations)
@@ -112,8 +114,9 @@ def main() -> None:
     wl = loc_mod.ShapeLocalizer(warm.map_data, warm.truth[0])
     for i in range(len(warm)):
         wl.update(*warm.scan(i))
+    kind = "numba" if _kernels.HAVE_NUMBA else "numpy/Python reference (numba not installed)"
     print(
-        f"kernels {'numba' if HAVE_NUMBA else 'numpy/Python reference (numba not installed)'}; "
+        f"kernels {kind}; "
         f"first updates of this process (kernel load or compile): {time.perf_counter() - t0:.2f} s"
     )
     for (setup_id, n), odom in itertools.product(((1, args.scans1), (2, args.scans2)), (0, 1)):
