@@ -17,7 +17,8 @@ import numpy as np
 import shapely
 from shapely.geometry import Polygon, box
 
-from sim_publisher.generator.layout import Layout, Room, WallDetail, _on_boundary
+from sim_publisher.generator.layout import Layout, Room, WallDetail
+from sim_publisher.generator.layout.walls import _on_boundary
 
 
 def _face_box(room: Room, k: int, s: float, along: float, depth: float) -> Polygon:

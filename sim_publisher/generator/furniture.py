@@ -25,7 +25,8 @@ from shapely.geometry import LineString, Polygon, box
 from shapely.prepared import prep
 
 from sim_publisher.generator.grid import Grid, main_component_share
-from sim_publisher.generator.layout import Layout, Rect, _line_key
+from sim_publisher.generator.layout import Layout, Rect
+from sim_publisher.generator.layout.walls import _line_key
 
 #: Clearance (m) the free space of a room keeps connected after every placement.
 NAV_RADIUS = 0.3
