@@ -59,12 +59,8 @@ sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "bench"))
 
 import zenoh  # noqa: E402
-from bench_service import (  # noqa: E402
-    client_config,
-    free_endpoint,
-    publisher_main,
-    scan_pool,
-)
+from bench_service import client_config, free_endpoint  # noqa: E402
+from soak import publisher_main, scan_pool  # noqa: E402
 
 from schemas.codec import decode, encode  # noqa: E402
 from schemas.messages import Health, RobotConfig  # noqa: E402
@@ -241,9 +237,10 @@ def publisher(endpoint: str, robots: list[str], starts: list[int], pool: Any, ra
               duration: float) -> mp.Process:  # fmt: skip
     _truth, ranges, info = pool
     ctx = mp.get_context("spawn")
+    sent = ctx.Array("l", len(robots), lock=False)  # soak's publisher counts what it sent
     proc = ctx.Process(
         target=publisher_main,
-        args=(endpoint, robots, starts, ranges, info, rate, duration, time.time() + 0.3),
+        args=(endpoint, robots, starts, ranges, info, rate, duration, time.time() + 0.3, sent),
         daemon=True,
     )
     proc.start()
@@ -532,7 +529,7 @@ def main(argv: list[str] | None = None) -> int:
         "the instances run with docker/service-cluster.json5, a 2 s lease)",
     )
     args = ap.parse_args(argv)
-    pool = scan_pool(5, 400)
+    pool = scan_pool(400, 5)  # 400 scans 5 samples apart
     if args.reps > 0:
         takeover(args, pool)
     ns = [int(x) for x in args.throughput.split(",") if x.strip()]
