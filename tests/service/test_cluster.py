@@ -22,9 +22,9 @@ from service.errors import InvalidMessage
 from service.mirror import hrw_owner
 from service.node import ServiceNode
 from service.settings import ServiceSettings, load_settings
-from tests.service.test_node import FakeQuery as Query
-from tests.service.test_node import FakeSample as Sample
-from tests.service.test_node import wait_for
+from tests.service.harness import FakeQuery as Query
+from tests.service.harness import FakeSample as Sample
+from tests.service.harness import wait_for
 
 ROOM = [[[0.0, 0.0], [6.0, 0.0], [6.0, 4.0], [0.0, 4.0], [0.0, 0.0]], [[2.0, 1.0], [3.0, 1.0]]]
 ANGLES = np.linspace(-np.pi / 2, np.pi / 2, 181)

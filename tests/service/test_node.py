@@ -1,259 +1,37 @@
-"""Node logic without a network: a fake Zenoh session records what the node publishes.
+"""Node logic without a network: a fake Zenoh session records what the node publishes
+(tests/service/harness.py; the ``harness`` fixture is in conftest.py).
 
-Covers the latest-wins slots, validation -> error notice mapping for maps, configs and scans,
-map delete / re-put, queries, health counters, shard filtering and restore from the state
-directory. Uses ``--workers 0`` (in-process) and the ICP method on a small room so that it
-runs in about 10 s.
+Covers validation -> error notice mapping for maps, configs and scans, map delete / re-put,
+queries, health counters, shard filtering and restore from the state directory (also with a
+corrupt or invalid state and ``--reset-state``). Uses ``--workers 0`` (in-process) and the ICP
+method on a small room so that it runs in a few seconds. The latest-wins slots are in
+test_scheduler.py, the assignment in test_workers.py, worker crashes and busy workers in
+test_compute.py.
 """
 
 from __future__ import annotations
 
-import threading
 import time
-from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Any
 
 import msgpack
 import numpy as np
 import pytest
-import zenoh
 
 from schemas.codec import decode, encode
 from schemas.limits import MAX_PAYLOAD_BYTES
-from schemas.messages import ErrorNotice, Health, Map, PoseMsg, RobotConfig
+from schemas.messages import Health, Map, PoseMsg, RobotConfig
 from service.core.raycast import RayCaster
-from service.node import MAX_SCAN_BYTES, LatestSlots, ServiceNode
-from service.settings import ServiceSettings
-from service.workers import Assignment, shard_of
-
-ROOM = [[[0.0, 0.0], [6.0, 0.0], [6.0, 4.0], [0.0, 4.0], [0.0, 0.0]], [[2.0, 1.0], [3.0, 1.0]]]
-ANGLES = np.linspace(-np.pi / 2, np.pi / 2, 181)
-START = np.array([1.0, 1.5, 0.2])
-
-
-# --------------------------------------------------------------------------- slots
-
-
-def test_slots_latest_wins_and_counts_skips() -> None:
-    s = LatestSlots(capacity=10)
-    for i in range(5):
-        assert s.offer("r1", i)
-    assert len(s) == 1
-    assert s.take(0.0) == ("r1", 4)
-    assert s.skipped == 4
-    assert s.take(0.0) is None
-
-
-def test_slots_round_robin_keeps_place() -> None:
-    s = LatestSlots(capacity=10)
-    s.offer("a", 1)
-    s.offer("b", 1)
-    s.offer("a", 2)  # a floods but keeps its (first) place, b is not pushed back
-    s.offer("c", 1)
-    assert [s.take(0.0) for _ in range(3)] == [("a", 2), ("b", 1), ("c", 1)]
-
-
-def test_slots_capacity_refuses_new_robots_only() -> None:
-    s = LatestSlots(capacity=2)
-    assert s.offer("a", 1) and s.offer("b", 1)
-    assert not s.offer("c", 1)
-    assert s.offer("a", 2)  # an already pending robot may still update
-    assert s.refused == 1
-    s.discard("a")
-    assert s.take(0.0) == ("b", 1)
-
-
-def test_slots_take_wakes_on_offer_and_kick() -> None:
-    s = LatestSlots(capacity=2)
-    threading.Timer(0.05, s.offer, args=("r", 7)).start()
-    assert s.take(5.0) == ("r", 7)
-    threading.Timer(0.05, s.kick).start()
-    t = time.monotonic()
-    assert s.take(5.0) is None
-    assert time.monotonic() - t < 2.0
-
-
-def test_assignment_balances_and_sticks() -> None:
-    a = Assignment(2)
-    assert [a.assign(f"b2-{i}") for i in range(2)] == [0, 1]  # hashing put both on 1
-    assert [a.assign(r) for r in ("x", "y", "z")] == [0, 1, 0]
-    assert a.assign("b2-1") == 1 and a.load() == [3, 2]  # sticky
-    a.release("x")
-    a.release("x")
-    assert a.load() == [2, 2]
-    assert a.assign("w") == 0
-    assert a.index_of("never-configured") == shard_of("never-configured", 2)
-    assert shard_of("r", 3) == shard_of("r", 3) and 0 <= shard_of("r", 3) < 3
-
-
-# --------------------------------------------------------------------------- fake zenoh
-
-
-class FakePublisher:
-    def __init__(self, sink: list[tuple[str, bytes]], key: str) -> None:
-        self.sink, self.key = sink, key
-
-    def put(self, payload: bytes, encoding: Any = None) -> None:
-        self.sink.append((self.key, bytes(payload)))
-
-    def undeclare(self) -> None:
-        pass
-
-
-class FakeEntity:
-    def undeclare(self) -> None:
-        pass
-
-
-class FakeSession:
-    """Records puts; keeps the callbacks the node declares."""
-
-    def __init__(self) -> None:
-        self.puts: list[tuple[str, bytes]] = []
-        self.subs: dict[str, Callable[[Any], None]] = {}
-        self.tokens: list[str] = []
-
-    def declare_publisher(self, key: str) -> FakePublisher:
-        return FakePublisher(self.puts, key)
-
-    def declare_subscriber(self, key: str, cb: Callable[[Any], None]) -> FakeEntity:
-        self.subs[key] = cb
-        return FakeEntity()
-
-    def declare_queryable(self, key: str, cb: Callable[[Any], None]) -> FakeEntity:
-        return FakeEntity()
-
-    def liveliness(self) -> FakeSession:
-        return self
-
-    def declare_token(self, key: str) -> FakeEntity:
-        self.tokens.append(key)
-        return FakeEntity()
-
-    def put(self, key: str, payload: bytes, encoding: Any = None) -> None:
-        self.puts.append((key, bytes(payload)))
-
-    def on(self, key: str) -> list[bytes]:
-        return [p for k, p in self.puts if k == key]
-
-    def notices(self) -> list[ErrorNotice]:
-        return [decode(ErrorNotice, p) for p in self.on("shapeloc/errors")]
-
-
-class FakeSample:
-    def __init__(self, key: str, payload: bytes, delete: bool = False, json: bool = False):
-        self.key_expr = zenoh.KeyExpr(key)
-        self.payload = zenoh.ZBytes(payload)
-        self.encoding = zenoh.Encoding("application/json" if json else "application/msgpack")
-        self.kind = zenoh.SampleKind.DELETE if delete else zenoh.SampleKind.PUT
-
-
-class FakeQuery:
-    def __init__(self, key: str) -> None:
-        self.key_expr = zenoh.KeyExpr(key)
-        self.replies: list[tuple[str, bytes]] = []
-        self.errors: list[bytes] = []
-
-    def reply(self, key: str, payload: bytes, encoding: Any = None) -> None:
-        self.replies.append((str(key), bytes(payload)))
-
-    def reply_err(self, payload: bytes) -> None:
-        self.errors.append(bytes(payload))
-
-    def drop(self) -> None:
-        pass
-
-
-def wait_for(pred: Callable[[], bool], timeout_s: float = 10.0) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not pred():
-        if time.monotonic() > deadline:
-            raise AssertionError("condition not met in time")
-        time.sleep(0.005)
-
-
-# --------------------------------------------------------------------------- node fixture
-
-
-class Harness:
-    def __init__(self, tmp: Path, **kw: Any) -> None:
-        self.tmp = tmp
-        self.kw = kw
-        self.session = FakeSession()
-        settings = ServiceSettings(
-            **{"state_dir": tmp / "state", "workers": 0, "instance_id": "test-node", **kw}
-        )
-        self.node = ServiceNode(settings, self.session)
-        self.node.start()
-        self.caster = RayCaster(_segments(ROOM))
-
-    def put(self, key: str, payload: bytes, delete: bool = False, json: bool = False) -> None:
-        """Deliver a sample as Zenoh would (scans via callback, control synchronously)."""
-        sample = FakeSample(key, payload, delete, json)
-        if key.endswith("/scan"):
-            self.node._on_sample(sample)
-        else:
-            item = self.node.control_item(sample)
-            if item is not None:  # None: another shard's robot, ignored
-                self.node.handle_control(item)
-
-    def put_map(self, map_id: str = "room", polylines: list = ROOM) -> None:
-        self.put(
-            f"shapeloc/maps/{map_id}",
-            encode(Map(map_id=map_id, kind="metric", polylines=polylines)),
-        )
-
-    def put_config(self, robot: str = "r1", map_id: str = "room", pose: Any = START) -> None:
-        cfg = RobotConfig(map_id=map_id, method="icp", initial_pose=list(pose))
-        self.put(f"shapeloc/robots/{robot}/config", encode(cfg))
-
-    def scan_msg(self, seq: int, pose: np.ndarray, **over: Any) -> dict[str, Any]:
-        r = self.caster.cast(pose, ANGLES, 15.0)
-        wire = {
-            "seq": seq,
-            "stamp": float(seq) * 0.1,
-            "angle_min": float(ANGLES[0]),
-            "angle_increment": float(ANGLES[1] - ANGLES[0]),
-            "range_min": 0.0,
-            "range_max": 15.0,
-            "ranges": [float(v) for v in r],
-        }
-        wire.update(over)
-        return wire
-
-    def put_scan(self, robot: str, seq: int, pose: np.ndarray, **over: Any) -> None:
-        self.put(f"shapeloc/robots/{robot}/scan", msgpack.packb(self.scan_msg(seq, pose, **over)))
-
-    def poses(self, robot: str = "r1") -> list[PoseMsg]:
-        return [decode(PoseMsg, p) for p in self.session.on(f"shapeloc/robots/{robot}/pose")]
-
-    def health(self) -> Health:
-        return self.node.health()
-
-    def query(self, key: str) -> FakeQuery:
-        q = FakeQuery(key)
-        self.node.answer(q)
-        return q
-
-
-def _segments(polylines: list) -> np.ndarray:
-    return np.vstack([np.hstack([np.array(p)[:-1], np.array(p)[1:]]) for p in polylines])
-
-
-@pytest.fixture
-def harness(tmp_path: Path) -> Iterator[Harness]:
-    h = Harness(tmp_path)
-    yield h
-    h.node.stop()
-
-
-def _wait_notices(h: Harness, n: int) -> list[ErrorNotice]:
-    wait_for(lambda: len(h.session.notices()) >= n)
-    return h.session.notices()
-
-
-# --------------------------------------------------------------------------- tests
+from service.node import MAX_SCAN_BYTES
+from tests.service.harness import (
+    ROOM,
+    START,
+    FakeSample,
+    Harness,
+    _segments,
+    _wait_notices,
+    wait_for,
+)
 
 
 def test_declares_token_and_tracks_robot(harness: Harness) -> None:
@@ -558,35 +336,6 @@ def test_map_config_scan_in_one_burst_are_causal(harness: Harness) -> None:
     assert h.node.classify("other/robots/r/scan") == ("other", "")
 
 
-def test_worker_process_crash_is_survived(tmp_path: Path) -> None:
-    """A killed worker process costs one scan (with a notice); it is restarted with the maps
-    and configs replayed, and the robot keeps tracking from its last pose. ~2 s (spawn)."""
-    import os
-    import signal
-
-    h = Harness(tmp_path, workers=1)
-    try:
-        h.put_map()
-        h.put_config()
-        h.put_scan("r1", 0, START)
-        wait_for(lambda: len(h.poses()) == 1)
-        link = h.node.links[0]
-        old_pid = link.worker.pid  # type: ignore[union-attr]
-        assert old_pid is not None and old_pid != os.getpid()
-        os.kill(old_pid, signal.SIGKILL)
-        h.put_scan("r1", 1, START)
-        notes = _wait_notices(h, 1)
-        assert "died" in notes[-1].error
-        assert link.worker.pid != old_pid  # type: ignore[union-attr]
-        p = START + np.array([0.02, 0.0, 0.0])
-        h.put_scan("r1", 2, p)
-        wait_for(lambda: len(h.poses()) == 2)
-        assert h.poses()[-1].seq == 2
-        assert np.linalg.norm(h.poses()[-1].pose[:2] - p[:2]) < 0.05
-    finally:
-        h.node.stop()
-
-
 def test_config_delete_forgets_robot(harness: Harness) -> None:
     h = harness
     h.put_map()
@@ -620,76 +369,6 @@ def test_invalid_stored_pose_is_a_state_error(tmp_path: Path) -> None:
     db.close()
     with pytest.raises(StateError, match="stored pose of robot 'r1'"):
         Harness(tmp_path)
-
-
-# --------------------------------------------------------------------------- issue 14
-
-
-class GatedWorker:
-    """Wraps the in-process worker: scan requests wait for ``gate`` (a busy worker)."""
-
-    def __init__(self, inner: Any) -> None:
-        self.inner = inner
-        self.core = inner.core
-        self.gate = threading.Event()
-        self.entered = threading.Event()
-
-    def call(self, req: tuple[Any, ...], timeout_s: float | None = None) -> tuple[str, Any]:
-        if req[0] == "scan":
-            self.entered.set()
-            assert self.gate.wait(20.0)
-        return self.inner.call(req, timeout_s)
-
-    def close(self) -> None:
-        self.inner.close()
-
-
-def test_garbage_on_a_busy_robots_key_never_displaces_its_valid_scan(harness: Harness) -> None:
-    """While the robot's worker is busy, one valid scan waits in its latest-wins slot; 30
-    invalid payloads on the same key are rejected on arrival (with notices) and the valid
-    scan is still the one computed next. A newer valid scan does replace it (latest wins)."""
-    h = harness
-    h.put_map()
-    h.put_config()
-    gated = GatedWorker(h.node.links[0].worker)
-    h.node.links[0].worker = gated  # type: ignore[assignment]
-    h.put_scan("r1", 0, START)
-    assert gated.entered.wait(10.0)
-    h.put_scan("r1", 1, START)
-    good = h.scan_msg(2, START)
-    garbage = [
-        b"\xc1 not msgpack",
-        msgpack.packb({**good, "seq": "two"}),
-        msgpack.packb({**good, "ranges": "lots"}),
-    ]
-    for g in garbage * 10:
-        h.put("shapeloc/robots/r1/scan", g)
-    # every rejection is counted; each gets a notice unless the burst overflowed the robot's
-    # backlog (16 samples here), where the surplus is counted only (one summary notice)
-    wait_for(lambda: h.health().scans_rejected == 30)
-    dropped = h.node.intake.queue.notices_dropped
-    notes = _wait_notices(h, 30 - dropped)
-    per_scan = [n for n in notes if n.key == "shapeloc/robots/r1/scan"]
-    assert len(per_scan) == 30 - dropped
-    assert all("InvalidMessage" in n.error for n in per_scan)
-    assert (h.health().errors or {}).get("scan.InvalidMessage") == 30
-    assert "scan.Skipped" not in (h.health().errors or {})
-    gated.gate.set()
-    wait_for(lambda: len(h.poses()) == 2)
-    assert [p.seq for p in h.poses()] == [0, 1]
-    hl = h.health()
-    assert (hl.scans_processed, hl.scans_rejected) == (2, 30)
-    # valid replaces valid: the older of two pending valid scans is skipped
-    gated.gate.clear()
-    gated.entered.clear()
-    h.put_scan("r1", 2, START)
-    assert gated.entered.wait(10.0)
-    h.put_scan("r1", 3, START)
-    h.put_scan("r1", 4, START)
-    wait_for(lambda: (h.health().errors or {}).get("scan.Skipped") == 1)
-    gated.gate.set()
-    wait_for(lambda: len(h.poses()) == 4)
-    assert [p.seq for p in h.poses()] == [0, 1, 2, 4]
 
 
 def test_reset_state_moves_a_corrupt_file_aside_and_says_so(tmp_path: Path) -> None:

@@ -16,7 +16,7 @@ from service.core.global_localization import GlobalShapeLocalizer
 from service.core.raycast import RayCaster
 from service.workers import Assignment, WorkerCore
 from sim_publisher.scenario import make_setup
-from tests.service.test_node import ANGLES, START, Harness
+from tests.service.harness import ANGLES, START, Harness
 
 
 def _wait(cond: Callable[[], bool], timeout: float = 20.0) -> None:

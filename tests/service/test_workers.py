@@ -1,4 +1,5 @@
-"""service.workers: a worker process's start-up is not charged to its first request."""
+"""service.workers: a worker process's start-up is not charged to its first request, a hung
+or slow one times out, and the assignment of robots to workers balances and sticks."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ import signal
 import pytest
 
 from service.errors import ServiceTimeout
-from service.workers import ProcessWorker
+from service.workers import Assignment, ProcessWorker, shard_of
 
 
 def test_a_starting_worker_is_not_killed_by_the_request_timeout() -> None:
@@ -44,3 +45,16 @@ def test_a_hung_request_times_out_as_a_timeout_not_as_a_death() -> None:
         assert not w.alive()
     finally:
         w.close()
+
+
+def test_assignment_balances_and_sticks() -> None:
+    a = Assignment(2)
+    assert [a.assign(f"b2-{i}") for i in range(2)] == [0, 1]  # hashing put both on 1
+    assert [a.assign(r) for r in ("x", "y", "z")] == [0, 1, 0]
+    assert a.assign("b2-1") == 1 and a.load() == [3, 2]  # sticky
+    a.release("x")
+    a.release("x")
+    assert a.load() == [2, 2]
+    assert a.assign("w") == 0
+    assert a.index_of("never-configured") == shard_of("never-configured", 2)
+    assert shard_of("r", 3) == shard_of("r", 3) and 0 <= shard_of("r", 3) < 3
