@@ -1,4 +1,5 @@
-"""One global search (service/core/global_search.py) on a real log's floor plan."""
+"""The global search (service/core/global_search.py): split into bounded steps it gives the
+whole search's result; one search on a real log's floor plan."""
 
 from __future__ import annotations
 
@@ -6,14 +7,38 @@ from pathlib import Path
 
 import numpy as np
 
+from service.core import global_search as gs
+from service.core.factory import create_localizer
 from service.core.global_config import GlobalConfig
 from service.core.global_localization import load_or_build_index
 from service.core.global_search import global_search
 from service.core.localizer import ShapeConfig
 from service.core.types import wrap_angle
 from service.maps.files import load_map_file
+from sim_publisher.scenario import make_setup
 
 DATA = Path(__file__).resolve().parents[2] / "data" / "real"
+
+
+def test_search_steps_bound_each_step_and_give_the_whole_search_result() -> None:
+    su = make_setup(1, max_scans=2000)
+    loc = create_localizer("shape", su.map_data, None)
+    r, a = su.scan(1500)
+    steps = gs.search_steps(loc.index, r, a, loc.config, loc.gconfig)
+    work = []
+    while True:
+        try:
+            work.append(next(steps))
+        except StopIteration as stop:
+            res = stop.value
+            break
+    assert len(work) > 5, "the search is not split into steps"
+    assert max(work) <= 15.0, f"a step of {max(work):.1f} reference ms"
+    whole = gs.global_search(loc.index, r, a, loc.config, loc.gconfig)
+    assert len(res.hypotheses) == len(whole.hypotheses) > 0
+    for h, w in zip(res.hypotheses, whole.hypotheses, strict=True):
+        np.testing.assert_array_equal(h.pose, w.pose)
+        assert h.cost == w.cost
 
 
 def test_ranking_the_shortlist_by_violations_finds_the_true_pose_in_a_furnished_hall() -> None:
