@@ -12,7 +12,7 @@ milliseconds per scan of every stage:
 * DP          — the eq. 5 dynamic programme itself
 * pose        — least squares over matched pairs (``pose_from_matches``)
 * fit         — the precise point-to-line fit (``refine_pose``), every candidate
-* walls       — beams through map walls per candidate (``ShapeLocalizer._violations``)
+* walls       — beams through map walls per candidate (``ShapeLocalizer.violations``)
 * total       — the whole ``ShapeLocalizer.update``; "other" = total minus the stages
 
 The first updates of the process (loading or compiling the numba kernels) run before the
@@ -70,14 +70,14 @@ def _install() -> None:
     step_mod.heading_hypotheses = _timed("heading", step_mod.heading_hypotheses)
     step_mod.support = _timed("heading", step_mod.support)
     cost_mod.shape_distance = _timed("S*", cost_mod.shape_distance)
+    cost_mod.shape_distances = _timed("S*", cost_mod.shape_distances)  # the batched S*
     cost_mod.prepare = _timed("S*", cost_mod.prepare)
     step_mod.fit_pairs = _timed("ΔA fits", step_mod.fit_pairs)
     match_mod.fit_pairs_ranges = _timed("ΔA fits", match_mod.fit_pairs_ranges)
     match_mod.order_preserving_dp = _timed("DP", match_mod.order_preserving_dp)
     step_mod.pose_from_matches = _timed("pose", step_mod.pose_from_matches)
     loc_mod.refine_pose = _timed("fit", loc_mod.refine_pose)
-    if hasattr(loc_mod.ShapeLocalizer, "_violations"):  # (absent before commit 6c1da5b)
-        loc_mod.ShapeLocalizer._violations = _timed("walls", loc_mod.ShapeLocalizer._violations)
+    loc_mod.ShapeLocalizer.violations = _timed("walls", loc_mod.ShapeLocalizer.violations)
 
 
 def bench(setup_id: int, scans: int, odom: bool) -> dict[str, np.ndarray]:
