@@ -310,16 +310,16 @@ def _beam_costs(
     ang = angles[sel]
     tol = config.support_tolerance
     poses = np.asarray(poses, dtype=np.float64)
-    if not gconfig.see_through and len(poses):
-        # all poses in one cast (each pose's ranges have the bits of its own cast)
-        preds = index.caster.cast_many(poses, ang, config.view_max_range)
-        for k, pred in enumerate(preds):
-            out[k] = _beam_cost(*_beam_fractions(r, pred, tol, gconfig), gconfig)
-        return out
+    # without see-through all poses in one cast (each pose's ranges have the bits of its own)
+    batch = (
+        None if gconfig.see_through else index.caster.cast_many(poses, ang, config.view_max_range)
+    )
     for k, pose in enumerate(poses):
-        pred, landed = _predict(index, pose, r, ang, tol, config.view_max_range, gconfig)
-        hit, viol, short = _beam_fractions(r, pred, tol, gconfig, landed)
-        out[k] = _beam_cost(hit, viol, short, gconfig)
+        if batch is None:
+            pred, landed = _predict(index, pose, r, ang, tol, config.view_max_range, gconfig)
+        else:
+            pred, landed = batch[k], None
+        out[k] = _beam_cost(*_beam_fractions(r, pred, tol, gconfig, landed), gconfig)
     return out
 
 

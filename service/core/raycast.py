@@ -212,7 +212,7 @@ class RayCaster:
 
     def _beam_order(self, ang: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
         """The first beam's angle, the beams' angles relative to it folded into ``[0, 2pi)``
-        and sorted, and that order (as :meth:`_spans` computes them). Kept per distinct
+        and sorted, and that order (both paths of :meth:`_nearest` use them). Kept per distinct
         ``ang`` (at most :data:`_ORDER_CACHE` of them): the core casts the same beams of a
         keyframe or scan from many poses."""
         key = ang.tobytes()
@@ -222,7 +222,10 @@ class RayCaster:
         base = ang[0]
         rel = np.mod(ang - base, _TWO_PI)
         order = np.argsort(rel, kind="stable")
-        out = (float(base), rel[order], order)
+        rel_sorted = rel[order]
+        rel_sorted.setflags(write=False)  # shared by every cast of these beams
+        order.setflags(write=False)
+        out = (float(base), rel_sorted, order)
         if len(self._orders) >= _ORDER_CACHE:
             self._orders.clear()
         self._orders[key] = out
@@ -271,10 +274,7 @@ class RayCaster:
         py = poses[owner, 1]
 
         # Beam angles relative to the first beam, folded into [0, 2pi), sorted.
-        base = ang[0]
-        rel = np.mod(ang - base, _TWO_PI)
-        order = np.argsort(rel, kind="stable")
-        rel_sorted = rel[order]
+        base, rel_sorted, order = self._beam_order(ang)
 
         # Bearing interval of each segment in the same relative frame.
         off = (poses[:, 2] + base)[owner]
