@@ -1,6 +1,6 @@
 """Cluster benchmark: take-over time after ``kill -9``, and robots served with 1 vs 3 instances.
 
-Everything on loopback: a Zenoh router (``python -m service.router``), service instances
+Everything on loopback: a Zenoh router (``python -m service.node.router``), service instances
 ``python -m service --mode client --shard hash`` connected to it, a publisher process sending
 every robot's setup-1 scans at ``--rate`` Hz (robots staggered within the period, as in
 bench_service.py), and this process receiving poses and asking for them.
@@ -64,7 +64,7 @@ from soak import publisher_main, scan_pool  # noqa: E402
 
 from schemas.codec import decode, encode  # noqa: E402
 from schemas.messages import Health, RobotConfig  # noqa: E402
-from service.mirror import hrw_owner  # noqa: E402
+from service.node.mirror import hrw_owner  # noqa: E402
 
 P = "shapeloc"
 NONE = zenoh.QueryConsolidation(zenoh.ConsolidationMode.NONE)
@@ -115,7 +115,9 @@ class Proc:
 
 
 def start_router(endpoint: str, tmp: Path) -> Proc:
-    r = Proc([sys.executable, "-m", "service.router", "--listen", endpoint], tmp / "router.log")
+    r = Proc(
+        [sys.executable, "-m", "service.node.router", "--listen", endpoint], tmp / "router.log"
+    )
     deadline = time.time() + 30
     while "ready" not in r.log.read_text(errors="replace"):
         if r.p.poll() is not None or time.time() > deadline:
@@ -202,7 +204,7 @@ class Cluster:
         wait(lambda: set(healths(self.session)) == set(names), 90, "instances up")
 
     def put_map(self, names: list[str]) -> None:
-        from service.convert import map_message_of
+        from service.adapters.convert import map_message_of
         from sim_publisher.office import office_metric_map
 
         payload = encode(map_message_of(office_metric_map()))

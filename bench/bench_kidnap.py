@@ -71,10 +71,10 @@ def pick_trials(log: br.LogData, n: int, pre: int, post: int, seed: int) -> list
 def run_trial(
     name: str, kind: str, rule: float | None, k0: int, j: int, pre: int, post: int
 ) -> dict[str, object]:
+    from service.adapters.maps.files import load_map_file
     from service.core.factory import create_localizer
     from service.core.pose import compose, relative
     from service.core.types import wrap_angle
-    from service.maps.files import load_map_file
 
     log = br.load_log(br.DEFAULT_DATA, name, None)
     md = load_map_file(br.map_path(name, kind), kind=kind)

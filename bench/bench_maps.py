@@ -8,13 +8,14 @@ READS /work/shared (not in a user's clone): the raw logs ``intel.orig.bag``,
 
 For every log, every scan is read with its reference pose (laser frame in GMapping's map
 frame; flag 1 = corrected, flag 0 = carried by odometry) and metric maps are built
-(:func:`service.maps.build.build_map`) from three selections of scans: the corrected (flag-1)
-ones only, those plus the flag-0 ones carried at most ``--max-carried`` m from a corrected
+(:func:`service.adapters.maps.build.build_map`) from three selections of scans: the corrected
+(flag-1) ones only, those plus the flag-0 ones carried at most ``--max-carried`` m from a corrected
 pose (the chosen map, :data:`clients.maps_cli.DEFAULT_MAX_CARRIED`), and every scan. Each is
 scored by its fidelity on the flag-1 scans (median / p90 distance of their returns to the
 map's polylines; scored on scans the map was drawn from), and, held out, by a map built from
 the same selection without every second flag-1 scan and scored on those. The chosen map is
-schematised (:func:`service.maps.schematize.schematize`, default parameters) and scored too.
+schematised (:func:`service.adapters.maps.schematize.schematize`, default parameters) and scored
+too.
 
 Writes ``docs/real/maps/{log}.geojson`` (metric polylines), ``{log}_schematic.geojson``,
 ``{log}.yaml`` + ``{log}.pgm`` (the occupancy grid, coarsened to ``--grid-resolution`` m to keep
@@ -36,11 +37,11 @@ from pathlib import Path
 import numpy as np
 
 from clients.maps_cli import DEFAULT_MAX_CARRIED, LoggedScans, load_logged_scans
-from service.maps.build import build_map
-from service.maps.fidelity import map_fidelity
-from service.maps.files import save_map_geojson
-from service.maps.grid import OccupancyGrid, write_map_yaml
-from service.maps.schematize import schematize
+from service.adapters.maps.build import build_map
+from service.adapters.maps.fidelity import map_fidelity
+from service.adapters.maps.files import save_map_geojson
+from service.adapters.maps.grid import OccupancyGrid, write_map_yaml
+from service.adapters.maps.schematize import schematize
 
 REPO = Path(__file__).resolve().parents[1]
 LOGS = {

@@ -24,8 +24,8 @@ scan, as the service runs it (its default 50; write those rows to another ``--ou
   scored scans within that distance; mean / median error (m).
 - ``lost``: % of the scans after the first whose status is not ``tracking``.
 - relations: Kümmerle et al.'s relations error of the whole estimated track (every scan's
-  published pose, whatever its status, scored by :func:`service.logs.relations_error` at the
-  scans' own stamps): translation mean ± std (m), rotation mean (deg); relations whose stamps
+  published pose, whatever its status, scored by :func:`service.adapters.logs.relations_error` at
+  the scans' own stamps): translation mean ± std (m), rotation mean (deg); relations whose stamps
   fall outside a ``--limit`` run are skipped. The reference track's own figure is printed per
   log for comparison (intel 0.057, fr079 0.058, mit-csail 0.077 m; published RBPF 0.070, 0.061,
   0.049 m).
@@ -140,7 +140,7 @@ _LOGS: dict[tuple[str, int | None], LogData] = {}
 
 def load_log(data: Path, name: str, limit: int | None) -> LogData:
     """Read (once per process) the log ``name`` with its per-scan references."""
-    from service.logs import attach_reference, load_reference, read_log
+    from service.adapters.logs import attach_reference, load_reference, read_log
 
     key = (name, limit)
     if key not in _LOGS:
@@ -167,8 +167,8 @@ def map_path(name: str, kind: str) -> Path:
 def execute(run: Run, data: Path) -> tuple[Run, np.ndarray, np.ndarray, np.ndarray, float]:
     """Run one localiser over the log; return the run, the estimated poses ``(n, 3)``, the
     tracking flags ``(n,)``, the ``update`` times ``(n,)`` (s) and the wall time (s)."""
+    from service.adapters.maps.files import load_map_file
     from service.core.factory import create_localizer
-    from service.maps.files import load_map_file
 
     log = load_log(data, run.log, run.limit)
     kind = run.map
@@ -202,7 +202,7 @@ def summarise(
     times: np.ndarray,
 ) -> dict[str, object]:
     """The table row of one run (see the module docstring for every column)."""
-    from service.logs import relations_error
+    from service.adapters.logs import relations_error
 
     ok = log.ok & np.all(np.isfinite(poses), axis=1)
     err = np.hypot(*(poses[ok, :2] - log.reference[ok, :2]).T)
@@ -411,7 +411,7 @@ def plot_log(name: str, out: Path, cache: Path, data: Path, limit: int | None) -
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from service.maps.files import load_map_file
+    from service.adapters.maps.files import load_map_file
 
     track = cache / (Run(name, "shape", True, "metric", limit).tag() + ".npz")
     if not track.exists():
@@ -507,7 +507,7 @@ def main(argv: list[str] | None = None) -> int:
     rows = read_csv(csv_path)
     done = {row_key(r) for r in rows}
 
-    from service.logs import load_relations, relations_error
+    from service.adapters.logs import load_relations, relations_error
 
     relations = {k: load_relations(args.data / f"{k}.relations") for k in LOG_FILES}
     lim_label = "all" if limit is None else str(limit)

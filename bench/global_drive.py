@@ -344,7 +344,7 @@ def drive_source(m: DriveMap, data: Path, stride: int = 1) -> DriveSource:
     if m.group == "real":
         from bench_real import load_log, map_path
 
-        from service.maps.files import load_map_file
+        from service.adapters.maps.files import load_map_file
 
         log = load_log(Path(data), m.world, None)
         md = load_map_file(map_path(m.world, m.kind), kind=m.kind)

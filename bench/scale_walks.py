@@ -49,7 +49,7 @@ def world_name(world: str) -> str:
 def make_pool(world: str, map_kind: str, stride: int, seed: int = 7) -> Pool:
     """Setup-1 scans of ``world`` (``office`` or a generated building's seed) every ``stride``
     samples (11 mm each) of the whole tour; the map of ``map_kind`` for the service."""
-    from service.convert import map_message_of
+    from service.adapters.convert import map_message_of
     from sim_publisher.scenario import building_setup, make_setup
 
     if map_kind not in ("metric", "schematic"):

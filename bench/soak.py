@@ -278,7 +278,7 @@ def _pct(a: np.ndarray, q: float) -> float:
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
     """The whole soak; returns the report (also printed)."""
-    from service.convert import map_message_of
+    from service.adapters.convert import map_message_of
     from sim_publisher.office import office_metric_map, office_schematic_map
 
     truth, ranges, info = scan_pool(args.pool)

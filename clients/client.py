@@ -31,7 +31,8 @@ from clients.stream import M, Stream, _encoding_of
 from schemas import keys
 from schemas.codec import MSGPACK_ENCODING, decode, encode
 from schemas.messages import ErrorNotice, Health, Map, PoseMsg, RobotConfig, Scan, Truth
-from service.convert import map_message_of
+from service.adapters.convert import map_message_of
+from service.adapters.maps.files import load_map_file
 from service.core.types import MapData
 from service.errors import (
     InvalidMessage,
@@ -42,7 +43,6 @@ from service.errors import (
     UnknownRobot,
     Unreachable,
 )
-from service.maps.files import load_map_file
 
 __all__ = [
     "DEFAULT_CONNECT",
@@ -220,8 +220,8 @@ class ShapelocClient:
         """Store a map (``put <prefix>/maps/<map_id>``); returns the message sent.
 
         ``map_`` is a core :class:`MapData`, a wire :class:`Map` or the path of a map file in
-        any format :func:`service.maps.files.load_map_file` reads (wire JSON/msgpack, GeoJSON
-        world or outlines, WKT world). ``map_id`` / ``kind`` override the map's own. With
+        any format :func:`service.adapters.maps.files.load_map_file` reads (wire JSON/msgpack,
+        GeoJSON world or outlines, WKT world). ``map_id`` / ``kind`` override the map's own. With
         ``confirm`` the map is read back until the service holds it (raises
         :class:`ServiceTimeout` otherwise).
         """

@@ -1,18 +1,18 @@
 """``shapeloc map import|build|schematize|fidelity``: map tools that run locally (no service).
 
 * ``import MAP.yaml --id ID [--out FILE] [--put]``: a ROS ``map_server`` map (YAML + PGM/PNG)
-  as polylines along its occupied cells' faces (:func:`service.maps.grid.grid_to_map`); writes
-  ``FILE`` (``.geojson`` or wire ``.json``) and with ``--put`` stores it on the service.
+  as polylines along its occupied cells' faces (:func:`service.adapters.maps.grid.grid_to_map`);
+  writes ``FILE`` (``.geojson`` or wire ``.json``) and with ``--put`` stores it on the service.
 * ``build LOG [--poses REFERENCE] --out PREFIX [--id ID]``: a map drawn from a laser log at its
-  reference poses (:func:`service.maps.build.build_map`): ``PREFIX.yaml`` + ``PREFIX.pgm``
+  reference poses (:func:`service.adapters.maps.build.build_map`): ``PREFIX.yaml`` + ``PREFIX.pgm``
   (occupancy grid) and ``PREFIX.geojson`` (wall polylines, kind ``metric``); prints the map's
   fidelity on the scans with trusted (flag-1) poses.
 * ``schematize MAP --out FILE [parameter flags]``: the schematic map
-  (:func:`service.maps.schematize.schematize`; one flag per
-  :class:`~service.maps.schematize.SchematizeParams` field).
+  (:func:`service.adapters.maps.schematize.schematize`; one flag per
+  :class:`~service.adapters.maps.schematize.SchematizeParams` field).
 * ``fidelity MAP LOG [--poses REFERENCE]``: median / p90 / mean distance of the returns of the
   scans with trusted reference poses to the map's polylines
-  (:func:`service.maps.fidelity.map_fidelity`).
+  (:func:`service.adapters.maps.fidelity.map_fidelity`).
 
 The typed functions (:func:`import_map`, :func:`build_from_log`, :func:`schematize_file`,
 :func:`fidelity_of`, :func:`load_logged_scans`) do the work; :func:`add_parsers` and
@@ -31,14 +31,14 @@ from typing import Any, TextIO
 
 import numpy as np
 
+from service.adapters.logs import attach_reference, load_reference, read_log
+from service.adapters.maps.build import BuiltMap, build_map
+from service.adapters.maps.fidelity import Fidelity, map_fidelity
+from service.adapters.maps.files import load_map_file, save_map_file, save_map_geojson
+from service.adapters.maps.grid import write_map_yaml
+from service.adapters.maps.schematize import SchematizeParams, schematize
 from service.core.types import MapData
 from service.errors import InvalidMessage
-from service.logs import attach_reference, load_reference, read_log
-from service.maps.build import BuiltMap, build_map
-from service.maps.fidelity import Fidelity, map_fidelity
-from service.maps.files import load_map_file, save_map_file, save_map_geojson
-from service.maps.grid import write_map_yaml
-from service.maps.schematize import SchematizeParams, schematize
 
 #: ``shapeloc map`` actions handled here, without a service.
 LOCAL_ACTIONS = frozenset({"import", "build", "schematize", "fidelity"})
@@ -93,9 +93,10 @@ class LoggedScans:
 def load_logged_scans(
     log: str | Path, poses: str | Path | None = None, *, limit: int | None = None
 ) -> LoggedScans:
-    """Read every scan of ``log`` (any format :func:`service.logs.read_log` reads) with its
+    """Read every scan of ``log`` (any format :func:`service.adapters.logs.read_log` reads) with its
     reference pose: from ``poses`` (a ``*.gfs_reference_per_scan.txt`` file,
-    :func:`service.logs.load_reference`) or, without it, the log's own (a GMapping-corrected
+    :func:`service.adapters.logs.load_reference`) or, without it, the log's own (a
+    GMapping-corrected
     CARMEN log). Raises :class:`InvalidMessage` when no scan has a trusted pose."""
     info, it = read_log(log, limit=limit)
     if poses is not None:

@@ -1,6 +1,6 @@
 """``python -m service`` / ``shapeloc-service``: run the localizer service.
 
-``main(settings)`` opens the Zenoh session, runs :class:`service.node.ServiceNode` until
+``main(settings)`` opens the Zenoh session, runs :class:`service.node.node.ServiceNode` until
 SIGINT/SIGTERM, then saves the state and closes everything; it returns the exit status
 (0 on a clean shutdown, 1 when the state is unreadable or the network unreachable).
 """
@@ -17,7 +17,7 @@ from collections.abc import Sequence
 from types import FrameType
 
 from service.errors import ShapelocError, StateError, Unreachable
-from service.settings import ServiceSettings, load_settings, security_summary, zenoh_config
+from service.node.settings import ServiceSettings, load_settings, security_summary, zenoh_config
 
 log = logging.getLogger("shapeloc.service")
 
@@ -35,7 +35,7 @@ def main(settings: ServiceSettings) -> int:
     """Run the service with ``settings`` until SIGINT/SIGTERM; return the exit status."""
     import zenoh
 
-    from service.node import ServiceNode
+    from service.node.node import ServiceNode
 
     _setup_logging(settings.log_level)
     zenoh.init_log_from_env_or("warn" if settings.log_level != "debug" else "info")

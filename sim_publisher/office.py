@@ -3,7 +3,8 @@
 ``office_world()`` is the TRUE world (walls, furniture, non-linear obstacles) that scans are
 simulated against. ``office_metric_map()`` is its exact metric map; ``office_schematic_map()``
 is the floor-plan-like schematic map (room outlines only). All in map-frame metres. Both files
-live in ``sim_publisher/worlds/`` and are read by :mod:`service.maps` (world and map files).
+live in ``sim_publisher/worlds/`` and are read by :mod:`service.adapters.maps` (world and map
+files).
 """
 
 from __future__ import annotations
@@ -11,9 +12,9 @@ from __future__ import annotations
 from functools import lru_cache
 from pathlib import Path
 
+from service.adapters.maps.files import load_map_file
+from service.adapters.maps.world import World, load_world
 from service.core.types import MapData
-from service.maps.files import load_map_file
-from service.maps.world import World, load_world
 
 WORLDS_DIR = Path(__file__).resolve().parent / "worlds"
 OFFICE_WORLD_PATH = WORLDS_DIR / "office.geojson"

@@ -13,8 +13,8 @@ from typing import Any
 
 import numpy as np
 
+from service.adapters.maps.world import World
 from service.core.types import MapData
-from service.maps.world import World
 
 
 def plot_map(ax: Any, map_data: MapData, **style: Any) -> None:

@@ -19,11 +19,11 @@ from pathlib import Path
 import numpy as np
 
 from schemas.messages import Map, RobotConfig, Scan, Truth
-from service.convert import map_message_of
+from service.adapters.convert import map_message_of
+from service.adapters.maps.files import load_map_file
+from service.adapters.maps.world import World
 from service.core.pose import compose, invert
 from service.core.types import METHODS, MapData, wrap_angle
-from service.maps.files import load_map_file
-from service.maps.world import World
 from sim_publisher.scenario import Setup, make_setup
 
 MAP_CHOICES = ("metric", "schematic")
@@ -34,8 +34,8 @@ DEFAULT_SETUP = {"metric": 1, "schematic": 2}
 def map_for(spec: str) -> MapData:
     """The map named by ``spec``: ``metric`` / ``schematic`` (the office) or a map/world file.
 
-    Files are read by :func:`service.maps.files.load_map_file` (wire JSON/msgpack map, GeoJSON
-    world or outlines, WKT world).
+    Files are read by :func:`service.adapters.maps.files.load_map_file` (wire JSON/msgpack map,
+    GeoJSON world or outlines, WKT world).
     """
     if spec == "metric":
         from sim_publisher.office import office_metric_map

@@ -1,6 +1,6 @@
 """``shapeloc-sim replay LOG``: publish a recorded laser log over Zenoh as a robot would.
 
-Reads the log with :func:`service.logs.read_log` (ROS 1 / ROS 2 bag, CARMEN log, also a
+Reads the log with :func:`service.adapters.logs.read_log` (ROS 1 / ROS 2 bag, CARMEN log, also a
 GMapping-corrected one) and puts, for scan ``k`` of the log (``seq = k``, ``stamp`` = the log's
 own stamp, seconds):
 
@@ -44,8 +44,8 @@ from clients.client import DEFAULT_PREFIX, ShapelocClient, Stream, open_session
 from schemas import keys
 from schemas.codec import MSGPACK_ENCODING, encode
 from schemas.messages import METHODS, PoseMsg, Scan, Truth
+from service.adapters.logs import LogInfo, LogScan, attach_reference, load_reference, read_log
 from service.errors import ServiceTimeout
-from service.logs import LogInfo, LogScan, attach_reference, load_reference, read_log
 
 log = logging.getLogger("shapeloc.sim.replay")
 

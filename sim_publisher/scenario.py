@@ -19,9 +19,9 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from service.adapters.maps.world import World
 from service.core.types import MapData
 from service.errors import InvalidMessage
-from service.maps.world import World
 from sim_publisher.laser import LaserConfig, LaserSimulator
 from sim_publisher.office import office_metric_map, office_schematic_map, office_world
 from sim_publisher.trajectory import (

@@ -40,7 +40,7 @@ class Rule:
     forbidden: tuple[str, ...] = ()
 
 
-ADAPTERS = ("service.logs", "service.maps", "service.convert")
+ADAPTERS = ("service.adapters.logs", "service.adapters.maps", "service.adapters.convert")
 #: First matching rule wins (most specific first).
 RULES: tuple[Rule, ...] = (
     Rule("service.errors", ("service.errors",), allowed=()),
@@ -52,7 +52,7 @@ RULES: tuple[Rule, ...] = (
         forbidden=("zenoh", "msgpack", "schemas"),
     ),
     Rule(
-        "service.logs.*, service.maps.*, service.convert",
+        "service.adapters.logs.*, service.adapters.maps.*, service.adapters.convert",
         ADAPTERS,
         allowed=("service.core", "service.errors", "schemas", *ADAPTERS),
         forbidden=("zenoh",),
@@ -85,8 +85,8 @@ def rule_of(module: str) -> Rule:
 
 
 def module_name(path: Path) -> str:
-    """``service/maps/files.py`` -> ``service.maps.files``; ``service/__init__.py`` ->
-    ``service``."""
+    """``service/adapters/maps/files.py`` -> ``service.adapters.maps.files``;
+    ``service/__init__.py`` -> ``service``."""
     parts = list(path.relative_to(REPO).with_suffix("").parts)
     if parts[-1] == "__init__":
         parts.pop()
@@ -278,34 +278,34 @@ def test_the_import_scan_sees_every_kind_of_import() -> None:
         "def f():\n"
         "    import msgpack.fallback\n"
         "    from . import world\n"
-        "    from ..core.types import MapData\n"
+        "    from ...core.types import MapData\n"
         "class C:\n"
         "    def g(self):\n"
         "        from clients.client import ShapelocClient\n"
     )
-    got = imports_of(ast.parse(src), "service.maps.files", is_package=False)
+    got = imports_of(ast.parse(src), "service.adapters.maps.files", is_package=False)
     assert [(line, mod) for line, mod, _ in got] == [
         (1, "zenoh"),
         (2, "schemas.messages"),
         (3, "service.errors"),  # a submodule named in `from pkg import mod`
         (5, "msgpack.fallback"),
-        (6, "service.maps.world"),
+        (6, "service.adapters.maps.world"),
         (7, "service.core.types"),
         (10, "clients.client"),
     ]
-    adapters = rule_of("service.maps.files")
+    adapters = rule_of("service.adapters.maps.files")
     assert _violation(adapters, "zenoh") == f"{adapters.name} must never import zenoh"
     assert "may import only" in (_violation(adapters, "clients.client") or "")
     assert _violation(adapters, "service.core.types") is None
     assert _violation(adapters, "numpy") is None
     assert rule_of("service.errors").name == "service.errors"
-    assert rule_of("service.node") is rule_of("service")
-    assert rule_of("service.convert") is adapters
+    assert rule_of("service.node.node") is rule_of("service")
+    assert rule_of("service.adapters.convert") is adapters
     # the tree is really scanned: every package has modules, and known imports are found
     names = set(parsed())
     assert {"service.errors", "schemas.messages", "clients.client", "sim_publisher.demo"} <= names
     _, client_imports = parsed()["clients.client"]
-    assert "service.maps.files" in {m for _, m, _ in client_imports}
+    assert "service.adapters.maps.files" in {m for _, m, _ in client_imports}
 
 
 def test_the_wire_owns_the_method_names() -> None:

@@ -14,9 +14,9 @@ import numpy as np
 import shapely
 from shapely.geometry import Point
 
+from service.adapters.maps.world import Obstacle, World
 from service.core.types import MapData
 from service.errors import InvalidWorld
-from service.maps.world import Obstacle, World
 from sim_publisher.generator.details import wall_details
 from sim_publisher.generator.furniture import Item, furnish
 from sim_publisher.generator.layout import Door, Layout, Room, build_layout

@@ -1,6 +1,6 @@
 """Generate ``office.geojson`` and ``office_schematic.geojson`` (run once; outputs committed).
 
-    python -m service.maps.worlds.make_office
+    python -m service.adapters.maps.worlds.make_office
 
 The office recreates the kind of test environment of the paper's Fig. 6a: a 14 x 23 m floor
 (map frame, metres, x 0..14, y 0..23) with seven rooms off a north-south corridor, thin walls

@@ -183,7 +183,7 @@ def _compose_commands(text: str) -> dict[str, list[str]]:
 
 
 def test_docker_commands_parse_with_the_real_command_lines() -> None:
-    from service.settings import build_parser as service_parser
+    from service.node.settings import build_parser as service_parser
     from sim_publisher.__main__ import build_parser as sim_parser
     from sim_publisher.__main__ import options_from_args
 

@@ -20,6 +20,7 @@ import zenoh
 from clients.client import ShapelocClient, zenoh_config
 from schemas.codec import decode, encode
 from schemas.messages import ErrorNotice, Health, Map, PoseMsg, RobotConfig, Scan, Truth
+from service.adapters.maps.files import save_map_file
 from service.core.types import MapData
 from service.errors import (
     InvalidMessage,
@@ -29,7 +30,6 @@ from service.errors import (
     UnknownRobot,
     Unreachable,
 )
-from service.maps.files import save_map_file
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -218,7 +218,7 @@ def test_put_list_get_delete_maps(fake) -> None:
 
 
 def test_put_map_reads_a_map_file(fake, tmp_path) -> None:
-    """A path goes through service.maps.files.load_map_file; --id / --kind override."""
+    """A path goes through service.adapters.maps.files.load_map_file; --id / --kind override."""
     svc, ep = fake
     md = MapData.from_lists("room", "schematic", [[[0, 0], [4, 0], [4, 3], [0, 3], [0, 0]]])
     path = save_map_file(md, tmp_path / "room.json")

@@ -17,10 +17,10 @@ import shapely
 
 from clients import maps_cli
 from clients.__main__ import cli
+from service.adapters.maps.files import load_map_file
+from service.adapters.maps.grid import read_map_yaml
+from service.adapters.maps.world import World
 from service.core.raycast import RayCaster
-from service.maps.files import load_map_file
-from service.maps.grid import read_map_yaml
-from service.maps.world import World
 
 RES = 0.1
 

@@ -4,7 +4,7 @@ Real processes on loopback: a router (a Python session in router mode, as in
 test_faults.py), three ``python -m service --mode client --shard hash`` instances connected to
 it, and six simulated robots streaming setup-1 scans with odometry at 10 Hz from this process.
 
-* Each robot is served by exactly one instance, the one :func:`service.mirror.hrw_owner`
+* Each robot is served by exactly one instance, the one :func:`service.node.mirror.hrw_owner`
   names: one reply to a pose query (reply consolidation off), one pose per scan.
 * One instance is SIGKILLed: its robots are served again by the survivors within 5 s (pose
   queries answered with a pose of a scan sent after the kill, continuing from the last pose
@@ -31,8 +31,8 @@ import zenoh
 
 from schemas.codec import decode, encode
 from schemas.messages import Health, PoseMsg, RobotConfig, Scan
-from service.convert import map_message_of
-from service.mirror import hrw_owner
+from service.adapters.convert import map_message_of
+from service.node.mirror import hrw_owner
 from sim_publisher.office import office_metric_map
 from sim_publisher.scenario import make_setup
 

@@ -33,8 +33,8 @@ import zenoh
 
 from schemas.codec import decode, encode
 from schemas.messages import Map, PoseMsg, RobotConfig, Scan
-from service.convert import map_message_of
-from service.state import DB_NAME, StateStore
+from service.adapters.convert import map_message_of
+from service.node.state import DB_NAME, StateStore
 from sim_publisher.office import office_metric_map, office_schematic_map
 from sim_publisher.scenario import make_setup
 

@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 
 from clients.client import ShapelocClient
+from service.adapters.logs import attach_reference, load_reference, read_log
 from service.core.pose import relative
-from service.logs import attach_reference, load_reference, read_log
 
 pytestmark = pytest.mark.integration
 

@@ -34,7 +34,7 @@ import zenoh
 
 from schemas.codec import decode, encode
 from schemas.messages import Health, Map, PoseMsg, RobotConfig, Scan
-from service.convert import map_message_of
+from service.adapters.convert import map_message_of
 from sim_publisher.office import office_metric_map
 from sim_publisher.scenario import make_setup
 

@@ -20,7 +20,7 @@ import zenoh
 
 from schemas.codec import decode, encode
 from schemas.messages import ErrorNotice, Health, Map, PoseMsg, RobotConfig, Scan
-from service.convert import map_message_of
+from service.adapters.convert import map_message_of
 from service.core.factory import create_localizer
 from sim_publisher.office import office_metric_map, office_schematic_map
 from sim_publisher.scenario import make_setup

@@ -240,7 +240,7 @@ def test_arrays_are_read_only_float64() -> None:
 
 
 def test_map_data_of() -> None:
-    from service.convert import map_data_of, map_message_of
+    from service.adapters.convert import map_data_of, map_message_of
 
     m = full_samples()[0]
     assert isinstance(m, Map)

@@ -9,7 +9,7 @@ import pytest
 import shapely
 from shapely.geometry import LineString, Point
 
-from service.convert import map_message_of
+from service.adapters.convert import map_message_of
 from sim_publisher.office import office_metric_map, office_schematic_map, office_world
 
 

@@ -14,7 +14,7 @@ import pytest
 
 from schemas.codec import decode, encode, scan_arrays
 from schemas.messages import Scan, Truth
-from service.logs import LogScan
+from service.adapters.logs import LogScan
 from sim_publisher.__main__ import build_parser
 from sim_publisher.replay import (
     Progress,

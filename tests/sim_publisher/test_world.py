@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from service.adapters.maps.world import World, load_world
 from service.errors import InvalidWorld
-from service.maps.world import World, load_world
 
 
 def _feature(coords, fid: str | None = "box", gtype: str = "Polygon") -> dict:

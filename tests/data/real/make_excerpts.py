@@ -17,9 +17,9 @@ Writes, for the first ``--scans`` scans of each log (see README.md beside this f
 - ``<log>.300.gfs_reference_per_scan.txt``: the comment lines and the first ``--scans`` rows of
   the per-scan reference file (one row per raw scan, the same order).
 - ``<log>.300.relations``: the relations whose two stamps are both among the kept scans'.
-- ``fr079.300.map.json``: a wire map (``service.maps.files.save_map_file``) built by
-  ``service.maps.build.build_map`` from the kept fr079 scans that have a flag-1 reference, each
-  at its reference (laser) pose; its fidelity (median / p90 distance of those scans' points to
+- ``fr079.300.map.json``: a wire map (``service.adapters.maps.files.save_map_file``) built by
+  ``service.adapters.maps.build.build_map`` from the kept fr079 scans that have a flag-1 reference,
+  each at its reference (laser) pose; its fidelity (median / p90 distance of those scans' points to
   the map's polylines) is printed.
 - ``intel.300.map.json``, ``mit-csail.300.map.json``: the whole-log metric maps the real-data
   benchmark uses (``docs/real/maps/{log}.geojson``, written by ``bench/bench_maps.py``) clipped
@@ -162,10 +162,10 @@ def cut_relations(src: Path, dst: Path, stamps: list[float]) -> int:
 
 def build_fr079_map(bag: Path, reference: Path, dst: Path) -> None:
     """Build the fr079 excerpt's map from its flag-1 scans at their reference poses."""
-    from service.logs import attach_reference, load_reference, read_log
-    from service.maps.build import build_map
-    from service.maps.fidelity import map_fidelity
-    from service.maps.files import save_map_file
+    from service.adapters.logs import attach_reference, load_reference, read_log
+    from service.adapters.maps.build import build_map
+    from service.adapters.maps.fidelity import map_fidelity
+    from service.adapters.maps.files import save_map_file
 
     info, it = read_log(bag)
     scans = [s for s in attach_reference(it, load_reference(reference)) if s.reference_ok]
@@ -188,10 +188,10 @@ def clip_full_map(log: Path, reference: Path, full_map: Path, dst: Path, map_id:
     and print its fidelity on the excerpt's flag-1 scans."""
     from shapely.geometry import LineString, box
 
+    from service.adapters.logs import attach_reference, load_reference, read_log
+    from service.adapters.maps.fidelity import map_fidelity
+    from service.adapters.maps.files import load_map_file, save_map_file
     from service.core.types import MapData
-    from service.logs import attach_reference, load_reference, read_log
-    from service.maps.fidelity import map_fidelity
-    from service.maps.files import load_map_file, save_map_file
 
     info, it = read_log(log)
     scans = list(attach_reference(it, load_reference(reference), scan_count=info.scan_count))
@@ -279,7 +279,7 @@ def cut_window(
     odometry pose each scan carries), ``reference`` ``(n, 3)``, ``flag`` ``(n,)`` (GMapping's
     per-scan reference and its flag) and ``scan`` ``(n,)`` (the scan's number in the whole
     log). Returns the number of scans kept and of flag-1 scans among them."""
-    from service.logs import attach_reference, load_reference, read_log
+    from service.adapters.logs import attach_reference, load_reference, read_log
 
     files = {"fr079": "fr079.orig.bag", "intel": "intel.orig.bag", "mit-csail": "mit-csail.clf"}
     info, it = read_log(src / files[name], limit=first + count)

@@ -9,12 +9,12 @@ from pathlib import Path
 
 import numpy as np
 
+from service.adapters.maps.files import load_map_file
 from service.core.factory import create_localizer
 from service.core.global_localization import GlobalShapeLocalizer
 from service.core.pose import compose, invert
 from service.core.probation import Probation
 from service.core.types import Estimate, wrap_angle
-from service.maps.files import load_map_file
 
 DATA = Path(__file__).resolve().parents[2] / "data" / "real"
 

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from service.adapters.maps.files import load_map_file
 from service.core import global_search as gs
 from service.core.factory import create_localizer
 from service.core.global_config import GlobalConfig
@@ -14,7 +15,6 @@ from service.core.global_localization import load_or_build_index
 from service.core.global_search import global_search
 from service.core.localizer import ShapeConfig
 from service.core.types import wrap_angle
-from service.maps.files import load_map_file
 from sim_publisher.scenario import make_setup
 
 DATA = Path(__file__).resolve().parents[2] / "data" / "real"

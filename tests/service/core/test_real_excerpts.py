@@ -14,9 +14,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from service.adapters.logs import attach_reference, load_reference, read_log
+from service.adapters.maps.files import load_map_file
 from service.core.factory import create_localizer
-from service.logs import attach_reference, load_reference, read_log
-from service.maps.files import load_map_file
 
 DATA = Path(__file__).resolve().parents[2] / "data" / "real"
 LOGS = {"intel": "intel.300.bag", "fr079": "fr079.300.bag", "mit-csail": "mit-csail.300.clf.gz"}

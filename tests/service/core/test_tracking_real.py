@@ -10,10 +10,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from service.adapters.maps.files import load_map_file
 from service.core.factory import create_localizer
 from service.core.global_localization import GlobalShapeLocalizer
 from service.core.pose import compose, relative
-from service.maps.files import load_map_file
 
 DATA = Path(__file__).resolve().parents[2] / "data" / "real"
 

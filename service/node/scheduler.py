@@ -1,0 +1,173 @@
+"""Compute scheduling: which robot's validated scan runs next, on which worker.
+
+* :class:`LatestSlots`: per-robot latest-wins slots of *validated* scans (the intake,
+  :mod:`service.node.intake`, never puts an invalid one here), served round robin over robots.
+* :class:`WorkerLink`: one worker plus the thread that feeds it: control requests (maps,
+  configs) first, then the next robot with a pending scan, one request in flight.
+
+The node (:class:`service.node.node.ServiceNode`) implements :class:`LinkHost` (in its
+:class:`~service.node.compute.ComputePlane` part): it decides what a scan's result means
+(publishing the pose) and how a dead worker is restarted.
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+import time
+from collections import OrderedDict
+from concurrent.futures import Future
+from typing import Any, Protocol
+
+from service.errors import ServiceTimeout
+from service.node.intake import ControlClock, ValidScan
+from service.node.workers import InlineWorker, ProcessWorker, WorkerDiedError
+
+log = logging.getLogger("shapeloc.service")
+
+Worker = ProcessWorker | InlineWorker
+
+
+class LatestSlots:
+    """Per-robot latest-wins slots with round-robin order over robots (thread-safe).
+
+    :meth:`offer` keeps only the newest item per robot (the replaced one is counted as
+    skipped) and never blocks; a robot keeps its place in the round-robin order while it has a
+    pending item, so a robot that publishes fast cannot starve the others. At most ``capacity``
+    robots can be pending; further new robots are refused (``offer`` returns ``False``).
+    """
+
+    def __init__(self, capacity: int) -> None:
+        self._items: OrderedDict[str, Any] = OrderedDict()
+        self._cond = threading.Condition()
+        self.capacity = capacity
+        self.skipped = 0
+        self.refused = 0
+        self._kick = False
+
+    def offer(self, robot_id: str, item: Any) -> bool:
+        """Store ``item`` as the newest pending item of ``robot_id``."""
+        with self._cond:
+            if robot_id in self._items:
+                self.skipped += 1
+                self._items[robot_id] = item
+            elif len(self._items) >= self.capacity:
+                self.refused += 1
+                return False
+            else:
+                self._items[robot_id] = item
+            self._cond.notify()
+            return True
+
+    def kick(self) -> None:
+        """Wake a waiting :meth:`take` (it returns ``None`` once)."""
+        with self._cond:
+            self._kick = True
+            self._cond.notify_all()
+
+    def take(self, timeout_s: float | None = None) -> tuple[str, Any] | None:
+        """Oldest pending robot and its newest item, or ``None`` on timeout / kick."""
+        with self._cond:
+            if not self._items and not self._kick:
+                self._cond.wait(timeout_s)
+            self._kick = False
+            if not self._items:
+                return None
+            return self._items.popitem(last=False)
+
+    def discard(self, robot_id: str) -> None:
+        """Drop a pending item (robot forgotten)."""
+        with self._cond:
+            self._items.pop(robot_id, None)
+
+    def __len__(self) -> int:
+        with self._cond:
+            return len(self._items)
+
+
+class LinkHost(Protocol):
+    """What a :class:`WorkerLink` needs from the node that owns it."""
+
+    stopping: threading.Event
+    clock: ControlClock
+    worker_timeout_s: float
+
+    def new_worker(self, index: int) -> Worker:
+        """A fresh worker for link ``index``."""
+        ...
+
+    def restart_worker(self, link: WorkerLink) -> None:
+        """Replace ``link.worker`` by a fresh one and replay maps/configs into it."""
+        ...
+
+    def process_scan(self, link: WorkerLink, scan: ValidScan) -> None:
+        """Run ``scan`` on ``link`` and publish the result."""
+        ...
+
+
+class WorkerLink:
+    """A worker plus the thread that feeds it (control requests first, then scans)."""
+
+    def __init__(self, host: LinkHost, index: int, slot_capacity: int) -> None:
+        self.host = host
+        self.index = index
+        self.worker: Worker = host.new_worker(index)
+        self.slots = LatestSlots(capacity=slot_capacity)
+        self.control: queue.SimpleQueue[tuple[tuple[Any, ...], Future[Any]]] = queue.SimpleQueue()
+        self.thread = threading.Thread(target=self._run, name=f"shapeloc-link-{index}", daemon=True)
+
+    def submit(self, req: tuple[Any, ...]) -> Future[Any]:
+        """Queue a control request for this worker; the future gets its reply tuple."""
+        fut: Future[Any] = Future()
+        self.control.put((req, fut))
+        self.slots.kick()
+        return fut
+
+    def call(self, req: tuple[Any, ...]) -> tuple[str, Any]:
+        """Run a request on the worker, restarting it (and failing this request) if it dies."""
+        try:
+            return self.worker.call(req, self.host.worker_timeout_s)
+        except (WorkerDiedError, ServiceTimeout) as e:
+            log.error("worker %d: %s; restarting it", self.index, e)
+            self.host.restart_worker(self)
+            return ("err", str(e))
+
+    def _drain_control(self) -> None:
+        while True:
+            try:
+                req, fut = self.control.get_nowait()
+            except queue.Empty:
+                return
+            fut.set_result(self.call(req))
+
+    def _await_control(self, ctl: int, timeout_s: float = 5.0) -> None:
+        """Wait until control message ``ctl`` (and all before it) is applied, serving this
+        worker's control requests meanwhile (the control thread may be waiting on them)."""
+        host = self.host
+        deadline = time.monotonic() + timeout_s
+        while not host.stopping.is_set() and time.monotonic() < deadline:
+            self._drain_control()
+            if host.clock.wait_applied(ctl, 0.005):
+                return
+
+    def _run(self) -> None:
+        host = self.host
+        while not host.stopping.is_set():
+            self._drain_control()
+            got = self.slots.take(timeout_s=0.5)
+            if got is None:
+                continue
+            _robot_id, scan = got
+            self._await_control(scan.ctl)
+            try:
+                host.process_scan(self, scan)
+            except Exception:  # never let the link die
+                log.exception("unexpected error processing a scan of %s", scan.robot_id)
+        # drain control so no caller waits forever
+        while True:
+            try:
+                _req, fut = self.control.get_nowait()
+            except queue.Empty:
+                break
+            fut.set_result(("err", "service is shutting down"))
