@@ -44,6 +44,12 @@ ADAPTERS = ("service.adapters.logs", "service.adapters.maps", "service.adapters.
 #: First matching rule wins (most specific first).
 RULES: tuple[Rule, ...] = (
     Rule("service.errors", ("service.errors",), allowed=()),
+    Rule(
+        "schemas.ros2.*",
+        ("schemas.ros2",),
+        allowed=("schemas", "service.errors"),
+        forbidden=("zenoh",),
+    ),
     Rule("schemas.*", ("schemas",), allowed=("schemas", "service.errors")),
     Rule(
         "service.core.*",
