@@ -203,6 +203,26 @@ class Ros2Front:
             log.warning("configuration look-up of %s failed: %s", robot_id, exc)
         self._events.put(("probe", robot_id, up, cfg))
 
+    def _confirm(self, robot_id: str, within: float = 5.0) -> None:
+        """Wait (in a helper thread) until the service answers for a robot the front just
+        configured, so its scans do not overtake the configuration."""
+        key = keys.robot_key(self.o.prefix, robot_id, "pose")
+        end = time.monotonic() + within
+        while time.monotonic() < end and not self._stop.is_set():
+            try:
+                for reply in self.session.get(key, timeout=0.5):
+                    if reply.ok is not None:
+                        self._events.put(("ack", robot_id))
+                        return
+                    text = reply.err.payload.to_bytes().decode("utf-8", "replace").lower()
+                    if "unknown robot" not in text and text != "timeout":
+                        self._events.put(("ack", robot_id))
+                        return
+            except zenoh.ZError:
+                pass
+            time.sleep(0.05)
+        self._events.put(("ack", robot_id))  # go on anyway; rejected scans are reported
+
     # ----------------------------------------------------------------- worker
     def _run(self) -> None:
         next_tick = 0.0
@@ -229,6 +249,12 @@ class Ros2Front:
             return
         if kind == "probe":
             self._on_probe(ev[1], ev[2], ev[3])
+            return
+        if kind == "ack":
+            robot = self.robots.get(self.by_id.get(ev[1], ""))
+            if robot is not None:
+                robot.awaiting_ack = False
+                self._serve(robot, time.monotonic())
             return
         _, key, payload, att, enc = ev
         if kind == "pose":
@@ -331,6 +357,11 @@ class Ros2Front:
             for key, msg in robot.plan_config(self._global_grid, global_ready):
                 self._put(key, msg)
                 log.info("put %s", key)
+                if isinstance(msg, RobotConfig) and not robot.awaiting_ack:
+                    robot.awaiting_ack = True
+                    threading.Thread(
+                        target=self._confirm, args=(robot.robot_id,), name="ros2-ack", daemon=True
+                    ).start()
         except InvalidMessage as exc:
             self._reject(f"{self.o.prefix}/robots/{robot.robot_id}/config", str(exc))
         scans, errors = robot.ready_scans(now)

@@ -112,6 +112,8 @@ class RosRobot:
         self._put_map: object | None = None  # the grid last put as a map
         self._configured_with: tuple[object, ...] | None = None
         self.first_scan_at: float | None = None
+        #: A configuration was put and the service has not shown it holds it yet.
+        self.awaiting_ack = False
         self.probe_at = 0.0
         self.counters = Counters()
 
@@ -158,6 +160,8 @@ class RosRobot:
     @property
     def configured(self) -> bool:
         """Whether scans may go to the service."""
+        if self.awaiting_ack:
+            return False
         return self.config == "shapeloc" or (
             self.config == "ros" and self._configured_with is not None
         )
@@ -179,21 +183,20 @@ class RosRobot:
         return None
 
     def _config_message(self, map_id: str, method: str) -> RobotConfig | None:
-        """The configuration to put, or None while the mounting is still unknown."""
+        """The configuration to put, or None while no scan has named the laser frame (its
+        mounting is needed to put the initial pose, or the ``laser_offset``)."""
         pose = None
         extra: dict[str, object] = {}
         mount = self._last_mount()
+        if mount is None:  # configure once a scan names the laser frame: its mounting is known
+            return None
         if self.initial_pose is not None:
             base = (self.initial_pose.x, self.initial_pose.y, self.initial_pose.yaw)
             if OFFSET_IN_CONFIG:
                 pose = list(base)
-            elif mount is None:
-                return None
             else:
                 pose = [float(v) for v in compose(np.asarray(base), np.asarray(mount))]
         if OFFSET_IN_CONFIG:
-            if mount is None:
-                return None
             extra["laser_offset"] = [float(v) for v in mount]
         return RobotConfig(map_id=map_id, method=method, initial_pose=pose, **extra)
 
