@@ -1,0 +1,379 @@
+"""What the live view knows: the latest state of every robot and map, built from raw samples.
+
+:class:`ViewState` takes the raw samples the server's Zenoh subscribers queued (``ingest``:
+key, put or delete, payload bytes, encoding, receipt time) and turns them into the messages
+the page draws (``frame``, ``maps_message``). It imports neither zenoh nor the web server, so
+it is tested without either.
+
+Costs are bounded so that the view never competes with the service it watches:
+
+* every pose is decoded (the path and the status need them all: about 70 µs each);
+* scans are **not** decoded on arrival: each robot keeps its last few raw scan payloads, and
+  a frame decodes only the one that answers the robot's latest pose (same ``seq``), only for
+  robots some page shows, and only once (the decoded beams are kept with the payload);
+* beams are thinned to at most ``max_beams`` per scan, ranges rounded to a millimetre;
+* the number of robots and maps kept is capped (ids come from the network).
+
+Every network input is untrusted: a payload that does not decode, a key that is not a valid
+robot or map key, or a pose whose ``robot_id`` differs from its key is counted in
+:attr:`ViewState.rejected` (by reason) and logged once per reason, and nothing else changes.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections import Counter, deque
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from schemas import keys
+from schemas.codec import decode, scan_arrays
+from schemas.messages import Map, PoseMsg, Scan
+from service.errors import InvalidMessage
+
+log = logging.getLogger("shapeloc.view")
+
+#: A queued sample: (key, is_delete, payload, encoding, receipt time in s since the epoch).
+RawSample = tuple[str, bool, bytes, str | None, float]
+
+#: Defaults (see :class:`ViewState`).
+PATH_LEN = 300
+SCAN_RING = 16
+MAX_BEAMS = 360
+MAX_ROBOTS = 1000
+MAX_MAPS = 64
+#: Distinct rejection reasons kept (the rest are counted as "<kind>: other").
+MAX_REASONS = 64
+#: A robot with no pose for this long is shown as stale; after FORGET_S it is dropped.
+STALE_S = 3.0
+FORGET_S = 600.0
+#: Poses of these statuses are not added to the path: during a global search the published
+#: pose is the best hypothesis so far, which jumps between places.
+NO_PATH_STATUSES = frozenset({"initializing"})
+
+
+@dataclass
+class _ScanSlot:
+    """One raw scan payload; ``seq`` and ``beams`` are filled when it is first decoded."""
+
+    payload: bytes
+    encoding: str | None
+    decoded: bool = False
+    seq: int = -1
+    beams: dict[str, Any] | None = None
+
+
+@dataclass
+class RobotView:
+    """The latest of one robot: its pose, recent path, raw scans and arrival times."""
+
+    robot_id: str
+    path_len: int
+    scan_ring: int
+    pose: PoseMsg | None = None
+    received_at: float = 0.0
+    poses: int = 0
+    scans: int = 0
+    path: deque[tuple[float, float]] = field(init=False)
+    new_points: list[tuple[float, float]] = field(default_factory=list)
+    ring: deque[_ScanSlot] = field(init=False)
+    arrivals: deque[float] = field(default_factory=lambda: deque(maxlen=128))
+
+    def __post_init__(self) -> None:
+        self.path = deque(maxlen=self.path_len)
+        self.ring = deque(maxlen=self.scan_ring)
+
+    def rate_hz(self, now: float, window_s: float = 2.0) -> float:
+        """Poses per second over the last ``window_s`` seconds."""
+        n = sum(1 for t in self.arrivals if now - t <= window_s)
+        return n / window_s
+
+
+def _r(v: float, nd: int) -> float:
+    return round(float(v), nd)
+
+
+def map_payload(m: Map) -> dict[str, Any]:
+    """A stored map as the page draws it: polylines in mm-rounded metres and their bounds."""
+    lines = [np.round(p, 3).tolist() for p in m.polylines]
+    pts = np.concatenate(m.polylines, axis=0)
+    lo, hi = pts.min(axis=0), pts.max(axis=0)
+    return {
+        "id": m.map_id,
+        "kind": m.kind,
+        "name": m.name or "",
+        "polylines": lines,
+        "bounds": [_r(lo[0], 3), _r(lo[1], 3), _r(hi[0], 3), _r(hi[1], 3)],
+    }
+
+
+def scan_beams(scan: Scan, max_beams: int = MAX_BEAMS) -> dict[str, Any]:
+    """A scan's beams for the page: ``a0`` (rad), ``da`` (rad between the beams sent) and
+    ``r`` (m, rounded to 1 mm; ``None`` = no return), thinned to at most ``max_beams``."""
+    ranges, _angles = scan_arrays(scan)
+    step = max(1, math.ceil(ranges.size / max(1, max_beams)))
+    r = np.round(ranges[::step], 3)
+    return {
+        "seq": scan.seq,
+        "a0": float(scan.angle_min),
+        "da": float(scan.angle_increment * step),
+        "r": [None if v != v else v for v in r.tolist()],
+    }
+
+
+class ViewState:
+    """The view's model of the fleet, fed with raw samples, read as page messages.
+
+    ``prefix``: the wire's key prefix. ``path_len``: positions kept per robot for its path.
+    ``scan_ring``: raw scans kept per robot to find the one its latest pose answers.
+    ``max_beams``: beams per scan sent to the page. ``max_robots`` / ``max_maps``: caps on
+    what the network can make this process keep.
+    """
+
+    def __init__(
+        self,
+        prefix: str = keys.DEFAULT_PREFIX,
+        *,
+        path_len: int = PATH_LEN,
+        scan_ring: int = SCAN_RING,
+        max_beams: int = MAX_BEAMS,
+        max_robots: int = MAX_ROBOTS,
+        max_maps: int = MAX_MAPS,
+    ) -> None:
+        self.prefix = keys.validate_prefix(prefix)
+        self.path_len = path_len
+        self.scan_ring = scan_ring
+        self.max_beams = max_beams
+        self.max_robots = max_robots
+        self.max_maps = max_maps
+        self.robots: dict[str, RobotView] = {}
+        self.maps: dict[str, Map] = {}
+        self._map_payloads: dict[str, dict[str, Any]] = {}
+        #: Bumped whenever a map is stored or deleted (the server then resends the maps).
+        self.maps_version = 0
+        #: Rejected samples by reason ("pose: ...", "scan: ...", "map: ...", "key: ...").
+        self.rejected: Counter[str] = Counter()
+        self.decoded_scans = 0
+        self.health: dict[str, Any] | None = None
+        self._prefix_robots = f"{self.prefix}/robots/"
+        self._prefix_maps = f"{self.prefix}/maps/"
+
+    # ------------------------------------------------------------------ intake
+    def _reject(self, reason: str) -> None:
+        if reason not in self.rejected:
+            if len(self.rejected) >= MAX_REASONS:
+                reason = reason.split(":", 1)[0] + ": other"
+            else:
+                log.warning("view: rejected a sample (%s); the next ones are counted", reason)
+        self.rejected[reason] += 1
+
+    def ingest_all(self, samples: Iterable[RawSample]) -> None:
+        """:meth:`ingest` each sample in order."""
+        for s in samples:
+            self.ingest(*s)
+
+    def ingest(
+        self, key: str, delete: bool, payload: bytes, encoding: str | None, t: float
+    ) -> None:
+        """Take one raw sample of a pose, scan or map key (anything else is rejected)."""
+        try:
+            if key.startswith(self._prefix_robots):
+                robot_id, leaf = keys.parse_robot_key(self.prefix, key)
+                if leaf == "pose" and not delete:
+                    self._on_pose(robot_id, payload, encoding, t)
+                elif leaf == "scan" and not delete:
+                    self._on_scan(robot_id, payload, encoding)
+                return
+            if key.startswith(self._prefix_maps):
+                map_id = keys.parse_map_key(self.prefix, key)
+                if delete:
+                    self.delete_map(map_id)
+                else:
+                    self._on_map(map_id, payload, encoding)
+                return
+            self._reject("key: not a robot or map key")
+        except InvalidMessage as exc:
+            self._reject(f"{_kind_of(key)}: {_first_words(str(exc))}")
+
+    def _robot(self, robot_id: str) -> RobotView | None:
+        r = self.robots.get(robot_id)
+        if r is None:
+            if len(self.robots) >= self.max_robots:
+                self._reject(f"robots: more than {self.max_robots}")
+                return None
+            r = RobotView(robot_id, self.path_len, self.scan_ring)
+            self.robots[robot_id] = r
+        return r
+
+    def _on_pose(self, robot_id: str, payload: bytes, encoding: str | None, t: float) -> None:
+        msg = decode(PoseMsg, payload, encoding)
+        if msg.robot_id != robot_id:
+            raise InvalidMessage(f"robot_id {msg.robot_id!r} differs from the key's")
+        r = self._robot(robot_id)
+        if r is None:
+            return
+        if r.pose is not None and r.pose.map_id != msg.map_id:
+            r.path.clear()  # another map, other coordinates
+            r.new_points.clear()
+        r.pose = msg
+        r.received_at = t
+        r.poses += 1
+        r.arrivals.append(t)
+        if msg.status not in NO_PATH_STATUSES:
+            pt = (_r(msg.pose[0], 3), _r(msg.pose[1], 3))
+            r.path.append(pt)
+            r.new_points.append(pt)
+
+    def _on_scan(self, robot_id: str, payload: bytes, encoding: str | None) -> None:
+        r = self._robot(robot_id)
+        if r is None:
+            return
+        r.scans += 1
+        r.ring.append(_ScanSlot(payload, encoding))
+
+    def _on_map(self, map_id: str, payload: bytes, encoding: str | None) -> None:
+        msg = decode(Map, payload, encoding)
+        if msg.map_id != map_id:
+            raise InvalidMessage(f"map_id {msg.map_id!r} differs from the key's")
+        if map_id not in self.maps and len(self.maps) >= self.max_maps:
+            self._reject(f"maps: more than {self.max_maps}")
+            return
+        old = self.maps.get(map_id)
+        if old is not None and old == msg:
+            return
+        self.maps[map_id] = msg
+        self._map_payloads[map_id] = map_payload(msg)
+        self.maps_version += 1
+
+    def delete_map(self, map_id: str) -> None:
+        """Forget a map (deleted on the wire)."""
+        if self.maps.pop(map_id, None) is not None:
+            self._map_payloads.pop(map_id, None)
+            self.maps_version += 1
+
+    def missing_maps(self) -> set[str]:
+        """Map ids some robot uses that this view does not hold (to ask the service for)."""
+        used = {r.pose.map_id for r in self.robots.values() if r.pose is not None}
+        return used - set(self.maps)
+
+    # ------------------------------------------------------------------ output
+    def maps_message(self) -> dict[str, Any]:
+        """``{"type": "maps", "maps": [...]}``: every map held, sorted by id."""
+        return {
+            "type": "maps",
+            "version": self.maps_version,
+            "maps": [self._map_payloads[k] for k in sorted(self._map_payloads)],
+        }
+
+    def _scan_for(self, r: RobotView) -> dict[str, Any] | None:
+        """The beams of the scan the robot's latest pose answers, if it is still held."""
+        if r.pose is None:
+            return None
+        want = r.pose.seq
+        for slot in reversed(r.ring):
+            if not slot.decoded:
+                slot.decoded = True
+                try:
+                    scan = decode(Scan, slot.payload, slot.encoding)
+                except InvalidMessage as exc:
+                    self._reject(f"scan: {_first_words(str(exc))}")
+                    continue
+                self.decoded_scans += 1
+                slot.seq = scan.seq
+                slot.beams = scan_beams(scan, self.max_beams)
+                slot.payload = b""  # decoded once: the bytes are no longer needed
+            if slot.seq == want:
+                return slot.beams
+            if 0 <= slot.seq < want:
+                return None  # older than the pose: the answered scan is gone
+        return None
+
+    def frame(
+        self,
+        now: float,
+        *,
+        full: bool = False,
+        with_scan: Callable[[str], bool] | None = None,
+    ) -> dict[str, Any]:
+        """``{"type": "frame", ...}``: every robot's latest state.
+
+        ``full``: each robot's whole path (``path``) rather than the positions added since
+        the last :meth:`end_tick` (``trail``). ``with_scan(robot_id)``: whether to include the
+        robot's scan (default: every robot); only those scans are ever decoded.
+        """
+        out = []
+        for rid in sorted(self.robots):
+            r = self.robots[rid]
+            if now - r.received_at > FORGET_S and r.received_at > 0:
+                continue
+            out.append(self._robot_entry(r, now, full, with_scan is None or with_scan(rid)))
+        return {
+            "type": "frame",
+            "time": now,
+            "robots": out,
+            "rejected": sum(self.rejected.values()),
+            "service": self.health,
+        }
+
+    def _robot_entry(self, r: RobotView, now: float, full: bool, scan: bool) -> dict[str, Any]:
+        e: dict[str, Any] = {"id": r.robot_id, "hz": _r(r.rate_hz(now), 1)}
+        if full:
+            e["path"] = [list(p) for p in r.path]
+        else:
+            e["trail"] = [list(p) for p in r.new_points]
+        p = r.pose
+        if p is None:
+            e["status"] = None
+            return e
+        e.update(
+            map=p.map_id,
+            status=p.status,
+            seq=p.seq,
+            x=float(p.pose[0]),
+            y=float(p.pose[1]),
+            th=float(p.pose[2]),
+            lat=_r(p.latency_ms, 2),
+            score=_r(p.score, 3),
+            method=p.method,
+            age=_r(max(0.0, now - r.received_at), 2),
+            stale=now - r.received_at > STALE_S,
+        )
+        if p.explained is not None:
+            e["explained"] = _r(p.explained, 3)
+        if p.ambiguity is not None:
+            e["ambiguity"] = _r(p.ambiguity, 3)
+        if p.hypotheses is not None:
+            e["hyp"] = p.hypotheses
+        if p.candidates is not None and len(p.candidates):
+            e["cand"] = np.round(p.candidates, 4).tolist()
+        if p.covariance is not None:
+            c = p.covariance
+            e["cov"] = [float(c[0, 0]), float(c[0, 1]), float(c[1, 1])]
+        if scan:
+            beams = self._scan_for(r)
+            if beams is not None:
+                e["scan"] = beams
+        return e
+
+    def end_tick(self, now: float) -> None:
+        """After a frame went out: clear the per-tick path additions, drop forgotten robots."""
+        for rid in list(self.robots):
+            r = self.robots[rid]
+            r.new_points.clear()
+            if r.received_at > 0 and now - r.received_at > FORGET_S:
+                del self.robots[rid]
+
+
+def _kind_of(key: str) -> str:
+    parts = key.split("/")
+    if "maps" in parts:
+        return "map"
+    return parts[-1] if parts and parts[-1] in ("pose", "scan") else "key"
+
+
+def _first_words(text: str, limit: int = 80) -> str:
+    return text if len(text) <= limit else text[: limit - 3] + "..."

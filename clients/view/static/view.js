@@ -1,0 +1,553 @@
+// The shapeloc live view: draws what the server pushes over /ws on a 2D canvas.
+// Messages: "hello" (colours, rates), "maps" (every map's polylines), "frame" (every robot's
+// latest state; "path" in the first frame, "trail" = positions added since the previous one).
+// Map frame: x right, y up (REP 103); the canvas is y down, so y is flipped when drawn.
+// window.shapelocView exposes the state (frames, update rate, what was drawn where) so that a
+// test driving a headless browser can check the picture against the published poses.
+"use strict";
+(() => {
+  const $ = (id) => document.getElementById(id);
+  const canvas = $("canvas");
+  const ctx = canvas.getContext("2d");
+
+  const S = {
+    palette: null,
+    maps: {},
+    mapId: null,
+    overlayId: "",
+    userPickedMap: false,
+    robots: new Map(),
+    hidden: new Set(),
+    view: null,
+    pathLen: 300,
+    frames: 0,
+    frameTimes: [],
+    rate: 0,
+    lastFrame: null,
+    connected: false,
+    drawn: {},
+    lastSelect: null,
+    errors: [],
+  };
+  window.shapelocView = S;
+
+  // Optional query parameters: ?map=ID&overlay=ID&robots=a,b (the robots drawn; default all).
+  const params = new URLSearchParams(location.search);
+  const wantMap = params.get("map");
+  let wantOverlay = params.get("overlay") || "";
+  const wantRobots = params.get("robots") ? new Set(params.get("robots").split(",")) : null;
+
+  // ------------------------------------------------------------------ colours
+  function statusColour(st) {
+    const p = S.palette;
+    if (!p) return "#8c8c8c";
+    const e = p.status[st];
+    return e ? e.colour : p.unknown;
+  }
+  function statusLabel(st) {
+    const p = S.palette;
+    const e = p && p.status[st];
+    return e ? e.label : (st || "no pose");
+  }
+  function buildLegend() {
+    const p = S.palette;
+    const el = $("legend");
+    el.textContent = "";
+    const add = (colour, text, cls) => {
+      const s = document.createElement("span");
+      const d = document.createElement("i");
+      d.className = cls;
+      d.style.background = colour;
+      s.append(d, text);
+      el.append(s);
+    };
+    for (const st of Object.keys(p.status)) add(p.status[st].colour, p.status[st].label, "dot");
+    add(p.unknown, "other", "dot");
+    add(p.scan, "scan at pose", "sq");
+    add(p.candidate, "candidate", "sq");
+  }
+
+  // ------------------------------------------------------------------ messages
+  function onHello(m) {
+    S.palette = m.palette;
+    S.pathLen = m.path_len || 300;
+    buildLegend();
+  }
+
+  function onMaps(m) {
+    S.maps = {};
+    for (const mp of m.maps) S.maps[mp.id] = mp;
+    if (S.mapId && !S.maps[S.mapId]) { S.mapId = null; S.userPickedMap = false; }
+    if (S.overlayId && !S.maps[S.overlayId]) S.overlayId = "";
+    fillMapSelects();
+    chooseMap();
+    requestDraw();
+  }
+
+  function onFrame(m) {
+    const seen = new Set();
+    for (const e of m.robots) {
+      seen.add(e.id);
+      let r = S.robots.get(e.id);
+      if (!r) {
+        r = { id: e.id, path: [] };
+        S.robots.set(e.id, r);
+        if (wantRobots && !wantRobots.has(e.id)) S.hidden.add(e.id);
+      }
+      if (e.path) r.path = e.path.slice(-S.pathLen);
+      else if (e.trail && e.trail.length) {
+        if (r.map !== undefined && e.map !== r.map) r.path = [];
+        for (const p of e.trail) r.path.push(p);
+        if (r.path.length > S.pathLen) r.path.splice(0, r.path.length - S.pathLen);
+      }
+      for (const k of ["map", "status", "seq", "x", "y", "th", "lat", "score", "method",
+        "age", "stale", "explained", "ambiguity", "hyp", "cand", "cov", "hz"]) {
+        r[k] = e[k];
+      }
+      r.scan = e.scan || null;
+    }
+    for (const id of [...S.robots.keys()]) if (!seen.has(id)) S.robots.delete(id);
+    S.lastFrame = m;
+    chooseMap();
+    draw();
+    S.frames += 1;
+    const now = performance.now();
+    S.frameTimes.push(now);
+    while (S.frameTimes.length && now - S.frameTimes[0] > 2000) S.frameTimes.shift();
+    const n = S.frameTimes.length;
+    S.rate = n > 1 ? (1000 * (n - 1)) / (S.frameTimes[n - 1] - S.frameTimes[0]) : 0;
+    updatePanel(m);
+    sendSelection();
+  }
+
+  // ------------------------------------------------------------------ map choice
+  function robotsOn(mapId) {
+    let n = 0;
+    for (const r of S.robots.values()) if (r.map === mapId) n += 1;
+    return n;
+  }
+  function chooseMap() {
+    const ids = Object.keys(S.maps).sort();
+    if (!ids.length) return;
+    if (wantOverlay && S.maps[wantOverlay] && wantOverlay !== (wantMap || S.mapId)) {
+      S.overlayId = wantOverlay; // asked for in the URL: applied once that map is known
+      wantOverlay = "";
+      fillMapSelects();
+    }
+    if (wantMap && S.maps[wantMap] && !S.userPickedMap) {
+      setMap(wantMap, true);
+      return;
+    }
+    if (S.userPickedMap && S.maps[S.mapId]) return;
+    let best = S.mapId && S.maps[S.mapId] ? S.mapId : ids[0];
+    for (const id of ids) if (robotsOn(id) > robotsOn(best)) best = id;
+    if (best !== S.mapId) setMap(best, false);
+  }
+  function setMap(id, byUser) {
+    S.mapId = id;
+    if (byUser) S.userPickedMap = true;
+    if (S.overlayId === id) S.overlayId = "";
+    fillMapSelects();
+    fit();
+  }
+  function fillMapSelects() {
+    const sel = $("map-select");
+    const ov = $("overlay-select");
+    const ids = Object.keys(S.maps).sort();
+    const label = (id) => `${id} (${S.maps[id].kind === "schematic" ? "floor plan" : "metric"})`;
+    const fill = (el, withNone, value) => {
+      el.textContent = "";
+      if (withNone) el.append(new Option("(none)", ""));
+      for (const id of ids) el.append(new Option(label(id), id));
+      el.value = value || "";
+    };
+    fill(sel, false, S.mapId);
+    fill(ov, true, S.overlayId);
+  }
+  $("map-select").addEventListener("change", (e) => setMap(e.target.value, true));
+  $("overlay-select").addEventListener("change", (e) => {
+    wantOverlay = "";
+    S.overlayId = e.target.value === S.mapId ? "" : e.target.value;
+    requestDraw();
+    sendSelection();
+  });
+
+  // ------------------------------------------------------------------ view transform
+  function size() {
+    return { w: canvas.clientWidth, h: canvas.clientHeight };
+  }
+  function fit() {
+    const m = S.maps[S.mapId];
+    const { w, h } = size();
+    if (!m || w < 10 || h < 10) { S.view = S.view || { cx: 0, cy: 0, scale: 20 }; return; }
+    const [x0, y0, x1, y1] = m.bounds;
+    const pad = 24;
+    const scale = Math.min((w - 2 * pad) / Math.max(x1 - x0, 0.5), (h - 2 * pad) / Math.max(y1 - y0, 0.5));
+    S.view = { cx: (x0 + x1) / 2, cy: (y0 + y1) / 2, scale };
+    requestDraw();
+  }
+  function toScreen(x, y) {
+    const v = S.view;
+    const { w, h } = size();
+    return [(x - v.cx) * v.scale + w / 2, h / 2 - (y - v.cy) * v.scale];
+  }
+  S.toScreen = toScreen;
+
+  // ------------------------------------------------------------------ drawing
+  let drawPending = false;
+  function requestDraw() {
+    if (drawPending) return;
+    drawPending = true;
+    requestAnimationFrame(() => { drawPending = false; draw(); });
+  }
+
+  function visibleRobots() {
+    const out = [];
+    for (const r of S.robots.values()) {
+      if (r.status === undefined || r.status === null) continue;
+      if (r.map !== S.mapId && (!S.overlayId || r.map !== S.overlayId)) continue;
+      if (S.hidden.has(r.id)) continue;
+      out.push(r);
+    }
+    return out;
+  }
+
+  function drawMap(m, colour, width) {
+    ctx.strokeStyle = colour;
+    ctx.lineWidth = width;
+    ctx.lineJoin = "round";
+    ctx.beginPath();
+    for (const line of m.polylines) {
+      for (let i = 0; i < line.length; i++) {
+        const [sx, sy] = toScreen(line[i][0], line[i][1]);
+        if (i === 0) ctx.moveTo(sx, sy); else ctx.lineTo(sx, sy);
+      }
+    }
+    ctx.stroke();
+  }
+
+  function arrow(x, y, th, len, head) {
+    const [sx, sy] = toScreen(x, y);
+    const c = Math.cos(th), s = Math.sin(th);
+    const ex = sx + len * c, ey = sy - len * s;
+    ctx.moveTo(sx, sy);
+    ctx.lineTo(ex, ey);
+    ctx.moveTo(ex - head * (c - 0.5 * s), ey + head * (s + 0.5 * c));
+    ctx.lineTo(ex, ey);
+    ctx.lineTo(ex - head * (c + 0.5 * s), ey + head * (s - 0.5 * c));
+  }
+
+  function drawCovariance(r, colour) {
+    if (!r.cov) return;
+    const [a, b, c] = r.cov;
+    const mean = (a + c) / 2, d = Math.sqrt(((a - c) / 2) ** 2 + b * b);
+    const l1 = Math.max(mean + d, 0), l2 = Math.max(mean - d, 0);
+    const rx = 2 * Math.sqrt(l1) * S.view.scale, ry = 2 * Math.sqrt(l2) * S.view.scale;
+    if (!(rx > 3) || rx > 4000) return;
+    const ang = 0.5 * Math.atan2(2 * b, a - c);
+    const [sx, sy] = toScreen(r.x, r.y);
+    ctx.strokeStyle = colour;
+    ctx.lineWidth = 1;
+    ctx.setLineDash([4, 3]);
+    ctx.beginPath();
+    ctx.ellipse(sx, sy, rx, Math.max(ry, 1), -ang, 0, 2 * Math.PI);
+    ctx.stroke();
+    ctx.setLineDash([]);
+  }
+
+  function drawScan(r) {
+    const sc = r.scan;
+    if (!sc || sc.seq !== r.seq) return;
+    const v = S.view;
+    const { w, h } = size();
+    const c0 = Math.cos(r.th), s0 = Math.sin(r.th);
+    ctx.fillStyle = S.palette.scan;
+    const dot = v.scale > 25 ? 3 : 2;
+    for (let i = 0; i < sc.r.length; i++) {
+      const d = sc.r[i];
+      if (d === null) continue;
+      const a = sc.a0 + i * sc.da;
+      const lx = d * Math.cos(a), ly = d * Math.sin(a);
+      const x = r.x + c0 * lx - s0 * ly, y = r.y + s0 * lx + c0 * ly;
+      const px = (x - v.cx) * v.scale + w / 2, py = h / 2 - (y - v.cy) * v.scale;
+      ctx.fillRect(px - dot / 2, py - dot / 2, dot, dot);
+    }
+  }
+
+  function drawCandidates(r) {
+    if (!r.cand || !r.cand.length) return;
+    const len = Math.max(0.6 * S.view.scale, 14);
+    ctx.strokeStyle = S.palette.candidate;
+    ctx.fillStyle = S.palette.candidate;
+    ctx.font = "11px system-ui, sans-serif";
+    r.cand.forEach((c, k) => {
+      ctx.globalAlpha = Math.max(0.35, 1 - 0.15 * k);
+      ctx.lineWidth = k === 0 ? 2.5 : 1.5;
+      ctx.beginPath();
+      arrow(c[0], c[1], c[2], len, 6);
+      ctx.stroke();
+      const [sx, sy] = toScreen(c[0], c[1]);
+      ctx.beginPath();
+      ctx.arc(sx, sy, 4, 0, 2 * Math.PI);
+      ctx.stroke();
+      ctx.fillText(`${r.id}#${k + 1}`, sx + 6, sy + 12);
+    });
+    ctx.globalAlpha = 1;
+  }
+
+  function drawPath(r, colour) {
+    if (r.path.length < 2) return;
+    ctx.strokeStyle = colour;
+    ctx.globalAlpha *= 0.45;
+    ctx.lineWidth = 2;
+    ctx.beginPath();
+    r.path.forEach((p, i) => {
+      const [sx, sy] = toScreen(p[0], p[1]);
+      if (i === 0) ctx.moveTo(sx, sy); else ctx.lineTo(sx, sy);
+    });
+    ctx.stroke();
+  }
+
+  function drawBody(r, colour) {
+    const [sx, sy] = toScreen(r.x, r.y);
+    const rad = Math.max(0.25 * S.view.scale, 6);
+    ctx.fillStyle = colour;
+    ctx.strokeStyle = "#ffffff";
+    ctx.lineWidth = 1.5;
+    ctx.beginPath();
+    ctx.arc(sx, sy, rad, 0, 2 * Math.PI);
+    ctx.fill();
+    ctx.stroke();
+    const c = Math.cos(r.th), s = Math.sin(r.th);
+    ctx.strokeStyle = "#111111";
+    ctx.lineWidth = 2;
+    ctx.beginPath();
+    ctx.moveTo(sx + 0.45 * rad * c, sy - 0.45 * rad * s);
+    ctx.lineTo(sx + 1.9 * rad * c, sy - 1.9 * rad * s);
+    ctx.stroke();
+    ctx.fillStyle = "#202020";
+    ctx.font = "12px system-ui, sans-serif";
+    ctx.fillText(r.id, sx + rad + 3, sy - rad - 2);
+    return [sx, sy, rad];
+  }
+
+  function drawScaleBar() {
+    const { h } = size();
+    const target = 120 / S.view.scale;
+    const p = 10 ** Math.floor(Math.log10(target));
+    const len = [1, 2, 5, 10].map((k) => k * p).filter((v) => v <= target).pop() || p;
+    const px = len * S.view.scale;
+    ctx.strokeStyle = "#404040";
+    ctx.fillStyle = "#404040";
+    ctx.lineWidth = 2;
+    ctx.beginPath();
+    ctx.moveTo(12, h - 14);
+    ctx.lineTo(12 + px, h - 14);
+    ctx.moveTo(12, h - 19); ctx.lineTo(12, h - 9);
+    ctx.moveTo(12 + px, h - 19); ctx.lineTo(12 + px, h - 9);
+    ctx.stroke();
+    ctx.font = "11px system-ui, sans-serif";
+    ctx.fillText(`${len} m`, 16 + px, h - 10);
+  }
+
+  function draw() {
+    const dpr = window.devicePixelRatio || 1;
+    const { w, h } = size();
+    if (canvas.width !== Math.round(w * dpr) || canvas.height !== Math.round(h * dpr)) {
+      canvas.width = Math.round(w * dpr);
+      canvas.height = Math.round(h * dpr);
+    }
+    ctx.setTransform(dpr, 0, 0, dpr, 0, 0);
+    ctx.fillStyle = "#fcfcfa";
+    ctx.fillRect(0, 0, w, h);
+    if (!S.palette) return;
+    if (!S.view) fit();
+    const p = S.palette;
+    if (S.overlayId && S.maps[S.overlayId]) drawMap(S.maps[S.overlayId], p.overlay, 1.5);
+    const m = S.maps[S.mapId];
+    if (m) drawMap(m, p.map[m.kind] || "#303030", 1.5);
+    const robots = visibleRobots();
+    for (const r of robots) {
+      ctx.globalAlpha = r.stale ? 0.35 : 1;
+      drawPath(r, statusColour(r.status));
+    }
+    ctx.globalAlpha = 1;
+    for (const r of robots) drawCandidates(r);
+    for (const r of robots) drawScan(r);
+    const drawn = {};
+    for (const r of robots) {
+      const colour = statusColour(r.status);
+      ctx.globalAlpha = r.stale ? 0.35 : 1;
+      drawCovariance(r, colour);
+      const [px, py, rad] = drawBody(r, colour);
+      drawn[r.id] = {
+        x: r.x, y: r.y, th: r.th, seq: r.seq, status: r.status, map: r.map,
+        colour, px, py, radius: rad, scanPoints: r.scan && r.scan.seq === r.seq
+          ? r.scan.r.filter((d) => d !== null).length : 0,
+        candidates: r.cand ? r.cand.length : 0,
+      };
+    }
+    ctx.globalAlpha = 1;
+    S.drawn = drawn;
+    drawScaleBar();
+  }
+
+  // ------------------------------------------------------------------ side panel
+  const rows = new Map();
+  const tbody = document.querySelector("#robots tbody");
+  function fmt(v, digits) { return v === undefined || v === null ? "–" : Number(v).toFixed(digits); }
+  function makeRow(id) {
+    const tr = document.createElement("tr");
+    const cells = [];
+    for (let i = 0; i < 7; i++) { const td = document.createElement("td"); tr.append(td); cells.push(td); }
+    const box = document.createElement("input");
+    box.type = "checkbox";
+    box.checked = !S.hidden.has(id);
+    box.title = "draw this robot";
+    box.addEventListener("change", () => {
+      if (box.checked) S.hidden.delete(id); else S.hidden.add(id);
+      requestDraw();
+      sendSelection();
+    });
+    cells[0].append(box);
+    cells[1].textContent = id;
+    cells[1].title = "centre on this robot";
+    cells[1].addEventListener("click", () => centreOn(id));
+    const dot = document.createElement("i");
+    dot.className = "dot";
+    const label = document.createElement("span");
+    cells[2].append(dot, " ", label);
+    const row = { tr, cells, box, dot, label };
+    rows.set(id, row);
+    return row;
+  }
+  function set(td, text) { if (td.textContent !== text) td.textContent = text; }
+  function updatePanel(m) {
+    const ids = [...S.robots.keys()].sort();
+    const filter = $("filter").value.trim().toLowerCase();
+    let order = 0;
+    for (const id of ids) {
+      const r = S.robots.get(id);
+      const row = rows.get(id) || makeRow(id);
+      if (tbody.children[order] !== row.tr) tbody.insertBefore(row.tr, tbody.children[order] || null);
+      order += 1;
+      row.tr.hidden = filter !== "" && !id.toLowerCase().includes(filter);
+      const other = r.map !== S.mapId && r.map !== S.overlayId;
+      row.tr.className = (other ? "other " : "") + (r.stale ? "stale" : "");
+      row.dot.style.background = statusColour(r.status);
+      let text = statusLabel(r.status);
+      if (r.hyp !== undefined && r.hyp !== null) text += ` (${r.hyp} hyp)`;
+      if (r.stale) text += " · stale";
+      if (other && r.map) text += ` · ${r.map}`;
+      set(row.label, text);
+      row.cells[2].title = `${r.method || ""} score ${fmt(r.score, 3)} seq ${r.seq ?? "–"} map ${r.map || "–"}`;
+      set(row.cells[3], fmt(r.lat, 1));
+      set(row.cells[4], r.explained === undefined ? "–" : `${Math.round(100 * r.explained)} %`);
+      set(row.cells[5], fmt(r.ambiguity, 2));
+      set(row.cells[6], fmt(r.hz, 1));
+      row.box.checked = !S.hidden.has(id);
+    }
+    for (const [id, row] of rows) if (!S.robots.has(id)) { row.tr.remove(); rows.delete(id); }
+    $("rate").textContent = `${S.rate.toFixed(1)} updates/s`;
+    const sv = m.service;
+    $("service").textContent = sv
+      ? `service ${sv.status} · v${sv.version}${sv.instance ? " · " + sv.instance : ""} · ${sv.robots} robots · ${sv.maps} maps · ${sv.processed} scans (${sv.rejected} rejected)`
+      : "service: no health answer yet";
+    const vw = m.view || {};
+    $("footer").textContent = `${S.robots.size} robots · view process CPU ${fmt(vw.cpu, 0)} % · ${m.rejected} samples rejected · frame ${m.n}`;
+  }
+  $("filter").addEventListener("input", () => { if (S.lastFrame) updatePanel(S.lastFrame); });
+  $("all").addEventListener("click", () => { S.hidden.clear(); requestDraw(); sendSelection(); if (S.lastFrame) updatePanel(S.lastFrame); });
+  $("none").addEventListener("click", () => {
+    for (const id of S.robots.keys()) S.hidden.add(id);
+    requestDraw(); sendSelection(); if (S.lastFrame) updatePanel(S.lastFrame);
+  });
+
+  function centreOn(id) {
+    const r = S.robots.get(id);
+    if (!r || r.x === undefined) return;
+    if (r.map !== S.mapId && r.map !== S.overlayId && S.maps[r.map]) setMap(r.map, true);
+    S.hidden.delete(id);
+    S.view.cx = r.x;
+    S.view.cy = r.y;
+    requestDraw();
+    sendSelection();
+  }
+
+  // ------------------------------------------------------------------ pan and zoom
+  let drag = null;
+  canvas.addEventListener("pointerdown", (e) => {
+    drag = { x: e.clientX, y: e.clientY, cx: S.view.cx, cy: S.view.cy };
+    canvas.setPointerCapture(e.pointerId);
+    canvas.classList.add("dragging");
+  });
+  canvas.addEventListener("pointermove", (e) => {
+    if (!drag) return;
+    S.view.cx = drag.cx - (e.clientX - drag.x) / S.view.scale;
+    S.view.cy = drag.cy + (e.clientY - drag.y) / S.view.scale;
+    requestDraw();
+  });
+  const endDrag = () => { drag = null; canvas.classList.remove("dragging"); };
+  canvas.addEventListener("pointerup", endDrag);
+  canvas.addEventListener("pointercancel", endDrag);
+  canvas.addEventListener("wheel", (e) => {
+    e.preventDefault();
+    const rect = canvas.getBoundingClientRect();
+    zoomAt(e.clientX - rect.left, e.clientY - rect.top, Math.exp(-e.deltaY * 0.0015));
+  }, { passive: false });
+  function zoomAt(mx, my, f) {
+    const v = S.view;
+    const { w, h } = size();
+    const wx = v.cx + (mx - w / 2) / v.scale, wy = v.cy - (my - h / 2) / v.scale;
+    v.scale = Math.min(Math.max(v.scale * f, 0.05), 5000);
+    v.cx = wx - (mx - w / 2) / v.scale;
+    v.cy = wy + (my - h / 2) / v.scale;
+    requestDraw();
+  }
+  canvas.addEventListener("dblclick", fit);
+  $("fit").addEventListener("click", fit);
+  window.addEventListener("keydown", (e) => {
+    if (e.target instanceof HTMLInputElement) return;
+    const { w, h } = size();
+    if (e.key === "f") fit();
+    else if (e.key === "+" || e.key === "=") zoomAt(w / 2, h / 2, 1.25);
+    else if (e.key === "-") zoomAt(w / 2, h / 2, 0.8);
+  });
+  window.addEventListener("resize", requestDraw);
+
+  // ------------------------------------------------------------------ connection
+  let ws = null;
+  function sendSelection() {
+    if (!ws || ws.readyState !== WebSocket.OPEN) return;
+    const ids = visibleRobots().map((r) => r.id).sort();
+    const text = JSON.stringify({ type: "select", robots: ids });
+    if (text === S.lastSelect) return;
+    S.lastSelect = text;
+    ws.send(text);
+  }
+  function connect() {
+    const proto = location.protocol === "https:" ? "wss" : "ws";
+    ws = new WebSocket(`${proto}://${location.host}/ws`);
+    ws.onopen = () => {
+      S.connected = true;
+      S.lastSelect = null;
+      $("conn").textContent = "live";
+      $("conn").className = "conn up";
+    };
+    ws.onmessage = (ev) => {
+      let m;
+      try { m = JSON.parse(ev.data); } catch (err) { S.errors.push(String(err)); return; }
+      if (m.type === "hello") onHello(m);
+      else if (m.type === "maps") onMaps(m);
+      else if (m.type === "frame") onFrame(m);
+    };
+    ws.onclose = () => {
+      S.connected = false;
+      $("conn").textContent = "disconnected: retrying";
+      $("conn").className = "conn down";
+      setTimeout(connect, 1000);
+    };
+  }
+  window.addEventListener("error", (e) => S.errors.push(String(e.message)));
+  connect();
+})();
