@@ -1,0 +1,398 @@
+"""Benchmark of the live view: what it costs the service, and how live the page is.
+
+N simulated robots (default 50) at R Hz on one service, three rows back to back: without the
+view, with it open, without it again. "Open" is a real ``python -m clients.view`` process
+subscribed to the service and Debian's ``chromium`` (headless, :mod:`clients.view.headless`)
+showing its page, which draws every robot with its scan. Each row is one row of the service
+scale benchmark, with its harness (``scale_row.run_row``: configure the robots, prime each
+with a scan, publish every robot's scans from a separate process on schedule, receive the
+poses, summarise; ``scale_walks`` / ``scale_load`` for the walks, sessions and CPU): the
+service's latency p50 / p99 (pose receipt minus the scan's send time) is that benchmark's.
+
+While the view is open, a thread polls the page every 0.5 s: its frame counter (updates
+drawn per second = frames over time, only while the page shows all N robots with fresh
+poses), its own last-2-s rate (the minimum is reported) and the CPU of the view process and
+of the browser (all its processes), in % of one core. The acceptance lines: the page updates
+>= 5 times a second; the service's p99 with the view open is at most 5 ms above the mean of
+the two rows without it.
+
+Usage: ``python bench/bench_view.py [--robots 50] [--rate 10] [--duration 20]
+[--world office] [--map metric] [--out docs/results/view.md]``. Needs chromium (skips with
+a message otherwise). Timing depends on the machine's load; the load average is reported.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import datetime as dt
+import os
+import platform
+import shlex
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+import zenoh  # noqa: E402
+from scale_load import (  # noqa: E402
+    MSGPACK,
+    P,
+    Receiver,
+    client_config,
+    free_endpoint,
+    health,
+    tree_cpu_s,
+)
+from scale_report import _f, git_commit, markdown_table, text_table  # noqa: E402
+from scale_row import Context, RowSpec, run_row  # noqa: E402
+from scale_walks import make_pool, world_name  # noqa: E402
+
+from clients.view.headless import Chromium, find_chromium  # noqa: E402
+from schemas.codec import encode  # noqa: E402
+
+ACCEPT_RATE = 5.0
+ACCEPT_P99_ADDS_MS = 5.0
+HEAD = (
+    "view",
+    "N",
+    "Hz",
+    "answered",
+    "p50 ms",
+    "p99 ms",
+    "svc CPU %",
+    "view CPU %",
+    "chromium CPU %",
+    "page updates/s (min 2 s)",
+    "robots drawn",
+    "load",
+)
+
+
+class PageWatch(threading.Thread):
+    """Headless chromium on the view's page; samples its counters and CPU every 0.5 s."""
+
+    def __init__(self, url: str, view_pid: int, robots: int) -> None:
+        super().__init__(daemon=True)
+        self.url = url
+        self.view_pid = view_pid
+        self.robots = robots
+        self.ready = threading.Event()
+        self.stop = threading.Event()
+        self.samples: list[tuple[float, int, float, int, int, float, float]] = []
+        self.error: BaseException | None = None
+
+    def run(self) -> None:
+        try:
+            asyncio.run(self._main())
+        except BaseException as exc:  # reported by the main thread
+            self.error = exc
+            self.ready.set()
+
+    async def _main(self) -> None:
+        async with Chromium() as browser:
+            page = await browser.new_page()
+            await page.navigate(self.url, 1400, 900)
+            await page.wait_for("window.shapelocView && window.shapelocView.frames > 5", 60)
+            self.ready.set()
+            js = (
+                "(S => [S.frames, S.rate, Object.keys(S.drawn).length, S.lastFrame ? "
+                "S.lastFrame.robots.filter(r => r.age !== undefined && r.age < 1.0).length "
+                ": 0])(window.shapelocView)"
+            )
+            while not self.stop.is_set():
+                frames, rate, drawn, fresh = await page.evaluate(js)
+                assert browser.pid is not None
+                self.samples.append(
+                    (
+                        time.time(),
+                        int(frames),
+                        float(rate),
+                        int(drawn),
+                        int(fresh),
+                        tree_cpu_s(self.view_pid),
+                        tree_cpu_s(browser.pid),
+                    )
+                )
+                await asyncio.sleep(0.5)
+
+    def summary(self) -> dict[str, float]:
+        """Updates/s, min 2-s rate, robots drawn and CPU over the samples with all robots live."""
+        live = [s for s in self.samples if s[4] >= self.robots]
+        if len(live) < 3:
+            return {"rate": np.nan, "rate_min": np.nan, "drawn": np.nan, "view_cpu": np.nan,
+                    "chrome_cpu": np.nan, "seconds": 0.0}  # fmt: skip
+        a, b = live[0], live[-1]
+        wall = b[0] - a[0]
+        return {
+            "rate": (b[1] - a[1]) / wall,
+            "rate_min": min(s[2] for s in live[1:]),
+            "drawn": min(s[3] for s in live),
+            "view_cpu": 100.0 * (b[5] - a[5]) / wall,
+            "chrome_cpu": 100.0 * (b[6] - a[6]) / wall,
+            "seconds": wall,
+        }
+
+
+def start_view(endpoint: str, log: Path) -> tuple[subprocess.Popen[bytes], str]:
+    """``python -m clients.view`` on a free port; returns the process and the page's URL."""
+    with open(log, "wb") as f:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "clients.view", "--connect", endpoint, "--port", "0"],
+            cwd=REPO,
+            stdout=f,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+        )
+    end = time.time() + 30
+    while time.time() < end:
+        text = log.read_text(errors="replace")
+        if "shapeloc view: " in text:
+            return proc, text.split("shapeloc view: ", 1)[1].split()[0]
+        if proc.poll() is not None:
+            break
+        time.sleep(0.1)
+    proc.kill()
+    raise RuntimeError(f"the view did not start:\n{log.read_text(errors='replace')}")
+
+
+def stop_proc(proc: subprocess.Popen[bytes]) -> None:
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+
+
+def start_service(endpoint: str, tmp: Path, workers: int) -> subprocess.Popen[bytes]:
+    """The service as bench/bench_service.py starts it, on ``endpoint``."""
+    cmd = [sys.executable, "-m", "service", "--listen", endpoint, "--state-dir",
+           str(tmp / "state"), "--workers", str(workers), "--log-level", "warning"]  # fmt: skip
+    with open(tmp / "service.log", "wb") as logf:
+        return subprocess.Popen(
+            cmd, cwd=REPO, stdout=logf, stderr=subprocess.STDOUT, start_new_session=True
+        )
+
+
+def run_rows(args: argparse.Namespace, tmp: Path) -> list[dict[str, Any]]:
+    pool = make_pool(args.world, args.map, args.stride)
+    endpoint = free_endpoint()
+    workers = args.workers or (os.cpu_count() or 1)
+    svc = start_service(endpoint, tmp, workers)
+    results: list[dict[str, Any]] = []
+    rec = None
+    try:
+        session = None
+        deadline = time.time() + 60
+        while True:
+            if svc.poll() is not None:
+                raise RuntimeError((tmp / "service.log").read_text())
+            with contextlib.suppress(zenoh.ZError):
+                session = session or zenoh.open(client_config(endpoint))
+                if health(session) is not None:
+                    break
+            if time.time() > deadline:
+                raise RuntimeError("service did not start")
+            time.sleep(0.2)
+        assert session is not None
+        with session:
+            session.put(f"{P}/maps/{pool.map_id}", encode(pool.map_msg), encoding=MSGPACK)
+            while (h := health(session)) is None or h.maps < 1:
+                time.sleep(0.2)
+            rec = Receiver(session)
+            ctx = Context(session=session, endpoint=endpoint, rec=rec, svc_pid=svc.pid,
+                          method="shape", duration=args.duration, warmup=args.warmup, odom=True,
+                          search_mode="refix", correct_m=0.5, correct_deg=10.0,
+                          pools={(args.world, args.map): pool})  # fmt: skip
+            spec = RowSpec(args.world, args.map, args.robots, args.rate)
+            for i, mode in enumerate(("without", "with", "without")):
+                view = watch = None
+                if mode == "with":
+                    view, url = start_view(endpoint, tmp / f"view-{i}.log")
+                    watch = PageWatch(url, view.pid, args.robots)
+                    watch.start()
+                    watch.ready.wait(90)
+                    if watch.error is not None:
+                        raise RuntimeError(f"the page did not load: {watch.error}")
+                try:
+                    r = run_row(ctx, spec, i)
+                finally:
+                    if watch is not None:
+                        watch.stop.set()
+                        watch.join(30)
+                    if view is not None:
+                        stop_proc(view)
+                r["mode"] = mode
+                r["page"] = watch.summary() if watch is not None else None
+                results.append(r)
+                print(line_of(r), flush=True)
+    finally:
+        if rec is not None:
+            rec.close()
+        stop_proc(svc)
+    return results
+
+
+def line_of(r: dict[str, Any]) -> str:
+    t = r["tracked"]
+    out = (
+        f"view {r['mode']}: answered {100 * t['answered_mean']:.1f} %, p50 {_f(t['p50'])} "
+        f"p99 {_f(t['p99'])} ms, svc CPU {r['svc_cpu']:.0f} %, load {r['load']:.2f}"
+    )
+    if r["page"]:
+        pg = r["page"]
+        out += (
+            f"; page {_f(pg['rate'])} updates/s (min {_f(pg['rate_min'])}), "
+            f"{_f(pg['drawn'], '.0f')} robots drawn, view CPU {_f(pg['view_cpu'], '.0f')} %, "
+            f"chromium CPU {_f(pg['chrome_cpu'], '.0f')} % over {pg['seconds']:.0f} s"
+        )
+    return out
+
+
+def cells(r: dict[str, Any]) -> list[str]:
+    t, pg = r["tracked"], r["page"]
+    page = ["–", "–", "–", "–"]
+    if pg:
+        page = [
+            _f(pg["view_cpu"], ".0f"),
+            _f(pg["chrome_cpu"], ".0f"),
+            f"{_f(pg['rate'])} ({_f(pg['rate_min'])})",
+            _f(pg["drawn"], ".0f"),
+        ]
+    return [
+        r["mode"],
+        str(r["n"]),
+        f"{r['rate']:g}",
+        f"{100 * t['answered_mean']:.1f} %",
+        _f(t["p50"]),
+        _f(t["p99"]),
+        f"{r['svc_cpu']:.0f}",
+        *page,
+        f"{r['load']:.2f}",
+    ]
+
+
+def verdict(results: list[dict[str, Any]]) -> list[tuple[str, bool, str]]:
+    """The two acceptance lines."""
+    without = [r["tracked"]["p99"] for r in results if r["mode"] == "without"]
+    with_ = [r for r in results if r["mode"] == "with"]
+    out = []
+    for r in with_:
+        base = float(np.mean(without))
+        adds = r["tracked"]["p99"] - base
+        out.append(
+            (
+                f"service p99 with the view open (N={r['n']} at {r['rate']:g} Hz)",
+                adds <= ACCEPT_P99_ADDS_MS,
+                f"{_f(base)} ms without (mean of {len(without)} rows) -> {_f(r['tracked']['p99'])}"
+                f" ms with: adds {adds:+.1f} ms (limit {ACCEPT_P99_ADDS_MS:g})",
+            )
+        )
+        pg = r["page"] or {"rate": np.nan, "rate_min": np.nan}
+        out.append(
+            (
+                "page updates in headless chromium",
+                pg["rate"] >= ACCEPT_RATE and pg["rate_min"] >= ACCEPT_RATE,
+                f"{_f(pg['rate'])} updates/s, slowest 2 s {_f(pg['rate_min'])} (limit "
+                f"{ACCEPT_RATE:g}), all {r['n']} robots drawn",
+            )
+        )
+    return out
+
+
+def commit() -> str:
+    c = git_commit()
+    dirty = subprocess.run(
+        ["git", "-C", str(REPO), "status", "--porcelain", "--", "clients"],
+        capture_output=True,
+        text=True,
+    ).stdout.strip()
+    return c if not dirty or c.endswith("-dirty") else c + "-dirty"
+
+
+def report(results: list[dict[str, Any]], meta: dict[str, str]) -> str:
+    lines = [
+        "# The live view's cost and update rate (bench/bench_view.py)",
+        "",
+        f"Command: `{meta['command']}`  ",
+        f"Commit: `{meta['commit']}`, date {meta['date']}, {meta['machine']}  ",
+        f"Load average before {meta['load_before']}, after {meta['load_after']}.  ",
+        f"Rows: {meta['world']} {meta['map']} map, N={meta['n']} robots at {meta['rate']} Hz, "
+        f"{meta['window']} s window after {meta['warmup']} s warm-up; the service with "
+        f"{meta['workers']} workers.",
+        "",
+        markdown_table(HEAD, [cells(r) for r in results]),
+        "",
+        "Acceptance:",
+        "",
+    ]
+    for name, ok, figs in verdict(results):
+        lines.append(f"- **{'PASS' if ok else 'FAIL'}** {name}: {figs}")
+    lines += ["", "## How it is measured", "", __doc__.split("\n\n", 1)[1].split("\n\nUsage")[0]]
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--robots", type=int, default=50)
+    ap.add_argument("--rate", type=float, default=10.0, help="scans per second per robot")
+    ap.add_argument("--world", default="office")
+    ap.add_argument("--map", default="metric")
+    ap.add_argument("--workers", type=int, default=None, help="service workers (default: cores)")
+    ap.add_argument("--duration", type=float, default=20.0, help="seconds per row")
+    ap.add_argument("--warmup", type=float, default=2.0)
+    ap.add_argument("--stride", type=int, default=5)
+    ap.add_argument("--out", type=Path, default=None, help="write the markdown report here")
+    args = ap.parse_args(argv)
+    if find_chromium() is None:
+        print("bench_view: skipped, no chromium (Debian: apt-get install chromium)")
+        return 0
+    load_before = " ".join(f"{v:.2f}" for v in os.getloadavg())
+    with tempfile.TemporaryDirectory() as tmp:
+        results = run_rows(args, Path(tmp))
+    load_after = " ".join(f"{v:.2f}" for v in os.getloadavg())
+    print()
+    print(text_table(HEAD, [cells(r) for r in results]))
+    failed = False
+    for name, ok, figs in verdict(results):
+        failed |= not ok
+        print(f"{'PASS' if ok else 'FAIL'}  {name}: {figs}")
+    print(f"# load before {load_before}, after {load_after}")
+    if args.out is not None:
+        meta = {
+            "command": "python bench/bench_view.py "
+            + " ".join(shlex.quote(a) for a in (sys.argv[1:] if argv is None else argv)),
+            "commit": commit(),
+            "date": dt.datetime.now(dt.UTC).strftime("%Y-%m-%d %H:%M UTC"),
+            "machine": f"{os.cpu_count()} cores ({platform.machine()})",
+            "load_before": load_before,
+            "load_after": load_after,
+            "world": world_name(args.world),
+            "map": args.map,
+            "n": str(args.robots),
+            "rate": f"{args.rate:g}",
+            "window": f"{args.duration - args.warmup:g}",
+            "warmup": f"{args.warmup:g}",
+            "workers": str(args.workers or os.cpu_count()),
+        }
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(report(results, meta))
+        print(f"# wrote {args.out}")
+    return 1 if failed else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
