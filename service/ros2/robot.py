@@ -207,11 +207,29 @@ class RosRobot:
         prefix = self.o.prefix
         out: list[tuple[str, WireModel]] = []
         if self.config == "shapeloc":
-            if self._initial_pending and self.shapeloc_config is not None:
-                cfg = self._config_message(self.shapeloc_config.map_id, self.shapeloc_config.method)
+            cfg0 = self.shapeloc_config
+            if cfg0 is None:
+                return out
+            if self._initial_pending:
+                cfg = self._config_message(cfg0.map_id, cfg0.method)
                 if cfg is not None:
                     out.append((keys.robot_key(prefix, self.robot_id, "config"), cfg))
+                    self.shapeloc_config = cfg
                     self._initial_pending = False
+            elif OFFSET_IN_CONFIG:
+                # shapeloc's own configuration, with the mounting tf_static gives
+                mount = self._last_mount()
+                offset = getattr(cfg0, "laser_offset", None)
+                if mount is not None and (
+                    offset is None or not np.allclose(offset, mount, atol=1e-9)
+                ):
+                    cfg = RobotConfig(
+                        map_id=cfg0.map_id, method=cfg0.method,
+                        initial_pose=None if cfg0.initial_pose is None else list(cfg0.initial_pose),
+                        laser_offset=[float(v) for v in mount],
+                    )  # fmt: skip
+                    out.append((keys.robot_key(prefix, self.robot_id, "config"), cfg))
+                    self.shapeloc_config = cfg
             return out
         if self.config not in ("none", "ros") or not self.o.import_maps:
             return out
