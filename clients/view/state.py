@@ -88,9 +88,11 @@ class RobotView:
         self.ring = deque(maxlen=self.scan_ring)
 
     def rate_hz(self, now: float, window_s: float = 2.0) -> float:
-        """Poses per second over the last ``window_s`` seconds."""
-        n = sum(1 for t in self.arrivals if now - t <= window_s)
-        return n / window_s
+        """Poses per second over the last ``window_s`` seconds (0 if fewer than two)."""
+        recent = [t for t in self.arrivals if now - t <= window_s]
+        if len(recent) < 2 or recent[-1] <= recent[0]:
+            return 0.0
+        return (len(recent) - 1) / (recent[-1] - recent[0])
 
 
 def _r(v: float, nd: int) -> float:

@@ -261,8 +261,8 @@
     const v = S.view;
     const { w, h } = size();
     const c0 = Math.cos(r.th), s0 = Math.sin(r.th);
-    ctx.fillStyle = S.palette.scan;
     const dot = v.scale > 25 ? 3 : 2;
+    ctx.beginPath(); // one path, one fill: far cheaper than a fillRect per point
     for (let i = 0; i < sc.r.length; i++) {
       const d = sc.r[i];
       if (d === null) continue;
@@ -270,8 +270,10 @@
       const lx = d * Math.cos(a), ly = d * Math.sin(a);
       const x = r.x + c0 * lx - s0 * ly, y = r.y + s0 * lx + c0 * ly;
       const px = (x - v.cx) * v.scale + w / 2, py = h / 2 - (y - v.cy) * v.scale;
-      ctx.fillRect(px - dot / 2, py - dot / 2, dot, dot);
+      ctx.rect(px - dot / 2, py - dot / 2, dot, dot);
     }
+    ctx.fillStyle = S.palette.scan;
+    ctx.fill();
   }
 
   function drawCandidates(r) {

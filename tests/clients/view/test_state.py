@@ -207,3 +207,11 @@ def test_silent_robots_turn_stale_then_are_forgotten() -> None:
     assert st.frame(1000.0 + STALE_S + 1)["robots"][0]["stale"]
     st.end_tick(1000.0 + FORGET_S + 1)
     assert st.robots == {}
+
+
+def test_the_pose_rate_is_measured_over_the_last_two_seconds() -> None:
+    st = ViewState(P)
+    for k in range(30):  # 10 Hz for 3 s
+        feed(st, "robots/r1/pose", pose("r1", k, 1.0), t=1000.0 + 0.1 * k)
+    assert st.frame(1002.9)["robots"][0]["hz"] == 10.0
+    assert st.frame(1010.0)["robots"][0]["hz"] == 0.0

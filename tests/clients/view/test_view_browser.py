@@ -130,7 +130,13 @@ async def _check_page(url: str, poses, tmp_path: Path) -> Path:
         # past the service's cold start (its first answers come after the scans they answer
         # have left the view's ring): every tracked robot drawn with its scan
         cond = " && ".join(f"(S.drawn['{r}'] || {{}}).scanPoints > 0" for r in tracked)
-        await page.wait_for(f"(S => S && {cond} && S.frames > 20)(window.shapelocView)", 120)
+        try:
+            await page.wait_for(f"(S => S && {cond} && S.frames > 20)(window.shapelocView)", 120)
+        except TimeoutError as exc:
+            state = await page.evaluate(DRAWN_JS)
+            logs = {f.name: f.read_text(errors="replace")[-1500:] for f in tmp_path.glob("*.log")}
+            msg = f"the page never drew every robot with its scan: {state}\n{logs}"
+            raise AssertionError(msg) from exc
         checked = 0
         for _ in range(6):
             got = await page.evaluate(DRAWN_JS)
@@ -151,8 +157,10 @@ async def _check_page(url: str, poses, tmp_path: Path) -> Path:
         assert checked == 6 * len(tracked)
         rate = await page.evaluate("window.shapelocView.rate")
         assert rate >= 5.0, rate
-        rows = got["rows"]
-        assert len(rows) == 4 and any(STATUS_COLOURS["tracking"][1] in r for r in rows), rows
+        rows = {r.split()[0]: r for r in got["rows"]}
+        for rid in tracked:  # the side panel lists it with its status and latency
+            p = published[(rid, got["drawn"][rid]["seq"])]
+            assert STATUS_COLOURS[p.status][1] in rows[rid], rows
         # a moment when the search shows its candidates makes the better picture
         with contextlib.suppress(TimeoutError):
             await page.wait_for("(window.shapelocView.drawn['search-0'] || {}).candidates > 1", 20)
