@@ -255,14 +255,15 @@
     ctx.setLineDash([]);
   }
 
-  function drawScan(r) {
+  // Adds the robot's scan points to the current path (the caller fills all robots' at once:
+  // one fill is far cheaper than a fillRect per point).
+  function addScan(r) {
     const sc = r.scan;
     if (!sc || sc.seq !== r.seq) return;
     const v = S.view;
     const { w, h } = size();
     const c0 = Math.cos(r.th), s0 = Math.sin(r.th);
     const dot = v.scale > 25 ? 3 : 2;
-    ctx.beginPath(); // one path, one fill: far cheaper than a fillRect per point
     for (let i = 0; i < sc.r.length; i++) {
       const d = sc.r[i];
       if (d === null) continue;
@@ -270,10 +271,9 @@
       const lx = d * Math.cos(a), ly = d * Math.sin(a);
       const x = r.x + c0 * lx - s0 * ly, y = r.y + s0 * lx + c0 * ly;
       const px = (x - v.cx) * v.scale + w / 2, py = h / 2 - (y - v.cy) * v.scale;
+      if (px < -dot || py < -dot || px > w + dot || py > h + dot) continue;
       ctx.rect(px - dot / 2, py - dot / 2, dot, dot);
     }
-    ctx.fillStyle = S.palette.scan;
-    ctx.fill();
   }
 
   function drawCandidates(r) {
@@ -303,9 +303,14 @@
     ctx.globalAlpha *= 0.45;
     ctx.lineWidth = 2;
     ctx.beginPath();
+    let lx = 0, ly = 0;
     r.path.forEach((p, i) => {
       const [sx, sy] = toScreen(p[0], p[1]);
-      if (i === 0) ctx.moveTo(sx, sy); else ctx.lineTo(sx, sy);
+      if (i === 0) { ctx.moveTo(sx, sy); lx = sx; ly = sy; return; }
+      // a vertex less than 2 px from the last one drawn adds nothing visible
+      if (Math.abs(sx - lx) + Math.abs(sy - ly) < 2 && i < r.path.length - 1) return;
+      ctx.lineTo(sx, sy);
+      lx = sx; ly = sy;
     });
     ctx.stroke();
   }
@@ -375,7 +380,10 @@
     }
     ctx.globalAlpha = 1;
     for (const r of robots) drawCandidates(r);
-    for (const r of robots) drawScan(r);
+    ctx.beginPath();
+    for (const r of robots) addScan(r);
+    ctx.fillStyle = p.scan;
+    ctx.fill();
     const drawn = {};
     for (const r of robots) {
       const colour = statusColour(r.status);
