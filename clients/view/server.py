@@ -277,6 +277,9 @@ class ViewServer:
         }
 
     async def _ws(self, request: web.Request) -> web.StreamResponse:
+        if not _same_origin(request):
+            # another site's page in the user's browser may not read the fleet
+            raise web.HTTPForbidden(text="cross-origin WebSocket refused")
         ws = web.WebSocketResponse(heartbeat=20.0, max_msg_size=MAX_CLIENT_MSG)
         await ws.prepare(request)
         page = _Page(ws)
@@ -344,6 +347,16 @@ class ViewServer:
                 with contextlib.suppress(Exception):
                     await p.ws.close()
             await runner.cleanup()
+
+
+def _same_origin(request: web.Request) -> bool:
+    """A browser names the page that opens a WebSocket in ``Origin``: it must be this server
+    (scripts and tests send none)."""
+    origin = request.headers.get("Origin")
+    if origin is None:
+        return True
+    host = request.headers.get("Host", "")
+    return origin in (f"http://{host}", f"https://{host}")
 
 
 def _url_host(host: str) -> str:

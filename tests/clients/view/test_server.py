@@ -202,3 +202,17 @@ def test_the_maps_message_carries_the_services_map(fake_service, view) -> None:
     m = asyncio.run(run())
     (office,) = m["maps"]
     assert office["id"] == "office" and office["bounds"] == [0.0, 0.0, 6.0, 4.0]
+
+
+def test_another_sites_page_cannot_open_the_websocket(view) -> None:
+    async def run() -> tuple[int, int]:
+        async with aiohttp.ClientSession() as http:
+            bad = await http.get(view + "ws", headers={"Origin": "http://evil.example"})
+            host = view.split("//", 1)[1].rstrip("/")
+            ws = await http.ws_connect(view + "ws", headers={"Origin": f"http://{host}"})
+            hello = json.loads((await ws.receive(timeout=5)).data)
+            await ws.close()
+            return bad.status, hello["type"] == "hello"
+
+    status, ok = asyncio.run(run())
+    assert status == 403 and ok
