@@ -2,7 +2,10 @@
 
 ``main(settings)`` opens the Zenoh session, runs :class:`service.node.node.ServiceNode` until
 SIGINT/SIGTERM, then saves the state and closes everything; it returns the exit status
-(0 on a clean shutdown, 1 when the state is unreadable or the network unreachable).
+(0 on a clean shutdown, 1 when the state is unreadable or the network unreachable, 2 for bad
+settings). The settings come from defaults < configuration file (``--config FILE`` or
+``SHAPELOC_CONFIG``) < environment (``SHAPELOC_<NAME>``) < flags
+(:mod:`service.node.settings`); the command line follows :mod:`schemas.cli`.
 """
 
 from __future__ import annotations
@@ -84,7 +87,8 @@ def main(settings: ServiceSettings) -> int:
 
 
 def cli(argv: Sequence[str] | None = None) -> int:
-    """Console entry point: parse flags (over ``SHAPELOC_*`` env vars) and run :func:`main`."""
+    """Console entry point: the settings of the command line, the environment and the
+    configuration file (:func:`load_settings`), then :func:`main`."""
     try:
         settings = load_settings(sys.argv[1:] if argv is None else argv)
     except ShapelocError as e:

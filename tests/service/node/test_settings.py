@@ -146,3 +146,127 @@ def test_instance_id() -> None:
     auto = ServiceSettings().effective_instance_id()
     assert auto.endswith(f"-{os.getpid()}")
     assert all(ch.isalnum() or ch in "_.-" for ch in auto)
+
+
+# ---------------------------------------------------------------- configuration file
+def _write(tmp_path: Path, name: str, text: str) -> Path:
+    p = tmp_path / name
+    p.write_text(text)
+    return p
+
+
+def test_precedence_defaults_file_env_flags(tmp_path: Path) -> None:
+    """defaults < configuration file < environment < command line, key by key."""
+    f = _write(
+        tmp_path,
+        "svc.toml",
+        'prefix = "fromfile"\nworkers = 3\nsearch_budget_ms = 40\nmode = "client"\n'
+        'connect = ["tcp/127.0.0.1:5"]\n',
+    )
+    env = {"SHAPELOC_WORKERS": "4", "SHAPELOC_SEARCH_BUDGET_MS": "30"}
+    s = load_settings(["--config", str(f), "--search-budget-ms", "20"], env)
+    assert s.prefix == "fromfile"  # file over default
+    assert s.mode == "client" and s.connect == ["tcp/127.0.0.1:5"]
+    assert s.workers == 4  # environment over file
+    assert s.search_budget_ms == 20.0  # flag over environment
+    assert s.max_robots == 1000  # default where nobody says
+    assert s.config == f
+
+
+def test_yaml_file_and_the_config_environment_variable(tmp_path: Path) -> None:
+    f = _write(tmp_path, "svc.yaml", "prefix: lab/a\nlisten:\n  - tcp/127.0.0.1:7100\n")
+    s = load_settings([], {"SHAPELOC_CONFIG": str(f)})
+    assert s.prefix == "lab/a" and s.listen == ["tcp/127.0.0.1:7100"] and s.config == f
+    # --config wins over SHAPELOC_CONFIG
+    g = _write(tmp_path, "other.yml", "prefix: other\n")
+    assert load_settings(["--config", str(g)], {"SHAPELOC_CONFIG": str(f)}).prefix == "other"
+
+
+def test_file_paths_are_relative_to_the_file(tmp_path: Path) -> None:
+    sub = tmp_path / "etc"
+    sub.mkdir()
+    f = _write(sub, "svc.toml", 'state_dir = "state"\nzenoh_config = "/abs/z.json5"\n')
+    s = load_settings(["--config", str(f)], {})
+    assert s.state_dir == sub / "state"
+    assert s.zenoh_config == Path("/abs/z.json5")
+
+
+def test_the_clients_table_is_ignored_by_the_service(tmp_path: Path) -> None:
+    f = _write(tmp_path, "all.toml", 'prefix = "p"\n[client]\nconnect = ["tcp/h:1"]\n')
+    assert load_settings(["--config", str(f)], {}).prefix == "p"
+
+
+@pytest.mark.parametrize(
+    ("name", "text", "needle"),
+    [
+        ("a.toml", "wokers = 2\n", "unknown setting.*wokers"),
+        ("b.toml", "workers = [\n", "bad TOML"),
+        ("c.yaml", "- 1\n- 2\n", "mapping"),
+        ("d.json", "{}", r"\.toml, \.yaml or \.yml"),
+        ("e.toml", "workers = -1\n", r"workers \(.*e\.toml\)"),
+    ],
+)
+def test_bad_files_are_named(tmp_path: Path, name: str, text: str, needle: str) -> None:
+    f = _write(tmp_path, name, text)
+    with pytest.raises(InvalidMessage, match=needle):
+        load_settings(["--config", str(f)], {})
+
+
+def test_a_missing_file_is_an_error(tmp_path: Path) -> None:
+    with pytest.raises(InvalidMessage, match="unreadable"):
+        load_settings(["--config", str(tmp_path / "nope.toml")], {})
+
+
+def test_errors_name_where_the_bad_value_came_from() -> None:
+    with pytest.raises(InvalidMessage, match=r"workers \(SHAPELOC_WORKERS\)"):
+        load_settings([], {"SHAPELOC_WORKERS": "-3"})
+    with pytest.raises(InvalidMessage, match=r"workers \(flag --workers\)"):
+        load_settings(["--workers", "-3"], {})
+
+
+def test_verbose_means_debug_unless_log_level_is_given() -> None:
+    assert load_settings(["-v"], {}).log_level == "debug"
+    assert load_settings(["-v", "--log-level", "warning"], {}).log_level == "warning"
+    assert load_settings([], {}).log_level == "info"
+
+
+def test_help_shows_every_default(capsys) -> None:
+    from service.node.settings import build_parser
+
+    text = build_parser().format_help()
+    for needle in (
+        "(default: tcp/127.0.0.1:7447)",
+        "(default: peer)",
+        "(default: shapeloc)",
+        "(default: ./state)",
+        "(default: 50.0)",
+        "(default: 1000)",
+        "(default: number of cores",
+        "worker_timeout_s (default: 30.0)",  # settings without a flag: listed in the epilog
+        "Precedence: defaults < configuration file < environment",
+    ):
+        assert needle in " ".join(text.split()), needle
+    # every flag of a setting has a description and a default in its help
+    for action in build_parser()._actions:
+        if action.dest in ServiceSettings.model_fields and action.dest != "config":
+            assert action.help and "default" in action.help, action.dest
+
+
+def test_every_setting_has_a_description_for_users() -> None:
+    for name, field in ServiceSettings.model_fields.items():
+        assert field.description and len(field.description) > 30, name
+
+
+def test_summary_hides_secret_fields(monkeypatch) -> None:
+    from service.node import settings as mod
+
+    s = load_settings(["--prefix", "p"], {})
+    assert s.summary()["prefix"] == "p"
+    monkeypatch.setattr(mod, "SECRET_FIELDS", frozenset({"prefix"}))
+    assert s.summary()["prefix"] == "***"
+
+
+def test_direct_construction_reads_the_environment(monkeypatch) -> None:
+    monkeypatch.setenv("SHAPELOC_MAX_ROBOTS", "7")
+    assert ServiceSettings().max_robots == 7
+    assert ServiceSettings(max_robots=9).max_robots == 9
