@@ -158,6 +158,12 @@ class WireModel(BaseModel):
         return out
 
 
+def _zero_pose() -> np.ndarray:
+    z = np.zeros(3, dtype=np.float64)
+    z.setflags(write=False)
+    return z
+
+
 def _same(a: object, b: object) -> bool:
     if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
         return (
@@ -235,8 +241,25 @@ class RobotConfig(WireModel):
     map_id: Ident = Field(description="Id of the map to localise against.")
     method: Method = Field(default="shape", description="Localisation method.")
     initial_pose: OptPose3 = Field(
-        default=None, description="Initial pose in the map frame; null: global localisation."
+        default=None,
+        description="Initial pose of the robot base in the map frame; null: global localisation.",
     )
+    laser_offset: Pose3 = Field(
+        default_factory=lambda: _zero_pose(),
+        description="Project addition: pose [x, y, theta] of the laser on the robot base "
+        "(base frame, REP 103: x forward, y left; metres, radians). Scans are in the laser's "
+        "frame; odometry, initial_pose and the published poses are the base's. Absent: "
+        "[0, 0, 0], the laser at the base's origin facing forward.",
+        json_schema_extra={"default": [0.0, 0.0, 0.0]},
+    )
+
+    def to_wire(self, ranges_as_bytes: bool = False) -> dict[str, Any]:
+        """As :meth:`WireModel.to_wire`; a zero ``laser_offset`` is left out (absent means
+        zero, so the payload stays what a service without the field expects)."""
+        out = super().to_wire()
+        if not np.any(self.laser_offset):
+            out.pop("laser_offset", None)
+        return out
 
 
 class Scan(WireModel):

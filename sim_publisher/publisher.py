@@ -73,6 +73,12 @@ class SimRobot:
     from seq ``N`` on every message equals the one the robot without look-around sends ``N``
     scans earlier (same stamp). A kidnap during the spin ends the spin (the robot is carried
     to the kidnap position and drives on from there).
+
+    Laser mounting: with ``laser_offset`` ``[x, y, theta]`` (the laser's pose on the base,
+    m / rad, x forward, y left) the scans are taken from the laser's pose ``truth ⊕ offset``
+    while the truth, the odometry and the configuration's initial pose stay the base's, and
+    the configuration carries the offset (as a nav2 robot's front would send it). ``None``:
+    the laser at the base's origin (the scans are the setup's own).
     """
 
     def __init__(
@@ -91,6 +97,7 @@ class SimRobot:
         look_around: int = 0,
         look_turn: float = math.pi / 2,
         look_seed: int = 0,
+        laser_offset: Sequence[float] | None = None,
     ) -> None:
         if method not in METHODS:
             raise ValueError(f"unknown method {method!r}; expected one of {', '.join(METHODS)}")
@@ -125,6 +132,12 @@ class SimRobot:
             raise ValueError(f"look_turn must be a finite angle in radians, got {look_turn!r}")
         self.look_around = int(look_around)
         self.look_turn = float(look_turn)
+        self.laser_offset: np.ndarray | None = None
+        if laser_offset is not None:
+            m = np.asarray(laser_offset, dtype=np.float64).reshape(-1)
+            if m.shape != (3,) or not np.all(np.isfinite(m)):
+                raise ValueError(f"laser_offset must be 3 finite numbers, got {laser_offset!r}")
+            self.laser_offset = m if np.any(m) else None
         rng = np.random.default_rng((int(look_seed), zlib.crc32(robot_id.encode("utf-8"))))
         sign = 1.0 if rng.random() < 0.5 else -1.0
         #: Relative rotation error of the odometry while turning in place (about 2 %).
@@ -163,7 +176,16 @@ class SimRobot:
         """Configuration message: the map, the method, and the true pose at the next scan as
         initial pose (``None`` with global localisation)."""
         pose = None if self.global_localization else [float(v) for v in self.start_pose]
-        return RobotConfig(map_id=self.map_id, method=self.method, initial_pose=pose)
+        extra = {}
+        if self.laser_offset is not None:
+            extra["laser_offset"] = [float(v) for v in self.laser_offset]
+        return RobotConfig(map_id=self.map_id, method=self.method, initial_pose=pose, **extra)
+
+    def _laser_pose(self, pose: np.ndarray) -> np.ndarray:
+        """Where the laser is when the base is at ``pose``."""
+        if self.laser_offset is None:
+            return pose
+        return compose(np.asarray(pose, dtype=np.float64), self.laser_offset)
 
     def step(self, stamp: float) -> tuple[Scan, Truth]:
         """Scan and ground truth at the current tour position, then advance one step (at
@@ -182,14 +204,21 @@ class SimRobot:
         if spinning:
             pose = self.start_pose
             # noise index past the tour's samples: a spun scan never reuses a tour scan's noise
-            ranges, angles = self.setup.laser.scan(pose, len(self.setup) + self.seq)
+            ranges, angles = self.setup.laser.scan(
+                self._laser_pose(pose), len(self.setup) + self.seq
+            )
             o = np.asarray(self.setup.odom[i], dtype=np.float64).copy()
             o[2] = wrap_angle(
                 o[2] - (self._spin_left - 1) * self.look_turn * (1.0 + self.look_turn_error)
             )
         else:
-            ranges, angles = self.setup.scan(i)
             pose = np.asarray(self.setup.truth[i], dtype=np.float64)
+            if self.laser_offset is None:
+                ranges, angles = self.setup.scan(i)
+            else:
+                ranges, angles = self.setup.laser.scan(
+                    self._laser_pose(pose), i, self.setup.circles(i)
+                )
             o = np.asarray(self.setup.odom[i], dtype=np.float64)
         o = compose(self._odom_frame, o)
         self._last_odom = o
@@ -319,9 +348,11 @@ class SimFleet:
         send_odom: bool = True,
         look_around: int = 0,
         look_turn: float = math.pi / 2,
+        laser_offset: Sequence[float] | None = None,
     ) -> SimFleet:
-        """Build robots (one setup per robot seed) and load their maps; ``look_around`` and
-        ``look_turn`` (radians) are passed to every robot (see :class:`SimRobot`)."""
+        """Build robots (one setup per robot seed) and load their maps; ``look_around``,
+        ``look_turn`` (radians) and ``laser_offset`` are passed to every robot (see
+        :class:`SimRobot`)."""
         maps: dict[str, MapData] = {}
         by_spec: dict[str, str] = {}
         robots = []
@@ -355,6 +386,7 @@ class SimFleet:
                     look_around=look_around,
                     look_turn=look_turn,
                     look_seed=sp.seed,
+                    laser_offset=laser_offset,
                 )
             )
         return SimFleet(robots, maps)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -19,8 +20,14 @@ def create_localizer(
     *,
     cache_dir: Path | None = None,
     search_budget_ms: float | None = None,
+    laser_offset: Sequence[float] | np.ndarray | None = None,
 ) -> Localizer:
     """Return a fresh localiser for one robot.
+
+    ``laser_offset`` is the laser's pose ``[x, y, theta]`` on the robot base (m, rad; ``None``
+    or zero: the laser is the robot's origin). With a non-zero one the localiser works on the
+    laser's pose as always, and is wrapped (:func:`service.core.mounting.mount`) so that
+    ``initial_pose``, the odometry passed in and every estimate are the base's.
 
     ``initial_pose`` ``None`` asks for global localisation (only ``shape`` supports it; the
     baselines need a start pose). ``config`` is the method's own config model, or ``None`` for
@@ -33,6 +40,32 @@ def create_localizer(
     per-scan work budget (``GlobalConfig.search_budget_ms``; ``None``: a whole search per
     scan).
     """
+    offset = None
+    start = initial_pose
+    if laser_offset is not None:
+        from service.core.mounting import check_offset, to_laser
+
+        offset = check_offset(laser_offset)
+        if not np.any(offset):
+            offset = None  # the laser is the origin: the method's localiser itself
+        elif initial_pose is not None:
+            start = to_laser(np.asarray(initial_pose, dtype=np.float64), offset)
+    loc = _method_localizer(method, map_data, start, config, cache_dir, search_budget_ms)
+    if offset is None:
+        return loc
+    from service.core.mounting import MountedLocalizer
+
+    return MountedLocalizer(loc, offset)  # type: ignore[return-value]
+
+
+def _method_localizer(
+    method: str,
+    map_data: MapData,
+    initial_pose: np.ndarray | None,
+    config: Any | None,
+    cache_dir: Path | None,
+    search_budget_ms: float | None,
+) -> Localizer:
     if method == "shape":
         from service.core.global_config import GlobalConfig
         from service.core.global_localization import GlobalShapeLocalizer

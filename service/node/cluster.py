@@ -47,6 +47,7 @@ from service.errors import ShapelocError, StateError
 from service.node.catchup import Fetched, fetch_state, merge_into_store
 from service.node.mirror import MAX_POSE_BYTES, Mirror, fresher, hrw_owner, odom_of, pose_matches
 from service.node.state import StateStore
+from service.node.workers import config_request
 
 if TYPE_CHECKING:
     from service.node.scheduler import WorkerLink
@@ -454,12 +455,10 @@ class ClusterPlane:
                         newer.append((rid, cfg, pm))
             waits = []
             for rid, cfg, pm in newer:
-                init = None if cfg.initial_pose is None else [float(v) for v in cfg.initial_pose]
                 odom = odom_of(pm)
-                req = (
-                    "config", rid, cfg.method, cfg.map_id, init,
-                    [float(v) for v in pm.pose], None if odom is None else list(odom),
-                )  # fmt: skip
+                req = config_request(
+                    rid, cfg, [float(v) for v in pm.pose], None if odom is None else list(odom)
+                )
                 waits.append(self._link_of(rid).submit(req))
             for fut in waits:
                 with contextlib.suppress(Exception):
@@ -526,9 +525,8 @@ class ClusterPlane:
             for r, cfg, pm, odom in gained:
                 link = self.links[self.assignment.assign(r)]
                 start = None if pm is None else [float(v) for v in pm.pose]
-                init = None if cfg.initial_pose is None else [float(v) for v in cfg.initial_pose]
                 odom_start = None if start is None or odom is None else list(odom)
-                req = ("config", r, cfg.method, cfg.map_id, init, start, odom_start)
+                req = config_request(r, cfg, start, odom_start)
                 adopted.append((r, cfg, pm, odom, link.submit(req)))
             t = self.settings.reply_wait_s
             for _r, fut in waits:

@@ -30,7 +30,7 @@ from service.errors import (
 )
 from service.node.control import as_list
 from service.node.intake import ValidScan
-from service.node.workers import Assignment, InlineWorker, ProcessWorker
+from service.node.workers import Assignment, InlineWorker, ProcessWorker, config_request
 
 if TYPE_CHECKING:
     from service.node.scheduler import Worker, WorkerLink
@@ -110,18 +110,7 @@ class ComputePlane:
         for rid, cfg, pm, odom in robots:
             start = None if pm is None else as_list(pm.pose)
             odom_start = None if pm is None else as_list(odom)
-            link.worker.call(
-                (
-                    "config",
-                    rid,
-                    cfg.method,
-                    cfg.map_id,
-                    as_list(cfg.initial_pose),
-                    start,
-                    odom_start,
-                ),
-                t,
-            )
+            link.worker.call(config_request(rid, cfg, start, odom_start), t)
 
     # ------------------------------------------------------------------ scans
     def _offer_scan(self, scan: ValidScan) -> None:

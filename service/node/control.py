@@ -33,7 +33,7 @@ from service.errors import (
 )
 from service.node.intake import Inbound, ScanIntake
 from service.node.state import SavedPose, StateStore
-from service.node.workers import Assignment
+from service.node.workers import Assignment, config_request
 
 if TYPE_CHECKING:
     from service.node.mirror import Mirror
@@ -286,9 +286,9 @@ class ControlPlane:
                 self.assignment.move(robot_id, search.index)
                 idx = search.index
             link = self.links[idx]
-            status, why = link.submit(
-                ("config", robot_id, cfg.method, cfg.map_id, as_list(cfg.initial_pose), None, None)
-            ).result(timeout=self.settings.reply_wait_s)
+            status, why = link.submit(config_request(robot_id, cfg)).result(
+                timeout=self.settings.reply_wait_s
+            )
             if status != "ok" and new:
                 self.assignment.release(robot_id)
         if status != "ok":

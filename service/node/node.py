@@ -54,7 +54,7 @@ from service.node.intake import (
 from service.node.scheduler import LatestSlots, WorkerLink
 from service.node.settings import ServiceSettings
 from service.node.state import StateStore
-from service.node.workers import Assignment
+from service.node.workers import Assignment, config_request
 
 __all__ = ["MAX_SCAN_BYTES", "LatestSlots", "RejectLog", "ServiceNode"]
 
@@ -304,10 +304,7 @@ class ServiceNode(ClusterPlane, ControlPlane, ComputePlane):
                 self.odoms[robot_id] = odom
             self.configs[robot_id] = cfg
             link = self.links[self.assignment.assign(robot_id)]
-            init = as_list(cfg.initial_pose)
-            st, why = link.worker.call(
-                ("config", robot_id, cfg.method, cfg.map_id, init, start, as_list(odom)), t
-            )
+            st, why = link.worker.call(config_request(robot_id, cfg, start, as_list(odom)), t)
             if st != "ok":
                 log.error("restored robot %s could not be set up: %s", robot_id, why)
 

@@ -128,6 +128,34 @@ class _Robot:
     localizer: Localizer | None
     #: odometry pose (odometry frame) at ``last_pose``: the last one a scan carried
     last_odom: np.ndarray | None = None
+    #: the laser's pose on the robot base (RobotConfig.laser_offset); None: at its origin
+    laser_offset: np.ndarray | None = None
+
+
+def config_request(
+    robot_id: str,
+    config: Any,
+    start: list[float] | None = None,
+    start_odom: list[float] | None = None,
+) -> tuple[Any, ...]:
+    """The worker request configuring ``robot_id`` from its wire ``config`` (a
+    ``RobotConfig``): method, map, initial pose, laser mounting, and where to start (the last
+    pose ``start`` with the odometry pose ``start_odom`` there, or ``None``: the initial
+    pose). Poses are lists of floats (they cross a process boundary)."""
+
+    def listed(a: Any) -> list[float] | None:
+        return None if a is None else [float(v) for v in np.asarray(a).reshape(-1)]
+
+    return (
+        "config",
+        robot_id,
+        config.method,
+        config.map_id,
+        listed(config.initial_pose),
+        start,
+        start_odom,
+        listed(getattr(config, "laser_offset", None)),
+    )
 
 
 def _opt_float(v: Any) -> float | None:
@@ -224,8 +252,10 @@ class WorkerCore:
         initial_pose: list[float] | None,
         start_pose: list[float] | None = None,
         start_odom: list[float] | None = None,
+        laser_offset: list[float] | None = None,
     ) -> None:
         init = None if initial_pose is None else np.asarray(initial_pose, dtype=np.float64)
+        mount = None if laser_offset is None else np.asarray(laser_offset, dtype=np.float64)
         start = None if start_pose is None else np.asarray(start_pose, dtype=np.float64)
         odom = None
         if start is not None and start_odom is not None:
@@ -233,16 +263,27 @@ class WorkerCore:
         md = self.maps.get(map_id)
         loc = None
         if md is not None:
-            loc = self._create(method, md, start if start is not None else init, odom)
-        self.robots[robot_id] = _Robot(method, map_id, init, start, loc, odom)
+            loc = self._create(method, md, start if start is not None else init, odom, mount)
+        self.robots[robot_id] = _Robot(method, map_id, init, start, loc, odom, mount)
 
     def _create(
-        self, method: str, md: MapData, start: np.ndarray | None, odom: np.ndarray | None = None
+        self,
+        method: str,
+        md: MapData,
+        start: np.ndarray | None,
+        odom: np.ndarray | None = None,
+        laser_offset: np.ndarray | None = None,
     ) -> Localizer:
-        """A localiser at ``start`` (map frame); with ``odom`` (the odometry pose at
-        ``start``), the next scan's odometry increment is measured from it."""
+        """A localiser at ``start`` (the base's pose, map frame); with ``odom`` (the base's
+        odometry pose at ``start``), the next scan's odometry increment is measured from it;
+        ``laser_offset``: the laser's pose on the base."""
         loc = create_localizer(
-            method, md, start, cache_dir=self.cache_dir, search_budget_ms=self.search_budget_ms
+            method,
+            md,
+            start,
+            cache_dir=self.cache_dir,
+            search_budget_ms=self.search_budget_ms,
+            laser_offset=laser_offset,
         )
         if start is not None and odom is not None:
             loc.reset(start, odom)
@@ -266,9 +307,11 @@ class WorkerCore:
             )
         if r.localizer is None:
             if r.last_pose is not None:
-                r.localizer = self._create(r.method, md, r.last_pose, r.last_odom)
+                r.localizer = self._create(r.method, md, r.last_pose, r.last_odom, r.laser_offset)
             else:
-                r.localizer = self._create(r.method, md, r.initial_pose)
+                r.localizer = self._create(
+                    r.method, md, r.initial_pose, laser_offset=r.laser_offset
+                )
         set_budget = getattr(r.localizer, "set_search_budget", None)
         if self.search_budget_ms is not None and set_budget is not None:
             # the whole budget only while no other robot's scan can queue behind this one
