@@ -290,11 +290,13 @@ class ShapelocClient:
         method: str = "shape",
         initial_pose: Sequence[float] | np.ndarray | None = None,
         *,
+        laser_offset: Sequence[float] | np.ndarray | None = None,
         confirm: bool = False,
         grace: float = 0.5,
     ) -> RobotConfig:
-        """Configure (and reset) a robot: its map, method and initial pose (``None``: global;
-        map frame, metres and radians).
+        """Configure (and reset) a robot: its map, method and initial pose of its base
+        (``None``: global; map frame, metres and radians), and ``laser_offset``, the laser's
+        pose ``[x, y, theta]`` on the base (``None``: ``[0, 0, 0]``).
 
         With ``confirm``, wait (up to ``timeout``) until the service knows the robot, and raise
         :class:`RemoteError` if the service publishes an error notice for this configuration
@@ -302,7 +304,10 @@ class ShapelocClient:
         rejection reported later than that is not seen).
         """
         pose = None if initial_pose is None else [float(v) for v in np.asarray(initial_pose)]
-        msg = RobotConfig(map_id=map_id, method=method, initial_pose=pose)
+        extra: dict[str, Any] = {}
+        if laser_offset is not None:
+            extra["laser_offset"] = [float(v) for v in np.asarray(laser_offset)]
+        msg = RobotConfig(map_id=map_id, method=method, initial_pose=pose, **extra)
         key = keys.robot_key(self.prefix, robot_id, "config")
         if not confirm:
             self._put(key, msg)

@@ -216,31 +216,37 @@ def _nonneg(text: str) -> float:
     return v
 
 
-def add_parsers(msub: Any) -> None:
-    """Add ``import``, ``build``, ``schematize`` and ``fidelity`` to ``shapeloc map``."""
-    imp = msub.add_parser("import", help="a ROS map_server map (YAML + PGM/PNG) as polylines")
+def add_parsers(msub: Any, add: Any = None) -> None:
+    """Add ``import``, ``build``, ``schematize`` and ``fidelity`` to ``shapeloc map``;
+    ``add(msub, name, help=...)`` makes each parser (default ``msub.add_parser``)."""
+    if add is None:
+
+        def add(sub: Any, name: str, **kw: Any) -> argparse.ArgumentParser:
+            return sub.add_parser(name, **kw)
+
+    imp = add(msub, "import", help="a ROS map_server map (YAML + PGM/PNG) as polylines")
     imp.add_argument("file", help="map_server .yaml")
     imp.add_argument("--id", dest="map_id", help="map id (default: the file's stem)")
     imp.add_argument("--out", help="write the polylines (.geojson or wire .json)")
     imp.add_argument("--put", action="store_true", help="store the map on the service")
 
-    bld = msub.add_parser("build", help="draw a map from a laser log at its reference poses")
+    bld = add(msub, "build", help="draw a map from a laser log at its reference poses")
     bld.add_argument("log", help="ROS 1/2 bag or CARMEN log")
     bld.add_argument(
         "--poses", help="per-scan reference (*.gfs_reference_per_scan.txt); default: the log's"
     )
     bld.add_argument("--out", required=True, help="PREFIX of PREFIX.yaml/.pgm/.geojson")
     bld.add_argument("--id", dest="map_id", help="map id (default: PREFIX's name)")
-    bld.add_argument("--resolution", type=float, default=0.025, help="cell size, m (0.025)")
+    bld.add_argument("--resolution", type=float, default=0.025, help="cell size, m")
     bld.add_argument(
         "--max-carried",
         type=_nonneg,
         default=DEFAULT_MAX_CARRIED,
         help="also draw flag-0 scans carried at most this far (m) from a corrected pose "
-        f"(default {DEFAULT_MAX_CARRIED}; 0 = corrected scans only; inf = every scan)",
+        "(0 = corrected scans only; inf = every scan)",
     )
 
-    sch = msub.add_parser("schematize", help="a floor-plan-like map from a metric one (DCE)")
+    sch = add(msub, "schematize", help="a floor-plan-like map from a metric one (DCE)")
     sch.add_argument("file", help="map file (.geojson, .json, .yaml, .wkt)")
     sch.add_argument("--out", required=True, help="output .geojson or wire .json")
     sch.add_argument("--id", dest="map_id", help="map id (default: the input's)")
@@ -250,14 +256,14 @@ def add_parsers(msub: Any) -> None:
             dest=f"sp_{name}",
             type=float,
             default=None,
-            help=f"default {field.default} (see docs/maps.md)",
+            help=f"see docs/maps.md (default: {field.default})",
         )
 
-    fid = msub.add_parser("fidelity", help="distances of a log's returns to a map's polylines")
+    fid = add(msub, "fidelity", help="distances of a log's returns to a map's polylines")
     fid.add_argument("file", help="map file")
     fid.add_argument("log", help="ROS 1/2 bag or CARMEN log")
     fid.add_argument("--poses", help="per-scan reference; default: the log's own")
-    fid.add_argument("--stride", type=int, default=1, help="every N-th trusted scan (1)")
+    fid.add_argument("--stride", type=int, default=1, help="every N-th trusted scan")
 
 
 def run(args: argparse.Namespace, out: TextIO | None = None) -> int:

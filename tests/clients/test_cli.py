@@ -108,7 +108,7 @@ def test_parser_requires_a_command_and_valid_arguments(capsys) -> None:
             "icp",
         ]
     )
-    assert a.connect == ["tcp/h:1"] and a.timeout == 0.5 and a.pose == [1.0, 2.0, -0.5]
+    assert a.connect == ["tcp/h:1"] and a.timeout == 0.5 and a.initial_pose == [1.0, 2.0, -0.5]
     assert a.method == "icp" and not a.global_localization
     w = p.parse_args(["watch"])
     assert w.robot_id == "*" and w.count is None
@@ -235,8 +235,118 @@ def test_watch_prints_count_poses_then_exits(router, fake_service, capsys) -> No
     th.start()
     try:
         assert cli(["--connect", ep, "watch", "r2", "--count", "3", "--seconds", "10"]) == 0
+        lines = capsys.readouterr().out.strip().splitlines()
+        assert len(lines) == 3 and all(ln.startswith("r2: x=0.500 m y=0.250 m") for ln in lines)
+        # --json: one pose message a line
+        assert cli(["watch", "r1", "--count", "2", "--json", "--connect", ep]) == 0
+        lines = capsys.readouterr().out.strip().splitlines()
+        msgs = [json.loads(ln) for ln in lines]
+        assert len(msgs) == 2 and all(m["robot_id"] == "r1" and m["method"] == "icp" for m in msgs)
     finally:
         done.set()
         th.join()
-    lines = capsys.readouterr().out.strip().splitlines()
-    assert len(lines) == 3 and all(ln.startswith("r2: x=0.500 m y=0.250 m") for ln in lines)
+
+
+# ---------------------------------------------------------------- the CLI convention
+# (schemas/cli.py): global options anywhere, one pose spelling, --json, defaults in the help,
+# deprecated spellings warn.
+
+
+def test_global_options_go_before_or_after_the_command() -> None:
+    p = build_parser()
+    before = p.parse_args(
+        ["--connect", "tcp/h:1", "--prefix", "lab", "--timeout", "3", "pose", "r"]
+    )
+    after = p.parse_args(["pose", "r", "--connect", "tcp/h:1", "--prefix", "lab", "--timeout", "3"])
+    for a in (before, after):
+        assert (a.connect, a.prefix, a.timeout, a.robot_id) == (["tcp/h:1"], "lab", 3.0, "r")
+    # nested commands take them too, and the value after the command wins
+    a = p.parse_args(["--prefix", "one", "map", "get", "m", "--prefix", "two", "-v"])
+    assert a.prefix == "two" and a.verbose and a.map_id == "m"
+    # not given anywhere: None until resolved (so a config file can fill it)
+    assert p.parse_args(["health"]).prefix is None
+
+
+def test_initial_pose_takes_three_numbers_and_old_spellings_warn(capsys) -> None:
+    p = build_parser()
+    a = p.parse_args(["configure", "r", "--map", "m", "--initial-pose", "-1.5", "2", "-0.3"])
+    assert a.initial_pose == [-1.5, 2.0, -0.3]
+    assert capsys.readouterr().err == ""
+    a = p.parse_args(["configure", "r", "--map", "m", "--initial-pose", "1,2,0.5"])
+    assert a.initial_pose == [1.0, 2.0, 0.5]
+    err = capsys.readouterr().err.strip().splitlines()
+    assert (
+        len(err) == 1 and "warning: --initial-pose X,Y,THETA (comma form) is deprecated" in err[0]
+    )
+    a = p.parse_args(["configure", "r", "--map", "m", "--pose", "1", "2", "3"])
+    assert a.initial_pose == [1.0, 2.0, 3.0]
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [
+        "shapeloc configure: warning: --pose is deprecated and will be removed in the next "
+        "release; use --initial-pose X Y THETA"
+    ]
+    for bad in (["1", "2"], ["1", "2", "x"], ["1,2"], ["1", "2", "nan"]):
+        with pytest.raises(SystemExit) as ei:
+            p.parse_args(["configure", "r", "--map", "m", "--initial-pose", *bad])
+        assert ei.value.code == 2
+        assert "--initial-pose takes three finite numbers" in capsys.readouterr().err
+    a = p.parse_args(
+        ["configure", "r", "--map", "m", "--global", "--laser-offset", "0.3", "0", "0"]
+    )
+    assert a.laser_offset == [0.3, 0.0, 0.0] and a.global_localization
+
+
+def test_help_shows_the_defaults() -> None:
+    p = build_parser()
+    text = " ".join(p.format_help().split())
+    assert "(default: tcp/127.0.0.1:7447)" in text and "(default: shapeloc)" in text
+    assert "(default: 2)" in text  # --timeout
+    sub = " ".join(
+        p._subparsers._group_actions[0].choices["configure"].format_help().split()  # type: ignore[union-attr]
+    )
+    assert "(default: shape)" in sub and "X Y THETA" in sub and "--pose" not in sub
+
+
+def test_json_output_of_health_pose_maps(fake_service, capsys) -> None:
+    assert cli(["health", "--connect", fake_service, "--json"]) == 0
+    h = json.loads(capsys.readouterr().out)
+    assert h["version"] == "1.2.3" and h["scans_processed"] == 42 and h["status"] == "ok"
+    assert cli(["--connect", fake_service, "pose", "r1", "--json"]) == 0
+    m = json.loads(capsys.readouterr().out)
+    assert m["pose"] == [1.5, -2.25, 1.0] and m["robot_id"] == "r1" and m["seq"] == 9
+    assert cli(["--connect", fake_service, "maps", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out) == []
+    # errors stay one line on stderr with --json too
+    assert cli(["--connect", fake_service, "pose", "nobody", "--json"]) == 1
+    cap = capsys.readouterr()
+    assert cap.out == "" and cap.err.strip() == "shapeloc: error: unknown robot 'nobody'"
+
+
+def test_config_file_gives_the_connection(fake_service, tmp_path: Path, capsys) -> None:
+    cfg = tmp_path / "shapeloc.toml"
+    cfg.write_text(
+        f'prefix = "shapeloc"\nstate_dir = "s"\n[client]\nconnect = ["{fake_service}"]\n'
+    )
+    assert cli(["--config", str(cfg), "health", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["version"] == "1.2.3"
+    yml = tmp_path / "shapeloc.yaml"
+    yml.write_text(f"client:\n  connect: {fake_service}\n  timeout: 0.5\n")
+    assert cli(["health", "--config", str(yml)]) == 0
+    assert "shapeloc 1.2.3" in capsys.readouterr().out
+    # the command line wins over the file: a wrong prefix finds no service
+    assert cli(["--config", str(cfg), "--prefix", "other", "--timeout", "0.3", "health"]) == 1
+    assert "no shapeloc service answered on other/service/health" in capsys.readouterr().err
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[client]\nconect = []\n")
+    assert cli(["--config", str(bad), "health"]) == 1
+    assert "unknown key(s) in the 'client' table: conect" in capsys.readouterr().err
+
+
+def test_config_file_from_the_environment(
+    fake_service, tmp_path: Path, monkeypatch, capsys
+) -> None:
+    cfg = tmp_path / "c.yml"
+    cfg.write_text(f"client:\n  connect: [{fake_service}]\n")
+    monkeypatch.setenv("SHAPELOC_CONFIG", str(cfg))
+    assert cli(["health"]) == 0
+    assert "shapeloc 1.2.3" in capsys.readouterr().out
