@@ -1,15 +1,22 @@
 """``python -m sim_publisher`` / ``shapeloc-sim``: the simulator's command line.
 
-Subcommands (one entry each in :data:`COMMANDS`):
+Commands (one entry each in :data:`COMMANDS`):
 
-* ``run`` (also what ``shapeloc-sim`` without a subcommand means, so ``shapeloc-sim --connect
-  ... --robots 2`` keeps working): drive simulated robots and publish over Zenoh. Puts the
-  maps, configures every robot, then publishes per robot and tick a scan on
-  ``<prefix>/robots/<id>/scan`` and the ground truth on ``<prefix>/robots/<id>/truth``
-  (msgpack, wire contract v1) until ``--scans`` / ``--duration`` is reached or SIGINT/SIGTERM
-  arrives. :func:`main` is the same from Python.
+* ``run``: drive simulated robots and publish over Zenoh. Puts the maps, configures every
+  robot, then publishes per robot and tick a scan on ``<prefix>/robots/<id>/scan`` and the
+  ground truth on ``<prefix>/robots/<id>/truth`` (msgpack, wire contract v1) at ``--rate`` Hz
+  until ``--scans`` / ``--duration`` is reached or SIGINT/SIGTERM arrives. A configuration
+  the service refuses ends the run with its reason (exit 1). :func:`main` is the same from
+  Python.
+* ``replay``: publish a recorded laser log as a robot would (:mod:`sim_publisher.replay`).
 * ``experiment``: the paper's section-6 experiment, in process (no Zenoh);
   :mod:`sim_publisher.experiment`.
+
+It follows the convention of every shapeloc program (:mod:`schemas.cli`): the global options
+(``--connect``, ``--listen``, ``--mode``, ``--zenoh-config``, ``--prefix``, ``--config``,
+``--timeout``, ``-v``) go before or after the command, ``--rate`` is scans per second, a pose
+is ``X Y THETA``, help shows the defaults. ``shapeloc-sim`` without a command still means
+``run`` for one release, with a deprecation warning.
 """
 
 from __future__ import annotations
@@ -17,37 +24,66 @@ from __future__ import annotations
 import argparse
 import logging
 import math
-import signal
 import sys
 import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Any
 
 import zenoh
 
-from clients.client import (
-    DEFAULT_PREFIX,
-    ShapelocClient,
-    Stream,
-    config_endpoints,
-    open_session,
-    zenoh_config,
-)
+from clients.client import ShapelocClient, Stream, open_session
 from schemas import keys
+from schemas.cli import (
+    DEFAULT_PREFIX,
+    HelpFormatter,
+    PoseAction,
+    add_command,
+    add_global_options,
+    resolve_client_globals,
+    warn_deprecated,
+)
 from schemas.codec import MSGPACK_ENCODING, encode
 from schemas.messages import METHODS, PoseMsg
-from service.errors import ServiceTimeout, ShapelocError
+from service.errors import ServiceTimeout
 from sim_publisher import experiment, replay
+from sim_publisher.networked import (
+    GLOBAL_OPTIONS,
+    configure_robots,
+    run_until_signal,
+    wait_answers,
+    wait_service,
+    zenoh_config_from_args,
+)
 from sim_publisher.publisher import SimFleet, fleet_specs
 
+__all__ = [
+    "COMMANDS",
+    "DEFAULT_COMMAND",
+    "Command",
+    "SimOptions",
+    "add_run_arguments",
+    "build_parser",
+    "cli",
+    "cli_run",
+    "main",
+    "options_from_args",
+    "run_until_signal",
+    "zenoh_config_from_args",
+]
+
 log = logging.getLogger("shapeloc.sim")
+
+#: Older name of :func:`sim_publisher.networked.wait_service`, kept for callers not yet moved.
+_wait_service = wait_service
 
 
 @dataclass
 class SimOptions:
-    """Options of one simulator run (see ``--help`` for their meaning; rates in Hz, s)."""
+    """Options of one simulator run (see ``--help`` for their meaning; rates in Hz, s).
+
+    ``laser_offset``: the laser's pose ``[x, y, theta]`` on every robot's base (m, rad;
+    ``None``: at its origin); ``timeout``: seconds a request to the service may take."""
 
     robots: int = 1
     maps: list[str] = field(default_factory=lambda: ["metric"])
@@ -74,6 +110,8 @@ class SimOptions:
     kidnap_robots: int = 1
     look_around: int = 0
     look_turn_deg: float = 90.0
+    laser_offset: list[float] | None = None
+    timeout: float = 2.0
 
 
 def main(
@@ -105,11 +143,14 @@ def main(
         send_odom=options.odom,
         look_around=options.look_around,
         look_turn=math.radians(options.look_turn_deg),
+        laser_offset=options.laser_offset,
     )
     with open_session(conf, endpoints) as session:
-        client = ShapelocClient(session=session, prefix=options.prefix, timeout=2.0)
+        client = ShapelocClient(session=session, prefix=options.prefix, timeout=options.timeout)
         try:
-            up = options.wait_service > 0 and _wait_service(client, options.wait_service, stop)
+            up = options.wait_service > 0 and wait_service(client, options.wait_service, stop)
+            if options.wait_service > 0 and not up and not stop.is_set():
+                log.warning("publishing anyway")
             if options.put_maps and not stop.is_set():
                 for m in fleet.map_messages():
                     try:
@@ -118,16 +159,23 @@ def main(
                         log.warning("map %s was put but not confirmed by the service", m.map_id)
                     log.info("map %s (%s, %d polylines)", m.map_id, m.kind, len(m.polylines))
             if options.configure and not stop.is_set():
-                for r in fleet.robots:
-                    client.configure(r.robot_id, r.map_id, r.method, r.config().initial_pose)
-                    log.info("robot %s: map %s, method %s", r.robot_id, r.map_id, r.method)
-                for r in fleet.robots if up else []:
-                    if stop.is_set():
-                        break
+                configs = [(r.robot_id, r.config()) for r in fleet.robots]
+                if up:  # a refusal (its reason from the service) ends the run: exit 1
                     try:
-                        client.wait_configured(r.robot_id, options.wait_service)
+                        configure_robots(client, configs, options.wait_service, stop)
                     except ServiceTimeout as exc:
                         log.warning("%s; publishing anyway", exc)
+                else:
+                    for rid, cfg in configs:
+                        client.configure(
+                            rid,
+                            cfg.map_id,
+                            cfg.method,
+                            cfg.initial_pose,
+                            laser_offset=options.laser_offset,
+                        )
+                for r in fleet.robots:
+                    log.info("robot %s: map %s, method %s", r.robot_id, r.map_id, r.method)
             poses = None
             if options.lockstep and up:
                 poses = client.watch_poses([r.robot_id for r in fleet.robots])
@@ -136,44 +184,6 @@ def main(
             return _publish_loop(session, fleet, options, stop, poses)
         finally:
             client.close()
-
-
-def _wait_service(client: ShapelocClient, within: float, stop: threading.Event) -> bool:
-    """Poll the service's health for up to ``within`` s (or until ``stop``); True if it is up."""
-    end = time.monotonic() + within
-    while not stop.is_set():
-        try:
-            h = client.health()
-            log.info("service %s up: %d maps, %d robots", h.version, h.maps, h.robots)
-            return True
-        except ServiceTimeout:
-            if time.monotonic() >= end:
-                log.warning("no shapeloc service answered within %.1f s; publishing anyway", within)
-                return False
-            stop.wait(0.1)
-    return False
-
-
-def _wait_answers(
-    poses: Stream[PoseMsg], seq: int, ids: set[str], within: float, stop: threading.Event
-) -> None:
-    """Lockstep: block until every robot in ``ids`` has a pose for scan ``seq`` (or later),
-    ``within`` seconds pass, or ``stop`` is set."""
-    end = time.monotonic() + within
-    missing = set(ids)
-    while missing and not stop.is_set():
-        left = end - time.monotonic()
-        if left <= 0:
-            log.warning(
-                "lockstep: no pose for scan %d of %s within %.1f s; going on",
-                seq,
-                ", ".join(sorted(missing)),
-                within,
-            )
-            return
-        item = poses.get(timeout=min(left, 0.2))
-        if item is not None and item[1].seq >= seq:
-            missing.discard(item[1].robot_id)
 
 
 def _publish_loop(
@@ -220,7 +230,7 @@ def _publish_loop(
                 scan_pub.put(encode(scan, ranges_as_bytes=True))
             if poses is not None:
                 ids = {r.robot_id for r in fleet.robots}
-                _wait_answers(poses, sent, ids, options.lockstep_timeout, stop)
+                wait_answers(poses, sent, ids, options.lockstep_timeout, stop)
             sent += 1
             if now - last_report >= 5.0:
                 log.info("%d scans per robot published (%.1f Hz)", sent, sent / (now - t0))
@@ -277,7 +287,9 @@ def add_run_arguments(p: argparse.ArgumentParser) -> None:
         help="configure robots with initial_pose null (global localisation)",
     )
     p.add_argument("--no-odom", dest="odom", action="store_false", help="omit odometry")
-    p.add_argument("--rate", type=float, default=10.0, help="scans per second per robot")
+    p.add_argument(
+        "--rate", type=float, default=10.0, metavar="HZ", help="scans per second per robot"
+    )
     p.add_argument("--max-rate", action="store_true", help="publish as fast as possible")
     p.add_argument(
         "--lockstep",
@@ -300,7 +312,7 @@ def add_run_arguments(p: argparse.ArgumentParser) -> None:
         "--kidnap-robots",
         type=int,
         default=1,
-        help="how many robots (sim-0, sim-1, ...) are kidnapped (default 1: sim-0)",
+        help="how many robots (sim-0, sim-1, ...) are kidnapped (default: 1, sim-0)",
     )
     p.add_argument(
         "--look-around",
@@ -309,14 +321,14 @@ def add_run_arguments(p: argparse.ArgumentParser) -> None:
         metavar="N",
         help="look-around start: every robot first takes N scans turning in place at its start "
         "(--look-turn-deg between scans) and then drives; use with --global so the localiser "
-        "sees the whole room (a 180-degree laser: 3 scans 90 degrees apart). Default 0: off",
+        "sees the whole room (a 180-degree laser: 3 scans 90 degrees apart); 0: off",
     )
     p.add_argument(
         "--look-turn-deg",
         type=float,
         default=90.0,
         metavar="DEG",
-        help="turn between look-around scans in degrees, counter-clockwise positive (default 90)",
+        help="turn between look-around scans in degrees, counter-clockwise positive",
     )
     p.add_argument("--scans", type=int, help="stop after this many scans per robot")
     p.add_argument("--duration", type=float, help="stop after this many seconds")
@@ -333,55 +345,21 @@ def add_run_arguments(p: argparse.ArgumentParser) -> None:
         help="do not put the robots' configurations",
     )
     p.add_argument("--no-maps", dest="put_maps", action="store_false", help="do not put the maps")
-    p.add_argument("--prefix", default=DEFAULT_PREFIX, help="key prefix")
-    add_zenoh_arguments(p)
-    p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
-
-
-DEFAULT_CONNECT = "tcp/127.0.0.1:7447"
-
-
-def add_zenoh_arguments(p: argparse.ArgumentParser) -> None:
-    """The Zenoh options every networked subcommand shares: ``--mode``, ``--connect``,
-    ``--listen`` and ``--zenoh-config`` (read back with :func:`zenoh_config_from_args`)."""
     p.add_argument(
-        "--mode",
-        choices=("client", "peer", "router"),
-        default=None,
-        help="Zenoh mode (default client, or the --zenoh-config file's)",
+        "--laser-offset",
+        dest="laser_offset",
+        action=PoseAction,
+        help="pose of the laser on every robot's base, x forward, y left: metres, metres, "
+        "radians; scans are taken from there, truth and odometry stay the base's, and the "
+        "configuration tells the service (default: 0 0 0, the laser at the base's origin)",
     )
-    p.add_argument(
-        "--connect",
-        action="append",
-        default=None,
-        help=f"endpoint to connect to (repeatable; default {DEFAULT_CONNECT} in client mode)",
-    )
-    p.add_argument("--listen", action="append", default=None, help="endpoint to listen on")
-    p.add_argument(
-        "--zenoh-config",
-        dest="zenoh_config",
-        metavar="FILE",
-        default=None,
-        help="Zenoh JSON5 config (TLS, mTLS, user/password) as the base; --mode, --connect "
-        "and --listen replace its values",
-    )
-
-
-def zenoh_config_from_args(args: argparse.Namespace) -> tuple[zenoh.Config, list[str]]:
-    """The session config of :func:`add_zenoh_arguments`' options and the connect endpoints
-    (for messages). Raises :class:`~service.errors.InvalidMessage` for an unreadable file."""
-    conf = zenoh_config(
-        args.mode,
-        connect=args.connect or (),
-        listen=args.listen or (),
-        config_file=getattr(args, "zenoh_config", None),
-        default_connect=[DEFAULT_CONNECT],
-    )
-    return conf, config_endpoints(conf, "connect")
 
 
 def options_from_args(args: argparse.Namespace) -> SimOptions:
-    """Validate parsed arguments into :class:`SimOptions` (raises ``ValueError``)."""
+    """Validate parsed arguments into :class:`SimOptions` (raises ``ValueError``); global
+    options not given are read from the configuration file or take their defaults
+    (:func:`schemas.cli.resolve_client_globals`)."""
+    resolve_client_globals(args, GLOBAL_OPTIONS)
     if args.robots < 1:
         raise ValueError("--robots must be >= 1")
     if args.rate <= 0:
@@ -402,6 +380,8 @@ def options_from_args(args: argparse.Namespace) -> SimOptions:
         raise ValueError("--look-around must be >= 0")
     if not math.isfinite(args.look_turn_deg):
         raise ValueError("--look-turn-deg must be a finite number")
+    if args.timeout <= 0:
+        raise ValueError("--timeout must be > 0")
     bad = [m for m in args.method if m not in METHODS]
     if bad:
         raise ValueError(f"unknown method {bad[0]!r}; expected one of {', '.join(METHODS)}")
@@ -430,132 +410,111 @@ def options_from_args(args: argparse.Namespace) -> SimOptions:
         kidnap_robots=args.kidnap_robots,
         look_around=args.look_around,
         look_turn_deg=args.look_turn_deg,
+        laser_offset=args.laser_offset,
+        timeout=args.timeout,
     )
-
-
-def run_until_signal(
-    args: argparse.Namespace,
-    prog: str,
-    parse: Callable[[argparse.Namespace], Any],
-    body: Callable[[zenoh.Config, Any, threading.Event, list[str]], int],
-) -> int:
-    """What every networked subcommand does around its ``body``: logging, ``parse`` the
-    options (``ValueError`` -> exit 2), the Zenoh config (:func:`zenoh_config_from_args`),
-    SIGINT/SIGTERM set the ``stop`` event, errors print ``prog: error: ...`` (exit 1)."""
-    logging.basicConfig(
-        level=logging.DEBUG if args.verbose else logging.INFO,
-        format="%(asctime)s %(name)s %(levelname)s %(message)s",
-        stream=sys.stderr,
-    )
-    zenoh.init_log_from_env_or("error")
-    try:
-        options = parse(args)
-    except ValueError as exc:
-        print(f"{prog}: error: {exc}", file=sys.stderr)
-        return 2
-    try:
-        conf, endpoints = zenoh_config_from_args(args)
-    except ShapelocError as exc:
-        print(f"{prog}: error: {exc}", file=sys.stderr)
-        return 2
-    stop = threading.Event()
-
-    def on_signal(signum: int, _frame: object) -> None:
-        log.info("signal %d: stopping", signum)
-        stop.set()
-
-    old = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
-    try:
-        return body(conf, options, stop, endpoints)
-    except (ShapelocError, ValueError) as exc:
-        print(f"{prog}: error: {exc}", file=sys.stderr)
-        return 1
-    finally:
-        for sig, handler in old.items():
-            signal.signal(sig, handler)
 
 
 def cli_run(args: argparse.Namespace) -> int:
     """``shapeloc-sim run``: validate the options, open the session, run until done or a
     signal (SIGINT/SIGTERM stop after the current tick)."""
-    return run_until_signal(args, "shapeloc-sim", options_from_args, main)
+    return run_until_signal(args, "shapeloc-sim run", options_from_args, main)
 
 
 @dataclass(frozen=True)
 class Command:
-    """One ``shapeloc-sim`` subcommand: its help line, the function adding its options to its
-    subparser and the function running it on the parsed arguments (returns the exit code)."""
+    """One ``shapeloc-sim`` command: its help line, the function adding its options to its
+    parser, the function running it on the parsed arguments (returns the exit code), and
+    whether it talks to a service (its parser then takes the global options too)."""
 
     help: str
     add_arguments: Callable[[argparse.ArgumentParser], None]
     run: Callable[[argparse.Namespace], int]
+    networked: bool = True
 
 
-#: The subcommands, in ``--help`` order; add one here (e.g. ``replay``) and it is wired up.
+#: The commands, in ``--help`` order; add one here and it is wired up.
 COMMANDS: dict[str, Command] = {
     "run": Command(
         "drive simulated robots along the office tour and publish their scans and ground "
-        "truth over Zenoh (the default when no subcommand is given)",
+        "truth over Zenoh",
         add_run_arguments,
         cli_run,
+    ),
+    "replay": Command(
+        "publish a recorded laser log (ROS bag or CARMEN) over Zenoh as a robot would, with "
+        "its reference poses on the truth key, and print the accuracy against them",
+        replay.add_arguments,
+        replay.run,
     ),
     "experiment": Command(
         "the paper's section-6 experiment (Table 1), in process, no Zenoh",
         experiment.add_arguments,
         experiment.run,
-    ),
-    "replay": Command(
-        "publish a recorded laser log (ROS bag or CARMEN) over Zenoh as a robot would, with "
-        "its reference poses on the truth key",
-        replay.add_arguments,
-        replay.run,
+        networked=False,
     ),
 }
-#: What ``shapeloc-sim`` runs when its first argument is not a subcommand.
+#: What ``shapeloc-sim`` without a command runs (deprecated: name the command).
 DEFAULT_COMMAND = "run"
+#: The global options that take a value (schemas.cli), skipped when looking for the command.
+_VALUE_OPTIONS = frozenset(
+    {"--connect", "--listen", "--mode", "--zenoh-config", "--prefix", "--config", "--timeout"}
+)
+
+
+def command_index(argv: Sequence[str]) -> int:
+    """Where the command should be in ``argv``: the index of the first token that is not a
+    global option (or its value); ``len(argv)`` when there is none."""
+    i = 0
+    while i < len(argv):
+        tok = argv[i]
+        if tok in _VALUE_OPTIONS:
+            i += 2
+        elif tok.split("=", 1)[0] in _VALUE_OPTIONS or tok in ("-v", "--verbose"):
+            i += 1
+        else:
+            return i
+    return len(argv)
 
 
 class _Parser(argparse.ArgumentParser):
-    """The top-level parser: arguments not starting with a subcommand (or ``-h``) are parsed
-    as :data:`DEFAULT_COMMAND`'s, so ``shapeloc-sim --robots 2`` means
-    ``shapeloc-sim run --robots 2``; its help ends with the default command's options."""
-
-    default_parser: argparse.ArgumentParser | None = None
-
-    def format_help(self) -> str:
-        text = super().format_help()
-        if self.default_parser is not None:
-            text += (
-                f"\nWithout a COMMAND the options are those of {DEFAULT_COMMAND!r}:\n\n"
-                + self.default_parser.format_help()
-            )
-        return text
+    """The top-level parser. Without a command (``shapeloc-sim --robots 2``) it parses the
+    arguments as :data:`DEFAULT_COMMAND`'s, as before, and warns that this is deprecated."""
 
     def parse_known_args(
         self, args: Sequence[str] | None = None, namespace: argparse.Namespace | None = None
     ) -> tuple[argparse.Namespace, list[str]]:
         argv = list(sys.argv[1:] if args is None else args)
-        if not argv or (argv[0] not in COMMANDS and argv[0] not in ("-h", "--help")):
-            argv.insert(0, DEFAULT_COMMAND)
+        i = command_index(argv)
+        if i == len(argv) or (argv[i] not in COMMANDS and argv[i] not in ("-h", "--help")):
+            warn_deprecated(
+                self.prog, f"{self.prog} without a command", f"{self.prog} {DEFAULT_COMMAND} ..."
+            )
+            argv.insert(i, DEFAULT_COMMAND)
         return super().parse_known_args(argv, namespace)
 
 
 def build_parser() -> argparse.ArgumentParser:
-    """The simulator's command line: ``shapeloc-sim [COMMAND] ...`` (``run`` by default)."""
+    """The simulator's command line: ``shapeloc-sim [GLOBAL OPTIONS] COMMAND ...``."""
     p = _Parser(
         prog="shapeloc-sim",
-        description="The shapeloc simulator: simulated robots publishing to a shapeloc service "
-        f"over Zenoh, and the paper's experiment. Without a COMMAND, {DEFAULT_COMMAND!r} is "
-        "meant.",
+        description="The shapeloc simulator: simulated robots and recorded logs publishing to "
+        "a shapeloc service over Zenoh, and the paper's experiment.\n"
+        "Global options go before or after the command.",
+        formatter_class=HelpFormatter,
     )
+    add_global_options(p, GLOBAL_OPTIONS)
     sub = p.add_subparsers(
         dest="command", metavar="COMMAND", required=True, parser_class=argparse.ArgumentParser
     )
     for name, command in COMMANDS.items():
-        sp = sub.add_parser(name, help=command.help, description=command.help)
+        if command.networked:
+            sp = add_command(sub, name, GLOBAL_OPTIONS, help=command.help)
+        else:
+            sp = sub.add_parser(
+                name, help=command.help, description=command.help, formatter_class=HelpFormatter
+            )
         command.add_arguments(sp)
-        if name == DEFAULT_COMMAND:
-            p.default_parser = sp
     return p
 
 

@@ -3,7 +3,7 @@
 :func:`run_method` feeds one setup's scans to one fresh localiser; :func:`run_experiment` runs
 every (setup, method) pair, in this process or in a process pool (``_worker`` and
 ``_init_worker`` run in the pool's processes and are pickled by their qualified names here),
-with a progress bar on stderr, and writes the outputs (:mod:`.output`).
+with a progress bar on stderr (tqdm), and writes the outputs (:mod:`.output`).
 """
 
 from __future__ import annotations
@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from tqdm import tqdm
 
 from service.core.types import wrap_angle
 from service.errors import LocalizationError
@@ -103,33 +104,6 @@ def _worker(setup_id: int, method: str, seed: int, max_scans: int | None) -> Met
     return run_method(_make_setup(setup_id, seed, max_scans), setup_id, method, _bump)
 
 
-class _Bar:
-    """A one-line text progress bar on stderr."""
-
-    def __init__(self, total: int, enabled: bool) -> None:
-        self.total = max(total, 1)
-        self.enabled = enabled
-        self.t0 = time.perf_counter()
-
-    def show(self, done: int, note: str = "") -> None:
-        if not self.enabled:
-            return
-        frac = min(done / self.total, 1.0)
-        filled = round(30 * frac)
-        el = time.perf_counter() - self.t0
-        sys.stderr.write(
-            f"\r[{'#' * filled}{'.' * (30 - filled)}] {done}/{self.total} scans {el:5.0f} s {note}"[
-                :110
-            ].ljust(110)
-        )
-        sys.stderr.flush()
-
-    def close(self) -> None:
-        if self.enabled:
-            sys.stderr.write("\n")
-            sys.stderr.flush()
-
-
 def run_experiment(
     setups: Sequence[int] = (1, 2),
     methods: Sequence[str] = ("shape", "icp", "lines"),
@@ -167,17 +141,10 @@ def run_experiment(
     tasks = [(s, m) for s in setups for m in methods]
     tasks.sort(key=lambda t: -infos[t[0]].scans * _COST.get(t[1], 1.0))
     total = sum(infos[s].scans for s, _ in tasks)
-    bar = _Bar(total, progress)
+    bar = tqdm(total=total, unit="scan", desc="experiment", disable=not progress, file=sys.stderr)
     if jobs <= 1 or len(tasks) == 1:
-        done = 0
-
-        def tick(k: int) -> None:
-            nonlocal done
-            done += k
-            bar.show(done)
-
         for s, m in tasks:
-            result.runs[(s, m)] = run_method(setup_objs[s], s, m, tick)
+            result.runs[(s, m)] = run_method(setup_objs[s], s, m, bar.update)
     else:
         # fork where the platform has it (workers only run numpy code, and a script calling
         # run_experiment needs no __main__ guard); spawn elsewhere.
@@ -198,7 +165,8 @@ def run_experiment(
                 finished, pending = wait(pending, timeout=0.5, return_when=FIRST_COMPLETED)
                 for f in finished:
                     result.runs[futs[f]] = f.result()
-                bar.show(int(counter.value), f"{len(result.runs)}/{len(tasks)} runs done")
+                bar.update(int(counter.value) - bar.n)
+                bar.set_postfix(runs=f"{len(result.runs)}/{len(tasks)}")
     bar.close()
     result.wall_seconds = time.perf_counter() - t_start
     if out_dir is not None:

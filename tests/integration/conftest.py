@@ -236,7 +236,7 @@ def _sim_env() -> dict[str, str]:
 def run_lockstep_sim(
     svc: ServiceProc, sim_args: list[str], scans: int, robot: str = "sim-0"
 ) -> tuple[dict[int, Any], dict[int, Any]]:
-    """Run ``python -m sim_publisher --connect <svc> --robots 1 --scans <scans> --max-rate
+    """Run ``python -m sim_publisher run --connect <svc> --robots 1 --scans <scans> --max-rate
     --lockstep <sim_args>`` to completion and return what came back over Zenoh for
     ``robot``: its pose messages and its true poses (numpy ``(3,)``), each by ``seq``."""
     import numpy as np
@@ -251,6 +251,7 @@ def run_lockstep_sim(
                 sys.executable,
                 "-m",
                 "sim_publisher",
+                "run",
                 "--connect",
                 svc.endpoint,
                 "--robots",

@@ -109,7 +109,7 @@ def test_router_restart_poses_flow_again_within_5_s(
     watcher = open_session(ep, FAST_RETRY)
     poses = PoseLog(watcher, ["sim-0"])
     sim = subprocess.Popen(
-        [sys.executable, "-m", "sim_publisher", "--connect", ep, "--robots", "1",
+        [sys.executable, "-m", "sim_publisher", "run", "--connect", ep, "--robots", "1",
          "--map", "metric", "--method", "icp", "--rate", "10", "--duration", "60"],
         cwd=REPO, env=_env(), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
     )  # fmt: skip

@@ -87,7 +87,7 @@ def test_flood_on_own_key_costs_the_robot_no_valid_scan(
     s = open_session(svc.endpoint)
     counts = Counts(s, "sim-3")  # published last in each tick: waits longest in its slot
     sim = subprocess.Popen(
-        [sys.executable, "-m", "sim_publisher", "--connect", svc.endpoint, "--robots", "4",
+        [sys.executable, "-m", "sim_publisher", "run", "--connect", svc.endpoint, "--robots", "4",
          "--map", "metric", "--method", "icp", "--rate", "10", "--duration", "12"],
         cwd=REPO, env=_env(), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
     )  # fmt: skip

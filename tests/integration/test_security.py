@@ -466,6 +466,7 @@ def test_mutual_tls_access_by_certificate_name(
         poses = Poses(admin, ROBOT)
         sim = run_module(
             "sim_publisher",
+            "run",
             "--zenoh-config",
             str(robot_file),
             "--no-maps",

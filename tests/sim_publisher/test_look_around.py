@@ -244,20 +244,27 @@ def test_fleet_passes_look_around_to_every_robot() -> None:
     assert all(r.look_around == 0 for r in plain.robots)
 
 
-def test_cli_parses_look_around_flags() -> None:
+def test_cli_parses_look_around_flags(capsys) -> None:
     p = build_parser()
-    o = options_from_args(p.parse_args(["--global", "--look-around", "3", "--look-turn-deg", "60"]))
+
+    def opts(*argv: str) -> SimOptions:
+        return options_from_args(p.parse_args(["run", *argv]))
+
+    o = opts("--global", "--look-around", "3", "--look-turn-deg", "60")
     assert o.look_around == 3 and o.look_turn_deg == 60.0 and o.global_localization
-    d = options_from_args(p.parse_args([]))
+    d = opts()
     assert d.look_around == 0 and d.look_turn_deg == 90.0
     assert SimOptions().look_around == 0 and SimOptions().look_turn_deg == 90.0
     with pytest.raises(ValueError, match="--look-around"):
-        options_from_args(p.parse_args(["--look-around", "-1"]))
+        opts("--look-around", "-1")
     with pytest.raises(ValueError, match="--look-turn-deg"):
-        options_from_args(p.parse_args(["--look-turn-deg", "nan"]))
+        opts("--look-turn-deg", "nan")
     with pytest.raises(SystemExit):
-        p.parse_args(["--look-around", "1.5"])
-    help_text = p.format_help()
+        p.parse_args(["run", "--look-around", "1.5"])
+    capsys.readouterr()
+    with pytest.raises(SystemExit):
+        p.parse_args(["run", "-h"])
+    help_text = capsys.readouterr().out
     assert "--look-around N" in help_text and "--look-turn-deg DEG" in help_text
 
 

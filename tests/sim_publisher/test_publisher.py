@@ -167,24 +167,54 @@ def test_options_from_args_validation() -> None:
     assert cli(["--robots", "0"]) == 2
 
 
-def test_subcommands_and_run_as_the_default(capsys) -> None:
-    """``shapeloc-sim ARGS`` without a subcommand means ``shapeloc-sim run ARGS``."""
+def test_subcommands_and_run_as_the_deprecated_default(capsys) -> None:
+    """``shapeloc-sim ARGS`` without a command still means ``shapeloc-sim run ARGS``, with a
+    deprecation warning; global options may come before the command."""
     p = build_parser()
-    argv = ["--connect", "tcp/h:1", "--robots", "2", "--map", "metric,schematic", "--rate", "5"]
-    implicit, explicit = p.parse_args(argv), p.parse_args(["run", *argv])
-    assert implicit.command == explicit.command == "run"
-    assert vars(implicit) == vars(explicit)
+    argv = ["--robots", "2", "--map", "metric,schematic", "--rate", "5"]
+    explicit = p.parse_args(["run", "--connect", "tcp/h:1", *argv])
+    assert capsys.readouterr().err == ""
+    before = p.parse_args(["--connect", "tcp/h:1", "run", *argv])
+    implicit = p.parse_args(["--connect", "tcp/h:1", *argv])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [
+        "shapeloc-sim: warning: shapeloc-sim without a command is deprecated and will be "
+        "removed in the next release; use shapeloc-sim run ..."
+    ]
+    assert implicit.command == explicit.command == before.command == "run"
+    assert vars(implicit) == vars(explicit) == vars(before)
     assert options_from_args(implicit) == options_from_args(explicit)
-    assert p.parse_args([]).command == "run"  # no arguments at all: today's default run
-    assert set(COMMANDS) >= {"run", "experiment"}
+    assert p.parse_args([]).command == "run"  # no arguments at all: the default run
+    assert (
+        p.parse_args(["--prefix", "x", "-v", "replay", "L", "--robot", "r", "--map", "m"]).command
+        == "replay"
+    )
+    assert set(COMMANDS) == {"run", "replay", "experiment"}
+    capsys.readouterr()
     with pytest.raises(SystemExit) as exc:
         p.parse_args(["-h"])
     assert exc.value.code == 0
     out = capsys.readouterr().out
-    assert "run" in out and "experiment" in out
-    assert "--robots ROBOTS" in out  # the default command's options are listed too
+    assert "run" in out and "replay" in out and "experiment" in out and "(default: client)" in out
+    with pytest.raises(SystemExit) as exc:
+        p.parse_args(["run", "-h"])
+    out = " ".join(capsys.readouterr().out.split())
+    assert (
+        "--robots ROBOTS" in out and "(default: 10.0)" in out and "--laser-offset X Y THETA" in out
+    )
     with pytest.raises(SystemExit):
         p.parse_args(["experiment", "--robots", "2"])  # run's options are not experiment's
+
+
+def test_laser_offset_flag_reaches_every_robot(capsys) -> None:
+    p = build_parser()
+    o = options_from_args(p.parse_args(["run", "--laser-offset", "0.3", "0.1", "0.2"]))
+    assert o.laser_offset == [0.3, 0.1, 0.2]
+    o = options_from_args(p.parse_args(["run", "--laser-offset", "0.3,0.1,0.2"]))
+    assert o.laser_offset == [0.3, 0.1, 0.2]
+    assert "--laser-offset X,Y,THETA (comma form) is deprecated" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        p.parse_args(["run", "--laser-offset", "0.3", "0.1"])
 
 
 def test_cli_unreachable_router_fails_fast(capsys) -> None:

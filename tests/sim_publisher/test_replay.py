@@ -3,7 +3,6 @@ the command line and the pacing (on a recording stand-in for the Zenoh session).
 
 from __future__ import annotations
 
-import io
 import math
 import threading
 import time
@@ -12,18 +11,23 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from schemas.cli import resolve_client_globals
 from schemas.codec import decode, encode, scan_arrays
-from schemas.messages import Scan, Truth
+from schemas.messages import PoseMsg, Scan, Truth
 from service.adapters.logs import LogScan
+from service.core.pose import relative
 from sim_publisher.__main__ import build_parser
+from sim_publisher.networked import GLOBAL_OPTIONS, zenoh_config_from_args
 from sim_publisher.replay import (
-    Progress,
+    Collected,
     ReplayOptions,
     _publish,
+    accuracy,
     initial_pose_for,
     open_replay,
     options_from_args,
     scan_message,
+    summary_text,
     truth_message,
 )
 
@@ -95,11 +99,16 @@ def test_initial_pose_explicit_global_or_first_reference() -> None:
         initial_pose_for(opts, _scans(reference=None, limit=1)[0])
 
 
-def test_command_line() -> None:
+def _parse(*extra: str):
     p = build_parser()
-    args = p.parse_args(["replay", str(BAG), "--robot", "fr", "--map", "m1", "--rate", "max"])
-    o = options_from_args(args)
-    assert (o.robot, o.map_id, o.rate, o.odom, o.lockstep, o.method) == (
+    args = p.parse_args(["replay", str(BAG), "--robot", "fr", "--map", "m1", *extra])
+    resolve_client_globals(args, GLOBAL_OPTIONS, environ={})
+    return options_from_args(args)
+
+
+def test_command_line(capsys) -> None:
+    o = _parse("--speed", "max")
+    assert (o.robot, o.map_id, o.speed, o.odom, o.lockstep, o.method) == (
         "fr",
         "m1",
         None,
@@ -107,28 +116,35 @@ def test_command_line() -> None:
         False,
         "shape",
     )
-    args = p.parse_args(
-        [
-            "replay",
-            str(BAG),
-            "--robot",
-            "fr",
-            "--map",
-            "m1",
-            "--rate",
-            "4",
-            "--no-odom",
-            "--lockstep",
-            "--limit",
-            "9",
-            "--initial-pose",
-            "1,2,0.5",
-            "--method",
-            "icp",
-        ]
+    assert (o.prefix, o.timeout, o.json, o.relations, o.laser_offset) == (
+        "shapeloc",
+        2.0,
+        False,
+        None,
+        None,
     )
-    o = options_from_args(args)
-    assert (o.rate, o.odom, o.lockstep, o.limit, o.initial_pose, o.method) == (
+    o = _parse(
+        "--speed",
+        "4",
+        "--no-odom",
+        "--lockstep",
+        "--limit",
+        "9",
+        "--initial-pose",
+        "1",
+        "2",
+        "0.5",
+        "--method",
+        "icp",
+        "--relations",
+        "r.txt",
+        "--json",
+        "--laser-offset",
+        "0.3",
+        "0.1",
+        "0.2",
+    )
+    assert (o.speed, o.odom, o.lockstep, o.limit, o.initial_pose, o.method) == (
         4.0,
         False,
         True,
@@ -136,12 +152,112 @@ def test_command_line() -> None:
         [1.0, 2.0, 0.5],
         "icp",
     )
-    for bad in (["--rate", "0"], ["--rate", "fast"], ["--initial-pose", "1,2"]):
+    assert o.relations == Path("r.txt") and o.json and o.laser_offset == [0.3, 0.1, 0.2]
+    assert capsys.readouterr().err == ""  # nothing deprecated was used
+    p = build_parser()
+    for bad in (["--speed", "0"], ["--speed", "fast"], ["--initial-pose", "1", "2"]):
         with pytest.raises(SystemExit):
             p.parse_args(["replay", str(BAG), "--robot", "fr", "--map", "m1", *bad])
-    args = p.parse_args(["replay", str(BAG), "--robot", "no/slash", "--map", "m1"])
     with pytest.raises(ValueError, match="--robot"):
-        options_from_args(args)
+        _parse().robot  # noqa: B018 - the valid baseline parses
+        options_from_args(p.parse_args(["replay", str(BAG), "--robot", "no/slash", "--map", "m1"]))
+
+
+def test_old_spellings_still_work_with_a_warning(capsys) -> None:
+    """``--rate N`` was the speed factor and ``--initial-pose`` took X,Y,THETA: both still
+    work for one release, each with one warning line on stderr."""
+    o = _parse("--rate", "4")
+    assert o.speed == 4.0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "warning: --rate as the replay's speed factor is deprecated" in err[0]
+    assert "use --speed" in err[0]
+    assert _parse("--rate", "max").speed is None
+    capsys.readouterr()
+    o = _parse("--initial-pose", "1,2,0.5")
+    assert o.initial_pose == [1.0, 2.0, 0.5]
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--initial-pose X,Y,THETA (comma form) is deprecated" in err[0]
+
+
+def test_laser_offset_turns_the_log_into_a_base_with_a_laser() -> None:
+    """With --laser-offset the odometry and reference go out as the base's: composing them
+    with the offset gives the log's (laser) poses back."""
+    from service.core.pose import compose
+
+    off = [0.3, 0.1, 0.2]
+    s = _scans(limit=4)[3]
+    msg = scan_message(s, laser_offset=off)
+    assert np.allclose(
+        relative(compose(np.asarray(msg.odom), np.asarray(off)), s.odom), 0, atol=1e-9
+    )
+    t = truth_message(s, laser_offset=off)
+    assert t is not None
+    assert np.allclose(
+        relative(compose(np.asarray(t.pose), np.asarray(off)), s.reference), 0, atol=1e-9
+    )
+    opts = ReplayOptions(log=BAG, robot="r", map_id="m", laser_offset=off)
+    first = _scans(limit=1)[0]
+    start = initial_pose_for(opts, first)
+    assert np.allclose(
+        relative(compose(np.asarray(start), np.asarray(off)), first.reference), 0, atol=1e-9
+    )
+
+
+def _pose_msg(seq: int, pose, status: str = "tracking", stamp: float = 0.0) -> PoseMsg:
+    return PoseMsg(
+        robot_id="r",
+        seq=seq,
+        stamp=stamp,
+        pose=pose,
+        status=status,
+        score=0.5,
+        method="shape",
+        map_id="m",
+        latency_ms=1.0,
+    )
+
+
+def test_accuracy_summary_counts_within_each_distance() -> None:
+    truth = {k: np.array([float(k), 0.0, 0.0]) for k in range(10)}
+    offsets = [0.0, 0.05, 0.09, 0.2, 0.29, 0.31, 0.45, 0.6, 1.0]  # seq 9 gets no pose
+    poses = {k: _pose_msg(k, [k + d, 0.0, 0.0]) for k, d in enumerate(offsets)}
+    poses[8] = _pose_msg(8, [9.0, 0.0, 0.0], status="lost")
+    a = accuracy(truth, poses)
+    ref = a["reference"]
+    assert ref["scans"] == 10 and ref["answered"] == 9
+    assert ref["within_0.1_m"] == pytest.approx(3 / 9)
+    assert ref["within_0.3_m"] == pytest.approx(5 / 9)
+    assert ref["within_0.5_m"] == pytest.approx(7 / 9)
+    assert ref["error_max_m"] == pytest.approx(1.0)
+    assert a["status"] == {"tracking": 8, "lost": 1} and a["poses"] == 9 and a["relations"] is None
+    text = summary_text({"log": "x.bag", "robot": "r", "scans": 10, "seconds": 1.0, **a})
+    assert "within 0.1 m 33.3 %, 0.3 m 55.6 %, 0.5 m 77.8 %" in text
+    assert "(9 answered)" in text and "lost 1, tracking 8" in text
+    none = accuracy({}, poses)
+    assert none["reference"] is None
+    assert "no reference poses" in summary_text(
+        {"log": "x", "robot": "r", "scans": 1, "seconds": 1.0, **none}
+    )
+
+
+def test_accuracy_with_relations_reuses_the_relations_metric() -> None:
+    """Perfect poses (the reference itself) score a relations error of the reference's own."""
+    from service.adapters.logs import load_relations, relations_error
+
+    scans = _scans(limit=300)
+    rel = load_relations(DATA / "fr079.300.relations")
+    poses = {
+        s.index: _pose_msg(s.index, [float(v) for v in s.reference], stamp=s.stamp)
+        for s in scans
+        if s.reference is not None
+    }
+    a = accuracy({}, poses, rel)
+    want = relations_error([s.stamp for s in scans], [s.reference for s in scans], rel)
+    assert a["relations"]["used"] == want.used == 64
+    assert a["relations"]["translation_mean_m"] == pytest.approx(want.translation_mean)
+    assert "relations error" in summary_text(
+        {"log": "x", "robot": "r", "scans": 300, "seconds": 1.0, **a}
+    )
 
 
 class _Pub:
@@ -165,15 +281,31 @@ class _Session:
         return _Pub(key, self.log)
 
 
-@pytest.mark.parametrize("rate", [None, 20.0])
-def test_publish_paces_by_log_stamps(rate: float | None) -> None:
+class _Bar:
+    def __init__(self) -> None:
+        self.n = 0
+
+    def update(self, k: int) -> None:
+        self.n += k
+
+    def set_postfix(self, **_kw: object) -> None:
+        pass
+
+
+def _seen() -> Collected:
+    return Collected(truth={}, poses={}, notices=[])
+
+
+@pytest.mark.parametrize("speed", [None, 20.0])
+def test_publish_paces_by_log_stamps(speed: float | None) -> None:
     scans = _scans(limit=12)
-    opts = ReplayOptions(log=BAG, robot="fr", map_id="m", rate=rate, progress=False)
+    opts = ReplayOptions(log=BAG, robot="fr", map_id="m", speed=speed, progress=False)
     session = _Session()
-    out = io.StringIO()
-    bar = Progress("x", 12, out, enabled=False)
+    bar = _Bar()
+    seen = _seen()
     t0 = time.monotonic()
-    sent, _ = _publish(session, opts, iter(scans), threading.Event(), None, bar, set())  # type: ignore[arg-type]
+    sent = _publish(session, opts, iter(scans), threading.Event(), None, bar, seen)  # type: ignore[arg-type]
+    assert bar.n == 12 and sorted(seen.truth) == [s.index for s in scans if s.reference_ok]
     el = time.monotonic() - t0
     assert sent == 12
     scan_puts = [(t, decode(Scan, p)) for t, k, p in session.log if k.endswith("/fr/scan")]
@@ -183,38 +315,24 @@ def test_publish_paces_by_log_stamps(rate: float | None) -> None:
     assert [t.seq for t in truth_puts] == [s.index for s in scans if s.reference_ok]
     assert len(truth_puts) == 7  # flag-1 rows only (1-3, 7-9, 11)
     span = scans[-1].stamp - scans[0].stamp
-    if rate is None:
+    if speed is None:
         assert el < 0.25 * span  # not paced (12 scans span about 2.3 s of log time)
     else:
-        # each scan goes out at (stamp - first stamp) / rate after the first
-        lag = [t - scan_puts[0][0] - (m.stamp - scans[0].stamp) / rate for t, m in scan_puts]
+        # each scan goes out at (stamp - first stamp) / speed after the first
+        lag = [t - scan_puts[0][0] - (m.stamp - scans[0].stamp) / speed for t, m in scan_puts]
         assert min(lag) >= -1e-3 and max(lag) < 0.2  # never early; late only by scheduling
-
-
-def test_progress_line() -> None:
-    out = io.StringIO()
-    bar = Progress("fr079.300.bag", 300, out)
-    bar.update(150, 149, final=True)
-    text = out.getvalue()
-    assert text.startswith("replay fr079.300.bag: 150/300 scans (50 %), ")
-    assert "149 poses" in text and text.endswith("s\n")
-    bar.update(151, 150)  # not due yet (not a terminal: every 5 s)
-    assert out.getvalue() == text
 
 
 def test_publish_without_odometry() -> None:
     scans = _scans(limit=3)
-    opts = ReplayOptions(log=BAG, robot="fr", map_id="m", rate=None, odom=False, progress=False)
+    opts = ReplayOptions(log=BAG, robot="fr", map_id="m", speed=None, odom=False, progress=False)
     session = _Session()
-    bar = Progress("x", 3, io.StringIO(), enabled=False)
-    _publish(session, opts, iter(scans), threading.Event(), None, bar, set())  # type: ignore[arg-type]
+    _publish(session, opts, iter(scans), threading.Event(), None, _Bar(), _seen())  # type: ignore[arg-type]
     sent = [decode(Scan, p) for _, k, p in session.log if k.endswith("/fr/scan")]
     assert len(sent) == 3 and all(m.odom is None for m in sent)
 
 
 def test_replay_takes_the_shared_zenoh_options(tmp_path: Path) -> None:
-    from sim_publisher.__main__ import zenoh_config_from_args
-
     cfg = tmp_path / "z.json5"
     cfg.write_text('{ mode: "client", connect: { endpoints: ["tcp/127.0.0.1:7999"] } }')
     p = build_parser()
@@ -223,3 +341,6 @@ def test_replay_takes_the_shared_zenoh_options(tmp_path: Path) -> None:
     assert endpoints == ["tcp/127.0.0.1:7999"]  # from the file
     args = p.parse_args([*argv, "--connect", "tcp/127.0.0.1:7448"])
     assert zenoh_config_from_args(args)[1] == ["tcp/127.0.0.1:7448"]  # the flag replaces it
+    # before the command too
+    args = p.parse_args(["--connect", "tcp/127.0.0.1:7449", *argv])
+    assert zenoh_config_from_args(args)[1] == ["tcp/127.0.0.1:7449"]
