@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from clients.__main__ import build_parser, cli
+from clients.__main__ import GLOBAL_OPTIONS, build_parser, cli
 from clients.client import zenoh_config
 from schemas.codec import encode
 from schemas.messages import Health, PoseMsg
@@ -182,28 +182,54 @@ def _compose_commands(text: str) -> dict[str, list[str]]:
     return out
 
 
-def test_docker_commands_parse_with_the_real_command_lines() -> None:
-    from service.node.settings import build_parser as service_parser
+def _dockerfile_instruction(text: str, name: str) -> list[str]:
+    """The exec-form (JSON list) command of a Dockerfile instruction (``CMD``, or the
+    ``CMD`` of ``HEALTHCHECK``), continuation lines joined."""
+    joined = text.replace("\\\n", " ")
+    line = next(ln for ln in joined.splitlines() if ln.startswith(name + " "))
+    return json.loads(line[line.index("[") : line.rindex("]") + 1])
+
+
+def test_docker_commands_parse_with_the_real_command_lines(monkeypatch) -> None:
+    """The compose commands, the image's CMD and HEALTHCHECK parse with the real parsers and,
+    with the image's configuration file, connect where the compose topology listens."""
+    from schemas.cli import resolve_client_globals
+    from service.node.settings import load_settings
     from sim_publisher.__main__ import build_parser as sim_parser
     from sim_publisher.__main__ import options_from_args
+    from sim_publisher.networked import GLOBAL_OPTIONS as SIM_GLOBALS
 
+    config = REPO / "docker" / "shapeloc.toml"
+    env = {"SHAPELOC_CONFIG": str(config)}
+    monkeypatch.setenv("SHAPELOC_CONFIG", str(config))
     text = (REPO / "docker" / "compose.yaml").read_text()
     assert "image: eclipse/zenoh:" in text and '"7447:7447/tcp"' in text
+    assert "shapeloc-state:/var/lib/shapeloc" in text and "shapeloc-data:/data" in text
     cmds = _compose_commands(text)
-    assert cmds["service"][0] == "shapeloc-service" and cmds["simulator"][0] == "shapeloc-sim"
-    svc = service_parser().parse_args(cmds["service"][1:])
+    assert cmds["service"] == ["shapeloc-service"] and cmds["simulator"][:2] == [
+        "shapeloc-sim",
+        "run",
+    ]
+    svc = load_settings(cmds["service"][1:], env)
     assert svc.mode == "client" and svc.connect == ["tcp/router:7447"]
-    sim = options_from_args(sim_parser().parse_args(cmds["simulator"][1:]))
-    assert sim.robots == 2 and sim.maps == ["metric", "schematic"]
+    assert svc.state_dir == Path("/var/lib/shapeloc")
     sim_args = sim_parser().parse_args(cmds["simulator"][1:])
-    assert sim_args.mode == "client" and sim_args.connect == ["tcp/router:7447"]
+    sim = options_from_args(sim_args)
+    assert sim.robots == 2 and sim.maps == ["metric", "schematic"] and sim.timeout == 5.0
+    resolve_client_globals(sim_args, SIM_GLOBALS)
+    assert sim_args.mode is None and sim_args.connect == ["tcp/router:7447"]
 
     docker = (REPO / "docker" / "Dockerfile").read_text()
     assert docker.startswith("#") and "FROM python:3.11-slim" in docker
-    cmd_text = docker.split("\nCMD ", 1)[1].replace("\\\n", " ")
-    cmd = json.loads(cmd_text[: cmd_text.index("]") + 1])
-    assert cmd[0] == "shapeloc-service"
-    assert service_parser().parse_args(cmd[1:]).state_dir == "/var/lib/shapeloc"
+    assert "SHAPELOC_CONFIG=/etc/shapeloc/shapeloc.toml" in docker
+    assert "COPY docker/shapeloc.toml /etc/shapeloc/shapeloc.toml" in docker
+    cmd = _dockerfile_instruction(docker, "CMD")
+    assert cmd == ["shapeloc-service"]
+    health = _dockerfile_instruction(docker, "HEALTHCHECK")
+    assert health[0] == "shapeloc" and health[-1] == "health"
+    args = build_parser().parse_args(health[1:])
+    resolve_client_globals(args, GLOBAL_OPTIONS)
+    assert args.connect == ["tcp/router:7447"] and args.timeout == 5.0
 
 
 def test_watch_prints_count_poses_then_exits(router, fake_service, capsys) -> None:
