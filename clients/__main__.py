@@ -2,8 +2,10 @@
 
 Commands (one entry each in :data:`COMMANDS`): ``health``, ``maps``, ``map put|get|delete``
 (and, without a service, ``map import|build|schematize|fidelity``: :mod:`clients.maps_cli`),
-``configure``, ``pose`` and ``watch``. The paper's experiment and log replay belong to the
-simulator (``shapeloc-sim experiment|replay``).
+``configure``, ``pose``, ``watch``, ``view`` (the live view in the browser,
+:mod:`clients.view`) and ``record`` (an MCAP file for Foxglove, :mod:`clients.record`). The
+paper's experiment and log replay belong to the simulator (``shapeloc-sim
+experiment|replay``).
 
 It follows the convention of every shapeloc program (:mod:`schemas.cli`): the global options
 ``--connect``, ``--mode``, ``--zenoh-config``, ``--prefix``, ``--config``, ``--timeout`` and
@@ -43,6 +45,7 @@ from clients.client import (
     open_session,
     zenoh_config,
 )
+from clients.view import DEFAULT_HOST, DEFAULT_PORT, DEFAULT_RATE_HZ
 from schemas.cli import (
     GlobalOptions,
     HelpFormatter,
@@ -53,7 +56,7 @@ from schemas.cli import (
     resolve_client_globals,
 )
 from schemas.messages import METHODS, Map, PoseMsg
-from service.errors import ShapelocError, UnknownMap
+from service.errors import ShapelocError, UnknownMap, Unreachable
 
 #: The global options of ``shapeloc`` (schemas.cli): a Zenoh client that queries the service.
 GLOBAL_OPTIONS = GlobalOptions(listen=False, timeout=True, modes=("client", "peer"))
@@ -327,6 +330,122 @@ def _run_watch(args: argparse.Namespace, out: TextIO) -> int:
     return 0
 
 
+def _session_config(args: argparse.Namespace) -> zenoh.Config:
+    """The Zenoh configuration the global options name (as :func:`connect` opens it)."""
+    return zenoh_config(
+        args.mode if args.zenoh_config else (args.mode or "client"),
+        connect=args.connect or (),
+        config_file=args.zenoh_config,
+        default_connect=[DEFAULT_CONNECT],
+    )
+
+
+@contextmanager
+def _until_signal() -> Iterator[threading.Event]:
+    """An event set by SIGINT / SIGTERM (handlers only in the main thread; restored after)."""
+    stop = threading.Event()
+    old = {}
+    if threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            old[sig] = signal.signal(sig, lambda *_: stop.set())
+    try:
+        yield stop
+    finally:
+        for sig, handler in old.items():
+            signal.signal(sig, handler)
+
+
+def _add_view(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--host",
+        default=DEFAULT_HOST,
+        help="address to serve the page on (another than 127.0.0.1 exposes it to the network, "
+        "unauthenticated)",
+    )
+    p.add_argument("--port", type=int, default=DEFAULT_PORT, help="TCP port (0: any free one)")
+    p.add_argument(
+        "--frame-rate",
+        dest="frame_rate",
+        type=float,
+        default=DEFAULT_RATE_HZ,
+        metavar="HZ",
+        help="frames pushed to the page per second",
+    )
+
+
+def _run_view(args: argparse.Namespace, out: TextIO) -> int:
+    from clients.view.server import main as view_main
+
+    if not args.frame_rate >= 1:
+        raise ShapelocError(f"--frame-rate must be >= 1, got {args.frame_rate}")
+    conf = _session_config(args)
+
+    def ready(url: str) -> None:
+        print(f"shapeloc view: {url} (Ctrl-C stops)", file=out, flush=True)
+
+    with _until_signal() as stop:
+        try:
+            return view_main(
+                conf,
+                host=args.host,
+                port=args.port,
+                prefix=args.prefix,
+                rate_hz=args.frame_rate,
+                ready=ready,
+                stop=stop,
+            )
+        except OSError as exc:
+            raise ShapelocError(f"cannot serve the view on {args.host}:{args.port}: {exc}") from exc
+        except zenoh.ZError as exc:
+            where = ", ".join(config_endpoints(conf)) or "the configured endpoints"
+            raise Unreachable(f"cannot reach a zenoh router or service at {where} ({exc})") from exc
+
+
+def _add_record(p: argparse.ArgumentParser) -> None:
+    p.add_argument("file", help="the MCAP file to write (overwritten)")
+    p.add_argument(
+        "--robot",
+        dest="robots",
+        action="append",
+        default=None,
+        metavar="ID",
+        help="record only this robot; repeatable (default: every robot)",
+    )
+    p.add_argument("--seconds", type=_positive, help="stop after this many seconds")
+    add_json_option(p, "what was recorded (message counts)")
+
+
+def _run_record(args: argparse.Namespace, out: TextIO) -> int:
+    from clients.record import main as record_main
+
+    conf = _session_config(args)
+    with _until_signal() as stop:
+        try:
+            stats = record_main(
+                conf,
+                args.file,
+                prefix=args.prefix,
+                robots=set(args.robots) if args.robots else None,
+                duration=args.seconds,
+                stop=stop,
+                ready=lambda: print(
+                    f"recording to {args.file} (Ctrl-C ends it)",
+                    file=sys.stderr if args.json else out,
+                    flush=True,
+                ),
+            )
+        except OSError as exc:
+            raise ShapelocError(f"cannot write {args.file}: {exc}") from exc
+        except zenoh.ZError as exc:
+            where = ", ".join(config_endpoints(conf)) or "the configured endpoints"
+            raise Unreachable(f"cannot reach a zenoh router or service at {where} ({exc})") from exc
+    if args.json:
+        _print_json(stats.as_dict(), out)
+    else:
+        print(f"recorded {stats.line()}", file=out)
+    return 0
+
+
 @dataclass(frozen=True)
 class Command:
     """One ``shapeloc`` command: its help line, the function adding its options to its
@@ -350,6 +469,18 @@ COMMANDS: dict[str, Command] = {
     ),
     "pose": Command("latest pose estimate of a robot", _add_pose, _run_pose),
     "watch": Command("print pose estimates as they arrive (Ctrl-C stops)", _add_watch, _run_watch),
+    "view": Command(
+        "serve a live view in the browser: maps, poses, paths, statuses, scans, search "
+        "candidates (Ctrl-C stops; docs/view.md)",
+        _add_view,
+        _run_view,
+    ),
+    "record": Command(
+        "record poses, scans, maps and errors into an MCAP file that Foxglove opens "
+        "(Ctrl-C ends it; docs/view.md)",
+        _add_record,
+        _run_record,
+    ),
 }
 
 

@@ -1,4 +1,4 @@
-"""``python -m clients.record FILE.mcap``: record what a shapeloc service publishes, for Foxglove.
+"""``shapeloc record FILE.mcap``: record what a shapeloc service publishes, for Foxglove.
 
 Subscribes to the poses, scans, maps and error notices of a prefix and writes them, as they
 arrive, into an MCAP file (the ``mcap`` package's writer, zstd chunks) with Foxglove's
@@ -33,12 +33,11 @@ Foxglove reads JSON messages with JSON Schemas as natively as protobuf.
 
 from __future__ import annotations
 
-import argparse
 import contextlib
+import dataclasses
 import json
 import logging
 import queue
-import signal
 import sys
 import threading
 import time
@@ -53,7 +52,6 @@ import zenoh
 from mcap.writer import CompressionType, Writer
 
 from clients import foxglove_msgs as fx
-from clients.session import config_endpoints, zenoh_config
 from clients.view.palette import MAP_COLOURS, STATUS_COLOURS, rgba
 from schemas import keys
 from schemas.codec import check_key_id, decode
@@ -84,6 +82,12 @@ class RecordStats:
     messages: int = 0
     dropped: int = 0
     rejected: Counter[str] = field(default_factory=Counter)
+
+    def as_dict(self) -> dict[str, Any]:
+        """The counts as plain data (``--json``)."""
+        d = dataclasses.asdict(self)
+        d["rejected"] = dict(self.rejected)
+        return d
 
     def line(self) -> str:
         """One line for the terminal."""
@@ -323,7 +327,7 @@ def main(
 
     out = Path(path)
     out.parent.mkdir(parents=True, exist_ok=True)
-    with open(out, "wb") as f, zenoh.open(conf) as session:
+    with zenoh.open(conf) as session, open(out, "wb") as f:
         rec = Recorder(f, prefix, robots)
         rec.stats.path = str(out)
         subs = [
@@ -363,44 +367,7 @@ def main(
     return stats
 
 
-if __name__ == "__main__":
-    ap = argparse.ArgumentParser(
-        prog="python -m clients.record",
-        description="Record a shapeloc service's poses, scans, maps and errors into an MCAP "
-        "file that Foxglove opens (Ctrl-C ends the recording).",
-    )
-    ap.add_argument("file", type=Path, help="output .mcap file (overwritten)")
-    ap.add_argument("--connect", action="append", default=None, help="Zenoh endpoint")
-    ap.add_argument("--zenoh-config", metavar="FILE", help="Zenoh JSON5 config (TLS, ...)")
-    ap.add_argument("--prefix", default=keys.DEFAULT_PREFIX, help="key prefix")
-    ap.add_argument("--robots", help="comma list of robot ids to record (default: all)")
-    ap.add_argument("--duration", type=float, help="stop after this many seconds")
-    a = ap.parse_args()
-    cfg = zenoh_config(
-        "client",
-        connect=a.connect or (),
-        config_file=a.zenoh_config,
-        default_connect=["tcp/127.0.0.1:7447"],
-    )
-    zenoh.init_log_from_env_or("error")
-    ev = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: ev.set())
-    wanted = {r.strip() for r in a.robots.split(",") if r.strip()} if a.robots else None
-    try:
-        st = main(
-            cfg,
-            a.file,
-            prefix=a.prefix,
-            robots=wanted,
-            duration=a.duration,
-            stop=ev,
-            ready=lambda: print(f"recording to {a.file} (Ctrl-C ends it)", flush=True),
-        )
-    except zenoh.ZError as exc:
-        print(f"record: cannot reach {', '.join(config_endpoints(cfg))}: {exc}", file=sys.stderr)
-        sys.exit(1)
-    except OSError as exc:
-        print(f"record: {exc}", file=sys.stderr)
-        sys.exit(1)
-    print(f"recorded {st.line()}")
+if __name__ == "__main__":  # the same as ``shapeloc record`` (options: its --help)
+    from clients.__main__ import cli
+
+    sys.exit(cli(["record", *sys.argv[1:]]))

@@ -39,6 +39,7 @@ from typing import Any
 import zenoh
 from aiohttp import WSMsgType, web
 
+from clients.view import DEFAULT_HOST, DEFAULT_PORT, DEFAULT_RATE_HZ
 from clients.view.palette import palette_message
 from clients.view.state import RawSample, ViewState
 from schemas import keys
@@ -48,9 +49,6 @@ from service.errors import InvalidMessage
 
 log = logging.getLogger("shapeloc.view")
 
-DEFAULT_HOST = "127.0.0.1"
-DEFAULT_PORT = 8765
-DEFAULT_RATE_HZ = 10.0
 #: Samples waiting between two ticks; beyond it new samples are dropped (and counted).
 QUEUE_LIMIT = 100_000
 #: Seconds between health queries, and at least between two map queries.
