@@ -1,8 +1,10 @@
 """``make demo`` / ``python -m sim_publisher.demo``: the whole system on one machine, end to end.
 
-Starts the localizer service and the simulator as subprocesses on a free loopback port, lets
-three simulated robots (two on the exact metric office map, one on the schematic floor plan)
-drive a fixed stretch of the office tour, shows live progress, then prints an accuracy table
+Starts the localizer service, its live view in the browser (``shapeloc view``: the URL is
+printed, the page is up while the demo runs) and the simulator as subprocesses on a free
+loopback port, lets three simulated robots (two on the exact metric office map, one on the
+schematic floor plan) drive a fixed stretch of the office tour, shows live progress, then
+prints an accuracy table
 computed only from what came over Zenoh (poses against the simulator's ground-truth topic),
 writes a trajectory figure and shuts everything down. Errors are map-frame position error
 (mm) and heading error (deg); the proximity test is the paper's (100 mm / 45 deg on the
@@ -28,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from clients.client import ShapelocClient, Stream
+from clients.view import DEFAULT_PORT as VIEW_PORT
 from schemas.messages import PoseMsg, Truth
 from service.errors import ShapelocError, Unreachable
 from sim_publisher.office import office_schematic_map, office_world
@@ -189,6 +192,35 @@ def _connect(endpoint: str, within: float, service: subprocess.Popen[bytes]) -> 
             time.sleep(0.2)
 
 
+def start_view(
+    endpoint: str, port: int, log: Path, env: dict[str, str], within: float = 20.0
+) -> tuple[subprocess.Popen[bytes] | None, str | None]:
+    """Start the live view (``shapeloc view``) of the service at ``endpoint`` on ``port``, or
+    on any free port if that one is taken; returns (process, page URL), or (None, None) if it
+    did not start within ``within`` seconds (the demo runs on without it)."""
+    for p in dict.fromkeys((port, 0)):
+        start = log.stat().st_size if log.exists() else 0
+        with open(log, "ab") as f:
+            proc = subprocess.Popen(
+                [sys.executable, "-m", "clients.view", "--connect", endpoint, "--port", str(p)],
+                stdout=f,
+                stderr=subprocess.STDOUT,
+                env=env,
+            )
+        end = time.monotonic() + within
+        while time.monotonic() < end:
+            with open(log, "rb") as f:
+                f.seek(start)
+                text = f.read().decode(errors="replace")
+            if "shapeloc view: " in text:
+                return proc, text.split("shapeloc view: ", 1)[1].split()[0]
+            if proc.poll() is not None:
+                break
+            time.sleep(0.1)
+        _stop(proc, "view")
+    return None, None
+
+
 def run_demo(
     scans: int,
     rate: float,
@@ -198,20 +230,23 @@ def run_demo(
     drain_s: float = 15.0,
     lockstep: bool = True,
     max_seconds: float = 90.0,
+    view_port: int | None = VIEW_PORT,
 ) -> tuple[int, list[Track]]:
     """Run service + simulator, collect poses and truth; returns (exit code, tracks).
 
     With ``lockstep`` the simulator sends the next scans only when every robot's pose for the
     previous ones has arrived (nothing is skipped; slower than ``rate`` if the service is);
     otherwise it publishes at ``rate`` and the service may skip scans (latest wins). The
-    simulator stops after ``scans`` scans or ``max_seconds``, whichever comes first.
+    simulator stops after ``scans`` scans or ``max_seconds``, whichever comes first. Unless
+    ``view_port`` is ``None`` the live view runs beside them (its URL is printed) until the
+    demo ends.
     """
     port = free_port()
     ep = f"tcp/127.0.0.1:{port}"
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     svc_log = open(workdir / "service.log", "wb")  # noqa: SIM115 - closed in finally
     sim_log = open(workdir / "simulator.log", "wb")  # noqa: SIM115
-    service = sim = None
+    service = sim = view = None
     tracks = [Track(rid, m, prox) for rid, m, prox in ROBOTS]
     by_id = {t.robot_id: t for t in tracks}
     code = 0
@@ -234,6 +269,14 @@ def run_demo(
         print(f"demo: service pid {service.pid} listening on {ep} (log {svc_log.name})")
         with _connect(ep, 30.0, service) as client:
             client.wait_for_service(30.0)
+            if view_port is not None:
+                view, url = start_view(ep, view_port, workdir / "view.log", env)
+                if url is not None:
+                    print(
+                        f"demo: live view at {url} (open it in a browser; up while the demo runs)"
+                    )
+                else:
+                    print("demo: the live view did not start; see view.log", file=sys.stderr)
             ids = [t.robot_id for t in tracks]
             poses: Stream[PoseMsg] = client.watch_poses(ids)
             truth: Stream[Truth] = client.watch_truth(ids)
@@ -322,6 +365,7 @@ def run_demo(
                 )
     finally:
         rc_sim = _stop(sim, "simulator")
+        _stop(view, "view")
         rc_svc = _stop(service, "service")
         svc_log.close()
         sim_log.close()
@@ -359,6 +403,14 @@ def cli(argv: Sequence[str] | None = None) -> int:
     )
     p.add_argument("--out", type=Path, default=Path("out/demo.png"), help="figure path")
     p.add_argument("--keep", action="store_true", help="keep the work directory (logs, state)")
+    p.add_argument(
+        "--view-port",
+        type=int,
+        default=VIEW_PORT,
+        help=f"port of the live view in the browser (default {VIEW_PORT}; a taken port or 0: "
+        "any free one)",
+    )
+    p.add_argument("--no-view", action="store_true", help="run without the live view")
     args = p.parse_args(argv)
     if args.scans < 1 or args.rate <= 0:
         p.error("--scans must be >= 1 and --rate > 0")
@@ -374,6 +426,7 @@ def cli(argv: Sequence[str] | None = None) -> int:
                 args.method,
                 lockstep=not args.realtime,
                 max_seconds=args.max_seconds,
+                view_port=None if args.no_view else args.view_port,
             )
         except ShapelocError as exc:
             print(f"demo: error: {exc}", file=sys.stderr)
@@ -406,7 +459,7 @@ def cli(argv: Sequence[str] | None = None) -> int:
 
 
 def _dump_logs(workdir: Path, lines: int = 15) -> None:
-    for name in ("service.log", "simulator.log"):
+    for name in ("service.log", "simulator.log", "view.log"):
         f = workdir / name
         if f.exists():
             tail = f.read_text(errors="replace").splitlines()[-lines:]
