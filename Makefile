@@ -26,21 +26,23 @@ lint: $(STAMP)
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
 
-# bench_kidnap.py (kidnaps on the real logs, ~8 min; reads /work/shared/data/real) is left out
-# of `bench` too: `python bench/bench_kidnap.py --trials 20 --jobs 2`.
-# bench_real.py is left out of `bench`: the whole matrix on the three real logs takes well over
+# Benchmarks are the modules of the bench package: `python -m bench.bench_x` from this folder.
+# bench_kidnap (kidnaps on the real logs, ~8 min; reads /work/shared/data/real) is left out
+# of `bench` too: `python -m bench.bench_kidnap --trials 20 --jobs 2`.
+# bench_real is left out of `bench`: the whole matrix on the three real logs takes well over
 # an hour (its 36 runs took 97 min of run time at load 1-5 on 2 cores, 18-22 min each for shape
 # without odometry on the intel and fr079 schematic maps); run it on its own with `make bench-real` (reads /work/shared/data/real), e.g.
 # `make bench-real BENCH_REAL_ARGS="--jobs 2 --resume"` to finish an interrupted run.
 BENCH_REAL_ARGS ?=
 bench: $(STAMP)
 	for b in bench/bench_*.py; do \
-		case $$b in bench/bench_real.py|bench/bench_kidnap.py) continue;; esac; \
-		$(PY) $$b || exit 1; \
+		m=$$(basename $$b .py); \
+		case $$m in bench_real|bench_kidnap) continue;; esac; \
+		$(PY) -m bench.$$m || exit 1; \
 	done
 
 bench-real: $(STAMP)
-	$(PY) bench/bench_real.py $(BENCH_REAL_ARGS)
+	$(PY) -m bench.bench_real $(BENCH_REAL_ARGS)
 
 experiment: $(STAMP)
 	$(VENV)/bin/shapeloc-sim experiment

@@ -28,7 +28,7 @@ default 1), ``--duration`` s per run. Latency is pose receipt minus scan
 send. Prints p50/p99, poses/s and the answered fraction (poses / scans sent; below 1 the
 instances skipped older scans, latest wins).
 
-Usage: ``python bench/bench_cluster.py [--method icp] [--robots 12] [--reps 3] [--freeze]
+Usage: ``python -m bench.bench_cluster [--method icp] [--robots 12] [--reps 3] [--freeze]
 [--throughput 10,20,30] [--duration 8] [--instance-workers 1] [--single-workers CORES]
 [--keep] [--fanout 5000]``; ``--fanout RATE`` also measures what a client subscribed to
 ``<prefix>/**`` spends on RATE scans/s that it drops (every instance receives every robot's
@@ -53,18 +53,13 @@ from typing import Any
 
 import msgpack
 import numpy as np
+import zenoh
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
-sys.path.insert(0, str(REPO / "bench"))
-
-import zenoh  # noqa: E402
-from bench_service import client_config, free_endpoint  # noqa: E402
-from soak import publisher_main, scan_pool  # noqa: E402
-
-from schemas.codec import decode, encode  # noqa: E402
-from schemas.messages import Health, RobotConfig  # noqa: E402
-from service.node.mirror import hrw_owner  # noqa: E402
+from bench.harness import REPO, client_config, free_endpoint, project_env
+from bench.soak import publisher_main, scan_pool
+from schemas.codec import decode, encode
+from schemas.messages import Health, RobotConfig
+from service.node.mirror import hrw_owner
 
 P = "shapeloc"
 NONE = zenoh.QueryConsolidation(zenoh.ConsolidationMode.NONE)
@@ -74,13 +69,6 @@ def _load() -> str:
     return " ".join(f"{v:.2f}" for v in os.getloadavg())
 
 
-def _env() -> dict[str, str]:
-    env = dict(os.environ)
-    env["PYTHONPATH"] = str(REPO) + os.pathsep + env.get("PYTHONPATH", "")
-    env.pop("RUST_LOG", None)
-    return env
-
-
 class Proc:
     """A child process in its own process group, its output in a log file."""
 
@@ -88,7 +76,7 @@ class Proc:
         self.log = log
         with open(log, "ab") as f:
             self.p = subprocess.Popen(
-                cmd, cwd=REPO, stdout=f, stderr=subprocess.STDOUT, env=_env(),
+                cmd, cwd=REPO, stdout=f, stderr=subprocess.STDOUT, env=project_env(),
                 start_new_session=True,
             )  # fmt: skip
 

@@ -1,7 +1,7 @@
 """Building generator: time per building and the achieved tour statistics per setup.
 
-    .venv/bin/python bench/bench_generator.py [--seeds 0-19,1000-1019] [--people N]
-    .venv/bin/python bench/bench_generator.py --figure docs/generated_buildings.png
+    .venv/bin/python -m bench.bench_generator [--seeds 0-19,1000-1019] [--people N]
+    .venv/bin/python -m bench.bench_generator --figure docs/generated_buildings.png
 
 For every seed: the building drawn (type, layout, size, rooms, furniture items, clutter), the
 time to generate it (shell, furniture, tour, people), the time to build both setups from it

@@ -1,6 +1,6 @@
 """Global localisation acceptance measurement (prints tables).
 
-``python bench/bench_global.py [--poses 200] [--seed 1] [--maps metric,schematic]
+``python -m bench.bench_global [--poses 200] [--seed 1] [--maps metric,schematic]
 [--motions creep,look-around] [--setup-scans N] [--no-setups]``
 
 1. Precompute per map: the view index built cold (into an empty cache dir) and loaded from
@@ -19,7 +19,7 @@
 
 Drive trials (``--drive``, issue 13): global localisation WHILE THE ROBOT DRIVES
 -------------------------------------------------------------------------------
-``python bench/bench_global.py --drive [--groups office,worlds,real] [--starts 200]
+``python -m bench.bench_global --drive [--groups office,worlds,real] [--starts 200]
 [--worlds 8] [--real-starts 40] [--logs intel,fr079,mit-csail] [--data DIR] [--jobs 2]
 [--quick N] [--stride1 1] [--seed 1] [--cache build/bench_global/index] [--out docs/global]``
 
@@ -130,11 +130,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-if str(Path(__file__).resolve().parent) not in sys.path:
-    sys.path.insert(1, str(Path(__file__).resolve().parent))  # bench_real, bench_worlds
-
-from global_drive import (
+from bench.global_drive import (
     REAL_LOGS,
     DriveMap,
     DriveTrial,
@@ -152,9 +148,8 @@ from global_drive import (
     spread,
     trial_end,
 )
-from global_drive_run import drive_main
-from global_drive_tables import _pct_inf, share_table
-
+from bench.global_drive_run import drive_main
+from bench.global_drive_tables import _pct_inf, share_table
 from service.core import global_localization as gl
 from service.core.factory import create_localizer
 from service.core.types import wrap_angle

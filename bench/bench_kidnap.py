@@ -36,11 +36,8 @@ from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
-sys.path.insert(0, str(REPO / "bench"))
-
-import bench_real as br  # noqa: E402
+from bench import bench_real as br
+from bench.harness import REPO
 
 RULES = {"default": None, "before stop 42 (-1)": -1.0}
 
@@ -160,7 +157,7 @@ def main(argv: list[str] | None = None) -> int:
                 held = " (HELD-OUT)" if name == "mit-csail" else ""
                 s = summarise(sel)
                 lines.append("| " + " | ".join([name + held, kind, label, *s.values()]) + " |")
-    command = "python bench/bench_kidnap.py " + " ".join(sys.argv[1:] if argv is None else argv)
+    command = "python -m bench.bench_kidnap " + " ".join(sys.argv[1:] if argv is None else argv)
     text = (
         "# Kidnapped robot with odometry on the real logs (stop 42)\n\n"
         f"Written by `{command}` ({len(jobs)} trials in {time.time() - t0:.0f} s, "

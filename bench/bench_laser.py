@@ -1,6 +1,6 @@
 """Ray casting / laser simulation speed on the office world (single thread).
 
-    .venv/bin/python bench/bench_laser.py [--repeat N]
+    .venv/bin/python -m bench.bench_laser [--repeat N]
 
 Prints ms per scan (p50, p95, p99, mean) for 361 and 720 beams, casting from the poses of the
 setup-2 tour (~410 poses) against the TRUE office world (all obstacle segments). ``cast`` is

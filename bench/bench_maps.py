@@ -22,7 +22,7 @@ Writes ``docs/real/maps/{log}.geojson`` (metric polylines), ``{log}_schematic.ge
 the files small: a coarse cell is occupied if any fine cell is, else free if any is, else
 unknown). Prints one table; ``--markdown`` prints it as Markdown (for docs/maps.md).
 
-    .venv/bin/python bench/bench_maps.py [--logs intel fr079 mit-csail] [--no-write]
+    .venv/bin/python -m bench.bench_maps [--logs intel fr079 mit-csail] [--no-write]
 """
 
 from __future__ import annotations

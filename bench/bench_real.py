@@ -42,7 +42,7 @@ metric map, its non-tracking scans and its scored scans more than 0.3 m off mark
 estimated track is cached in ``--cache`` (default build/bench_real, git-ignored) for the
 figures; ``--resume`` skips runs already in results.csv with the same scan count.
 
-    .venv/bin/python bench/bench_real.py [--logs intel,fr079,mit-csail] [--methods shape,icp,lines]
+    .venv/bin/python -m bench.bench_real [--logs intel,fr079,mit-csail] [--methods shape,icp,lines]
         [--odom on,off] [--maps metric,schematic] [--limit N] [--jobs 1] [--resume]
         [--out docs/real] [--no-plot]
 """
@@ -498,7 +498,7 @@ def main(argv: list[str] | None = None) -> int:
     odoms = [t == "on" for t in parse_list(args.odom, ("on", "off"), "odom")]
     maps = parse_list(args.maps, MAPS, "maps")
     limit: int | None = args.limit
-    command = "bench/bench_real.py " + shlex.join(sys.argv[1:] if argv is None else argv)
+    command = "python -m bench.bench_real " + shlex.join(sys.argv[1:] if argv is None else argv)
     commit = git_commit()
     out: Path = args.out
     cache: Path = args.cache

@@ -56,10 +56,10 @@ per line: >= 99 % answered, p99 <= 50 ms, none starved; a searching robot adds <
 tracked robots' p99. ``--out docs/scale.md`` writes the tables as markdown with the command,
 the git commit and the date.
 
-Usage: ``python bench/bench_service.py [--robots 1,5,10,20,30] [--method shape]
+Usage: ``python -m bench.bench_service [--robots 1,5,10,20,30] [--method shape]
 [--world office,1000] [--map metric,schematic] [--rate 10] [--searching 0,1]
 [--workers 2] [--duration 10] [--out FILE] [--json FILE]`` (every comma list is crossed into
-rows), or ``python bench/bench_service.py --acceptance [--duration 20] --out docs/scale.md``.
+rows), or ``python -m bench.bench_service --acceptance [--duration 20] --out docs/scale.md``.
 Numbers depend on the machine load; the load average is printed with every row.
 
 The work is split along its seams: ``scale_walks`` (worlds, scans, walks, odometry, robot
@@ -71,15 +71,12 @@ tables, the markdown report); this script keeps the command line and re-exports 
 from __future__ import annotations
 
 import argparse
-import contextlib
 import datetime as dt
 import json
 import math
 import os
 import platform
 import shlex
-import signal
-import subprocess
 import sys
 import tempfile
 import time
@@ -87,23 +84,26 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import zenoh
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
-
-import zenoh  # noqa: E402
-from scale_load import (  # noqa: E402
+from bench.harness import (
+    REPO,
+    ServiceStartError,
+    client_config,
+    free_endpoint,
+    start_service,
+    wait_ready,
+)
+from bench.scale_load import (
     MSGPACK,
     P,
     Receiver,
-    client_config,
-    free_endpoint,
     health,
     publisher_main,
     scan_payload,
     tree_cpu_s,
 )
-from scale_report import (  # noqa: E402
+from bench.scale_report import (
     ACCEPT_ANSWERED,
     ACCEPT_P99_MS,
     ACCEPT_SEARCH_ADDS_MS,
@@ -124,8 +124,8 @@ from scale_report import (  # noqa: E402
     search_pairs,
     text_table,
 )
-from scale_row import Context, RowSpec, run_row, summarise_row  # noqa: E402
-from scale_walks import (  # noqa: E402
+from bench.scale_row import Context, RowSpec, run_row, summarise_row
+from bench.scale_walks import (
     Pool,
     RobotPlan,
     make_pool,
@@ -138,8 +138,7 @@ from scale_walks import (  # noqa: E402
     walk_odometry,
     world_name,
 )
-
-from schemas.codec import encode  # noqa: E402
+from schemas.codec import encode
 
 #: What this script offers its importers (tests, ``soak.py``, ``bench_cluster.py``): its own
 #: command line and the names of the modules it was split into.
@@ -261,44 +260,24 @@ def main(argv: list[str] | None = None) -> int:
     load_before = _load()
     results: list[dict[str, Any]] = []
     with tempfile.TemporaryDirectory() as tmp:
-        log_path = Path(tmp) / "service.log"
-        cmd = [
-            sys.executable,
-            "-m",
-            "service",
-            "--listen",
-            endpoint,
-            "--state-dir",
-            str(Path(tmp) / "state"),
-            "--workers",
-            str(workers),
-            "--log-level",
-            "warning",
-        ]
+        extra = ["--log-level", "warning"]
         if args.search_budget_ms is not None:
-            cmd += ["--search-budget-ms", str(args.search_budget_ms)]
-        with open(log_path, "wb") as logf:
-            svc = subprocess.Popen(
-                cmd, cwd=REPO, stdout=logf, stderr=subprocess.STDOUT, start_new_session=True
-            )
+            extra += ["--search-budget-ms", str(args.search_budget_ms)]
+        svc = start_service(
+            Path(tmp) / "state",
+            *extra,
+            endpoint=endpoint,
+            workers=workers,
+            log_path=Path(tmp) / "service.log",
+        )
         rec = None
         try:
-            session = None
-            deadline = time.time() + 60
-            while True:
-                if svc.poll() is not None:
-                    print(log_path.read_text(), file=sys.stderr)
-                    return 1
-                try:
-                    session = session or zenoh.open(client_config(endpoint))
-                    if health(session) is not None:
-                        break
-                except zenoh.ZError:
-                    pass
-                if time.time() > deadline:
-                    raise RuntimeError("service did not start")
-                time.sleep(0.2)
-            assert session is not None
+            try:
+                wait_ready(svc, 60.0)
+            except ServiceStartError as exc:
+                print(exc, file=sys.stderr)
+                return 1
+            session = zenoh.open(client_config(endpoint))
             with session:
                 for pool in pools.values():
                     session.put(f"{P}/maps/{pool.map_id}", encode(pool.map_msg), encoding=MSGPACK)
@@ -353,14 +332,7 @@ def main(argv: list[str] | None = None) -> int:
         finally:
             if rec is not None:
                 rec.close()
-            if svc.poll() is None:
-                svc.send_signal(signal.SIGTERM)
-                try:
-                    svc.wait(timeout=30)
-                except subprocess.TimeoutExpired:
-                    with contextlib.suppress(ProcessLookupError):
-                        os.killpg(svc.pid, signal.SIGKILL)
-                    svc.wait()
+            svc.stop(30.0)
     load_after = _load()
     worlds = []
     for s in specs:
@@ -380,7 +352,7 @@ def main(argv: list[str] | None = None) -> int:
             }
         )
     meta = {
-        "command": "python bench/bench_service.py "
+        "command": "python -m bench.bench_service "
         + " ".join(shlex.quote(a) for a in argv_of(argv)),
         "commit": git_commit(),
         "date": dt.datetime.now(dt.UTC).strftime("%Y-%m-%d %H:%M UTC"),

@@ -18,7 +18,7 @@ milliseconds per scan of every stage:
 The first updates of the process (loading or compiling the numba kernels) run before the
 measurement and their time is printed separately.
 
-Usage: ``python bench/bench_shape.py [--scans1 600] [--scans2 150]``. The stages are timed by
+Usage: ``python -m bench.bench_shape [--scans1 600] [--scans2 150]``. The stages are timed by
 wrapping the core's functions in this script only; numbers are wall-clock and noisy on a
 shared machine (the header prints the load average).
 """

@@ -1,6 +1,6 @@
 """Timing of the shape primitives (grouping, DCE, S*, partial optimal similarity, complexity).
 
-Usage: ``.venv/bin/python bench/bench_shape_primitives.py [--scans N] [--seed S]``
+Usage: ``.venv/bin/python -m bench.bench_shape_primitives [--scans N] [--seed S]``
 
 Inputs are realistic: simulated 361-beam scans of setup 1 (office tour, exact metric map,
 furniture, 1 cm noise) spread evenly along the tour. S* is timed on every pair of DCE'd
@@ -13,14 +13,10 @@ from __future__ import annotations
 
 import argparse
 import os
-import sys
 import time
 from collections.abc import Callable
-from pathlib import Path
 
 import numpy as np
-
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from service.core.dce import DCE_NOISE_THRESHOLD, dce, refine_vertices
 from service.core.polylines import group_polylines

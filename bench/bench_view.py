@@ -16,7 +16,7 @@ of the browser (all its processes), in % of one core. The acceptance lines: the 
 >= 5 times a second; the service's p99 with the view open is at most 5 ms above the mean of
 the two rows without it.
 
-Usage: ``python bench/bench_view.py [--robots 50] [--rate 10] [--duration 20]
+Usage: ``python -m bench.bench_view [--robots 50] [--rate 10] [--duration 20]
 [--world office] [--map metric] [--out docs/results/view.md]``. Needs chromium (skips with
 a message otherwise). Timing depends on the machine's load; the load average is reported.
 """
@@ -40,26 +40,21 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import zenoh
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
-
-import zenoh  # noqa: E402
-from scale_load import (  # noqa: E402
+from bench.harness import REPO, client_config, free_endpoint, start_service, wait_ready
+from bench.scale_load import (
     MSGPACK,
     P,
     Receiver,
-    client_config,
-    free_endpoint,
     health,
     tree_cpu_s,
 )
-from scale_report import _f, git_commit, markdown_table, text_table  # noqa: E402
-from scale_row import Context, RowSpec, run_row  # noqa: E402
-from scale_walks import make_pool, world_name  # noqa: E402
-
-from clients.view.headless import Chromium, find_chromium  # noqa: E402
-from schemas.codec import encode  # noqa: E402
+from bench.scale_report import _f, git_commit, markdown_table, text_table
+from bench.scale_row import Context, RowSpec, run_row
+from bench.scale_walks import make_pool, world_name
+from clients.view.headless import Chromium, find_chromium
+from schemas.codec import encode
 
 ACCEPT_RATE = 5.0
 ACCEPT_P99_ADDS_MS = 5.0
@@ -177,37 +172,24 @@ def stop_proc(proc: subprocess.Popen[bytes]) -> None:
             proc.wait()
 
 
-def start_service(endpoint: str, tmp: Path, workers: int) -> subprocess.Popen[bytes]:
-    """The service as bench/bench_service.py starts it, on ``endpoint``."""
-    cmd = [sys.executable, "-m", "service", "--listen", endpoint, "--state-dir",
-           str(tmp / "state"), "--workers", str(workers), "--log-level", "warning"]  # fmt: skip
-    with open(tmp / "service.log", "wb") as logf:
-        return subprocess.Popen(
-            cmd, cwd=REPO, stdout=logf, stderr=subprocess.STDOUT, start_new_session=True
-        )
-
-
 def run_rows(args: argparse.Namespace, tmp: Path) -> list[dict[str, Any]]:
     pool = make_pool(args.world, args.map, args.stride)
     endpoint = free_endpoint()
     workers = args.workers or (os.cpu_count() or 1)
-    svc = start_service(endpoint, tmp, workers)
+    service = start_service(
+        tmp / "state",
+        "--log-level",
+        "warning",
+        endpoint=endpoint,
+        workers=workers,
+        log_path=tmp / "service.log",
+    )
+    svc = service.proc
     results: list[dict[str, Any]] = []
     rec = None
     try:
-        session = None
-        deadline = time.time() + 60
-        while True:
-            if svc.poll() is not None:
-                raise RuntimeError((tmp / "service.log").read_text())
-            with contextlib.suppress(zenoh.ZError):
-                session = session or zenoh.open(client_config(endpoint))
-                if health(session) is not None:
-                    break
-            if time.time() > deadline:
-                raise RuntimeError("service did not start")
-            time.sleep(0.2)
-        assert session is not None
+        wait_ready(service, 60.0)
+        session = zenoh.open(client_config(endpoint))
         with session:
             session.put(f"{P}/maps/{pool.map_id}", encode(pool.map_msg), encoding=MSGPACK)
             while (h := health(session)) is None or h.maps < 1:
@@ -373,7 +355,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"# load before {load_before}, after {load_after}")
     if args.out is not None:
         meta = {
-            "command": "python bench/bench_view.py "
+            "command": "python -m bench.bench_view "
             + " ".join(shlex.quote(a) for a in (sys.argv[1:] if argv is None else argv)),
             "commit": commit(),
             "date": dt.datetime.now(dt.UTC).strftime("%Y-%m-%d %H:%M UTC"),

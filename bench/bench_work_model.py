@@ -29,7 +29,7 @@ Maps: office and building 3 (simulated, metric and floor plan), intel and fr079 
 metric and schematised). The real logs are read from ``--data`` (``../shared/data/real``);
 without it only the simulated maps run. mit-csail (held out) is not measured.
 
-Run: ``python bench/bench_work_model.py [--scans 12] [--data ../shared/data/real]``
+Run: ``python -m bench.bench_work_model [--scans 12] [--data ../shared/data/real]``
 (~1 min; alone on the machine, as CPU time is measured).
 """
 
@@ -43,10 +43,7 @@ from typing import Any
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-import bench_global as bg
-
+from bench import bench_global as bg
 from service.core import evidence as ev
 from service.core.configuration import scan_configuration
 from service.core.global_search import (

@@ -15,10 +15,10 @@ lost scans (median and worst world, and how many worlds lost any scan) and the s
 ``tracking`` poses that fail the proximity test ("confident wrong", pooled over all worlds).
 A figure of the worst world of each setup (shape method) goes beside the table.
 
-    python bench/bench_worlds.py                       # held-out seeds 1000-1023, 2 processes
-    python bench/bench_worlds.py --split tuning        # seeds 0-19 (for tuning work)
-    python bench/bench_worlds.py --odom --people 2     # also with odometry; moving people
-    python bench/bench_worlds.py --methods icp,lines --odom-only --baseline-odom --update
+    python -m bench.bench_worlds                       # held-out seeds 1000-1023, 2 processes
+    python -m bench.bench_worlds --split tuning        # seeds 0-19 (for tuning work)
+    python -m bench.bench_worlds --odom --people 2     # also with odometry; moving people
+    python -m bench.bench_worlds --methods icp,lines --odom-only --baseline-odom --update
                                                        # add the baselines' odometry rows
 
 Writes ``docs/worlds/table.md``, ``docs/worlds/results.csv`` and ``docs/worlds/worst_*.png``
@@ -43,8 +43,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+from bench.harness import REPO as ROOT
 
 SPLITS = {"tuning": list(range(0, 20)), "held-out": list(range(1000, 1024))}
 
@@ -308,8 +307,8 @@ def main(
                 figs.append(name)
             elif (out / name).exists():  # --update without rerunning that row: keep it
                 figs.append(name)
-    cmd = "python bench/bench_worlds.py " + " ".join(sys.argv[1:])
-    from bench_real import git_commit  # bench/ is on sys.path when run as a script
+    cmd = "python -m bench.bench_worlds " + " ".join(sys.argv[1:])
+    from bench.bench_real import git_commit
 
     commit = git_commit()
     earlier = ""

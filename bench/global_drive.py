@@ -342,8 +342,7 @@ def drive_source(m: DriveMap, data: Path, stride: int = 1) -> DriveSource:
     if key in _SOURCES:
         return _SOURCES[key]
     if m.group == "real":
-        from bench_real import load_log, map_path
-
+        from bench.bench_real import load_log, map_path
         from service.adapters.maps.files import load_map_file
 
         log = load_log(Path(data), m.world, None)
@@ -369,8 +368,7 @@ def drive_source(m: DriveMap, data: Path, stride: int = 1) -> DriveSource:
         if m.group == "office":
             su = make_setup(setup)
         else:
-            from bench_worlds import _building
-
+            from bench.bench_worlds import _building
             from sim_publisher.scenario import building_setup
 
             su = building_setup(_building(m.seed, 0, m.clutter), setup, seed=0)

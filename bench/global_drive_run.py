@@ -20,7 +20,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from global_drive import (
+
+from bench.global_drive import (
     DRIVE_MARGIN,
     FIX_DEG,
     FIX_DIST,
@@ -45,9 +46,14 @@ from global_drive import (
     spread,
     trial_end,
 )
-from global_drive_tables import SHARE_SPLIT, drive_table, room_table, share_table, write_drive_csv
-from plan_share import PlanShare
-
+from bench.global_drive_tables import (
+    SHARE_SPLIT,
+    drive_table,
+    room_table,
+    share_table,
+    write_drive_csv,
+)
+from bench.plan_share import PlanShare
 from service.core.factory import create_localizer
 
 _PLANS: dict[DriveMap, PlanShare] = {}
@@ -227,7 +233,7 @@ def _pool_map(
 
 def drive_main(args: argparse.Namespace, argv: Sequence[str]) -> int:
     """Run the drive trials and write the tables (see the docstring of ``bench_global.py``)."""
-    from bench_real import git_commit
+    from bench.bench_real import git_commit
 
     groups = [g.strip() for g in args.groups.split(",") if g.strip()]
     bad = [g for g in groups if g not in GROUPS]
@@ -245,7 +251,7 @@ def drive_main(args: argparse.Namespace, argv: Sequence[str]) -> int:
     cap = args.quick if args.quick is not None else 1 << 30
     cache = str(Path(args.cache).resolve())
     data = str(Path(args.data).resolve())
-    command = "python bench/bench_global.py " + shlex.join(argv)
+    command = "python -m bench.bench_global " + shlex.join(argv)
     commit = git_commit()
     load0 = load_average()
     date = datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC")

@@ -14,7 +14,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from global_drive import HELD_OUT_FIRST_SEED, DriveMap, DriveTrial
+
+from bench.global_drive import HELD_OUT_FIRST_SEED, DriveMap, DriveTrial
 
 DRIVE_FIELDS_SKIP = ("search_ms",)
 #: share_table's split of the trials by plan share (:mod:`plan_share`)

@@ -1,23 +1,22 @@
 """The loopback Zenoh side of the service scale benchmark (``bench/bench_service.py``).
 
-Client sessions to the service on a loopback endpoint (:func:`free_endpoint`,
-:func:`client_config`, :func:`health`); the load generator: the msgpack scans
-(:func:`scan_payload`) and the publisher process sending every robot's scans on schedule
-(:func:`publisher_main`, run in a ``spawn`` child, so it lives in this importable module);
-the :class:`Receiver` collecting every pose and re-configuring searching robots on a fix; and
-the CPU accounting of a process tree from /proc (:func:`tree_cpu_s`).
+Client sessions to the service on a loopback endpoint (:func:`free_endpoint` and
+:func:`client_config` of :mod:`bench.harness`, :func:`health`); the load generator: the
+msgpack scans (:func:`scan_payload`) and the publisher process sending every robot's scans
+on schedule (:func:`publisher_main`, run in a ``spawn`` child, so it lives in this importable
+module); the :class:`Receiver` collecting every pose and re-configuring searching robots on a
+fix; and the CPU accounting of a process tree from /proc (:func:`tree_cpu_s`).
 
-The project root must be on ``sys.path`` (``bench_service`` puts it there) for ``schemas``.
+Run from the repository root as part of the ``bench`` package
+(``python -m bench.bench_service``).
 """
 
 from __future__ import annotations
 
 import contextlib
-import json
 import os
 import queue
 import signal
-import socket
 import threading
 import time
 from pathlib import Path
@@ -27,36 +26,17 @@ import msgpack
 import numpy as np
 import zenoh
 
-from schemas.codec import decode, encode
+from bench.harness import client_config, get_health
+from schemas.codec import encode
 from schemas.messages import Health, RobotConfig
 
 P = "shapeloc"
 MSGPACK = "application/msgpack"
 
 
-def free_endpoint() -> str:
-    """An unused ``tcp/127.0.0.1:PORT``."""
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return f"tcp/127.0.0.1:{s.getsockname()[1]}"
-
-
-def client_config(endpoint: str) -> zenoh.Config:
-    """Loopback-only client config."""
-    c = zenoh.Config()
-    c.insert_json5("mode", json.dumps("client"))
-    c.insert_json5("connect/endpoints", json.dumps([endpoint]))
-    c.insert_json5("scouting/multicast/enabled", "false")
-    c.insert_json5("scouting/delay", "0")
-    return c
-
-
 def health(session: zenoh.Session, timeout: float = 2.0) -> Health | None:
     """The service's Health, or None (no answer within ``timeout`` s)."""
-    for r in session.get(f"{P}/service/health", timeout=timeout):
-        if r.ok is not None:
-            return decode(Health, r.ok.payload.to_bytes(), str(r.ok.encoding))
-    return None
+    return get_health(session, P, timeout)
 
 
 def scan_payload(info: dict[str, float], seq: int, ranges: bytes, odom: np.ndarray | None) -> bytes:

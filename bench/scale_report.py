@@ -15,8 +15,8 @@ import subprocess
 from pathlib import Path
 from typing import Any
 
-from scale_row import RowSpec
-from scale_walks import world_name
+from bench.scale_row import RowSpec
+from bench.scale_walks import world_name
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -7,7 +7,8 @@ window, measures the service's and the generator's CPU and deletes the robots ag
 :func:`summarise_row` turns the received poses into the row's figures (answered, latency,
 starved, correct, confident wrong, lost; the searching robots' share and fixes).
 
-The project root must be on ``sys.path`` (``bench_service`` puts it there) for ``schemas``.
+Run from the repository root as part of the ``bench`` package
+(``python -m bench.bench_service``).
 """
 
 from __future__ import annotations
@@ -22,9 +23,9 @@ from typing import Any
 
 import numpy as np
 import zenoh
-from scale_load import MSGPACK, P, Receiver, health, publisher_main, scan_payload, tree_cpu_s
-from scale_walks import Pool, RobotPlan, plan_robots, pose_correct, world_name
 
+from bench.scale_load import MSGPACK, P, Receiver, health, publisher_main, scan_payload, tree_cpu_s
+from bench.scale_walks import Pool, RobotPlan, plan_robots, pose_correct, world_name
 from schemas.codec import encode
 from schemas.messages import RobotConfig
 

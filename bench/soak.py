@@ -23,8 +23,8 @@ in some interval after the first: must be none). ``--json FILE`` writes all of i
 The run is bounded: it stops by itself after ``--minutes`` (plus start-up and a few seconds
 of drain) and sends only to 127.0.0.1. Reads nothing outside the repository.
 
-Usage: ``python bench/soak.py [--minutes 10] [--robots 50] [--rate 10] [--garbage-rate 100]
-[--method shape] [--workers N] [--interval 60] [--json out.json]``; ``python bench/soak.py
+Usage: ``python -m bench.soak [--minutes 10] [--robots 50] [--rate 10] [--garbage-rate 100]
+[--method shape] [--workers N] [--interval 60] [--json out.json]``; ``python -m bench.soak
 --garbage-only --connect tcp/127.0.0.1:PORT --garbage-rate R --duration S --targets id,...``
 runs only the garbage publisher (used by the flood test).
 """
@@ -48,17 +48,13 @@ from typing import Any
 
 import msgpack
 import numpy as np
+import zenoh
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
-
-# the loopback helpers of the service benchmark (bench/ is on sys.path when run as a script)
-import bench_service  # noqa: E402
-import zenoh  # noqa: E402
-from bench_service import client_config, free_endpoint  # noqa: E402
-
-from schemas.codec import encode  # noqa: E402
-from schemas.messages import Health, RobotConfig  # noqa: E402
+# the loopback helpers of the service benchmark
+from bench.harness import client_config, free_endpoint, start_service, wait_ready
+from bench.scale_load import health as scale_health
+from schemas.codec import encode
+from schemas.messages import Health, RobotConfig
 
 P = "shapeloc"
 MAPS = ("office", "office-schematic")
@@ -66,7 +62,7 @@ MAPS = ("office", "office-schematic")
 
 def health(session: zenoh.Session) -> Health | None:
     """The service's Health, or None (3 s: the soak's service is busy)."""
-    return bench_service.health(session, timeout=3.0)
+    return scale_health(session, timeout=3.0)
 
 
 # --------------------------------------------------------------------------- scans
@@ -300,19 +296,18 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "rows": [],
     }
     with tempfile.TemporaryDirectory() as tmp:
-        log_path = Path(tmp) / "service.log"
-        cmd = [
-            sys.executable, "-m", "service", "--listen", endpoint,
-            "--state-dir", str(Path(tmp) / "state"), "--workers", str(workers),
-        ]  # fmt: skip
-        with open(log_path, "wb") as logf:
-            svc = subprocess.Popen(
-                cmd, cwd=REPO, stdout=logf, stderr=subprocess.STDOUT, start_new_session=True
-            )
+        service = start_service(
+            Path(tmp) / "state",
+            endpoint=endpoint,
+            workers=workers,
+            log_path=Path(tmp) / "service.log",
+        )
+        svc = service.proc
         ctx = mp.get_context("spawn")
         procs: list[Any] = []
         try:
-            session = _wait_up(svc, endpoint, log_path)
+            wait_ready(service, 90.0)
+            session = zenoh.open(client_config(endpoint))
             with session:
                 for md in (office_metric_map(MAPS[0]), office_schematic_map(MAPS[1])):
                     session.put(f"{P}/maps/{md.map_id}", encode(map_message_of(md)))
@@ -373,27 +368,10 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                         os.killpg(svc.pid, signal.SIGKILL)
                     svc.wait()
                     report["service_exit_code"] = "killed after 60 s"
-            report["service_log_tail"] = log_path.read_text(errors="replace")[-4000:]
+            report["service_log_tail"] = service.log()[-4000:]
     report["load_after"] = os.getloadavg()
     _summarise(report)
     return report
-
-
-def _wait_up(svc: subprocess.Popen[bytes], endpoint: str, log_path: Path) -> zenoh.Session:
-    deadline = time.time() + 90
-    session = None
-    while True:
-        if svc.poll() is not None:
-            raise RuntimeError(f"service exited:\n{log_path.read_text()}")
-        try:
-            session = session or zenoh.open(client_config(endpoint))
-            if health(session) is not None:
-                return session
-        except zenoh.ZError:
-            pass
-        if time.time() > deadline:
-            raise RuntimeError("service did not start in 90 s")
-        time.sleep(0.2)
 
 
 def _wait_configured(session: zenoh.Session, n: int) -> None:

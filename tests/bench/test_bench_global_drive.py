@@ -6,8 +6,6 @@ from __future__ import annotations
 import dataclasses
 import importlib
 import math
-import sys
-from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
@@ -15,16 +13,10 @@ import pytest
 
 from service.core.types import MapData
 
-BENCH = Path(__file__).resolve().parents[2] / "bench"
-
 
 @pytest.fixture(scope="module")
 def bg():
-    sys.path.insert(0, str(BENCH))
-    try:
-        return importlib.import_module("bench_global")
-    finally:
-        sys.path.remove(str(BENCH))
+    return importlib.import_module("bench.bench_global")
 
 
 def test_cumulative_travel_counts_translation_only(bg) -> None:
@@ -132,7 +124,7 @@ def _room_scan(half: float, n: int = 360) -> tuple[np.ndarray, np.ndarray]:
 
 
 def test_plan_share_counts_the_returns_on_mapped_walls(bg) -> None:
-    ps = importlib.import_module("plan_share")
+    ps = importlib.import_module("bench.plan_share")
     room = MapData.from_lists("room", "schematic", [[[-2, -2], [2, -2], [2, 2], [-2, 2], [-2, -2]]])
     share = ps.PlanShare(room)
     r, a = _room_scan(2.0)
@@ -174,11 +166,7 @@ def test_clutter_names_the_same_buildings_and_starts_with_more_furniture(bg) -> 
     assert (d.seed, d.clutter, m.clutter) == (3, 0.25, None)
     assert d.code() == m.code()
     assert d.label() == "building 3 (clutter 0.25) setup 2 (schematic)"
-    sys.path.insert(0, str(BENCH))
-    try:
-        bw = importlib.import_module("bench_worlds")
-    finally:
-        sys.path.remove(str(BENCH))
+    bw = importlib.import_module("bench.bench_worlds")
     b0, b1 = bw._building(1, 0), bw._building(1, 0, 0.25)
     assert b1.clutter > b0.clutter + 0.05
     p0, p1 = b0.schematic().map_data.polylines, b1.schematic().map_data.polylines

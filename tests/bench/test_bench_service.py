@@ -5,22 +5,14 @@ from __future__ import annotations
 
 import importlib
 import math
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-BENCH = Path(__file__).resolve().parents[2] / "bench"
-
 
 @pytest.fixture(scope="module")
 def bs():
-    sys.path.insert(0, str(BENCH))
-    try:
-        return importlib.import_module("bench_service")
-    finally:
-        sys.path.remove(str(BENCH))
+    return importlib.import_module("bench.bench_service")
 
 
 def _rel(a: np.ndarray, b: np.ndarray) -> np.ndarray:
