@@ -65,11 +65,20 @@ def main(settings: ServiceSettings) -> int:
             ) from e
         with session:
             node = ServiceNode(settings, session)
+            front = None
             try:
                 node.start()
+                if settings.ros2:  # the ROS 2 front on the same session (docs/ros2.md)
+                    from service.ros2.front import Ros2Front
+                    from service.ros2.options import options_from_settings
+
+                    front = Ros2Front(session, options_from_settings(settings))
+                    front.start()
                 while not stop.wait(0.5):
                     pass
             finally:
+                if front is not None:
+                    front.stop()
                 node.stop()
         log.info("bye")
         return 0

@@ -112,6 +112,9 @@ class SimOptions:
     look_turn_deg: float = 90.0
     laser_offset: list[float] | None = None
     timeout: float = 2.0
+    #: Publish as ROS 2 robots on rmw_zenoh's keys (sim_publisher/ros2.py, docs/ros2.md).
+    ros2: bool = False
+    ros2_config: str = "shapeloc"
 
 
 def main(
@@ -125,6 +128,11 @@ def main(
     ``stop`` (set from a signal handler or another thread) ends the run after the current tick.
     """
     stop = stop or threading.Event()
+    if options.ros2:
+        from sim_publisher import ros2
+
+        ros = ros2.default_options(config_source=options.ros2_config)
+        return ros2.run_fleet(conf, options, stop, endpoints, ros)
     fleet = SimFleet.from_specs(
         fleet_specs(
             options.robots,
@@ -353,6 +361,20 @@ def add_run_arguments(p: argparse.ArgumentParser) -> None:
         "radians; scans are taken from there, truth and odometry stay the base's, and the "
         "configuration tells the service (default: 0 0 0, the laser at the base's origin)",
     )
+    p.add_argument(
+        "--ros2",
+        action="store_true",
+        help="publish as ROS 2 robots on rmw_zenoh's keys, namespace /<id> with - -> _ "
+        "(scan, tf, tf_static; answers on amcl_pose; docs/ros2.md); the laser sits "
+        "--laser-offset (default 0.1 0 0) on base_link",
+    )
+    p.add_argument(
+        "--ros2-config",
+        choices=("shapeloc", "ros"),
+        default="shapeloc",
+        help="with --ros2: map and initial pose through shapeloc, or over ROS "
+        "(/<ns>/map, /<ns>/initialpose)",
+    )
 
 
 def options_from_args(args: argparse.Namespace) -> SimOptions:
@@ -412,6 +434,8 @@ def options_from_args(args: argparse.Namespace) -> SimOptions:
         look_turn_deg=args.look_turn_deg,
         laser_offset=args.laser_offset,
         timeout=args.timeout,
+        ros2=args.ros2,
+        ros2_config=args.ros2_config,
     )
 
 

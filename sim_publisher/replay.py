@@ -130,6 +130,8 @@ class ReplayOptions:
     max_range: float | None = None
     progress: bool = True
     json: bool = False
+    #: Publish as a ROS 2 robot in namespace /<robot> (sim_publisher/ros2.py).
+    ros2: bool = False
 
 
 def _base(pose: Sequence[float] | np.ndarray, offset: Sequence[float] | None) -> list[float]:
@@ -323,6 +325,10 @@ def main(
     lacks the map, refuses the configuration or does not answer.
     """
     stop = stop or threading.Event()
+    if options.ros2:
+        from sim_publisher import ros2
+
+        return ros2.replay_log(conf, options, stop, endpoints)
     relations = load_relations(options.relations) if options.relations is not None else None
     info, scans = open_replay(options)
     first, scans = _peek(scans)
@@ -602,6 +608,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="seconds to wait for the service's health before replaying (0: do not wait, and "
         "replay even without a service)",
     )
+    p.add_argument(
+        "--ros2",
+        action="store_true",
+        help="publish as a ROS 2 robot on rmw_zenoh's keys in namespace /<robot>: scan, tf "
+        "(odometry), tf_static (the log's laser mounting); answers on amcl_pose (docs/ros2.md)",
+    )
     add_json_option(p, "the summary")
 
 
@@ -642,6 +654,7 @@ def options_from_args(args: argparse.Namespace) -> ReplayOptions:
         max_range=args.max_range,
         progress=args.progress,
         json=args.json,
+        ros2=args.ros2,
     )
 
 

@@ -284,7 +284,7 @@ def run_fleet(
     """``shapeloc-sim run --ros2``: the fleet of ``options`` (a ``SimOptions``) as ROS 2
     robots, one namespace each (:func:`namespace_for`); returns the exit code."""
     from clients.client import ShapelocClient, open_session
-    from sim_publisher.__main__ import _wait_service
+    from sim_publisher.networked import wait_service
     from sim_publisher.publisher import SimFleet, fleet_specs
 
     ros = ros or default_options()
@@ -298,13 +298,14 @@ def run_fleet(
         global_localization=options.global_localization,
         send_odom=options.odom,
     )  # fmt: skip
-    mount = np.asarray(ros.mount, dtype=np.float64)
+    offset = getattr(options, "laser_offset", None)
+    mount = np.asarray(ros.mount if offset is None else offset, dtype=np.float64)
     with open_session(conf, endpoints) as session:
         client = ShapelocClient(session=session, prefix=options.prefix, timeout=2.0)
         counter = EntityCounter()
         robots: list[tuple[Any, str, Ros2Robot]] = []
         try:
-            up = options.wait_service > 0 and _wait_service(client, options.wait_service, stop)
+            up = options.wait_service > 0 and wait_service(client, options.wait_service, stop)
             if ros.config_source == "shapeloc" and options.configure and options.put_maps:
                 for m in fleet.map_messages():
                     client.put_map(m, confirm=up)
@@ -396,7 +397,7 @@ def replay_log(
     robot in namespace ``/<--robot>`` (odometry on tf at each scan's stamp, the log's laser
     mounting on tf_static); the reference poses go on the truth key as the base's."""
     from clients.client import ShapelocClient, open_session
-    from sim_publisher.__main__ import _wait_service
+    from sim_publisher.networked import wait_service
     from sim_publisher.replay import initial_pose_for, open_replay
 
     ros = ros or default_options()
@@ -405,13 +406,14 @@ def replay_log(
     first = next(scans, None)
     ns = graph.namespace_of_robot_id(options.robot)
     rid = robot_id(ns)
-    mount = np.asarray(info.laser_offset, dtype=np.float64)
+    given = getattr(options, "laser_offset", None)
+    mount = np.asarray(info.laser_offset if given is None else given, dtype=np.float64)
     inv = invert(mount)
     with open_session(conf, endpoints) as session:
         client = ShapelocClient(session=session, prefix=options.prefix, timeout=2.0)
         robot: Ros2Robot | None = None
         try:
-            up = options.wait_service > 0 and _wait_service(client, options.wait_service, stop)
+            up = options.wait_service > 0 and wait_service(client, options.wait_service, stop)
             if options.configure:
                 laser0 = initial_pose_for(options, first)
                 cfg = config_for(options.map_id, options.method, laser0, mount)
@@ -427,10 +429,10 @@ def replay_log(
             for scan in _chain(all_scans, scans):
                 if stop.is_set():
                     break
-                if options.rate is not None:
+                if options.speed is not None:
                     if t_wall0 is None or stamp0 is None:
                         t_wall0, stamp0 = time.monotonic(), scan.stamp
-                    delay = t_wall0 + (scan.stamp - stamp0) / options.rate - time.monotonic()
+                    delay = t_wall0 + (scan.stamp - stamp0) / options.speed - time.monotonic()
                     if delay > 0 and stop.wait(delay):
                         break
                 stamp = Stamp.from_seconds(scan.stamp)

@@ -307,6 +307,25 @@ class ServiceSettings(BaseSettings):
         "state before serving.",
     )
 
+    # -- ROS 2 (docs/ros2.md)
+    ros2: Annotated[bool, Flag("--ros2", const=True)] = Field(
+        default=False,
+        description="Also speak ROS 2 on the service's Zenoh session (rmw_zenoh's keys, as "
+        "nav2's AMCL looks to a ROS 2 robot): scan/tf/tf_static in, amcl_pose and map -> odom "
+        "out, one namespace per robot (service/ros2).",
+    )
+    ros_domain_id: Annotated[int | None, Flag("--ros-domain-id", "N")] = Field(
+        default=None,
+        ge=0,
+        description="ROS domain id of the ROS 2 front (unset: ROS_DOMAIN_ID, else 0).",
+    )
+    ros_options: dict[str, Any] = Field(
+        default_factory=dict,
+        description="The ROS 2 front's other options, by their names in "
+        "service.ros2.options.Ros2Options (global_frame_id, odom_frame_id, base_frame_id, "
+        "transform_tolerance, default_robot_id, method, global_map_id, import_maps, ...).",
+    )
+
     # -- logging
     log_level: Annotated[Literal["debug", "info", "warning", "error"], Flag("--log-level")] = Field(
         default="info",

@@ -134,3 +134,19 @@ def options_from_args(args: argparse.Namespace, prefix: str | None = None) -> Ro
     if prefix is not None:
         values["prefix"] = prefix
     return Ros2Options(**values)  # type: ignore[arg-type]
+
+
+def options_from_settings(settings: object) -> Ros2Options:
+    """:class:`Ros2Options` of the service's settings (``ros_domain_id``, ``prefix`` and the
+    ``ros_options`` table of the configuration file or ``SHAPELOC_ROS_OPTIONS``)."""
+    extra = dict(getattr(settings, "ros_options", None) or {})
+    known = set(Ros2Options.__dataclass_fields__)
+    unknown = sorted(set(extra) - known)
+    if unknown:
+        raise InvalidMessage(f"ros_options: unknown option(s) {', '.join(unknown)}")
+    if "namespaces" in extra:
+        extra["namespaces"] = tuple(extra["namespaces"])
+    dom = getattr(settings, "ros_domain_id", None)
+    extra["domain_id"] = domain_from_env() if dom is None else dom
+    extra["prefix"] = getattr(settings, "prefix", "shapeloc")
+    return Ros2Options(**extra)

@@ -2,8 +2,10 @@
 front, robots that speak only ROS 2 (no shapeloc code on their side) and a plain shapeloc
 robot, side by side.
 
-* Two ROS 2 robots in two namespaces: ``/ros_a0`` is the project's simulator publishing as a
-  ROS 2 robot (its own process; map and initial pose sent over ROS: ``/ros_a0/map`` and
+* The service runs the front on its own session (``--ros2``) in the first test, the front runs
+  as its own process (``python -m service.ros2``) in the second.
+* Two ROS 2 robots in two namespaces: ``/ros_a0`` is ``shapeloc-sim run --ros2 --ros2-config
+  ros`` (its own process; map and initial pose sent over ROS: ``/ros_a0/map`` and
   ``/ros_a0/initialpose``), ``/sdk_b`` is played here by zenoh-ros2-sdk, an independent
   rmw_zenoh client (its own type hashes, tokens and attachments; its type definitions given as
   ``.msg`` text, tests/schemas/ros2_msgdefs.py), configured through shapeloc as today. Both
@@ -68,20 +70,6 @@ def _stop(proc: subprocess.Popen[Any]) -> None:
             proc.wait(timeout=10)
         except subprocess.TimeoutExpired:
             proc.kill()
-
-
-_ROS_SIM = """
-import logging, sys
-logging.basicConfig(level=logging.INFO)
-from clients.client import zenoh_config
-from sim_publisher.__main__ import SimOptions
-from sim_publisher import ros2
-ep, scans = sys.argv[1], int(sys.argv[2])
-opts = SimOptions(robots=1, maps=["metric"], seed=3, id_prefix="ros-a", max_rate=True,
-                  scans=scans, lockstep=True, lockstep_timeout=5.0)
-sys.exit(ros2.run_fleet(zenoh_config("client", connect=[ep]), opts, None, [ep],
-                        ros2.Ros2SimOptions(config_source="ros")))
-"""
 
 
 class SdkRobot:
@@ -173,9 +161,8 @@ def test_two_ros2_robots_and_a_plain_robot_on_one_service(spawn_service, tmp_pat
     from sim_publisher.publisher import SimRobot, map_for
     from sim_publisher.scenario import make_setup
 
-    svc = spawn_service(tmp_path / "state")
-    front = _start_front(svc.endpoint, tmp_path / "front.log")
-    procs: list[subprocess.Popen[Any]] = [front]
+    svc = spawn_service(tmp_path / "state", "--ros2")  # the front on the service's session
+    procs: list[subprocess.Popen[Any]] = []
     robot_b = None
     try:
         with ShapelocClient(svc.endpoint, timeout=5.0) as client:
@@ -192,7 +179,11 @@ def test_two_ros2_robots_and_a_plain_robot_on_one_service(spawn_service, tmp_pat
             client.configure("sdk_b", "office", "shape", list(pose0), confirm=True)
             robot_b = SdkRobot(svc.endpoint, tmp_path / "msgs")
             t0 = time.monotonic()
-            cmd_a = [sys.executable, "-c", _ROS_SIM, svc.endpoint, str(SCANS)]
+            cmd_a = [
+                sys.executable, "-m", "sim_publisher", "run", "--ros2", "--ros2-config", "ros",
+                "--robots", "1", "--id-prefix", "ros-a", "--seed", "3", "--scans", str(SCANS),
+                "--max-rate", "--lockstep", "--connect", svc.endpoint,
+            ]  # fmt: skip
             procs.append(_popen(cmd_a, tmp_path / "ros_a.log"))
             cmd_plain = [
                 sys.executable, "-m", "sim_publisher", "--connect", svc.endpoint, "--robots",
@@ -211,7 +202,7 @@ def test_two_ros2_robots_and_a_plain_robot_on_one_service(spawn_service, tmp_pat
                 sent_b.append(ns)
                 truth_b[ns] = compose(np.asarray(truth.pose), inv)
                 robot_b.wait(ns, 10.0)
-            for p in procs[1:]:
+            for p in procs:
                 assert p.wait(timeout=120) == 0
             elapsed = time.monotonic() - t0
             time.sleep(0.5)
@@ -279,30 +270,13 @@ def test_two_ros2_robots_and_a_plain_robot_on_one_service(spawn_service, tmp_pat
     assert ("/ros_a0", "shapeloc") in pubs, info_a
 
 
-_ROS_REPLAY = """
-import logging, sys
-from pathlib import Path
-logging.basicConfig(level=logging.INFO)
-from clients.client import zenoh_config
-from sim_publisher.replay import ReplayOptions
-from sim_publisher import ros2
-ep, bag, ref, robot = sys.argv[1:5]
-o = ReplayOptions(log=Path(bag), robot=robot, map_id="intel-300", rate=None, lockstep=True,
-                  lockstep_timeout=10.0, reference=Path(ref), progress=False)
-sys.exit(ros2.replay_log(zenoh_config("client", connect=[ep]), o, None, [ep]))
-"""
-
-
 def _replay(endpoint: str, robot: str, ros: bool, log: Path) -> subprocess.Popen[Any]:
     bag, ref = DATA / "intel.300.bag", DATA / "intel.300.gfs_reference_per_scan.txt"
-    if ros:
-        cmd = [sys.executable, "-c", _ROS_REPLAY, endpoint, str(bag), str(ref), robot]
-    else:
-        cmd = [
-            sys.executable, "-m", "sim_publisher", "replay", str(bag), "--robot", robot,
-            "--map", "intel-300", "--reference", str(ref), "--rate", "max", "--lockstep",
-            "--no-progress", "--connect", endpoint,
-        ]  # fmt: skip
+    cmd = [
+        sys.executable, "-m", "sim_publisher", "replay", str(bag), "--robot", robot,
+        "--map", "intel-300", "--reference", str(ref), "--speed", "max", "--lockstep",
+        "--no-progress", "--connect", endpoint, *(["--ros2"] if ros else []),
+    ]  # fmt: skip
     return _popen(cmd, log)
 
 
