@@ -44,6 +44,10 @@ ROBOTS: tuple[tuple[str, str, float], ...] = (
 )
 #: Start of each robot as a fraction of the tour (a fixed, reproducible stretch).
 STARTS = (0.3, 0.0, 0.6)
+#: A fourth robot that speaks only ROS 2 (``shapeloc-sim run --ros2``, namespace ``/ros_0``,
+#: served by the service's ``--ros2`` front; docs/ros2.md), and where it starts.
+ROS2_ROBOT: tuple[str, str, float] = ("ros_0", "metric", 100.0)
+ROS2_START = 0.45
 PROXIMITY_DEG = 45.0
 
 
@@ -246,8 +250,9 @@ def run_demo(
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     svc_log = open(workdir / "service.log", "wb")  # noqa: SIM115 - closed in finally
     sim_log = open(workdir / "simulator.log", "wb")  # noqa: SIM115
-    service = sim = view = None
-    tracks = [Track(rid, m, prox) for rid, m, prox in ROBOTS]
+    ros_log = open(workdir / "ros2-robot.log", "wb")  # noqa: SIM115
+    service = sim = view = ros_sim = None
+    tracks = [Track(rid, m, prox) for rid, m, prox in (*ROBOTS, ROS2_ROBOT)]
     by_id = {t.robot_id: t for t in tracks}
     code = 0
     tty = sys.stdout.isatty()
@@ -261,6 +266,7 @@ def run_demo(
                 ep,
                 "--state-dir",
                 str(workdir / "state"),
+                "--ros2",
             ],
             stdout=svc_log,
             stderr=subprocess.STDOUT,
@@ -310,6 +316,19 @@ def run_demo(
                 stderr=subprocess.STDOUT,
                 env=env,
             )
+            ros_sim = subprocess.Popen(
+                [
+                    sys.executable, "-m", "sim_publisher", "run", "--ros2", "--connect", ep,
+                    "--robots", "1", "--id-prefix", "ros-", "--map", ROS2_ROBOT[1],
+                    "--method", method, "--starts", str(ROS2_START), "--scans", str(scans),
+                    "--rate", str(rate), "--seed", "8", "--duration", str(max_seconds),
+                    *(["--lockstep"] if lockstep else []),
+                ],
+                stdout=ros_log,
+                stderr=subprocess.STDOUT,
+                env=env,
+            )  # fmt: skip
+            print(f"demo: ROS 2 robot /ros_0 pid {ros_sim.pid} (log {ros_log.name})")
             pace = "lockstep: every scan localised" if lockstep else "real time: may skip"
             print(
                 f"demo: simulator pid {sim.pid}: {len(ROBOTS)} robots, {scans} scans each "
@@ -333,7 +352,7 @@ def run_demo(
                     )
                     code = 1
                     break
-                sim_done = sim.poll() is not None
+                sim_done = sim.poll() is not None and ros_sim.poll() is not None
                 if sim_done and sim.returncode != 0:
                     print(
                         f"demo: the simulator failed (code {sim.returncode}); see {sim_log.name}",
@@ -365,6 +384,9 @@ def run_demo(
                 )
     finally:
         rc_sim = _stop(sim, "simulator")
+        rc_ros = _stop(ros_sim, "ROS 2 robot")
+        ros_log.close()
+        rc_sim = rc_sim if rc_ros in (None, 0, -signal.SIGINT, 130) else rc_ros
         _stop(view, "view")
         rc_svc = _stop(service, "service")
         svc_log.close()
