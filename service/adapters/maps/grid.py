@@ -43,17 +43,19 @@ occupied cells (value >= ``rint(100 * occupied_thresh)``), 254 for free cells
 ``negate: 0`` and the two thresholds (defaults 0.65 and 0.196: read back, 254 is free,
 205 unknown and 0 occupied).
 
-Images are read by a small parser of our own for Netpbm (``P2``/``P5`` grey, ``P3``/``P6``
-colour; 8 or 16 bit) and by Pillow for everything else (PNG, BMP, ...). Files are untrusted:
-every problem raises :class:`InvalidMessage` naming the file and, where there is one, the key.
-Images larger than :data:`MAX_IMAGE_CELLS` cells and YAML files larger than
-:data:`MAX_YAML_BYTES` are refused.
+Images are read by Pillow: Netpbm (``P2``/``P5`` grey, ``P3``/``P6`` colour, 8 or 16 bit,
+header comments), PNG, BMP and the rest. Pillow scales a Netpbm ``maxval`` other than 255 (8
+bit) or 65535 (16 bit) to the full range and rounds to integers, so such a pixel's colour can
+differ from the exact ``v * 255 / maxval`` by up to half a grey level (measured: maxval 100,
+value 50 reads 128 instead of 127.5); a cell changes class only if its occupancy lies within
+0.2 % of a threshold. Files are untrusted: every problem raises :class:`InvalidMessage`
+naming the file and, where there is one, the key. Images larger than
+:data:`MAX_IMAGE_CELLS` cells and YAML files larger than :data:`MAX_YAML_BYTES` are refused.
 """
 
 from __future__ import annotations
 
 import math
-import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -306,88 +308,10 @@ def _pixels_to_cells(
 
 
 # ---------------------------------------------------------------------- images
-_NETPBM = {b"P2": (1, False), b"P5": (1, True), b"P3": (3, False), b"P6": (3, True)}
-
-
 def _read_image(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
-    """Colour channels ``(h, w, c)`` float64 scaled to [0, 255] and alpha ``(h, w)`` or None."""
-    try:
-        with path.open("rb") as fh:
-            head = fh.read(2)
-    except OSError as exc:
-        raise InvalidMessage(f"{path}: unreadable image (key 'image'): {exc}") from exc
-    if head in _NETPBM:
-        return read_netpbm(path), None
+    """Colour channels ``(h, w, c)`` float64 scaled to [0, 255] and alpha ``(h, w)`` or None
+    (Pillow; see the module docstring)."""
     return _read_pillow(path)
-
-
-def read_netpbm(path: str | Path) -> np.ndarray:
-    """Read a Netpbm grey (``P2``, ``P5``) or colour (``P3``, ``P6``) image, 8 or 16 bit.
-
-    Returns ``(h, w, c)`` float64 with values scaled to [0, 255] (``v * 255 / maxval``);
-    ``c`` is 1 for grey and 3 for colour; row 0 is the top row. Header comments (``#`` to end
-    of line) are allowed between header tokens. Raises :class:`InvalidMessage` for a bad
-    header, a raster shorter than the header announces, values above ``maxval``, or more than
-    :data:`MAX_IMAGE_CELLS` cells. Bytes after the raster (e.g. a further image) are ignored.
-    """
-    p = Path(path)
-    try:
-        blob = p.read_bytes()
-    except OSError as exc:
-        raise InvalidMessage(f"{p}: unreadable image ({exc})") from exc
-    magic = blob[:2]
-    if magic not in _NETPBM:
-        raise InvalidMessage(f"{p}: not a Netpbm P2/P3/P5/P6 image (magic {magic!r})")
-    nchan, binary = _NETPBM[magic]
-    pos = 2
-    fields: list[int] = []
-    while len(fields) < 3:
-        # skip whitespace and comments
-        while pos < len(blob) and (blob[pos : pos + 1].isspace() or blob[pos] == ord("#")):
-            if blob[pos] == ord("#"):
-                end = blob.find(b"\n", pos)
-                pos = len(blob) if end < 0 else end + 1
-            else:
-                pos += 1
-        m = re.compile(rb"\d+").match(blob, pos)
-        if m is None:
-            what = ("width", "height", "maxval")[len(fields)]
-            raise InvalidMessage(f"{p}: bad Netpbm header: missing or non-numeric {what}")
-        fields.append(int(m.group()))
-        pos = m.end()
-    w, h, maxval = fields
-    if w < 1 or h < 1:
-        raise InvalidMessage(f"{p}: bad Netpbm header: size {w} x {h}")
-    if w * h > MAX_IMAGE_CELLS:
-        raise InvalidMessage(f"{p}: image {w} x {h} exceeds the limit of {MAX_IMAGE_CELLS} cells")
-    if not 1 <= maxval <= 65535:
-        raise InvalidMessage(f"{p}: bad Netpbm header: maxval {maxval} not in 1..65535")
-    if pos >= len(blob) or not blob[pos : pos + 1].isspace():
-        raise InvalidMessage(f"{p}: bad Netpbm header: no whitespace after maxval")
-    pos += 1
-    count = w * h * nchan
-    if binary:
-        dtype = np.dtype(">u2") if maxval > 255 else np.dtype(np.uint8)
-        need = count * dtype.itemsize
-        if len(blob) - pos < need:
-            raise InvalidMessage(
-                f"{p}: raster truncated: {len(blob) - pos} bytes for {w} x {h} x {nchan} "
-                f"samples of {dtype.itemsize} byte(s) ({need} needed)"
-            )
-        vals = np.frombuffer(blob, dtype=dtype, count=count, offset=pos).astype(np.float64)
-    else:
-        tokens = blob[pos:].split(None, count)
-        if len(tokens) < count:
-            raise InvalidMessage(
-                f"{p}: raster truncated: {len(tokens)} of {w} x {h} x {nchan} samples"
-            )
-        try:
-            vals = np.array([int(t) for t in tokens[:count]], dtype=np.float64)
-        except ValueError as exc:
-            raise InvalidMessage(f"{p}: non-numeric sample in the plain raster ({exc})") from exc
-    if vals.size and vals.max() > maxval:
-        raise InvalidMessage(f"{p}: sample {int(vals.max())} exceeds maxval {maxval}")
-    return (vals * (255.0 / maxval)).reshape(h, w, nchan)
 
 
 def _read_pillow(path: Path) -> tuple[np.ndarray, np.ndarray | None]:

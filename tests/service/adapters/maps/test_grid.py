@@ -178,6 +178,19 @@ def test_plain_p2_and_16_bit_p5(tmp_path: Path) -> None:
     assert g16.data.tolist() == [[100, 0, -1]]
 
 
+def test_netpbm_maxval_other_than_full_range(tmp_path: Path) -> None:
+    """Pillow scales a maxval other than 255 / 65535 to the full range and rounds: value 35 of
+    maxval 100 reads as grey 89, not 89.25, so its occupancy is 0.651 instead of exactly
+    occupied_thresh 0.65 and the cell is occupied rather than unknown (the only kind of cell
+    the rounding changes: within 0.2 % of a threshold). 16-bit maxval 1000 reads as well."""
+    _write_pgm_p5(tmp_path / "m100.pgm", np.array([[0, 35, 50, 100]]), maxval=100)
+    g = read_map_yaml(_write_yaml(tmp_path / "m100.yaml", "m100.pgm"))
+    assert g.data.tolist() == [[100, 100, -1, 0]]
+    _write_pgm_p5(tmp_path / "m1000.pgm", np.array([[0, 500, 1000]]), maxval=1000)
+    g = read_map_yaml(_write_yaml(tmp_path / "m1000.yaml", "m1000.pgm"))
+    assert g.data.tolist() == [[100, -1, 0]]
+
+
 def test_png_through_pillow_with_alpha(tmp_path: Path) -> None:
     from PIL import Image
 
@@ -336,11 +349,12 @@ def test_yaml_errors_name_file_and_key(tmp_path: Path, yaml_text: str, message: 
 @pytest.mark.parametrize(
     ("blob", "message"),
     [
-        (b"P5\n4 2\n255\n\x00\x00\x00", "raster truncated"),
-        (b"P5\n4 x\n255\n", "non-numeric height"),
-        (b"P5\n4 2\n70000\n", "maxval 70000"),
-        (b"P2\n2 1\n10\n5 11\n", "exceeds maxval"),
-        (b"P2\n3 1\n255\n5 6\n", "raster truncated"),
+        # Pillow reads the images; its reasons follow "unreadable image (key 'image'): "
+        (b"P5\n4 2\n255\n\x00\x00\x00", "truncated"),
+        (b"P5\n4 x\n255\n", "unreadable image"),  # a non-numeric height
+        (b"P5\n4 2\n70000\n", "maxval"),
+        (b"P2\n2 1\n10\n5 11\n", "too large"),  # a sample above maxval
+        (b"P2\n3 1\n255\n5 6\n", "not enough image data"),
         (b"PX\n1 1\n255\n\x00", "unreadable image"),
     ],
 )
