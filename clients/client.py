@@ -216,6 +216,8 @@ class ShapelocClient:
         map_id: str | None = None,
         kind: str | None = None,
         confirm: bool = False,
+        ready: bool = False,
+        within: float = 60.0,
     ) -> Map:
         """Store a map (``put <prefix>/maps/<map_id>``); returns the message sent.
 
@@ -223,7 +225,11 @@ class ShapelocClient:
         any format :func:`service.adapters.maps.files.load_map_file` reads (wire JSON/msgpack,
         GeoJSON world or outlines, WKT world). ``map_id`` / ``kind`` override the map's own. With
         ``confirm`` the map is read back until the service holds it (raises
-        :class:`ServiceTimeout` otherwise).
+        :class:`ServiceTimeout` otherwise). With ``ready`` (implies ``confirm``) it also waits,
+        up to ``within`` seconds, until the service reports the map ready
+        (:meth:`wait_map_ready`): start robots after that and their first scans are localised
+        at full speed (a freshly started service also warms its workers up first, a few
+        seconds).
         """
         if isinstance(map_, MapData):
             msg = map_message_of(map_)
@@ -240,9 +246,47 @@ class ShapelocClient:
             )
         key = keys.map_key(self.prefix, msg.map_id)
         self._put(key, msg)
-        if confirm:
+        if confirm or ready:
             self._confirm(lambda: self._map_matches(msg))
+        if ready:
+            self.wait_map_ready(msg.map_id, within)
         return msg
+
+    def wait_map_ready(self, map_id: str, within: float, indexed: bool = False) -> Health:
+        """Poll :meth:`health` until the service lists ``map_id`` in ``Health.maps_ready``
+        (every worker holds the map prepared: robots with an initial pose are localised at
+        full speed from their first scan) or, with ``indexed``, in ``Health.maps_indexed``
+        too (the view index of global localisation is built: robots without an initial pose
+        start searching at once). A service that does not report readiness (no
+        ``maps_ready``) counts as ready once it holds the map. Raises
+        :class:`ServiceTimeout` after ``within`` seconds. Returns the last health."""
+        end = time.monotonic() + within
+        while True:
+            try:
+                h = self.health()
+            except ServiceTimeout:
+                h = None
+            if h is not None:
+                if h.maps_ready is None:
+                    if self._holds(map_id):
+                        return h
+                elif map_id in h.maps_ready and (
+                    not indexed or h.maps_indexed is None or map_id in h.maps_indexed
+                ):
+                    return h
+            if time.monotonic() >= end:
+                what = "indexed" if indexed else "ready"
+                raise ServiceTimeout(
+                    f"the service did not report map {map_id!r} {what} in {within} s"
+                )
+            time.sleep(0.05)
+
+    def _holds(self, map_id: str) -> bool:
+        try:
+            self.get_map(map_id)
+        except (ServiceTimeout, UnknownMap, RemoteError):
+            return False
+        return True
 
     def _map_matches(self, msg: Map) -> bool:
         try:

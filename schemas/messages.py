@@ -30,6 +30,7 @@ from pydantic.json_schema import WithJsonSchema
 
 from schemas.fields import (
     _COUNT_DICT,
+    _ID_PATTERN,
     _NUM_SCHEMA,
     Count,
     FiniteFloat,
@@ -44,6 +45,7 @@ from schemas.fields import (
     _custom,
     _FieldError,
     _finite,
+    _ident,
     _nullable,
     _optional,
     _polylines,
@@ -424,10 +426,70 @@ class PoseMsg(WireModel):
     )
 
 
+def _ident_list(v: object) -> list[str]:
+    if not isinstance(v, (list, tuple)):
+        raise _FieldError(f"must be a list, got {_type_name(v)}")
+    if len(v) > MAX_POLYLINES:
+        raise _FieldError(f"{len(v)} entries exceeds limit {MAX_POLYLINES}")
+    out = []
+    for i, x in enumerate(v):
+        try:
+            out.append(_ident(x))
+        except _FieldError as e:
+            raise _FieldError(e.reason, f"[{i}]") from None
+    return out
+
+
+def _ms_stats(v: object) -> dict[str, float]:
+    if not isinstance(v, dict):
+        raise _FieldError(f"must be a map, got {_type_name(v)}")
+    if len(v) > 16:
+        raise _FieldError(f"{len(v)} entries exceeds limit 16")
+    out: dict[str, float] = {}
+    for k, x in v.items():
+        if not isinstance(k, str) or not 1 <= len(k) <= 16:
+            raise _FieldError(f"key {k!r} must be a string of 1-16 characters")
+        out[k] = _finite(x, f"[{k!r}]")
+    return out
+
+
+def _bool(v: object) -> bool:
+    if not isinstance(v, (bool, np.bool_)):
+        raise _FieldError(f"must be a boolean, got {_type_name(v)}")
+    return bool(v)
+
+
+_OPT_BOOL = Annotated[
+    bool | None,
+    PlainValidator(_v(_optional(_bool))),
+    WithJsonSchema(_nullable({"type": "boolean"})),
+]
+_IDENT_LIST = Annotated[
+    list[str] | None,
+    PlainValidator(_v(_optional(_ident_list))),
+    WithJsonSchema(
+        _nullable({"type": "array", "items": {"type": "string", "pattern": _ID_PATTERN}})
+    ),
+]
+_MS_STATS = Annotated[
+    dict[str, float] | None,
+    PlainValidator(_v(_optional(_ms_stats))),
+    WithJsonSchema(_nullable({"type": "object", "additionalProperties": _NUM_SCHEMA})),
+]
+
+
 class Health(WireModel):
     """Service health: reply to ``get <prefix>/service/health``.
 
-    ``instance_id``, ``uptime_s``, ``errors`` and ``robots_by_status`` are project additions.
+    ``instance_id``, ``uptime_s``, ``errors``, ``robots_by_status``, ``ready``, ``maps_ready``,
+    ``maps_indexed`` and ``scan_cpu_ms`` are project additions.
+
+    What to wait for before robots start: a map put is acknowledged by its id in
+    ``maps_ready`` (the client library: ``put_map(..., ready=True)``). Robots configured on a
+    ready map with an initial pose are localised at full speed from their first scan; before
+    that their first scans may wait (the service prepares the map on every worker first) and,
+    under latest-wins, be replaced unprocessed. Robots without an initial pose (global
+    localisation) also find the map's view index built once the map is in ``maps_indexed``.
     """
 
     schema_name: ClassVar[str] = "health"
@@ -459,6 +521,43 @@ class Health(WireModel):
     )
     robots_by_status: _COUNT_DICT = Field(
         default=None, description="Project addition: number of robots per tracking status."
+    )
+    ready: _OPT_BOOL = Field(
+        default=None,
+        description=(
+            "Project addition: true once the service's workers have warmed up (methods "
+            "imported, compiled kernels loaded, each method run once) and every stored map "
+            "is in maps_ready; false while it is still preparing."
+        ),
+    )
+    maps_ready: _IDENT_LIST = Field(
+        default=None,
+        description=(
+            "Project addition: ids of the stored maps every tracking worker holds prepared "
+            "(map model, ray caster, a synthetic scan localised on it). The acknowledgement of "
+            "a map put: robots with an initial pose on such a map are localised at full "
+            "speed from their first scan. A map put again leaves this list until the new "
+            "version is prepared (tens of milliseconds per worker once warm)."
+        ),
+    )
+    maps_indexed: _IDENT_LIST = Field(
+        default=None,
+        description=(
+            "Project addition: ids of the stored maps whose view index of global "
+            "localisation is built (by the search worker, after the map is ready; seconds "
+            "to tens of seconds for a large map): robots without an initial pose start their "
+            "search without waiting for it. Absent when the service has no search worker "
+            "(the first search then builds the index)."
+        ),
+    )
+    scan_cpu_ms: _MS_STATS = Field(
+        default=None,
+        description=(
+            "Project addition: CPU milliseconds per processed scan over the last 4096 "
+            "scans, keys p50, p99, mean and n: the service process's threads (decoding and "
+            "validating the scan, scheduling, building and publishing the pose) plus the "
+            "worker's localisation; Zenoh's own threads are not counted."
+        ),
     )
 
 

@@ -14,7 +14,7 @@ import contextlib
 import logging
 import threading
 import time
-from collections import Counter
+from collections import Counter, deque
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -60,6 +60,8 @@ class ComputePlane:
     search_link: WorkerLink | None
     migrate_lock: threading.Lock
     suspended: frozenset[str]
+    #: CPU ms of each of the last processed scans (node threads and worker): health's figure
+    scan_cpu_ms: deque[float]
     _dirty: set[str]
 
     def _link_of(self, robot_id: str) -> WorkerLink:
@@ -87,6 +89,7 @@ class ComputePlane:
             budget,
             nice,
             start_timeout_s=self.settings.worker_start_timeout_s,
+            search=index >= self.settings.workers,
         )
 
     def restart_worker(self, link: WorkerLink) -> None:
@@ -131,7 +134,9 @@ class ComputePlane:
             )
 
     def process_scan(self, link: WorkerLink, scan: ValidScan) -> None:
-        """Localise one valid scan on ``link``'s worker and publish the pose."""
+        """Localise one valid scan on ``link``'s worker and publish the pose; its CPU time (this
+        thread's, the worker's and the intake's validation) goes to :attr:`scan_cpu_ms`."""
+        cpu0 = time.thread_time()
         robot_id, key = scan.robot_id, scan.key
         if not self.serves(robot_id):
             return  # handed over to another instance since it arrived
@@ -157,7 +162,9 @@ class ComputePlane:
         except ShapelocError as e:
             self.reject(key, "scan", e)
             return
-        status, out = link.call(("scan", robot_id, scan.ranges, scan.angles, scan.odom))
+        status, out = link.call(
+            ("scan", robot_id, scan.ranges, scan.angles, scan.odom, scan.skipped_odom)
+        )
         if status != "ok":
             self.reject(key, "scan", LocalizationError(str(out)))
             return
@@ -198,6 +205,8 @@ class ComputePlane:
         self.session.put(
             keys.robot_key(self.prefix, robot_id, "pose"), payload, encoding=codec.MSGPACK_ENCODING
         )
+        own_ms = (time.thread_time() - cpu0) * 1e3
+        self.scan_cpu_ms.append(own_ms + float(out.get("cpu_ms", 0.0)) + scan.intake_ms)
         if self.search_link is not None and bool(out.get("unsettled")) != (
             link is self.search_link
         ):

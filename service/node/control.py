@@ -15,6 +15,7 @@ import queue
 import threading
 import time
 from collections import Counter
+from concurrent.futures import Future
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -32,6 +33,7 @@ from service.errors import (
     UnknownRobot,
 )
 from service.node.intake import Inbound, ScanIntake
+from service.node.readiness import Readiness
 from service.node.state import SavedPose, StateStore
 from service.node.workers import Assignment, config_request
 
@@ -117,6 +119,7 @@ class ControlPlane:
     search_link: WorkerLink | None
     migrate_lock: threading.Lock
     intake: ScanIntake
+    readiness: Readiness
     _dirty: set[str]
     mirror: Mirror
     _control_mutex: threading.RLock
@@ -209,6 +212,7 @@ class ControlPlane:
                 raise UnknownMap(f"cannot delete map {map_id!r}: it is not stored")
             self.state.delete_map(map_id)
             log.info("map %s deleted (robots on it wait for a new one)", map_id)
+            self.readiness.deleted(map_id)
             with self.lock:
                 self.maps.pop(map_id, None)
             self._broadcast(("map_delete", map_id))
@@ -225,9 +229,40 @@ class ControlPlane:
             len(md.polylines),
             sum(len(p) for p in md.polylines),
         )
+        version = self.readiness.stored(map_id)
         with self.lock:
             self.maps[map_id] = (msg, md)
-        self._broadcast(("map", md))
+        t0 = time.monotonic()
+        self._broadcast(("map", md))  # every worker stores it, the tracking ones prepare it
+        self.readiness.prepared(map_id, version)
+        log.info("map %s ready (prepared in %.2f s)", map_id, time.monotonic() - t0)
+        self.build_index(map_id, version)
+
+    def build_index(self, map_id: str, version: int) -> None:
+        """Have the search worker build version ``version`` of the map's view index of global
+        localisation into the on-disk cache (asynchronously: the control thread goes on);
+        ``maps_indexed`` lists the map once it is built. Without a search worker the first
+        search builds it."""
+        link = self.search_link
+        if link is None:
+            return
+
+        def done(fut: Future[tuple[str, Any]]) -> None:
+            try:
+                status, out = fut.result()
+            except Exception as e:  # the service is stopping
+                status, out = "err", str(e)
+            if status == "ok":
+                self.readiness.indexed(map_id, version)
+                log.info("map %s: view index of global localisation ready (%.1f s)", map_id, out)
+            else:
+                log.warning(
+                    "map %s: view index not built ahead (%s); built by the first search",
+                    map_id,
+                    out,
+                )
+
+        link.submit(("index", map_id)).add_done_callback(done)
 
     def _handle_config(self, item: Inbound) -> None:
         assert self.state is not None

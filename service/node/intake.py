@@ -21,6 +21,7 @@ bytes, encodings and keys in.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import threading
 import time
@@ -90,7 +91,10 @@ class ValidScan:
 
     ``ranges`` metres with NaN for every no-return beam, ``angles`` radians in the robot frame
     (both float64 ``(n,)``), ``odom`` ``(x, y, theta)`` in the odometry frame or ``None``;
-    ``seq``/``stamp`` as sent, ``t_recv``/``ctl`` as in :class:`RawScan`.
+    ``seq``/``stamp`` as sent, ``t_recv``/``ctl`` as in :class:`RawScan`. ``skipped_odom``
+    is the odometry of the oldest scan this one replaced under latest-wins (through any chain
+    of replacements; ``None``: none replaced, or it carried no odometry): see
+    :meth:`replacing`.
     """
 
     robot_id: str
@@ -102,6 +106,22 @@ class ValidScan:
     odom: np.ndarray | None
     t_recv: float
     ctl: int = 0
+    skipped_odom: np.ndarray | None = None
+    #: CPU ms the intake spent decoding and validating it
+    intake_ms: float = 0.0
+
+    def replacing(self, older: ValidScan) -> ValidScan:
+        """This scan as the replacement of ``older`` (latest wins), carrying the odometry of
+        the oldest scan replaced. A robot whose localiser has localised no scan since its
+        configuration needs it: its initial pose is where that first scan was taken, so the
+        increment to this scan is measured from there. Not carried across a control message
+        (a new configuration or map between the two scans starts a new chain)."""
+        if older.ctl != self.ctl:
+            return self
+        base = older.skipped_odom if older.skipped_odom is not None else older.odom
+        if base is None:
+            return self
+        return dataclasses.replace(self, skipped_odom=base)
 
 
 def encoding_name(enc: object) -> str | None:
@@ -120,6 +140,7 @@ def validate_scan(raw: RawScan) -> ValidScan:
     Raises :class:`~service.errors.InvalidMessage` naming the field and the problem.
     """
     assert raw.payload is not None
+    cpu0 = time.thread_time()
     msg = codec.decode(Scan, raw.payload, raw.encoding)
     ranges, angles = codec.scan_arrays(msg)
     odom = None if msg.odom is None else np.array(msg.odom, dtype=np.float64)
@@ -133,6 +154,7 @@ def validate_scan(raw: RawScan) -> ValidScan:
         odom=odom,
         t_recv=raw.t_recv,
         ctl=raw.ctl,
+        intake_ms=(time.thread_time() - cpu0) * 1e3,
     )
 
 
@@ -258,6 +280,7 @@ class RawScanQueue:
             if isinstance(e, ValidScan):
                 if newest is not None:
                     self.superseded += 1
+                    e = e.replacing(newest)
                 newest = e
             else:
                 rejects.append(e)

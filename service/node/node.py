@@ -25,7 +25,7 @@ import logging
 import queue
 import threading
 import time
-from collections import Counter
+from collections import Counter, deque
 from typing import Any
 
 from schemas import codec, keys
@@ -51,6 +51,7 @@ from service.node.intake import (
     encoding_name,
     error_kind,
 )
+from service.node.readiness import Readiness
 from service.node.scheduler import LatestSlots, WorkerLink
 from service.node.settings import ServiceSettings
 from service.node.state import StateStore
@@ -108,6 +109,7 @@ class ServiceNode(ClusterPlane, ControlPlane, ComputePlane):
         self.prefix = settings.prefix
         self.instance_id = settings.effective_instance_id()
         self.worker_timeout_s = settings.worker_timeout_s
+        self.index_timeout_s = settings.index_timeout_s
         self.lock = threading.RLock()
         # held while a map/config message or an ownership change is applied
         self._control_mutex = threading.RLock()
@@ -124,6 +126,9 @@ class ServiceNode(ClusterPlane, ControlPlane, ComputePlane):
         self.scans_processed = 0
         self.scans_rejected = 0
         self.errors: Counter[str] = Counter()
+        self.scan_cpu_ms: deque[float] = deque(maxlen=4096)
+        #: which maps are prepared (and indexed), whether the workers have warmed up
+        self.readiness = Readiness(indexing=False)
         self.clock = ControlClock()
         self.intake = ScanIntake(
             accept=self._offer_scan,
@@ -165,6 +170,7 @@ class ServiceNode(ClusterPlane, ControlPlane, ComputePlane):
         self.links = [WorkerLink(self, i, cap) for i in range(n + extra)]
         self.search_link = self.links[n] if extra else None
         self.assignment = Assignment(n, extra)
+        self.readiness = Readiness(indexing=self.search_link is not None)
         # One subscriber for maps, configs, scans and (mirrored) poses: its callback sees them
         # in arrival order, which keeps "put map, put config, put scan" from one client causal.
         self._entities.append(self.session.declare_subscriber(f"{self.prefix}/**", self._on_sample))
@@ -176,6 +182,13 @@ class ServiceNode(ClusterPlane, ControlPlane, ComputePlane):
         self._warm_workers()
         for link in self.links:
             link.thread.start()
+        # done once each tracking worker has warmed up (a process warms up before its first
+        # reply); the restored maps were prepared by _restore, their indexes are built now
+        self.readiness.warming(link.submit(("ping",)) for link in self.links[:n])
+        for map_id in sorted(self.maps):
+            version = self.readiness.stored(map_id)
+            self.readiness.prepared(map_id, version)
+            self.build_index(map_id, version)
         self.intake.start()
         self._threads = [
             threading.Thread(target=self._control_loop, name="shapeloc-control", daemon=True),

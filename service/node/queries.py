@@ -10,6 +10,8 @@ from __future__ import annotations
 from collections import Counter
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
+
 from schemas import codec, keys
 from schemas.messages import Health, PoseMsg
 from service import __version__
@@ -95,8 +97,20 @@ def health(node: ServiceNode) -> Health:
     ``errors`` holds rejections per ``<message>.<ErrorClass>`` plus the service's own
     counters: ``scan.Skipped`` (valid scans replaced by a newer valid one before being
     computed: latest wins), ``worker.Restarted`` and ``state.Reset`` (state file moved aside
-    by ``--reset-state``).
+    by ``--reset-state``). ``ready``, ``maps_ready`` and ``maps_indexed``: see
+    :mod:`service.node.readiness`; ``scan_cpu_ms``: the CPU per processed scan (service
+    threads and worker) over the last scans.
     """
+    ready, maps_ready, maps_indexed = node.readiness.snapshot()
+    cpu = np.array(node.scan_cpu_ms, dtype=np.float64)  # a copy: the link threads append
+    cpu_stats = None
+    if cpu.size:
+        cpu_stats = {
+            "p50": float(np.percentile(cpu, 50)),
+            "p99": float(np.percentile(cpu, 99)),
+            "mean": float(cpu.mean()),
+            "n": float(cpu.size),
+        }
     with node.lock:
         by_status = Counter(p.status for p in node.poses.values())
         errors = dict(node.errors)
@@ -114,4 +128,8 @@ def health(node: ServiceNode) -> Health:
             uptime_s=node.uptime_s(),
             errors=errors,
             robots_by_status=dict(by_status),
+            ready=ready,
+            maps_ready=maps_ready,
+            maps_indexed=maps_indexed,
+            scan_cpu_ms=cpu_stats,
         )

@@ -17,6 +17,7 @@ import queue
 import threading
 import time
 from collections import OrderedDict
+from collections.abc import Callable
 from concurrent.futures import Future
 from typing import Any, Protocol
 
@@ -36,9 +37,12 @@ class LatestSlots:
     skipped) and never blocks; a robot keeps its place in the round-robin order while it has a
     pending item, so a robot that publishes fast cannot starve the others. At most ``capacity``
     robots can be pending; further new robots are refused (``offer`` returns ``False``).
+    ``merge(old, new)``, if given, makes the item that replaces ``old`` (e.g. carrying what
+    the replaced one knew: :meth:`service.node.intake.ValidScan.replacing`).
     """
 
-    def __init__(self, capacity: int) -> None:
+    def __init__(self, capacity: int, merge: Callable[[Any, Any], Any] | None = None) -> None:
+        self._merge = merge
         self._items: OrderedDict[str, Any] = OrderedDict()
         self._cond = threading.Condition()
         self.capacity = capacity
@@ -51,7 +55,8 @@ class LatestSlots:
         with self._cond:
             if robot_id in self._items:
                 self.skipped += 1
-                self._items[robot_id] = item
+                old = self._items[robot_id]
+                self._items[robot_id] = item if self._merge is None else self._merge(old, item)
             elif len(self._items) >= self.capacity:
                 self.refused += 1
                 return False
@@ -86,12 +91,18 @@ class LatestSlots:
             return len(self._items)
 
 
+def _replace_scan(old: ValidScan, new: ValidScan) -> ValidScan:
+    return new.replacing(old)
+
+
 class LinkHost(Protocol):
     """What a :class:`WorkerLink` needs from the node that owns it."""
 
     stopping: threading.Event
     clock: ControlClock
     worker_timeout_s: float
+    #: the limit of an ``("index", map_id)`` request (a view index build takes seconds)
+    index_timeout_s: float
 
     def new_worker(self, index: int) -> Worker:
         """A fresh worker for link ``index``."""
@@ -113,7 +124,7 @@ class WorkerLink:
         self.host = host
         self.index = index
         self.worker: Worker = host.new_worker(index)
-        self.slots = LatestSlots(capacity=slot_capacity)
+        self.slots = LatestSlots(capacity=slot_capacity, merge=_replace_scan)
         self.control: queue.SimpleQueue[tuple[tuple[Any, ...], Future[Any]]] = queue.SimpleQueue()
         self.thread = threading.Thread(target=self._run, name=f"shapeloc-link-{index}", daemon=True)
 
@@ -126,8 +137,9 @@ class WorkerLink:
 
     def call(self, req: tuple[Any, ...]) -> tuple[str, Any]:
         """Run a request on the worker, restarting it (and failing this request) if it dies."""
+        timeout = self.host.index_timeout_s if req[0] == "index" else self.host.worker_timeout_s
         try:
-            return self.worker.call(req, self.host.worker_timeout_s)
+            return self.worker.call(req, timeout)
         except (WorkerDiedError, ServiceTimeout) as e:
             log.error("worker %d: %s; restarting it", self.index, e)
             self.host.restart_worker(self)

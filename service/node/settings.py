@@ -247,9 +247,18 @@ class ServiceSettings(BaseSettings):
     worker_start_timeout_s: float = Field(
         default=120.0,
         gt=0.0,
-        description="A worker process that has not started (interpreter and imports) within "
-        "this is killed and restarted; its start-up is not charged to worker_timeout_s. Large "
-        "because a loaded machine can take a minute to import numpy, scipy and numba.",
+        description="A worker process that has not started (interpreter, imports and, for a "
+        "tracking worker, the warm-up: each method run once) within this is killed and "
+        "restarted; its start-up is not charged to worker_timeout_s. Large because a loaded "
+        "machine can take a minute to import numpy, scipy and numba.",
+    )
+    index_timeout_s: float = Field(
+        default=600.0,
+        gt=0.0,
+        description="The search worker's limit for building a map's view index of global "
+        "localisation (after each map put; 3.6 s for the office, 26 s for a 160-polyline "
+        "building on a loaded 2-core machine); beyond it the worker is restarted and the "
+        "first search builds the index instead.",
     )
 
     # -- queues and limits against floods

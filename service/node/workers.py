@@ -16,15 +16,24 @@ Requests (all picklable):
   ``initial_pose``: restore from a saved pose; ``start_odom`` is the odometry pose at
   ``start_pose``, so the next scan's odometry increment is measured from it). On failure the
   previous configuration stays.
-* ``("scan", robot_id, ranges, angles, odom | None)``: one update; ranges in metres with NaN
-  for no return, angles in radians in the robot frame, odom ``(x, y, theta)`` or ``None``.
+* ``("scan", robot_id, ranges, angles, odom | None, skipped_odom | None)``: one update; ranges
+  in metres with NaN for no return, angles in radians in the robot frame, odom ``(x, y,
+  theta)`` or ``None``; ``skipped_odom``: the odometry of the oldest scan this one replaced
+  under latest-wins (see :meth:`WorkerCore._scan`), or ``None``.
 * ``("forget", robot_id)``.
+* ``("index", map_id)``: build (or load) the map's view index of global localisation into the
+  on-disk cache (:func:`service.node.prepare.build_index`); replies the seconds taken.
+
+A tracking worker process warms up (:func:`service.node.prepare.warm_up_worker`) before it
+reports itself ready, and prepares every map it is given (:func:`service.node.prepare.
+prepare_map`), so no robot pays for the first use of a worker or a map.
 
 Replies are ``("ok", payload)`` or ``("err", reason)``; a scan's payload is a dict with
 ``pose`` (list of 3 floats, map frame), ``status``, ``score``, ``explained``, ``ambiguity``,
 ``covariance`` (9 floats row-major, or ``None``), ``hypotheses`` (int or ``None``),
-``candidates`` (rows ``[x, y, theta, cost]``, or ``None``) and ``unsettled`` (the robot
-searches or was fixed by a search a few scans ago: the node keeps it on the search worker).
+``candidates`` (rows ``[x, y, theta, cost]``, or ``None``), ``unsettled`` (the robot
+searches or was fixed by a search a few scans ago: the node keeps it on the search worker) and
+``cpu_ms`` (the worker's CPU time for the request).
 """
 
 from __future__ import annotations
@@ -36,6 +45,7 @@ import multiprocessing as mp
 import os
 import signal
 import threading
+import time
 import traceback
 from dataclasses import dataclass
 from multiprocessing.connection import Connection
@@ -47,6 +57,7 @@ import numpy as np
 from service.core.factory import create_localizer
 from service.core.types import Localizer, MapData, wrap_angle
 from service.errors import LocalizationError, ServiceTimeout, ShapelocError
+from service.node.prepare import build_index, prepare_map, warm_up_worker
 
 log = logging.getLogger("shapeloc.service.worker")
 
@@ -130,6 +141,9 @@ class _Robot:
     last_odom: np.ndarray | None = None
     #: the laser's pose on the robot base (RobotConfig.laser_offset); None: at its origin
     laser_offset: np.ndarray | None = None
+    #: the localiser starts at the initial pose without an odometry reading there and has
+    #: localised no scan yet (the first scan's odometry is where the initial pose is)
+    fresh: bool = False
 
 
 def config_request(
@@ -169,8 +183,14 @@ class WorkerCore:
     """Maps and per-robot localisers of one worker. Not thread-safe: one caller at a time."""
 
     def __init__(
-        self, cache_dir: Path | None = None, search_budget_ms: float | None = None
+        self,
+        cache_dir: Path | None = None,
+        search_budget_ms: float | None = None,
+        search: bool = False,
     ) -> None:
+        #: the search worker: maps are not prepared for tracking here (its robots search),
+        #: their view index is built here instead (``("index", map_id)``)
+        self.search = search
         self.maps: dict[str, MapData] = {}
         self.robots: dict[str, _Robot] = {}
         self.cache_dir = cache_dir  # per-map view index cache of global localisation
@@ -183,7 +203,10 @@ class WorkerCore:
         kind = req[0]
         try:
             if kind == "scan":
-                return ("ok", self._scan(*req[1:]))
+                t0 = time.thread_time()
+                out = self._scan(*req[1:])
+                out["cpu_ms"] = (time.thread_time() - t0) * 1e3
+                return ("ok", out)
             if kind == "map":
                 self._map(req[1])
                 return ("ok", None)
@@ -203,6 +226,11 @@ class WorkerCore:
                 return ("ok", None)
             if kind == "ping":
                 return ("ok", "pong")
+            if kind == "index":
+                md = self.maps.get(req[1])
+                if md is None:
+                    return ("err", f"map {req[1]!r} is not stored in this worker")
+                return ("ok", build_index(md, self.cache_dir))
             return ("err", f"unknown worker request {kind!r}")
         except ShapelocError as e:
             return ("err", str(e))
@@ -215,6 +243,8 @@ class WorkerCore:
         for r in self.robots.values():
             if r.map_id == md.map_id:
                 r.localizer = None  # rebuilt on the next scan from its last pose
+        if not self.search:
+            prepare_map(md)  # the map's first-use work, before the service calls it ready
 
     def _export(self, robot_id: str) -> _Robot:
         """Hand a robot (configuration, last pose and odometry, localiser with its state)
@@ -264,7 +294,8 @@ class WorkerCore:
         loc = None
         if md is not None:
             loc = self._create(method, md, start if start is not None else init, odom, mount)
-        self.robots[robot_id] = _Robot(method, map_id, init, start, loc, odom, mount)
+        fresh = start is None and init is not None
+        self.robots[robot_id] = _Robot(method, map_id, init, start, loc, odom, mount, fresh)
 
     def _create(
         self,
@@ -295,7 +326,14 @@ class WorkerCore:
         ranges: np.ndarray,
         angles: np.ndarray,
         odom: np.ndarray | None,
+        skipped_odom: np.ndarray | None = None,
     ) -> dict[str, Any]:
+        """Localise one scan of ``robot_id``. ``skipped_odom`` is the odometry of the oldest
+        scan this one replaced under latest-wins: when the robot's localiser starts at its
+        initial pose without an odometry reading and has localised no scan yet, the initial
+        pose is where that replaced scan was taken, so the odometry increment of this scan is
+        measured from it (otherwise the localiser measures it from the last scan it
+        localised, which is exact whatever was skipped in between)."""
         r = self.robots.get(robot_id)
         if r is None:
             raise LocalizationError(f"robot {robot_id!r} has no configuration in this worker")
@@ -312,6 +350,15 @@ class WorkerCore:
                 r.localizer = self._create(
                     r.method, md, r.initial_pose, laser_offset=r.laser_offset
                 )
+                r.fresh = r.initial_pose is not None
+        if (
+            r.fresh
+            and odom is not None
+            and skipped_odom is not None
+            and not np.array_equal(skipped_odom, odom)
+        ):
+            r.localizer.reset(r.initial_pose, np.asarray(skipped_odom, dtype=np.float64))
+        r.fresh = False
         set_budget = getattr(r.localizer, "set_search_budget", None)
         if self.search_budget_ms is not None and set_budget is not None:
             # the whole budget only while no other robot's scan can queue behind this one
@@ -365,6 +412,7 @@ class InlineWorker:
         self, index: int = 0, cache_dir: Path | None = None, search_budget_ms: float | None = None
     ) -> None:
         self.index = index
+        warm_up_worker()  # the first robot must not pay for the first use of the methods
         self.core = WorkerCore(cache_dir, search_budget_ms)
 
     def call(self, req: tuple[Any, ...], timeout_s: float | None = None) -> Reply:
@@ -385,8 +433,12 @@ def _worker_main(
     cache_dir: Path | None = None,
     search_budget_ms: float | None = None,
     nice: int = 0,
+    search: bool = False,
 ) -> None:
-    """Entry point of a worker process: serve requests until EOF or ``("stop",)``."""
+    """Entry point of a worker process: serve requests until EOF or ``("stop",)``. A tracking
+    worker (``search`` false) warms up before it reports itself ready; the search worker, at
+    a low priority, does not (its start-up must fit ``worker_start_timeout_s`` on a busy
+    machine, and its robots search anyway)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent owns shutdown
     logging.basicConfig(
         level=getattr(logging, log_level.upper(), logging.INFO),
@@ -401,8 +453,10 @@ def _worker_main(
         if hasattr(os, "sched_setscheduler") and hasattr(os, "SCHED_BATCH"):
             with contextlib.suppress(OSError):
                 os.sched_setscheduler(0, os.SCHED_BATCH, os.sched_param(0))
-    core = WorkerCore(cache_dir, search_budget_ms)
-    # start-up (interpreter, imports) is over: the parent's per-request timeout starts now
+    if not search:
+        warm_up_worker()
+    core = WorkerCore(cache_dir, search_budget_ms, search=search)
+    # start-up (interpreter, imports, warm-up) is over: the parent's per-request timeout starts
     conn.send(("ready", os.getpid()))
     while True:
         try:
@@ -420,7 +474,8 @@ class ProcessWorker:
 
     :meth:`call` raises :class:`WorkerDiedError` if the child exits, or :class:`ServiceTimeout` (and
     kills the child) if a reply takes longer than ``timeout_s`` seconds. The child's start-up
-    (a new interpreter and the imports) is not charged to its first request: the child says
+    (a new interpreter, the imports and a tracking worker's warm-up) is not charged to its
+    first request: the child says
     ``("ready", pid)`` when it can serve, and the first :meth:`call` waits up to
     ``start_timeout_s`` for that before its own ``timeout_s`` starts. A search worker at nice 19
     beside other busy processes can take more than the 30 s request timeout just to start.
@@ -434,6 +489,7 @@ class ProcessWorker:
         search_budget_ms: float | None = None,
         nice: int = 0,
         start_timeout_s: float = 120.0,
+        search: bool = False,
     ) -> None:
         self.index = index
         self._log_level = log_level
@@ -443,7 +499,7 @@ class ProcessWorker:
         self._conn, child = ctx.Pipe(duplex=True)
         self._proc = ctx.Process(
             target=_worker_main,
-            args=(child, log_level, cache_dir, search_budget_ms, nice),
+            args=(child, log_level, cache_dir, search_budget_ms, nice, search),
             name=f"shapeloc-worker-{index}",
             daemon=True,
         )
