@@ -17,6 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from service.core import numeric
 from service.core.raycast import RayCaster
 from service.errors import InvalidMessage
 
@@ -125,7 +126,7 @@ def _with_circles(
     w, ww, rad = w[near], ww[near], c[near, 2]
     th = angles + pose[2]
     d = np.c_[np.cos(th), np.sin(th)]  # (n, 2)
-    b = d @ w.T  # (n, k): projection of the centre on each beam
+    b = numeric.matmul(d, w.T)  # (n, k): projection of the centre on each beam
     disc = b**2 - (ww - rad**2)[None, :]
     with np.errstate(invalid="ignore"):
         t = b - np.sqrt(disc)

@@ -172,4 +172,12 @@ def warm_up() -> float:
     wall = 1.0 / np.maximum(np.cos(beams), 0.2)
     check.correct(wall, beams, np.zeros(3))
     check.correct(wall, beams, np.array([0.01, 0.0, 0.0]))
+    # the machine-independent elementwise functions and small solves (service.core.numeric)
+    from service.core import numeric
+
+    numeric.atan2(p[:, 1], p[:, 0])
+    numeric.exp(p[:, 0])
+    numeric.log(p[:, 0])
+    numeric.tanh(p[:, 0])
+    numeric.solve(np.eye(3), np.ones(3))
     return time.perf_counter() - t0

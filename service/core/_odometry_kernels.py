@@ -13,7 +13,7 @@ import math
 
 import numpy as np
 
-from service.core._kernels import njit
+from service.core._kernels import _solve3, njit
 
 
 @njit(cache=True, nogil=True)
@@ -138,7 +138,11 @@ def match_iterations(
             )
             for b in range(3):
                 A[a, b] = scale * H[a, b] + information[a, b]
-        step = np.linalg.solve(A, rhs)
+        # LU in LAPACK's order without LAPACK (whose kernels differ between CPUs); a singular
+        # system (the reference's LinAlgError) ends the iterations
+        step = _solve3(A, rhs)
+        if not (np.isfinite(step[0]) and np.isfinite(step[1]) and np.isfinite(step[2])):
+            break
         x += step
         if math.hypot(step[0], step[1]) < 1e-4 and abs(step[2]) < 1e-5:
             break

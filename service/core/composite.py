@@ -31,6 +31,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from service.core import numeric
 from service.core.pose import compose, invert, transform_points
 from service.errors import LocalizationError
 
@@ -70,7 +71,7 @@ def composite_scan(
         xy = np.column_stack([r[ok] * np.cos(a[ok]), r[ok] * np.sin(a[ok])])
         q = transform_points(compose(to_last, p), xy)
         rng = np.hypot(q[:, 0], q[:, 1])
-        b = np.floor((np.arctan2(q[:, 1], q[:, 0]) + np.pi) / width).astype(np.int64) % bins
+        b = np.floor((numeric.atan2(q[:, 1], q[:, 0]) + np.pi) / width).astype(np.int64) % bins
         nearest = np.full(bins, np.inf)
         np.minimum.at(nearest, b, rng)
         free = np.isnan(out) & np.isfinite(nearest)

@@ -25,7 +25,7 @@ from functools import cached_property
 
 import numpy as np
 
-from service.core import _extract_kernels, _kernels
+from service.core import _extract_kernels, _kernels, numeric
 from service.core.dce import dce
 from service.core.mapmodel import MapModel
 from service.core.polylines import Polyline, group_polylines
@@ -217,7 +217,7 @@ def _features_from_ranges(
     # bearings of the cut pieces' end points, one np.arctan2 over all (as _piece takes them)
     ends = np.array([(verts[vo[g] + a], verts[vo[g] + b]) for g, a, b in cut], dtype=np.intp)
     ends = ends.reshape(-1, 2) + off[[g for g, _, _ in cut]].reshape(-1, 1)
-    bear = np.arctan2(pts[ends, 1], pts[ends, 0]).tolist()
+    bear = numeric.atan2(pts[ends, 1], pts[ends, 0]).tolist()
     k = 0
     for (g, a, b), w in zip(rows, whole, strict=True):
         grp = groups[g]
@@ -248,7 +248,7 @@ def _angular_sizes(parts: list[np.ndarray]) -> list[float]:
     if not parts:
         return []
     p = np.vstack(parts)
-    steps = np.diff(np.arctan2(p[:, 1], p[:, 0]))
+    steps = np.diff(numeric.atan2(p[:, 1], p[:, 0]))
     steps = (steps + np.pi) % (2.0 * np.pi) - np.pi
     off = list(itertools.accumulate((len(p) for p in parts), initial=0))
     total = np.add.reduce  # what np.sum calls, without its wrappers
@@ -267,8 +267,8 @@ def _piece(
         idx=ids,
         first_beam=int(ids[0]),
         last_beam=int(ids[-1]),
-        bearing_start=float(np.arctan2(pts[0, 1], pts[0, 0])) if start is None else start,
-        bearing_end=float(np.arctan2(pts[-1, 1], pts[-1, 0])) if end is None else end,
+        bearing_start=numeric.atan2(pts[0, 1], pts[0, 0]) if start is None else start,
+        bearing_end=numeric.atan2(pts[-1, 1], pts[-1, 0]) if end is None else end,
     )
 
 

@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from service.core import hypotheses as hyp_mod
+from service.core import numeric
 from service.core.pose_scoring import Hypothesis
 from service.core.types import Estimate, wrap_angle
 
@@ -32,7 +33,7 @@ def _position_sigma(est: Estimate) -> float:
     c = np.asarray(est.covariance, dtype=np.float64).reshape(3, 3)[:2, :2]
     if not np.all(np.isfinite(c)):
         return float("inf")
-    return float(np.sqrt(max(0.0, float(np.linalg.eigvalsh(0.5 * (c + c.T))[-1]))))
+    return float(np.sqrt(max(0.0, float(numeric.eigh_sym2(c)[0][-1]))))
 
 
 class Confirmation:

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from service.core import numeric
 from service.core.configuration import Configuration, MapViewCache, scan_configuration
 from service.core.mapmodel import MapModel
 from service.core.motion import Motion, Prediction, check_pose3
@@ -204,7 +205,7 @@ class ShapeLocalizer:
         Mahalanobis distance / 2: a log-posterior up to a constant."""
         e = f.pose - pred.pose
         e[2] = wrap_angle(float(e[2]))
-        m2 = float(e @ pred.information @ e)
+        m2 = numeric.quadratic(e, pred.information)
         ll = f.loglik if weights is None else f.weighted_loglik(weights, self.config.refine)
         ll -= self.config.violation_weight * violation
         return self.config.evidence_points * ll - 0.5 * m2
@@ -249,7 +250,7 @@ class ShapeLocalizer:
             return True
         e = f.pose - pred.pose
         e[2] = wrap_angle(float(e[2]))
-        if float(e @ pred.information @ e) > cfg.doubt_mahalanobis:
+        if numeric.quadratic(e, pred.information) > cfg.doubt_mahalanobis:
             return True
         if f.inlier_fraction < cfg.min_support:
             return True

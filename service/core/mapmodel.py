@@ -19,7 +19,7 @@ from functools import cached_property
 import numpy as np
 from scipy import ndimage
 
-from service.core import _kernels, _map_kernels
+from service.core import _kernels, _map_kernels, numeric
 from service.core.types import MapData
 from service.errors import LocalizationError
 
@@ -226,7 +226,7 @@ def _nearest_numpy(
         c = int(f[i, 0]) * model.ny + int(f[i, 1])
         cand = model.items[model.start[c] : model.start[c + 1]]
         if not np.isnan(qn[i, 0]):
-            cand = cand[np.abs(model.normals[cand] @ qn[i]) >= cos_gate]
+            cand = cand[np.abs(numeric.matvec(model.normals[cand], qn[i])) >= cos_gate]
         if len(cand) == 0:
             continue
         s = model.segments[cand]

@@ -30,7 +30,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from service.core import _kernels, _matching_kernels, _shape_kernels
+from service.core import _kernels, _matching_kernels, _shape_kernels, numeric
 from service.core.configuration import Configuration, Feature
 from service.core.order_dp import BlockArrays, order_preserving_dp
 from service.core.pose import StackedPairs, transform_points
@@ -55,7 +55,7 @@ def _angular_interval(points: np.ndarray, viewpoint: np.ndarray) -> tuple[float,
     """``(start, span)`` (rad) of the bearings of ``points`` seen from ``viewpoint`` (pose),
     relative to its heading; ``start`` in (-pi, pi], span >= 0, following the point order."""
     d = points - viewpoint[:2]
-    b = np.arctan2(d[:, 1], d[:, 0]) - viewpoint[2]
+    b = numeric.atan2(d[:, 1], d[:, 0]) - viewpoint[2]
     steps = np.mod(np.diff(b) + math.pi, _TWO_PI) - math.pi
     cum = np.concatenate(([0.0], np.cumsum(steps)))
     lo, hi = float(cum.min()), float(cum.max())

@@ -36,6 +36,7 @@ from typing import Literal, Protocol
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
+from service.core import numeric
 from service.core.pose import compose, invert
 from service.core.types import wrap_angle
 from service.errors import LocalizationError
@@ -274,7 +275,7 @@ def _information(theta: float, sx: float, sy: float, st: float) -> np.ndarray:
     c, s = np.cos(theta), np.sin(theta)
     R = np.array([[c, -s], [s, c]])
     info = np.zeros((3, 3))
-    info[:2, :2] = R @ np.diag([1.0 / sx**2, 1.0 / sy**2]) @ R.T
+    info[:2, :2] = numeric.matmul(numeric.matmul(R, np.diag([1.0 / sx**2, 1.0 / sy**2])), R.T)
     info[2, 2] = 1.0 / st**2
     return info
 

@@ -19,6 +19,7 @@ from functools import cached_property
 
 import numpy as np
 
+from service.core import numeric
 from service.errors import LocalizationError
 
 #: Minimum object distance assumed by the paper (§4.1): 10 cm.
@@ -66,7 +67,7 @@ class Polyline:
         Computed as the absolute sum of the wrapped bearing steps between consecutive points,
         so it is correct across the -pi/pi seam and for polylines wider than pi.
         """
-        b = np.arctan2(self.points[:, 1], self.points[:, 0])
+        b = numeric.atan2(self.points[:, 1], self.points[:, 0])
         steps = np.diff(b)
         steps = (steps + np.pi) % (2.0 * np.pi) - np.pi
         return float(abs(np.sum(steps)))

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from service.core import _kernels, _pose_kernels
+from service.core import _kernels, _pose_kernels, numeric
 from service.core.types import wrap_angle
 from service.errors import LocalizationError
 
@@ -90,14 +90,14 @@ def rigid_transform_2d(
     wsum = w.sum()
     if wsum <= 0.0:
         raise LocalizationError("rigid_transform_2d: all weights are zero")
-    ca = (w @ a) / wsum
-    cb = (w @ b) / wsum
+    ca = np.einsum("i,ij->j", w, a) / wsum
+    cb = np.einsum("i,ij->j", w, b) / wsum
     a0 = a - ca
     b0 = b - cb
     dot = np.sum(w * (a0[:, 0] * b0[:, 0] + a0[:, 1] * b0[:, 1]))
     cross = np.sum(w * (a0[:, 0] * b0[:, 1] - a0[:, 1] * b0[:, 0]))
-    phi = float(np.arctan2(cross, dot)) if (dot != 0.0 or cross != 0.0) else 0.0
-    t = cb - rot(phi) @ ca
+    phi = numeric.atan2(cross, dot) if (dot != 0.0 or cross != 0.0) else 0.0
+    t = cb - numeric.matvec(rot(phi), ca)
     return np.array([t[0], t[1], wrap_angle(phi)])
 
 
@@ -278,7 +278,7 @@ def pose_from_matches(
     if covariance and have_h and n_in > 3:
         sigma2 = max(float(rms), 1e-3) ** 2
         try:
-            cov = sigma2 * np.linalg.inv(H)
+            cov = sigma2 * numeric.inv(H)
         except np.linalg.LinAlgError:
             cov = None
     return PoseFit(
@@ -339,15 +339,15 @@ def _pose_from_matches_numpy(
         w = 1.0 / (1.0 + (r / robust_scale) ** 2)
         lever = q - pose[:2]
         J = np.column_stack([n[:, 0], n[:, 1], n[:, 1] * lever[:, 0] - n[:, 0] * lever[:, 1]])
-        H = (J * w[:, None]).T @ J
-        g = (J * w[:, None]).T @ r
+        H = numeric.matmul((J * w[:, None]).T, J)
+        g = numeric.matvec((J * w[:, None]).T, r)
         if prior is not None and prior_weight > 0.0:
             H[0, 0] += prior_weight
             H[1, 1] += prior_weight
             g[0] += prior_weight * (pose[0] - prior[0])
             g[1] += prior_weight * (pose[1] - prior[1])
         scale = max(float(np.trace(H)) / 3.0, 1e-12)
-        delta = -np.linalg.solve(H + damping * scale * np.eye(3), g)
+        delta = -numeric.solve(H + damping * scale * np.eye(3), g)
         # Increment of the pose parameters themselves (q = R(theta) p + t, derivatives at fixed t).
         pose = np.array([pose[0] + delta[0], pose[1] + delta[1], wrap_angle(pose[2] + delta[2])])
         rms = float(np.sqrt(np.sum(w * r * r) / max(np.sum(w), 1e-12)))
@@ -357,7 +357,7 @@ def _pose_from_matches_numpy(
     if H is not None and n_in > 3:
         sigma2 = max(rms, 1e-3) ** 2
         try:
-            cov = sigma2 * np.linalg.inv(H)
+            cov = sigma2 * numeric.inv(H)
         except np.linalg.LinAlgError:
             cov = None
     return PoseFit(

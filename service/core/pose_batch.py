@@ -15,7 +15,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from service.core import _kernels, _pose_kernels
+from service.core import _kernels, _pose_kernels, numeric
 from service.core.types import wrap_angle
 
 
@@ -324,7 +324,7 @@ def _fit_pairs_stacked_numpy(
                 H[:, k1, k2] = np.bincount(own, weights=Jw[:, k1] * J[:, k2], minlength=K)
                 H[:, k2, k1] = H[:, k1, k2]
         tr = np.maximum(np.trace(H, axis1=1, axis2=2) / 3.0, 1e-12)
-        delta = -np.linalg.solve(H + damping * tr[:, None, None] * eye, g[:, :, None])[:, :, 0]
+        delta = -numeric.solve(H + damping * tr[:, None, None] * eye, g)
         poses = poses + delta
         wsum = np.bincount(own, weights=w, minlength=K)
         rms = np.sqrt(np.bincount(own, weights=w * r * r, minlength=K) / np.maximum(wsum, 1e-12))

@@ -10,7 +10,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from service.core import _kernels, _search_kernels
+from service.core import _kernels, _search_kernels, numeric
 from service.core.configuration import Configuration
 from service.core.global_config import GlobalConfig
 from service.core.localizer import ShapeConfig
@@ -150,7 +150,7 @@ def _field_scores(index: ViewIndex, poses: np.ndarray, pts: np.ndarray, sigma: f
     x = c[:, None] * pts[None, :, 0] - s[:, None] * pts[None, :, 1] + poses[:, 0:1]
     y = s[:, None] * pts[None, :, 0] + c[:, None] * pts[None, :, 1] + poses[:, 1:2]
     d = index.distance(np.column_stack([x.ravel(), y.ravel()])).reshape(len(poses), -1)
-    return np.mean(np.exp(-0.5 * (np.minimum(d, _FIELD_CAP) / sigma) ** 2), axis=1)
+    return np.mean(numeric.exp(-0.5 * (np.minimum(d, _FIELD_CAP) / sigma) ** 2), axis=1)
 
 
 @lru_cache(maxsize=64)
@@ -261,7 +261,7 @@ def _beam_fractions(
     below = r < pred - tol
     if short_scale > 0.0:
         gap = np.where(below, pred - r, np.inf)
-        return hit, viol, float(np.exp(-gap / short_scale).sum() / n)
+        return hit, viol, float(numeric.exp(-gap / short_scale).sum() / n)
     return hit, viol, np.count_nonzero(below) / n
 
 

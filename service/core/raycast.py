@@ -21,7 +21,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from service.core import _kernels, _raycast_kernels
+from service.core import _kernels, _raycast_kernels, numeric
 from service.errors import LocalizationError
 
 _TWO_PI = 2.0 * np.pi
@@ -183,8 +183,8 @@ class RayCaster:
         )
         if idx.shape[0] == 0:
             return
-        bearing0 = np.arctan2(ends[1], ends[0])
-        bearing1 = np.arctan2(ends[3], ends[2])
+        bearing0 = numeric.atan2(ends[1], ends[0])
+        bearing1 = numeric.atan2(ends[3], ends[2])
         base, rel_sorted, order = self._beam_order(ang)
         world = ang[None, :] + poses[:, 2][:, None]
         _raycast_kernels.nearest_hits(
@@ -278,8 +278,8 @@ class RayCaster:
 
         # Bearing interval of each segment in the same relative frame.
         off = (poses[:, 2] + base)[owner]
-        b0 = np.arctan2(a[:, 1] - py, a[:, 0] - px) - off
-        b1 = np.arctan2(b[:, 1] - py, b[:, 0] - px) - off
+        b0 = numeric.atan2(a[:, 1] - py, a[:, 0] - px) - off
+        b1 = numeric.atan2(b[:, 1] - py, b[:, 0] - px) - off
         delta = np.mod(b1 - b0 + np.pi, _TWO_PI) - np.pi  # signed span in (-pi, pi]
         lo = np.where(delta >= 0.0, b0, b1)
         span = np.abs(delta)

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from service.core import _kernels, _map_kernels
+from service.core import _kernels, _map_kernels, numeric
 from service.core.mapmodel import MapModel, _nearest_numpy
 from service.core.pose import PoseFit, transform_points
 from service.core.types import wrap_angle
@@ -98,7 +98,7 @@ class Refined:
 def _point_loglik(residuals: np.ndarray, params: RefineParams) -> np.ndarray:
     """``log(floor + exp(-r^2 / 2 sigma^2))`` per residual (inf: an unexplained return)."""
     r = np.minimum(np.abs(residuals), 1e3) / params.likelihood_sigma
-    return np.log(params.likelihood_floor + np.exp(-0.5 * r * r))
+    return numeric.log(params.likelihood_floor + numeric.exp(-0.5 * r * r))
 
 
 def scan_normals(
@@ -217,7 +217,7 @@ def refine_pose(
     cov = None
     if n_in > 3:
         try:
-            cov = scale2 * np.linalg.inv(H)
+            cov = scale2 * numeric.inv(H)
             if not np.all(np.isfinite(cov)):
                 cov = None
         except np.linalg.LinAlgError:
@@ -270,17 +270,17 @@ def _refine_numpy(
     it = 0
     for it in range(1, iterations + 1):  # noqa: B007 (the count is returned)
         _ok, r, J, ww = terms(pose, trim)
-        H = J.T @ (J * ww[:, None])
-        g = J.T @ (ww * r)
+        H = numeric.matmul(J.T, J * ww[:, None])
+        g = numeric.matvec(J.T, ww * r)
         e = np.array([pose[0] - prior[0], pose[1] - prior[1], wrap_angle(pose[2] - prior[2])])
         A = H + info + (damping * np.trace(H) / 3.0 + 1e-9) * np.eye(3)
-        dx = np.linalg.solve(A, -(g + info @ e))
+        dx = numeric.solve(A, -(g + numeric.matvec(info, e)))
         pose = np.array([pose[0] + dx[0], pose[1] + dx[1], wrap_angle(pose[2] + dx[2])])
         trim = max(trim_final, trim * trim_decay)
         if np.all(np.abs(dx) < tol) and trim <= trim_final:
             break
     ok, r, J, ww = terms(pose, trim)
-    H = J.T @ (J * ww[:, None])
+    H = numeric.matmul(J.T, J * ww[:, None])
     res = np.full(len(pts), np.inf)
     res[ok] = r
     return pose, H, res, it

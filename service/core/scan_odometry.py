@@ -33,7 +33,7 @@ import math
 import numpy as np
 from scipy.spatial import cKDTree
 
-from service.core import _grid_kernels, _kernels, _odometry_kernels
+from service.core import _grid_kernels, _kernels, _odometry_kernels, numeric
 from service.core.baselines import scan_points
 from service.core.motion import MotionConfig, ScanOdometryConfig, odometry_sigmas
 from service.core.pose import compose, invert, transform_points
@@ -79,7 +79,7 @@ def surface_normals(
     half = 0.5 * (sxx + syy)
     root = np.sqrt(np.maximum(0.25 * (sxx - syy) ** 2 + sxy**2, 0.0))
     small, large = half - root, half + root
-    angle = 0.5 * np.arctan2(2.0 * sxy, sxx - syy)  # direction of the larger spread
+    angle = 0.5 * numeric.atan2(2.0 * sxy, sxx - syy)  # direction of the larger spread
     ok = (cnt >= 3) & (large > 0) & (small <= max_flatness * large)
     out[ok, 0] = -np.sin(angle[ok])
     out[ok, 1] = np.cos(angle[ok])
@@ -179,12 +179,12 @@ def observed(
     out = np.asarray(fit, dtype=np.float64).copy()
     if total <= 0:
         return np.asarray(delta, dtype=np.float64).copy()
-    vals, vecs = np.linalg.eigh(normal[:2, :2])
+    vals, vecs = numeric.eigh_sym2(normal[:2, :2])
     corr = out[:2] - delta[:2]
     keep = np.zeros(2)
     for k in range(2):
         if vals[k] >= config.min_constraint * total:
-            keep += float(vecs[:, k] @ corr) * vecs[:, k]
+            keep += numeric.dot(vecs[:, k], corr) * vecs[:, k]
     out[:2] = delta[:2] + keep
     return out
 
@@ -209,8 +209,9 @@ def _match_numpy(
     def associate(gate: float) -> tuple[np.ndarray, np.ndarray]:
         # the nearest previous point within the gate whose normal agrees (of the 16 nearest)
         q = transform_points(x, points)
-        m = normals @ np.array(
-            [[math.cos(x[2]), math.sin(x[2])], [-math.sin(x[2]), math.cos(x[2])]]
+        m = numeric.matmul(
+            normals,
+            np.array([[math.cos(x[2]), math.sin(x[2])], [-math.sin(x[2]), math.cos(x[2])]]),
         )
         dist, j = tree.query(q, k=min(16, len(prev_points)), distance_upper_bound=gate)
         dist = dist.reshape(len(q), -1)
@@ -239,13 +240,13 @@ def _match_numpy(
         scale = 1.0 / config.point_sigma**2
         if total > config.effective_points:
             scale *= config.effective_points / total
-        normal = (jac.T * w) @ jac
+        normal = numeric.matmul(jac.T * w, jac)
         H = scale * normal + information
         e = x - x0
         e[2] = wrap_angle(float(e[2]))
-        g = scale * (jac.T * w) @ r + information @ e
+        g = scale * numeric.matvec(jac.T * w, r) + numeric.matvec(information, e)
         try:
-            step = np.linalg.solve(H, -g)
+            step = numeric.solve(H, -g)
         except np.linalg.LinAlgError:
             break
         x = x + step

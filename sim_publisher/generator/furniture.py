@@ -24,6 +24,7 @@ from shapely import affinity
 from shapely.geometry import LineString, Polygon, box
 from shapely.prepared import prep
 
+from service.core import numeric
 from sim_publisher.generator.grid import Grid, main_component_share
 from sim_publisher.generator.layout import Layout, Rect
 from sim_publisher.generator.layout.walls import _line_key
@@ -300,7 +301,9 @@ def _frame(inner: Rect, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, flo
 def _place(parts: list[Polygon], o: np.ndarray, t: np.ndarray, n: np.ndarray) -> list[Polygon]:
     """Local item frame (x along ``t``, y along ``n``) to the map frame, origin at ``o``."""
     m = np.array([t, n])
-    return list(shapely.transform(np.asarray(parts, dtype=object), lambda c: o + c @ m))
+    return list(
+        shapely.transform(np.asarray(parts, dtype=object), lambda c: o + numeric.matmul(c, m))
+    )
 
 
 def _candidate(space: Space, item: str, rng) -> list[Polygon] | None:

@@ -51,6 +51,7 @@ from service.adapters.maps.contours import (
     simplify_polylines,
 )
 from service.adapters.maps.grid import MAX_IMAGE_CELLS, OccupancyGrid
+from service.core import numeric
 from service.core.types import MapData
 from service.errors import InvalidMessage
 
@@ -229,7 +230,7 @@ def build_map(
     prob = np.full((H, W), np.nan)
     known = seen > 0
     logodds = hits[known] * _logit(p_hit) + passes[known] * _logit(p_miss)
-    prob[known] = 0.5 * (1.0 + np.tanh(0.5 * logodds))  # logistic, overflow-free
+    prob[known] = 0.5 * (1.0 + numeric.tanh(0.5 * logodds))  # logistic, overflow-free
     grid = OccupancyGrid.from_probability(prob[::-1], resolution, (x0, y0, 0.0))
 
     # ---- ridge of the hit density

@@ -23,6 +23,7 @@ import math
 import numpy as np
 from scipy.spatial import cKDTree
 
+from service.core import numeric
 from service.errors import LocalizationError
 
 # Corners of a square, in (x = col, y = row) offsets: p0 top-left, p1 top-right,
@@ -331,10 +332,10 @@ def join_polylines(
         gap_vec = P[b] - P[a]
         gap = math.hypot(gap_vec[0], gap_vec[1])
         if gap > snap:
-            if float(-Dv[a] @ Dv[b]) < cos_max:  # ends must point at each other
+            if -numeric.dot(Dv[a], Dv[b]) < cos_max:  # ends must point at each other
                 continue
             u = gap_vec / gap
-            if float(Dv[a] @ u) < cos_max or float(-Dv[b] @ u) < cos_max:
+            if numeric.dot(Dv[a], u) < cos_max or -numeric.dot(Dv[b], u) < cos_max:
                 continue
         cands.append((gap, a, b))
     cands.sort()

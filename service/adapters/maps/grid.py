@@ -64,6 +64,7 @@ import numpy as np
 from scipy import ndimage
 
 from service.adapters.maps.contours import marching_squares, simplify_polylines
+from service.core import numeric
 from service.core.types import MapData, MapKind
 from service.errors import InvalidMessage
 
@@ -472,5 +473,5 @@ def grid_to_map(
     x0, y0, yaw = grid.origin
     cs, sn = math.cos(yaw), math.sin(yaw)
     rot = np.array([[cs, sn], [-sn, cs]])
-    polys = [q @ rot + np.array([x0, y0]) for q in local if q.shape[0] >= 2]
+    polys = [numeric.matmul(q, rot) + np.array([x0, y0]) for q in local if q.shape[0] >= 2]
     return MapData.from_lists(map_id, kind, polys)

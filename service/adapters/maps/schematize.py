@@ -40,6 +40,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from service.adapters.maps.contours import dedupe, is_closed, join_polylines, polyline_length
+from service.core import numeric
 from service.core.dce import dce, relevance_array
 from service.core.types import MapData
 from service.errors import InvalidMessage
@@ -146,10 +147,10 @@ def _guard(p: np.ndarray, keep: np.ndarray, max_dev: float) -> np.ndarray:
                 out.append(j)
                 continue
             seg = p[j] - p[i]
-            ll = float(seg @ seg)
+            ll = numeric.dot(seg, seg)
             q = p[i + 1 : j] - p[i]
             if ll > 0.0:
-                t = np.clip(q @ seg / ll, 0.0, 1.0)
+                t = np.clip(numeric.matvec(q, seg) / ll, 0.0, 1.0)
                 d = np.hypot(*(q - t[:, None] * seg).T)
             else:
                 d = np.hypot(q[:, 0], q[:, 1])

@@ -24,6 +24,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 from scipy import ndimage
 
+from service.core import numeric
 from service.core.baselines import (
     check_odom,
     check_pose,
@@ -234,7 +235,9 @@ class ICPLocalizer:
             sx, sy, tx_, ty_ = px[keep], py[keep], mx[keep], my[keep]
             csx, csy, ctx, cty = sx.mean(), sy.mean(), tx_.mean(), ty_.mean()
             ax, ay, bx, by = sx - csx, sy - csy, tx_ - ctx, ty_ - cty
-            new_th = math.atan2(float(ax @ by - ay @ bx), float(ax @ bx + ay @ by))
+            new_th = math.atan2(
+                numeric.dot(ax, by) - numeric.dot(ay, bx), numeric.dot(ax, bx) + numeric.dot(ay, by)
+            )
             c, s = math.cos(new_th), math.sin(new_th)
             new_x = float(ctx - (c * csx - s * csy))
             new_y = float(cty - (s * csx + c * csy))

@@ -26,6 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
+from service.core import numeric
 from service.core.baselines import (
     check_odom,
     check_pose,
@@ -112,14 +113,14 @@ def fit_line(points: np.ndarray) -> tuple[float, float, np.ndarray]:
     """
     cx, cy = points[:, 0].mean(), points[:, 1].mean()
     dx, dy = points[:, 0] - cx, points[:, 1] - cy
-    sxx, syy, sxy = float(dx @ dx), float(dy @ dy), float(dx @ dy)
+    sxx, syy, sxy = numeric.dot(dx, dx), numeric.dot(dy, dy), numeric.dot(dx, dy)
     # Direction of largest spread (closed-form 2x2 eigenvector); the normal is perpendicular.
     alpha = 0.5 * math.atan2(2.0 * sxy, sxx - syy) + 0.5 * math.pi
     n = np.array([math.cos(alpha), math.sin(alpha)])
     r = float(n[0] * cx + n[1] * cy)
     if r < 0.0:
         n, r = -n, -r
-    return float(np.arctan2(n[1], n[0])), r, points @ n - r
+    return numeric.atan2(n[1], n[0]), r, numeric.matvec(points, n) - r
 
 
 def _segment_from(points: np.ndarray, idx: np.ndarray, split_threshold: float) -> LineSegment:
@@ -130,7 +131,7 @@ def _segment_from(points: np.ndarray, idx: np.ndarray, split_threshold: float) -
         alpha, r, res = fit_line(points[idx])
     n = np.array([math.cos(alpha), math.sin(alpha)])
     tdir = np.array([-n[1], n[0]])
-    s = points[idx] @ tdir
+    s = numeric.matvec(points[idx], tdir)
     foot = r * n
     return LineSegment(alpha, r, foot + s.min() * tdir, foot + s.max() * tdir, idx)
 
@@ -228,7 +229,7 @@ def map_lines(map_data: MapData, merge_angle: float = math.radians(1.0)) -> np.n
             continue
         closed = len(pts) > 3 and np.allclose(pts[0], pts[-1])
         d = np.diff(pts, axis=0)
-        heading = np.arctan2(d[:, 1], d[:, 0])
+        heading = numeric.atan2(d[:, 1], d[:, 0])
         turn = np.abs(wrap_angle(np.diff(heading))) if len(d) > 1 else np.array([])
         # Vertex k (1..len-2) is kept iff the path turns there.
         corner = np.concatenate([[True], turn >= merge_angle, [True]])
@@ -274,7 +275,7 @@ class LineLocalizer:
         self._dir = d / self._len[:, None]
         self._normal = np.column_stack([-self._dir[:, 1], self._dir[:, 0]])
         self._offset = np.einsum("ij,ij->i", self._normal, segs[:, :2])  # n . p = offset
-        self._heading = np.arctan2(self._dir[:, 1], self._dir[:, 0])
+        self._heading = numeric.atan2(self._dir[:, 1], self._dir[:, 0])
         self._start_t = np.einsum("ij,ij->i", self._dir, segs[:, :2])
 
     @property
@@ -296,13 +297,13 @@ class LineLocalizer:
         ends = transform_points(pose, np.vstack([np.vstack([ln.p0, ln.p1]) for ln in lines]))
         a, b = ends[0::2], ends[1::2]  # (k, 2) each
         sd = b - a
-        ang = np.arctan2(sd[:, 1], sd[:, 0])
+        ang = numeric.atan2(sd[:, 1], sd[:, 0])
         dang = np.abs(wrap_angle(2.0 * (self._heading[None, :] - ang[:, None]))) / 2.0
         mid = 0.5 * (a + b)
-        perp = np.abs(mid @ self._normal.T - self._offset[None, :])
+        perp = np.abs(numeric.matmul(mid, self._normal.T) - self._offset[None, :])
         # Overlap along each map line: projected scan interval against [0, length].
-        t0 = a @ self._dir.T - self._start_t[None, :]
-        t1 = b @ self._dir.T - self._start_t[None, :]
+        t0 = numeric.matmul(a, self._dir.T) - self._start_t[None, :]
+        t1 = numeric.matmul(b, self._dir.T) - self._start_t[None, :]
         lo, hi = np.minimum(t0, t1), np.maximum(t0, t1)
         m = cfg.overlap_margin
         ok = (dang < angle_gate) & (perp < dist_gate) & (hi > -m) & (lo < self._len[None, :] + m)
@@ -404,9 +405,9 @@ class LineLocalizer:
             J = np.column_stack([n[:, 0], n[:, 1], -n[:, 0] * ry + n[:, 1] * rx])
             prior = x - start
             prior[2] = math.remainder(prior[2], 2.0 * math.pi)
-            A = J.T @ J + damp
-            g = J.T @ e + damp @ prior
-            step = np.linalg.solve(A, -g)
+            A = numeric.matmul(J.T, J) + damp
+            g = numeric.matvec(J.T, e) + numeric.matvec(damp, prior)
+            step = numeric.solve(A, -g)
             x = x + step
             x[2] = math.remainder(x[2], 2.0 * math.pi)
             if np.hypot(step[0], step[1]) < 1e-6 and abs(step[2]) < 1e-7:

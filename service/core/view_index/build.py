@@ -16,6 +16,7 @@ import time
 import numpy as np
 from scipy import ndimage
 
+from service.core import numeric
 from service.core.configuration import (
     Configuration,
     ExtractionParams,
@@ -65,10 +66,10 @@ def _anchor(verts: np.ndarray) -> tuple[np.ndarray, float, float]:
     anchor identifies it, and two corresponding anchors fix a pose by themselves."""
     if len(verts) < 3:
         d = verts[-1] - verts[0]
-        return verts.mean(axis=0), float(np.arctan2(d[1], d[0])), 0.0
+        return verts.mean(axis=0), numeric.atan2(d[1], d[0]), 0.0
     d = np.diff(verts, axis=0)
     ln = np.hypot(d[:, 0], d[:, 1])
-    ang = np.arctan2(d[:, 1], d[:, 0])
+    ang = numeric.atan2(d[:, 1], d[:, 0])
     turn = np.mod(np.diff(ang) + np.pi, 2.0 * np.pi) - np.pi
     k = int(np.argmax(np.abs(turn) * np.minimum(ln[:-1], ln[1:])))
     return verts[1 + k], float(ang[1 + k]), float(turn[k])

@@ -129,13 +129,14 @@ def test_compiled_pose_from_matches_agrees_with_the_numpy_reference(random_pairs
         if ref.covariance is not None:
             # A lone straight wall leaves H singular to rounding (condition ~1e15): its
             # inverse along the unconstrained direction is noise (numba and numpy inverting
-            # equal H differed by 50 % there, at 1e11 m^2). Well-posed fits must agree;
-            # degenerate ones must both report the unconstrained direction as such.
+            # equal H differed by 50 % there, at 1e11 m^2, and even in sign). Well-posed fits
+            # must agree; degenerate ones must both report the unconstrained direction as such,
+            # a variance of huge magnitude.
             if np.linalg.cond(ref.covariance) < 1e8:
                 scale = float(np.abs(ref.covariance).max())
                 assert np.allclose(got.covariance, ref.covariance, rtol=0, atol=1e-6 * scale)
                 well_posed += 1
             else:
-                assert np.linalg.eigvalsh(0.5 * (got.covariance + got.covariance.T))[-1] > 1e6
-                assert np.linalg.eigvalsh(0.5 * (ref.covariance + ref.covariance.T))[-1] > 1e6
+                for cov in (got.covariance, ref.covariance):
+                    assert np.abs(np.linalg.eigvalsh(0.5 * (cov + cov.T))).max() > 1e6
     assert well_posed >= 10
