@@ -150,8 +150,8 @@ from bench.global_drive import (
 )
 from bench.global_drive_run import drive_main
 from bench.global_drive_tables import _pct_inf, share_table
-from service.core import global_localization as gl
 from service.core.factory import create_localizer
+from service.core.reloc import global_localization as gl
 from service.core.types import wrap_angle
 from sim_publisher.office import office_metric_map, office_schematic_map, office_world
 from sim_publisher.publisher import random_free_poses

@@ -1,4 +1,5 @@
-"""The search's work model against this machine's CPU (``service.core.global_search.WORK_MS``).
+"""The search's work model against this machine's CPU
+(``service.core.reloc.global_search.WORK_MS``).
 
 A budgeted search (``GlobalConfig.search_budget_ms``) counts its work in reference ms from a
 deterministic model, so the same scans give the same poses on any machine. This bench times
@@ -44,9 +45,8 @@ from typing import Any
 import numpy as np
 
 from bench import bench_global as bg
-from service.core import evidence as ev
-from service.core.configuration import scan_configuration
-from service.core.global_search import (
+from service.core.reloc import evidence as ev
+from service.core.reloc.global_search import (
     WORK_MS,
     _refine,
     _verify_ms,
@@ -54,7 +54,7 @@ from service.core.global_search import (
     polish_ms,
     refine_ms,
 )
-from service.core.pose_scoring import (
+from service.core.sensor.pose_scoring import (
     _beam_costs,
     _field_violations,
     _polish,
@@ -62,6 +62,7 @@ from service.core.pose_scoring import (
     _support_many,
     verify,
 )
+from service.core.shapes.configuration import scan_configuration
 
 MAPS = [
     ("office", "office", "metric"),

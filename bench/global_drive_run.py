@@ -213,9 +213,9 @@ def _pool_map(
 ) -> Iterator[tuple[int, Any]]:
     """``(position, fn(item))`` in completion order; in this process when ``jobs`` <= 1.
     Every process first compiles or loads the core's numba kernels
-    (:func:`service.core._kernels.warm_up`), as the service does at start-up, so no trial's
+    (:func:`service.core.warmup.warm_up`), as the service does at start-up, so no trial's
     CPU counts it (after a kernel changes, compiling took ~5 s of the first trial per process)."""
-    from service.core._kernels import warm_up
+    from service.core.warmup import warm_up
 
     if jobs <= 1:
         warm_up()

@@ -33,7 +33,7 @@ def create_localizer(
     baselines need a start pose). ``config`` is the method's own config model, or ``None`` for
     its defaults (which may depend on ``map_data.kind``).
 
-    ``shape`` returns a :class:`service.core.global_localization.GlobalShapeLocalizer`: the
+    ``shape`` returns a :class:`service.core.reloc.global_localization.GlobalShapeLocalizer`: the
     shape tracker plus global search when the pose is unknown or lost. ``cache_dir`` is where
     its per-map view index is cached across restarts (``None``: built in memory on the first
     global search). ``search_budget_ms`` spreads its global search over scans within that
@@ -67,8 +67,8 @@ def _method_localizer(
     search_budget_ms: float | None,
 ) -> Localizer:
     if method == "shape":
-        from service.core.global_config import GlobalConfig
-        from service.core.global_localization import GlobalShapeLocalizer
+        from service.core.reloc.global_config import GlobalConfig
+        from service.core.reloc.global_localization import GlobalShapeLocalizer
 
         g = GlobalConfig.for_kind(map_data.kind)
         if search_budget_ms is not None:

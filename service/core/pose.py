@@ -5,8 +5,8 @@ applied to points ``p`` (robot frame or any source frame) it gives ``R(phi) @ p 
 pose ``[x, y, theta]`` in the map frame is exactly the transform from the robot frame to the map
 frame (REP 103).
 
-The shape matching (:mod:`service.core.matching`) decides *which* scan polyline corresponds to
-*which* map polyline. This module turns those correspondences into a precise pose: points along
+The shape matching (:mod:`service.core.shapes.matching`) decides *which* scan polyline corresponds
+to *which* map polyline. This module turns those correspondences into a precise pose: points along
 every matched scan polyline are paired with the nearest point of the map geometry of *its own*
 matched partner only (never of another map polyline), and the rigid transform is solved by
 weighted least squares, re-pairing a few times (:func:`pose_from_matches`).
@@ -20,7 +20,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from service.core import _kernels, _pose_kernels, numeric
+from service.core import kernels, numeric
+from service.core.kernels import pose as pose_kernels
 from service.core.types import wrap_angle
 from service.errors import LocalizationError
 
@@ -216,10 +217,10 @@ def pose_from_matches(
     each pair). ``covariance=False`` leaves :attr:`PoseFit.covariance` ``None`` (a caller
     that only wants the pose saves the 3x3 inverse).
 
-    The loop runs in a compiled kernel (:func:`service.core._pose_kernels.pose_iterations`) when
+    The loop runs in a compiled kernel (:func:`service.core.kernels.pose.pose_iterations`) when
     numba is available, else in :func:`_pose_from_matches_numpy` (the reference).
     """
-    if not _kernels.HAVE_NUMBA:
+    if not kernels.HAVE_NUMBA:
         fit = _pose_from_matches_numpy(
             pairs.pairs() if isinstance(pairs, StackedPairs) else pairs,
             initial_pose,
@@ -258,7 +259,7 @@ def pose_from_matches(
         pts_all = np.ascontiguousarray(np.vstack(pts_list))
         segs_all = np.ascontiguousarray(np.vstack(seg_list))
     use_prior = prior is not None and prior_weight > 0.0
-    pose, H, rms, n_in, it, have_h = _pose_kernels.pose_iterations(
+    pose, H, rms, n_in, it, have_h = pose_kernels.pose_iterations(
         pts_all,
         own,
         segs_all,

@@ -8,13 +8,13 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
-from service.core import evidence as ev
-from service.core.configuration import Configuration, map_view, scan_configuration
-from service.core.global_config import GlobalConfig
-from service.core.global_localization import load_or_build_index
-from service.core.localizer import ShapeConfig
-from service.core.mapmodel import MapModel
 from service.core.pose import compose, invert, transform_points
+from service.core.reloc import evidence as ev
+from service.core.reloc.global_config import GlobalConfig
+from service.core.reloc.global_localization import load_or_build_index
+from service.core.sensor.mapmodel import MapModel
+from service.core.shapes.configuration import Configuration, map_view, scan_configuration
+from service.core.tracking.localizer import ShapeConfig
 from service.core.types import MapData
 from sim_publisher.scenario import make_setup
 

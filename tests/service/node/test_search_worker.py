@@ -12,8 +12,8 @@ from pathlib import Path
 import msgpack
 import numpy as np
 
-from service.core.global_localization import GlobalShapeLocalizer
-from service.core.raycast import RayCaster
+from service.core.reloc.global_localization import GlobalShapeLocalizer
+from service.core.sensor.raycast import RayCaster
 from service.node.workers import Assignment, WorkerCore
 from sim_publisher.scenario import make_setup
 from tests.service.node.harness import ANGLES, START, Harness

@@ -1,0 +1,517 @@
+"""The global search of shape-based localisation: :func:`global_search` ranks pose hypotheses for
+one scan over the whole map (S*-similar unit pairs induce poses, support ranks them, a
+point-to-line fit refines and :func:`verify` checks them beam by beam), :func:`self_similar`
+looks for a twin place, :func:`ambiguity` compares the best with the best distinct
+alternative. See :mod:`service.core.reloc.global_localization` for the whole method."""
+
+from __future__ import annotations
+
+from collections.abc import Generator
+from dataclasses import dataclass
+from typing import TypeVar
+
+import numpy as np
+
+from service.core.pose import transform_points
+from service.core.reloc.global_config import GlobalConfig
+from service.core.reloc.view_index import ViewIndex
+from service.core.reloc.view_index.build import _anchor, _joined
+from service.core.sensor.pose_batch import fit_pairs
+from service.core.sensor.pose_scoring import (
+    Hypothesis,
+    _beam_costs,
+    _field_violations,
+    _polish,
+    _subsample,
+    _support_many,
+    verify,
+)
+from service.core.shapes.configuration import (
+    Configuration,
+    scan_configuration,
+)
+from service.core.shapes.matching import induced_alignment
+from service.core.shapes.similarity import prepare, shape_complexity, shape_distance
+from service.core.tracking.localizer import ShapeConfig
+from service.core.types import wrap_angle
+
+T = TypeVar("T")
+
+# --------------------------------------------------------------------------------------------
+# Global search
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass
+class SearchResult:
+    """Ranked distinct hypotheses (best first) and the best-vs-second ambiguity in [0, 1]
+    (1 = tie, 0 = a single hypothesis). ``candidates`` how many pose hypotheses the shape
+    pairs induced; ``information`` the summed shape complexity (m·rad) of the scan units
+    used — how much distinctive shape the scan holds at all."""
+
+    hypotheses: list[Hypothesis]
+    ambiguity: float
+    candidates: int
+    information: float = 0.0
+
+
+def _scan_units(P: Configuration, threshold: float) -> list[np.ndarray]:
+    """Vertices of each scan feature and of each pair of consecutive ones (robot frame)."""
+    out = [f.vertices for f in P.features]
+    for a, b in zip(P.features[:-1], P.features[1:], strict=True):
+        out.append(_joined(a.vertices, b.vertices, threshold))
+    return out
+
+
+def _ranked_units(
+    P: Configuration, config: ShapeConfig, gconfig: GlobalConfig
+) -> tuple[list[np.ndarray], list[tuple[float, int]]]:
+    """The scan's units and ``(shape complexity, unit index)`` most complex first."""
+    units = _scan_units(P, config.dce_threshold)
+    comp = [(shape_complexity(u), k) for k, u in enumerate(units)]
+    comp.sort(key=lambda t: (-t[0], t[1]))
+    return units, comp
+
+
+def scan_information(P: Configuration, config: ShapeConfig, gconfig: GlobalConfig) -> float:
+    """How much distinctive shape a scan holds: the summed shape complexity (m·rad) of its
+    ``gconfig.scan_units`` most complex units (:attr:`SearchResult.information`)."""
+    if not P.features:
+        return 0.0
+    _units, comp = _ranked_units(P, config, gconfig)
+    return float(sum(c for c, _k in comp[: gconfig.scan_units]))
+
+
+def _refine(
+    index: ViewIndex,
+    poses: np.ndarray,
+    sp: np.ndarray,
+    config: ShapeConfig,
+    gconfig: GlobalConfig,
+) -> np.ndarray:
+    """Refine poses ``(k, 3)`` against the map with the robot-frame scan points ``sp``: a
+    point-to-line fit (Cauchy scale of the tracker), a tight second stage on the segments
+    right under the points, a polish on the distance field and a last continuous fit."""
+    poses = np.asarray(poses, dtype=np.float64)
+    n = len(poses)
+    refined, _ = fit_pairs(
+        [sp] * n,
+        [index.nearby_segments(transform_points(p, sp), 0.5) for p in poses],
+        poses,
+        iterations=gconfig.refine_iterations,
+        robust_scale=config.align_robust_scale,
+        damping=config.align_damping,
+    )
+
+    def fine(start: np.ndarray) -> np.ndarray:
+        # only the segments right under the points and a small robust scale, so returns from
+        # unmapped objects (furniture on a floor plan) stop pulling
+        out, _ = fit_pairs(
+            [sp] * n,
+            [
+                index.nearby_segments(transform_points(p, sp), 2.0 * gconfig.fine_scale)
+                for p in start
+            ],
+            start,
+            iterations=gconfig.refine_iterations,
+            robust_scale=gconfig.fine_scale,
+            damping=config.align_damping,
+        )
+        return out
+
+    refined = fine(refined)
+    refined, _ = _polish(index, refined, sp, gconfig.fine_scale)
+    # and a last continuous fit from there (the distance field is quantised to its cells)
+    return fine(refined)
+
+
+# _distinct and _near run for every pair of poses a search or a merge compares: scalar
+# element differences into the same np.hypot (no temporary arrays)
+
+
+def _distinct(a: np.ndarray, b: np.ndarray, gconfig: GlobalConfig) -> bool:
+    return bool(
+        np.hypot(a[0] - b[0], a[1] - b[1]) > gconfig.distinct_distance
+        or abs(wrap_angle(float(a[2] - b[2]))) > gconfig.distinct_angle
+    )
+
+
+def _near(a: np.ndarray, b: np.ndarray, dist: float = 0.3, ang: float = 0.15) -> bool:
+    return bool(
+        np.hypot(a[0] - b[0], a[1] - b[1]) < dist and abs(wrap_angle(float(a[2] - b[2]))) < ang
+    )
+
+
+def global_search(
+    index: ViewIndex,
+    ranges: np.ndarray,
+    angles: np.ndarray,
+    config: ShapeConfig,
+    gconfig: GlobalConfig | None = None,
+    seeds: list[np.ndarray] | tuple[np.ndarray, ...] = (),
+    P: Configuration | None = None,
+) -> SearchResult:
+    """Rank pose hypotheses for one scan over the whole map (no prior pose): runs
+    :func:`search_steps` to the end (see there)."""
+    return run_steps(search_steps(index, ranges, angles, config, gconfig, seeds, P))
+
+
+#: Work model of the search, in milliseconds of one core of the reference machine (the 2-core
+#: build VM) per item: a deterministic stand-in for CPU time, so that a search spread over
+#: scans by a budget (:class:`service.core.reloc.global_localization.GlobalShapeLocalizer`) takes
+#: the same steps, and gives the same poses, on any machine and under any load. A ray cast
+#: (verification, beam check, keyframe score) and the refinement's nearby segments also cost
+#: per segment of the map: every cast measures each segment against the sensor before it
+#: intersects beams, so a real log's metric map (1 500-2 700 segments) casts 2-3x slower than
+#: a floor plan (50-200). Measured with ``bench/bench_work_model.py`` on the tuning maps
+#: (2026-11-25: office, building 3, intel and fr079, metric and floor plan); each item is set
+#: at or above the slowest map's measurement, so a budget does not buy more CPU than it names.
+#: The model of 2026-11-23 (no segment term) overestimated the CPU of a floor-plan search
+#: 2.5-3x and underestimated the casts on the real metric maps. Since the casts were compiled
+#: (stop 30, service/core/kernels/raycast.py) the cast terms (beam, cast_segment) overstate
+#: them ~2.5x; left as they are, since lowering them made the search faster and fixed a tuning
+#: alias wrong (docs/global.md, "Measured: global localisation while driving"). The
+#: shortlist's march on the distance field (field_beam, stop 45) measured 0.00012-0.00016 ms
+#: per pose and beam on the floor plans (the only maps that run it; 2026-11-27), set at the
+#: office's and intel's: up to 1.35x below building 3's, a few per cent of a search's work,
+#: which the cast terms' overstatement more than covers.
+WORK_MS = {
+    "sstar": 0.0105,  # one S* comparison (shape_distance with an upper bound)
+    "induced": 0.045,  # one S*-induced alignment
+    "support": 0.000012,  # one pose x one point of the support ranking
+    "field_beam": 0.00012,  # one pose x one beam marched on the distance field (see below)
+    "polish": 0.000006,  # one pose x grid cell x point of a distance-field polish ...
+    "polish_call": 0.15,  # ... and one call's fixed part (a keyframe polishes one pose)
+    "beam": 0.0023,  # one pose x one beam of a ray cast check ...
+    "cast_segment": 0.00018,  # ... and one pose x one segment of the map (any ray cast)
+    "layered": 0.1,  # a verification's see-through cast (GlobalConfig.see_through)
+    "refine": 0.6,  # one pose through the four refinement stages ...
+    "refine_segment": 0.00035,  # ... and x one segment of the map (denser segment grid)
+    "verify": 0.3,  # one verification's fixed part (the feature check) ...
+    "verify_beam": 0.0002,  # ... and per beam (plus its ray cast)
+}
+
+_CHUNK_SSTAR = 96  # S* comparisons between two yields
+_CHUNK_POSES = 800  # poses of the support ranking between two yields
+_CHUNK_POLISH = 12  # poses polished between two yields
+_CHUNK_REFINE = 2  # poses refined / verified between two yields
+
+
+def polish_ms(points: int) -> float:
+    """Work (reference ms) of one pose's :func:`_polish` (two 5 x 5 x 5 grids) on ``points``,
+    in a call over several poses."""
+    return 250 * max(points, 1) * WORK_MS["polish"]
+
+
+def cast_ms(index: ViewIndex) -> float:
+    """Work (reference ms) of one pose's ray cast that depends on the map: its segments."""
+    return len(index.caster.segments) * WORK_MS["cast_segment"]
+
+
+def refine_ms(index: ViewIndex) -> float:
+    """Work (reference ms) of one pose's :func:`_refine` on ``index``'s map."""
+    return WORK_MS["refine"] + len(index.caster.segments) * WORK_MS["refine_segment"]
+
+
+def beams_ms(index: ViewIndex, gconfig: GlobalConfig, beams: int) -> float:
+    """Work (reference ms) of one pose's cast and beam fractions over ``beams`` beams (a
+    verification's, a keyframe's score)."""
+    layered = WORK_MS["layered"] if gconfig.see_through else 0.0
+    return beams * WORK_MS["verify_beam"] + cast_ms(index) + layered
+
+
+def _verify_ms(index: ViewIndex, gconfig: GlobalConfig) -> float:
+    return WORK_MS["verify"] + beams_ms(index, gconfig, gconfig.verify_beams)
+
+
+def _first_rows(rows: np.ndarray) -> np.ndarray:
+    """Positions (ascending) of the first occurrence of each distinct row of ``rows``
+    ``(n, k)``, whole numbers stored as floats: ``np.sort(np.unique(rows, axis=0,
+    return_index=True)[1])``, computed on one integer key per row (a row-wise unique sorts
+    structured records, ~100x slower on the search's few thousand poses)."""
+    if rows.size == 0:
+        return np.zeros(0, dtype=np.int64)
+    if not np.all(np.isfinite(rows)):
+        return np.sort(np.unique(rows, axis=0, return_index=True)[1])
+    q = rows.astype(np.int64)
+    lo = q.min(axis=0)
+    span = q.max(axis=0) - lo + 1
+    if float(np.prod(span.astype(np.float64))) >= 2.0**62:
+        return np.sort(np.unique(rows, axis=0, return_index=True)[1])
+    key = np.zeros(len(q), dtype=np.int64)
+    for j in range(q.shape[1]):
+        key = key * span[j] + (q[:, j] - lo[j])
+    return np.sort(np.unique(key, return_index=True)[1])
+
+
+def run_steps(steps: Generator[float, None, T]) -> T:
+    """Run a step generator (:func:`search_steps`, :func:`self_similar_steps`) to the end and
+    return its result."""
+    while True:
+        try:
+            next(steps)
+        except StopIteration as stop:
+            return stop.value
+
+
+def search_steps(
+    index: ViewIndex,
+    ranges: np.ndarray,
+    angles: np.ndarray,
+    config: ShapeConfig,
+    gconfig: GlobalConfig | None = None,
+    seeds: list[np.ndarray] | tuple[np.ndarray, ...] = (),
+    P: Configuration | None = None,
+) -> Generator[float, None, SearchResult]:
+    """The global search as steps: a generator that yields, after each bounded chunk of work,
+    that chunk's cost in reference milliseconds (:data:`WORK_MS`), and returns the
+    :class:`SearchResult`. A caller with a per-scan budget runs it across scans.
+
+    ``ranges`` metres (NaN = no return), ``angles`` radians (robot frame); ``config`` the
+    tracker's :class:`ShapeConfig` (extraction, S* weights, support tolerance); ``seeds``
+    extra poses to consider (the hypotheses kept from earlier scans, moved by odometry).
+    ``P`` the scan's configuration if already computed.
+
+    Steps: the ``gconfig.scan_units`` most complex scan units (features and consecutive pairs)
+    are compared by S* (:func:`service.core.shapes.similarity.shape_distance`, the tracker's
+    weights) with every index unit whose range from its viewpoint is within the grid half-diagonal
+    plus ``gconfig.range_slack`` of the scan unit's range; the most (``gconfig.pairs_budget``
+    shared) similar pairs (S* <= ``gconfig.max_shape_distance``) each induce a pose
+    (:func:`service.core.shapes.matching.induced_alignment`). All poses and the seeds are ranked by
+    support (distance field); the best ``gconfig.refine_top`` distinct ones are refined by a
+    point-to-line fit against the map and verified (:func:`verify`). Returns distinct
+    hypotheses, best (lowest cost) first, and their :func:`ambiguity`.
+    """
+    gconfig = gconfig or GlobalConfig.for_kind(config.kind)
+    r = np.asarray(ranges, dtype=np.float64)
+    a = np.asarray(angles, dtype=np.float64)
+    if P is None:
+        P = scan_configuration(r, a, config.extraction())
+    pts_all = (
+        np.vstack([f.points for f in P.features]) if P.features else np.zeros((0, 2), dtype=float)
+    )
+    poses: list[np.ndarray] = [np.asarray(s, dtype=np.float64) for s in seeds]
+    anchor_poses: list[np.ndarray] = []
+    n_induced = 0
+    information = 0.0
+    if P.features and len(index):
+        units, comp = _ranked_units(P, config, gconfig)
+        chosen = [k for c, k in comp[: gconfig.scan_units] if c >= gconfig.min_unit_complexity]
+        information = float(sum(c for c, _k in comp[: gconfig.scan_units]))
+        gate = 0.5 * np.sqrt(2.0) * gconfig.spacing + gconfig.range_slack
+        ew, sw = config.shape_end_weight, config.shape_skip_weight
+        for k in chosen:
+            pu = units[k]
+            pa = prepare(pu)
+            dp = np.hypot(pu[:, 0], pu[:, 1])
+            cp = shape_complexity(pu)
+            p_anc, p_dir, p_turn = _anchor(pu)
+            cand = np.nonzero(
+                (index.unit_rmin <= dp.max() + gate)
+                & (index.unit_rmax >= dp.min() - gate)
+                & (index.unit_complexity >= gconfig.view_complexity_ratio * cp)
+            )[0]
+            cornered = abs(p_turn) > 0.2
+            if cornered:  # corresponding corners turn alike
+                dturn = np.mod(index.unit_anchor[cand, 3] - p_turn + np.pi, 2.0 * np.pi) - np.pi
+                cand = cand[np.abs(dturn) < gconfig.max_turn_difference]
+            # The same physical corner is seen from many viewpoints (one group): S* is
+            # computed for one view of each group (the first), and a similar group lends its
+            # views' anchors to every view of it; the budget of S*-induced alignments thus
+            # covers many distinct places instead of one corner many times.
+            groups = index.unit_group[cand]
+            _, first = np.unique(groups, return_index=True)
+            scored = []
+            for j, u in enumerate(cand[np.sort(first)].tolist()):
+                s = shape_distance(
+                    pa,
+                    index.arcs(u),
+                    end_weight=ew,
+                    skip_weight=sw,
+                    upper_bound=gconfig.max_shape_distance,
+                )
+                if s < gconfig.max_shape_distance:
+                    scored.append((s, u))
+                if (j + 1) % _CHUNK_SSTAR == 0:
+                    yield _CHUNK_SSTAR * WORK_MS["sstar"]
+            scored.sort()
+            top = scored[: gconfig.pairs_budget // len(chosen)]
+            for _s, u in top:
+                poses.append(induced_alignment(pa, index.arcs(u)))
+                n_induced += 1
+            if scored and cornered:
+                # every view of a similar group fixes a pose by the anchors (corner vertex
+                # and leaving edge): vectorised, cheap enough for all of them
+                similar = np.isin(groups, index.unit_group[[u for _s, u in scored]])
+                qa = index.unit_anchor[cand[similar]]
+                phi = np.mod(qa[:, 2] - p_dir + np.pi, 2.0 * np.pi) - np.pi
+                c, s_ = np.cos(phi), np.sin(phi)
+                tx = qa[:, 0] - (c * p_anc[0] - s_ * p_anc[1])
+                ty = qa[:, 1] - (s_ * p_anc[0] + c * p_anc[1])
+                anchor_poses.append(np.column_stack([tx, ty, phi]))
+                n_induced += len(qa)
+            yield len(top) * WORK_MS["induced"] + (len(first) % _CHUNK_SSTAR) * WORK_MS["sstar"]
+    if not poses and not anchor_poses:
+        return SearchResult(hypotheses=[], ambiguity=1.0, candidates=0, information=information)
+    H = np.vstack([np.asarray(poses).reshape(-1, 3), *anchor_poses])
+    sp = _subsample(pts_all, gconfig.support_points)
+    if len(sp) == 0:
+        return SearchResult(
+            hypotheses=[], ambiguity=1.0, candidates=n_induced, information=information
+        )
+    parts = []
+    for i in range(0, len(H), _CHUNK_POSES):
+        block = H[i : i + _CHUNK_POSES]
+        parts.append(_support_many(index, block, sp, config.support_tolerance))
+        yield len(block) * len(sp) * WORK_MS["support"]
+    sup = np.concatenate(parts)
+    order = np.argsort(-sup, kind="stable")
+    if gconfig.shortlist > 0:
+        # An induced pose near the truth is often 0.2-0.4 m / 5-10 deg off, so its raw support
+        # trails a wrong place's that happens to line up. Keep the best pose per coarse pose
+        # cell, polish the best cells' poses on the distance field (coarse then fine grid) and
+        # rank by the polished score instead.
+        cells = np.column_stack(
+            [
+                np.floor(H[:, 0] / gconfig.shortlist_cell),
+                np.floor(H[:, 1] / gconfig.shortlist_cell),
+                np.floor((wrap_angle(H[:, 2]) + np.pi) / gconfig.shortlist_angle),
+            ]
+        )
+        reps = order[_first_rows(cells[order])]
+        nb = gconfig.shortlist_violation_beams
+        beams = _subsample(np.flatnonzero(np.isfinite(r)), nb) if nb > 0 else np.zeros(0, int)
+        if beams.size and len(reps):
+            # Where the plan shows little of what the laser sees, wrong places whose walls
+            # the furniture happens to fit out-score the true one on support; most of their
+            # other beams pass through a drawn wall, the true pose's hardly any. The cells are
+            # ranked by support less the verification's weight times that share.
+            margin = max(config.support_tolerance, gconfig.violation_margin)
+            vparts = []
+            for i in range(0, len(reps), _CHUNK_POSES):
+                block = H[reps[i : i + _CHUNK_POSES]]
+                vparts.append(_field_violations(index, block, r[beams], a[beams], margin))
+                yield len(block) * beams.size * WORK_MS["field_beam"]
+            score = sup[reps] - gconfig.violation_weight * np.concatenate(vparts)
+            reps = reps[np.argsort(-score, kind="stable")]
+        short = reps[: gconfig.shortlist]
+        polished_parts = []
+        quick_parts = []
+        for i in range(0, len(short), _CHUNK_POLISH):
+            block = H[short[i : i + _CHUNK_POLISH]]
+            pol, _score = _polish(
+                index, block, sp, gconfig.fine_scale, stages=((0.15, 0.06), (0.05, 0.02))
+            )
+            polished_parts.append(pol)
+            quick_parts.append(
+                _beam_costs(index, pol, r, a, gconfig.shortlist_beams, config, gconfig)
+            )
+            yield len(block) * (
+                polish_ms(len(sp)) + gconfig.shortlist_beams * WORK_MS["beam"] + cast_ms(index)
+            )
+        H = np.vstack(polished_parts)
+        quick = np.concatenate(quick_parts)
+        order = np.argsort(quick, kind="stable")
+    picked: list[np.ndarray] = []
+    for i in order.tolist():
+        if len(picked) >= gconfig.refine_top:
+            break
+        if any(_near(H[i], p) for p in picked):
+            continue
+        picked.append(H[i])
+    hyps: list[Hypothesis] = []
+    for i in range(0, len(picked), _CHUNK_REFINE):
+        block = np.vstack(picked[i : i + _CHUNK_REFINE])
+        refined = _refine(index, block, sp, config, gconfig)
+        hyps.extend(verify(index, p, r, a, P, config, gconfig) for p in refined)
+        yield len(block) * (refine_ms(index) + _verify_ms(index, gconfig))
+    hyps.sort(key=lambda h: h.cost)
+    out: list[Hypothesis] = []
+    for h in hyps:
+        if all(not _near(h.pose, o.pose) for o in out):
+            out.append(h)
+    return SearchResult(
+        hypotheses=out,
+        ambiguity=ambiguity(out, gconfig),
+        candidates=n_induced,
+        information=information,
+    )
+
+
+def self_similar(
+    index: ViewIndex,
+    best: Hypothesis,
+    ranges: np.ndarray,
+    angles: np.ndarray,
+    P: Configuration,
+    config: ShapeConfig,
+    gconfig: GlobalConfig,
+) -> Hypothesis | None:
+    """The map's own twin of ``best`` (runs :func:`self_similar_steps` to the end)."""
+    return run_steps(self_similar_steps(index, best, ranges, angles, P, config, gconfig))
+
+
+def self_similar_steps(
+    index: ViewIndex,
+    best: Hypothesis,
+    ranges: np.ndarray,
+    angles: np.ndarray,
+    P: Configuration,
+    config: ShapeConfig,
+    gconfig: GlobalConfig,
+) -> Generator[float, None, Hypothesis | None]:
+    """:func:`self_similar` as steps (yields work in reference ms, like :func:`search_steps`).
+
+    The map's own twin of ``best``, verified on the real scan, or ``None``.
+
+    A search can miss the true place altogether (furniture hides its walls) and then crown a
+    congruent room elsewhere with no close rival. So before a fix the map is asked where else
+    it looks the same: the scan the MAP would give at ``best.pose`` (a ray cast over the real
+    scan's beams that have returns) runs through :func:`global_search` itself; every
+    resulting pose distinct from ``best`` is a place the map cannot tell from it, and is
+    verified (:func:`verify`) on the real ``ranges`` / ``angles`` both as found and refined on
+    the real scan's points (:func:`_refine`), whichever fits better. Returns the best verified
+    twin (lowest cost)."""
+    ok = np.isfinite(ranges)
+    pred = index.caster.cast(best.pose, angles, config.view_max_range)
+    pred = np.where(ok, pred, np.nan)
+    if np.count_nonzero(np.isfinite(pred)) < 10:
+        return None
+    res = yield from search_steps(index, pred, angles, config, gconfig)
+    cands = [h.pose for h in res.hypotheses if _distinct(h.pose, best.pose, gconfig)]
+    pts = np.vstack([f.points for f in P.features]) if P.features else np.zeros((0, 2))
+    sp = _subsample(pts, gconfig.support_points)
+    if not cands or len(sp) == 0:
+        return None
+    # the map-only search aligned the twins to the map's own view; each is verified as found
+    # and fitted to the real scan, whichever verifies better (furniture can drag the fit off)
+    out: Hypothesis | None = None
+    for i in range(0, len(cands), _CHUNK_REFINE):
+        block = np.vstack(cands[i : i + _CHUNK_REFINE])
+        refined = _refine(index, block, sp, config, gconfig)
+        for pose in [*block, *refined]:
+            if not _distinct(pose, best.pose, gconfig):
+                continue
+            v = verify(index, pose, ranges, angles, P, config, gconfig)
+            if out is None or v.cost < out.cost:
+                out = v
+        yield len(block) * (refine_ms(index) + 2.0 * _verify_ms(index, gconfig))
+    return out
+
+
+def ambiguity(hyps: list[Hypothesis], gconfig: GlobalConfig) -> float:
+    """Best vs best distinct alternative in [0, 1]: ``1 - (cost_2 - cost_1) / ambiguity_scale``
+    clipped (1 = tie, 0 = the alternative is worse by the scale or more, or there is none);
+    1 with no hypothesis at all (nothing is known).
+
+    A margin rather than a ratio: on a floor plan every hypothesis, the true one included,
+    leaves the furniture unexplained, so costs share a large common part that a ratio would
+    read as ambiguity."""
+    if not hyps:
+        return 1.0
+    best = hyps[0]
+    for h in hyps[1:]:
+        if _distinct(h.pose, best.pose, gconfig):
+            margin = h.cost - best.cost
+            return float(np.clip(1.0 - margin / gconfig.ambiguity_scale, 0.0, 1.0))
+    return 0.0

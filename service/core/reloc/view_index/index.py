@@ -1,0 +1,227 @@
+"""The per-map view index of global localisation: :class:`ViewIndex`.
+
+Per candidate viewpoint the map view reduced to its units, the map's segments and a distance
+field, with the lookups global search makes on them (unit vertices and their S* arcs, ray
+casting, nearby segments, the polish's score table, distances) and the plain-array form the
+on-disk cache stores (:meth:`ViewIndex.to_arrays` / :meth:`ViewIndex.from_arrays`, versioned
+by :data:`FORMAT_VERSION`). Built by :mod:`service.core.reloc.view_index.build`, cached by
+:mod:`service.core.reloc.view_index.cache`.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from service.core.kernels import search as search_kernels
+from service.core.sensor.raycast import RayCaster
+from service.core.sensor.segment_grid import SegmentGrid, nearby_segments_brute
+from service.core.shapes.similarity import ShapeArcs, prepare
+from service.errors import LocalizationError
+
+#: Version of the on-disk index format; bump when the file layout or its meaning changes (2:
+#: bearings from service.core.numeric, the same bits on every CPU, so an index built before
+#: may differ in the last bits from one built now).
+FORMAT_VERSION = 2
+
+#: Up to this many segments (floor plans) measuring every point against every segment is
+#: quicker than the bucket grid (0.12 vs 0.30 ms at 50 segments, even at ~400).
+_BRUTE_SEGMENTS = 256
+
+
+@dataclass(eq=False)
+class ViewIndex:
+    """Everything global search needs about one map, precomputed (see :func:`build_index`).
+
+    ``viewpoints`` ``(v, 2)`` map frame. Units (a view feature or two consecutive ones) are
+    stored flat: ``unit_view`` (viewpoint index), ``unit_rmin``/``unit_rmax`` (nearest and farthest
+    vertex distance from its viewpoint, m), ``unit_complexity`` (m·rad), ``unit_group`` (units
+    of different viewpoints with the same anchor — the same physical corner — share it),
+    ``unit_anchor`` ``(u, 4)`` the anchor vertex x, y (map frame), the direction of the edge
+    leaving it and its signed turn (rad), vertices
+    ``unit_verts[unit_vert_off[u]:unit_vert_off[u+1]]`` (map frame). ``segments`` ``(s, 4)``
+    the map's segments. ``dist`` the distance field (m, float32, row = y, column = x) with
+    cell ``resolution`` metres and ``origin`` its lower-left corner. ``key`` the cache key,
+    ``build_seconds`` how long the build took.
+    """
+
+    key: str
+    map_id: str
+    kind: str
+    viewpoints: np.ndarray
+    unit_view: np.ndarray
+    unit_rmin: np.ndarray
+    unit_rmax: np.ndarray
+    unit_complexity: np.ndarray
+    unit_group: np.ndarray
+    unit_anchor: np.ndarray
+    unit_vert_off: np.ndarray
+    unit_verts: np.ndarray
+    segments: np.ndarray
+    dist: np.ndarray
+    origin: np.ndarray
+    resolution: float
+    build_seconds: float = 0.0
+    _arcs: list[ShapeArcs | None] = field(default_factory=list, repr=False)
+    _caster: RayCaster | None = field(default=None, repr=False)
+    _grid: SegmentGrid | None = field(default=None, repr=False)
+    _tables: dict[tuple[float, float], tuple[np.ndarray, float]] = field(
+        default_factory=dict, repr=False
+    )
+
+    def __len__(self) -> int:
+        return int(self.unit_view.size)
+
+    def verts(self, u: int) -> np.ndarray:
+        """Vertices ``(k, 2)`` of unit ``u`` (map frame, m)."""
+        return self.unit_verts[self.unit_vert_off[u] : self.unit_vert_off[u + 1]]
+
+    def arcs(self, u: int) -> ShapeArcs:
+        """Unit ``u`` prepared for S* (lazily, kept)."""
+        if not self._arcs:
+            self._arcs = [None] * len(self)
+        a = self._arcs[u]
+        if a is None:
+            a = prepare(self.verts(u))
+            self._arcs[u] = a
+        return a
+
+    @property
+    def caster(self) -> RayCaster:
+        """Ray caster over the map's segments."""
+        if self._caster is None:
+            self._caster = RayCaster(self.segments)
+        return self._caster
+
+    def nearby_segments(self, points: np.ndarray, radius: float) -> np.ndarray:
+        """The map's segments within ``radius`` m of any of map-frame ``points`` ``(n, 2)``,
+        in their stored order, all of them if none is (a :class:`SegmentGrid`, built lazily;
+        the same rows as :func:`nearby_segments_brute`)."""
+        if len(self.segments) <= _BRUTE_SEGMENTS:
+            return nearby_segments_brute(self.segments, points, radius)
+        if self._grid is None:
+            self._grid = SegmentGrid(self.segments)
+        return self._grid.nearby(points, radius)
+
+    def score_table(self, sigma: float, cap: float) -> tuple[np.ndarray, float]:
+        """The polish's per-cell score ``exp(-0.5 (min(d, cap) / sigma)²)`` over the distance
+        field, and its value outside the field (built once per ``sigma`` / ``cap``, kept;
+        :mod:`service.core.kernels.search`)."""
+        key = (float(sigma), float(cap))
+        got = self._tables.get(key)
+        if got is None:
+            table = search_kernels.score_table(self.dist, key[0], key[1])
+            outside = float(search_kernels._score(math.inf, key[0], key[1]))
+            got = (table, outside)
+            self._tables[key] = got
+        return got
+
+    def distance(self, points: np.ndarray) -> np.ndarray:
+        """Distance (m) from map-frame points ``(n, 2)`` to the map (distance field lookup,
+        error <= one cell); ``inf`` outside the field."""
+        ij = np.floor((points - self.origin) / self.resolution).astype(np.int64)
+        h, w = self.dist.shape
+        ok = (ij[:, 0] >= 0) & (ij[:, 0] < w) & (ij[:, 1] >= 0) & (ij[:, 1] < h)
+        out = np.full(len(points), np.inf)
+        out[ok] = self.dist[ij[ok, 1], ij[ok, 0]]
+        return out
+
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        """Plain arrays for :func:`numpy.savez` (no pickled objects)."""
+        meta = {
+            "format": FORMAT_VERSION,
+            "key": self.key,
+            "map_id": self.map_id,
+            "kind": self.kind,
+            "resolution": self.resolution,
+            "build_seconds": self.build_seconds,
+        }
+        return {
+            "meta": np.array(json.dumps(meta)),
+            "viewpoints": self.viewpoints,
+            "unit_view": self.unit_view,
+            "unit_rmin": self.unit_rmin,
+            "unit_rmax": self.unit_rmax,
+            "unit_complexity": self.unit_complexity,
+            "unit_group": self.unit_group,
+            "unit_anchor": self.unit_anchor,
+            "unit_vert_off": self.unit_vert_off,
+            "unit_verts": self.unit_verts,
+            "segments": self.segments,
+            "dist": self.dist,
+            "origin": self.origin,
+        }
+
+    @staticmethod
+    def from_arrays(arrays: Any, expect_key: str) -> ViewIndex:
+        """Rebuild from :meth:`to_arrays` output, checking every field; raises
+        :class:`LocalizationError` on anything unexpected (the cache is never trusted)."""
+        try:
+            meta = json.loads(str(arrays["meta"][()]))
+            if meta.get("format") != FORMAT_VERSION or meta.get("key") != expect_key:
+                raise LocalizationError("cache key or format version mismatch")
+            vp = np.asarray(arrays["viewpoints"], dtype=np.float64)
+            uv = np.asarray(arrays["unit_view"], dtype=np.int64)
+            rmin = np.asarray(arrays["unit_rmin"], dtype=np.float64)
+            rmax = np.asarray(arrays["unit_rmax"], dtype=np.float64)
+            uc = np.asarray(arrays["unit_complexity"], dtype=np.float64)
+            ug = np.asarray(arrays["unit_group"], dtype=np.int64)
+            ua = np.asarray(arrays["unit_anchor"], dtype=np.float64)
+            off = np.asarray(arrays["unit_vert_off"], dtype=np.int64)
+            verts = np.asarray(arrays["unit_verts"], dtype=np.float64)
+            segs = np.asarray(arrays["segments"], dtype=np.float64)
+            dist = np.asarray(arrays["dist"], dtype=np.float32)
+            origin = np.asarray(arrays["origin"], dtype=np.float64)
+            res = float(meta["resolution"])
+        except LocalizationError:
+            raise
+        except Exception as exc:  # any malformed content: not trusted
+            raise LocalizationError(f"malformed index: {exc}") from exc
+        u = uv.size
+        ok = (
+            vp.ndim == 2
+            and vp.shape[1] == 2
+            and rmin.shape == (u,)
+            and rmax.shape == (u,)
+            and uc.shape == (u,)
+            and ug.shape == (u,)
+            and ua.shape == (u, 4)
+            and off.shape == (u + 1,)
+            and verts.ndim == 2
+            and verts.shape[1] == 2
+            and segs.ndim == 2
+            and segs.shape[1] == 4
+            and dist.ndim == 2
+            and origin.shape == (2,)
+            and res > 0
+        )
+        ok = ok and (u == 0 or (uv.min() >= 0 and uv.max() < len(vp)))
+        ok = ok and off[0] == 0 and off[-1] == len(verts) and bool(np.all(np.diff(off) >= 2))
+        finite = [vp, rmin, rmax, uc, ua, verts, segs, origin]
+        ok = ok and all(bool(np.all(np.isfinite(a))) for a in finite)
+        ok = ok and not bool(np.any(np.isnan(dist)))
+        if not ok:
+            raise LocalizationError("index arrays are inconsistent")
+        return ViewIndex(
+            key=expect_key,
+            map_id=str(meta["map_id"]),
+            kind=str(meta["kind"]),
+            viewpoints=vp,
+            unit_view=uv,
+            unit_rmin=rmin,
+            unit_rmax=rmax,
+            unit_complexity=uc,
+            unit_group=ug,
+            unit_anchor=ua,
+            unit_vert_off=off,
+            unit_verts=verts,
+            segments=segs,
+            dist=dist,
+            origin=origin,
+            resolution=res,
+            build_seconds=float(meta.get("build_seconds", 0.0)),
+        )
