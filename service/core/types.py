@@ -19,6 +19,10 @@ _TWO_PI = 2.0 * math.pi
 
 MapKind = Literal["metric", "schematic"]
 Status = Literal["tracking", "lost", "initializing"]
+#: The relocalisation state behind an estimate (:mod:`service.core.reloc.states`): the wire's
+#: optional ``state`` field. ``dead_reckoning``, ``searching`` and ``probation`` publish the
+#: status ``lost`` (or ``initializing`` before any fix): the pose is not confirmed by the map.
+State = Literal["tracking", "dead_reckoning", "searching", "probation"]
 #: The methods :func:`service.core.factory.create_localizer` builds. The wire owns the names
 #: (``schemas.messages.METHODS``); the core cannot import it, so this copy must stay equal
 #: (tests/test_layers.py checks).
@@ -127,6 +131,8 @@ class Estimate:
     ``covariance`` is 3x3 or ``None``. While a global search runs, ``hypotheses`` is the
     number of live pose hypotheses and ``candidates`` the best few, ``(k, 4)`` rows
     ``[x, y, theta, cost]`` best first (lower cost is better); both ``None`` otherwise.
+    ``state`` is the relocalisation state behind it (:data:`State`; ``None`` for the
+    baselines, which have none).
     """
 
     pose: np.ndarray
@@ -139,6 +145,7 @@ class Estimate:
     extras: dict[str, float] = field(default_factory=dict)
     hypotheses: int | None = None
     candidates: np.ndarray | None = None
+    state: State | None = None
 
 
 class Localizer(Protocol):
