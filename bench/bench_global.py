@@ -340,6 +340,19 @@ def main(argv: list[str] | None = None) -> int:
         help="per-scan search budget, reference ms (the service's default 50; 0: whole search)",
     )
     drive.add_argument(
+        "--results",
+        type=Path,
+        default=None,
+        help="also write the results page drive.md there (docs/results)",
+    )
+    drive.add_argument(
+        "--calibrate",
+        default=None,
+        help="calibration: no fix is ever made; each searching scan's decision LLR, its "
+        "leader's error and whether its twin check ran are saved per trial into this dir "
+        "(bench/calibrate_llr.py reads them)",
+    )
+    drive.add_argument(
         "--cache",
         type=Path,
         default=Path(__file__).resolve().parents[1] / "build" / "bench_global" / "index",

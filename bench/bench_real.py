@@ -65,6 +65,8 @@ from pathlib import Path
 
 import numpy as np
 
+from bench.results import publish
+
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_DATA = Path("/work/shared/data/real")
 LOG_FILES = {"intel": "intel.orig.bag", "fr079": "fr079.orig.bag", "mit-csail": "mit-csail.clf"}
@@ -479,6 +481,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--limit", type=int, default=None, help="first N scans of each log")
     ap.add_argument("--jobs", type=int, default=1, help="process pool size (1: clean timing)")
     ap.add_argument("--out", type=Path, default=REPO / "docs" / "real")
+    ap.add_argument(
+        "--results", type=Path, default=None, help="also write the page real-logs.md there"
+    )
     ap.add_argument("--cache", type=Path, default=REPO / "build" / "bench_real")
     ap.add_argument("--resume", action="store_true", help="skip runs already in results.csv")
     ap.add_argument("--no-plot", action="store_true")
@@ -572,6 +577,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"reference track {k}: relations {v}; published RBPF {RBPF[k]:.3f} m")
     (out / "table.md").write_text(markdown(shown, reference, n_label), encoding="utf-8")
     print(f"wrote {out / 'table.md'} and {csv_path}")
+    publish(args.results, "real-logs", markdown(shown, reference, n_label))
     if not args.no_plot:
         for k in logs:
             p = plot_log(k, out, cache, args.data, limit)

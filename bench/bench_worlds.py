@@ -44,6 +44,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import numpy as np
 
 from bench.harness import REPO as ROOT
+from bench.results import publish
 
 SPLITS = {"tuning": list(range(0, 20)), "held-out": list(range(1000, 1024))}
 
@@ -346,6 +347,9 @@ def cli(argv: list[str] | None = None) -> None:
     p.add_argument("--max-scans", type=int, default=None, help="truncate tours (quick runs)")
     p.add_argument("--out", type=Path, default=ROOT / "docs" / "worlds")
     p.add_argument("--setups", default="1,2", help="comma list of setups to run")
+    p.add_argument(
+        "--results", type=Path, default=None, help="also write the page buildings.md there"
+    )
     p.add_argument("--odom-only", action="store_true", help="only the odometry rows")
     p.add_argument(
         "--update",
@@ -372,6 +376,7 @@ def cli(argv: list[str] | None = None) -> None:
         a.update,
         a.baseline_odom,
     )
+    publish(a.results, "buildings", (a.out / "table.md").read_text(encoding="utf-8"))
 
 
 if __name__ == "__main__":

@@ -27,7 +27,8 @@ import importlib.util
 import sys
 from types import ModuleType
 
-#: Old flat module name -> where it lives now (both under ``service.core``).
+#: Old flat module name -> where its code (or what replaced it) lives now, both under
+#: ``service.core``.
 MOVED: dict[str, str] = {
     "polylines": "shapes.polylines",
     "dce": "shapes.dce",
@@ -41,8 +42,8 @@ MOVED: dict[str, str] = {
     "two_step": "shapes.two_step",
     "mapmodel": "sensor.mapmodel",
     "raycast": "sensor.raycast",
-    "segment_grid": "sensor.segment_grid",
-    "pose_scoring": "sensor.pose_scoring",
+    "segment_grid": "sensor.mapmodel",
+    "pose_scoring": "reloc.global_search",
     "refine": "sensor.refine",
     "pose_batch": "sensor.pose_batch",
     "localizer": "tracking.localizer",
@@ -52,15 +53,15 @@ MOVED: dict[str, str] = {
     "global_localization": "reloc.global_localization",
     "global_search": "reloc.global_search",
     "view_index": "reloc.view_index",
-    "hypotheses": "reloc.hypotheses",
-    "evidence": "reloc.evidence",
-    "probation": "reloc.probation",
-    "confirmation": "reloc.confirmation",
-    "window_refine": "reloc.window_refine",
-    "drive_search": "reloc.drive_search",
+    "hypotheses": "reloc.drive",
+    "evidence": "reloc.drive",
+    "probation": "reloc.states",
+    "confirmation": "reloc.states",
+    "window_refine": "reloc.drive",
+    "drive_search": "reloc.states",
     "composite": "reloc.composite",
-    "global_config": "reloc.global_config",
-    "drive_config": "reloc.drive_config",
+    "global_config": "reloc.config",
+    "drive_config": "reloc.config",
 }
 
 

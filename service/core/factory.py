@@ -31,7 +31,9 @@ def create_localizer(
 
     ``initial_pose`` ``None`` asks for global localisation (only ``shape`` supports it; the
     baselines need a start pose). ``config`` is the method's own config model, or ``None`` for
-    its defaults (which may depend on ``map_data.kind``).
+    its defaults (which may depend on ``map_data.kind``); for ``shape`` a
+    :class:`service.core.config.LocalizerConfig` (a preset and the user's knobs) or the
+    tracker's :class:`~service.core.tracking.shape_config.ShapeConfig` alone.
 
     ``shape`` returns a :class:`service.core.reloc.global_localization.GlobalShapeLocalizer`: the
     shape tracker plus global search when the pose is unknown or lost. ``cache_dir`` is where
@@ -67,10 +69,14 @@ def _method_localizer(
     search_budget_ms: float | None,
 ) -> Localizer:
     if method == "shape":
-        from service.core.reloc.global_config import GlobalConfig
+        from service.core.config import LocalizerConfig
+        from service.core.reloc.config import GlobalConfig
         from service.core.reloc.global_localization import GlobalShapeLocalizer
 
-        g = GlobalConfig.for_kind(map_data.kind)
+        if isinstance(config, LocalizerConfig):
+            config, g = config.tracking(), config.reloc()
+        else:
+            g = GlobalConfig.for_kind(map_data.kind)
         if search_budget_ms is not None:
             g = g.model_copy(update={"search_budget_ms": float(search_budget_ms)})
         return GlobalShapeLocalizer(map_data, initial_pose, config, gconfig=g, cache_dir=cache_dir)

@@ -125,7 +125,7 @@ def build_index(md: MapData, cache_dir: Path | None) -> float:
     """Build (or load) ``md``'s view index of global localisation into ``cache_dir`` (the
     on-disk cache every worker reads), with the shape method's default configuration for the
     map's kind; returns the seconds taken. Raises on failure (the caller reports it)."""
-    from service.core.reloc.global_config import GlobalConfig
+    from service.core.reloc.config import GlobalConfig
     from service.core.reloc.global_localization import load_or_build_index
     from service.core.tracking.shape_config import ShapeConfig
 

@@ -2,7 +2,7 @@
 details, numba; see :mod:`service.core.kernels` for the conventions: the arithmetic follows
 the numpy reference expression by expression, no ``fastmath``).
 
-The polish (:func:`service.core.sensor.pose_scoring._polish`) scores 125 poses per stage and
+The polish (:meth:`service.core.sensor.scoring.SensorModel.polish`) scores 125 poses per stage and
 hypothesis, each over ~80 scan points: ``exp(-d² / 2 s²)`` of the distance-field value ``d``
 under every point. The value depends on the field cell alone, so :func:`score_table` computes
 it once per cell and sigma (the same expression, so the same bits) and :func:`table_scores`
@@ -51,6 +51,12 @@ def _cell(
 
 
 @njit(cache=True, nogil=True)
+def outside_score(sigma: float, cap: float) -> float:
+    """The field score of a point outside the field (distance capped at ``cap``)."""
+    return _score(math.inf, sigma, cap)
+
+
+@njit(cache=True, nogil=True)
 def field_scores(
     dist: np.ndarray,
     ox: float,
@@ -61,7 +67,8 @@ def field_scores(
     sigma: float,
     cap: float,
 ) -> np.ndarray:
-    """Kernel of :func:`service.core.sensor.pose_scoring._field_scores` (same arithmetic): for each
+    """Kernel of :meth:`service.core.sensor.scoring.SensorModel.field_score` (same arithmetic):
+    for each
     pose ``(m, 3)`` the mean over robot-frame ``pts`` ``(k, 2)`` of
     ``exp(-0.5 * (min(d, cap) / sigma) ** 2)``, ``d`` the distance-field value at the point's
     cell (``inf`` outside the field). The reference for :func:`table_scores`."""
@@ -202,7 +209,7 @@ def support_counts(
     pts: np.ndarray,
     tol: float,
 ) -> np.ndarray:
-    """Kernel of :func:`service.core.sensor.pose_scoring._support_many`: per pose the number of
+    """Kernel of :meth:`service.core.sensor.scoring.SensorModel.support`: per pose the number of
     robot-frame ``pts`` whose field value is at most ``tol`` (``cos_t`` / ``sin_t`` the poses'
     headings' cosines and sines as numpy computed them, so the points are the reference's)."""
     m = poses.shape[0]
@@ -235,7 +242,7 @@ def field_crossings(
     lim: np.ndarray,
     max_steps: int,
 ) -> np.ndarray:
-    """Kernel of :func:`service.core.sensor.pose_scoring._field_violations` (the same steps): per
+    """Kernel of :meth:`service.core.sensor.scoring.SensorModel.crossings` (the same steps): per
     pose ``i`` (sensor at ``px[i], py[i]``) the number of beams ``j`` (direction
     ``cos_b[i, j], sin_b[i, j]``) that meet a drawn wall before ``lim[j]`` metres, marching
     along the beam by each cell's clearance (sphere tracing on the distance field)."""
@@ -279,11 +286,12 @@ def warm_up(p: np.ndarray) -> None:
     one = np.ones((1, 1))
     field_crossings(field, 0.0, 0.0, 0.5, g, g, one, one, np.ones(1), 4)
     near_mask(np.zeros((1, 4)), p, 0.1)
+    outside_score(0.1, 10.0)
 
 
 @njit(cache=True, nogil=True)
 def near_mask(segments: np.ndarray, points: np.ndarray, radius: float) -> np.ndarray:
-    """:func:`service.core.sensor.segment_grid._near_mask` (its numpy reference) in loops: per
+    """:func:`service.core.sensor.mapmodel.near_mask` (its numpy reference) in loops: per
     segment, whether any point lies within ``radius`` (the same squared distance, compared
     with ``radius * radius``; a segment stops at its first such point)."""
     n_seg = segments.shape[0]

@@ -6,7 +6,7 @@ expression by expression, no ``fastmath``).
   :class:`service.core.shapes.similarity.ShapeArcs`;
 - :func:`shape_dp`: the DP of S* over two such tables, for
   :func:`service.core.shapes.similarity._dp` (its pure-Python reference is
-  :func:`service.core.shapes.similarity_reference._dp_python`).
+  :func:`service.core.shapes.similarity_reference.dp_python`).
 
 :func:`service.core.kernels.shape.shape_distances` runs both over many polyline pairs in one
 call.

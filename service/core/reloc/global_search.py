@@ -1,8 +1,9 @@
 """The global search of shape-based localisation: :func:`global_search` ranks pose hypotheses for
 one scan over the whole map (S*-similar unit pairs induce poses, support ranks them, a
-point-to-line fit refines and :func:`verify` checks them beam by beam), :func:`self_similar`
-looks for a twin place, :func:`ambiguity` compares the best with the best distinct
-alternative. See :mod:`service.core.reloc.global_localization` for the whole method."""
+point-to-line fit refines and :func:`verify` checks them beam by beam) and :func:`self_similar`
+looks for a twin place; both also as steps spread over scans (:func:`search_steps`,
+:func:`self_similar_steps`, their work counted by :data:`WORK_MS`). See
+:mod:`service.core.reloc.global_localization` for the whole method."""
 
 from __future__ import annotations
 
@@ -13,19 +14,11 @@ from typing import TypeVar
 import numpy as np
 
 from service.core.pose import transform_points
-from service.core.reloc.global_config import GlobalConfig
+from service.core.reloc.config import GlobalConfig
 from service.core.reloc.view_index import ViewIndex
-from service.core.reloc.view_index.build import _anchor, _joined
+from service.core.reloc.view_index.build import anchor, joined
 from service.core.sensor.pose_batch import fit_pairs
-from service.core.sensor.pose_scoring import (
-    Hypothesis,
-    _beam_costs,
-    _field_violations,
-    _polish,
-    _subsample,
-    _support_many,
-    verify,
-)
+from service.core.sensor.scoring import BeamModel, SensorModel, subsample
 from service.core.shapes.configuration import (
     Configuration,
     scan_configuration,
@@ -43,14 +36,95 @@ T = TypeVar("T")
 
 
 @dataclass
+class Hypothesis:
+    """A pose hypothesis ``[x, y, theta]`` (map frame) with its verification on one scan:
+    ``hit`` fraction of beams returned where the map predicts (within the support tolerance),
+    ``violation`` fraction of beams that passed through a map wall, ``cost`` (lower is
+    better), ``explained`` length fraction of the scan's polylines lying on the map there."""
+
+    pose: np.ndarray
+    cost: float
+    hit: float = 0.0
+    violation: float = 0.0
+    explained: float = 0.0
+    short: float = 0.0
+
+
+def beam_model(config: ShapeConfig, gconfig: GlobalConfig, short_scale: float = 0.0) -> BeamModel:
+    """The beam model of the search's checks: the tracker's support tolerance and view range,
+    the search's violation margin, weights and see-through (``short_scale``: the keyframe
+    evidence's grading of short returns, :mod:`service.core.reloc.evidence`)."""
+    return BeamModel(
+        tolerance=config.support_tolerance,
+        margin=gconfig.violation_margin,
+        max_range=config.view_max_range,
+        see_through=gconfig.see_through,
+        short_scale=short_scale,
+        short_credit=gconfig.short_credit,
+        violation_weight=gconfig.violation_weight,
+        floor=gconfig.cost_floor,
+    )
+
+
+def beam_costs(
+    sensor: SensorModel,
+    poses: np.ndarray,
+    ranges: np.ndarray,
+    angles: np.ndarray,
+    beams: int,
+    config: ShapeConfig,
+    gconfig: GlobalConfig,
+) -> np.ndarray:
+    """The beam part of :func:`verify`'s cost (without its floor) for each of ``poses``
+    ``(k, 3)`` on ``beams`` evenly chosen valid beams. A quick ranking: unlike the point
+    support it sees beams that pass through a wall, and it does not reward a wrong place for
+    lining up furniture with map walls."""
+    sel = subsample(np.nonzero(np.isfinite(ranges))[0], beams)
+    if sel.size == 0:
+        return np.full(len(poses), np.inf)
+    m = beam_model(config, gconfig)
+    fr = sensor.beams(np.asarray(poses, dtype=np.float64), ranges[sel], angles[sel], m)
+    return np.array([f.beam_cost(m) for f in fr])
+
+
+def verify(
+    index: ViewIndex,
+    pose: np.ndarray,
+    ranges: np.ndarray,
+    angles: np.ndarray,
+    P: Configuration,
+    config: ShapeConfig,
+    gconfig: GlobalConfig,
+) -> Hypothesis:
+    """Check a pose against the map beam by beam and feature by feature (the sensor model's
+    :meth:`~service.core.sensor.scoring.SensorModel.beams` on ``gconfig.verify_beams`` valid
+    beams, and the length share of the scan's polylines lying on the map, ``explained``).
+    Cost ``1 - hit - short_credit * short + violation_weight * violation + cost_floor``."""
+    sensor = index.sensor
+    assert sensor is not None
+    idx = subsample(np.nonzero(np.isfinite(ranges))[0], gconfig.verify_beams)
+    if idx.size == 0:
+        return Hypothesis(pose=pose.copy(), cost=1.0 + gconfig.cost_floor)
+    m = beam_model(config, gconfig)
+    f = sensor.beams(pose[None, :], ranges[idx], angles[idx], m)[0]
+    explained = sensor.explained_length(pose, P.features, config.support_tolerance)
+    return Hypothesis(
+        pose=pose.copy(),
+        cost=f.cost(m),
+        hit=f.hit,
+        violation=f.through,
+        explained=explained,
+        short=f.short,
+    )
+
+
+@dataclass
 class SearchResult:
-    """Ranked distinct hypotheses (best first) and the best-vs-second ambiguity in [0, 1]
-    (1 = tie, 0 = a single hypothesis). ``candidates`` how many pose hypotheses the shape
-    pairs induced; ``information`` the summed shape complexity (m·rad) of the scan units
+    """Ranked distinct hypotheses (best first). ``candidates`` how many pose hypotheses the
+    shape pairs induced; ``information`` the summed shape complexity (m·rad) of the scan units
     used — how much distinctive shape the scan holds at all."""
 
     hypotheses: list[Hypothesis]
-    ambiguity: float
     candidates: int
     information: float = 0.0
 
@@ -59,7 +133,7 @@ def _scan_units(P: Configuration, threshold: float) -> list[np.ndarray]:
     """Vertices of each scan feature and of each pair of consecutive ones (robot frame)."""
     out = [f.vertices for f in P.features]
     for a, b in zip(P.features[:-1], P.features[1:], strict=True):
-        out.append(_joined(a.vertices, b.vertices, threshold))
+        out.append(joined(a.vertices, b.vertices, threshold))
     return out
 
 
@@ -73,16 +147,7 @@ def _ranked_units(
     return units, comp
 
 
-def scan_information(P: Configuration, config: ShapeConfig, gconfig: GlobalConfig) -> float:
-    """How much distinctive shape a scan holds: the summed shape complexity (m·rad) of its
-    ``gconfig.scan_units`` most complex units (:attr:`SearchResult.information`)."""
-    if not P.features:
-        return 0.0
-    _units, comp = _ranked_units(P, config, gconfig)
-    return float(sum(c for c, _k in comp[: gconfig.scan_units]))
-
-
-def _refine(
+def refine(
     index: ViewIndex,
     poses: np.ndarray,
     sp: np.ndarray,
@@ -94,9 +159,11 @@ def _refine(
     right under the points, a polish on the distance field and a last continuous fit."""
     poses = np.asarray(poses, dtype=np.float64)
     n = len(poses)
+    sensor = index.sensor
+    assert sensor is not None
     refined, _ = fit_pairs(
         [sp] * n,
-        [index.nearby_segments(transform_points(p, sp), 0.5) for p in poses],
+        [sensor.model.nearby_segments(transform_points(p, sp), 0.5) for p in poses],
         poses,
         iterations=gconfig.refine_iterations,
         robust_scale=config.align_robust_scale,
@@ -109,7 +176,7 @@ def _refine(
         out, _ = fit_pairs(
             [sp] * n,
             [
-                index.nearby_segments(transform_points(p, sp), 2.0 * gconfig.fine_scale)
+                sensor.model.nearby_segments(transform_points(p, sp), 2.0 * gconfig.fine_scale)
                 for p in start
             ],
             start,
@@ -120,23 +187,23 @@ def _refine(
         return out
 
     refined = fine(refined)
-    refined, _ = _polish(index, refined, sp, gconfig.fine_scale)
+    refined, _ = sensor.polish(refined, sp, gconfig.fine_scale)
     # and a last continuous fit from there (the distance field is quantised to its cells)
     return fine(refined)
 
 
-# _distinct and _near run for every pair of poses a search or a merge compares: scalar
+# distinct and near run for every pair of poses a search or a merge compares: scalar
 # element differences into the same np.hypot (no temporary arrays)
 
 
-def _distinct(a: np.ndarray, b: np.ndarray, gconfig: GlobalConfig) -> bool:
+def distinct(a: np.ndarray, b: np.ndarray, gconfig: GlobalConfig) -> bool:
     return bool(
         np.hypot(a[0] - b[0], a[1] - b[1]) > gconfig.distinct_distance
         or abs(wrap_angle(float(a[2] - b[2]))) > gconfig.distinct_angle
     )
 
 
-def _near(a: np.ndarray, b: np.ndarray, dist: float = 0.3, ang: float = 0.15) -> bool:
+def near(a: np.ndarray, b: np.ndarray, dist: float = 0.3, ang: float = 0.15) -> bool:
     return bool(
         np.hypot(a[0] - b[0], a[1] - b[1]) < dist and abs(wrap_angle(float(a[2] - b[2]))) < ang
     )
@@ -205,12 +272,14 @@ def polish_ms(points: int) -> float:
 
 def cast_ms(index: ViewIndex) -> float:
     """Work (reference ms) of one pose's ray cast that depends on the map: its segments."""
-    return len(index.caster.segments) * WORK_MS["cast_segment"]
+    assert index.sensor is not None
+    return len(index.sensor.segments) * WORK_MS["cast_segment"]
 
 
 def refine_ms(index: ViewIndex) -> float:
-    """Work (reference ms) of one pose's :func:`_refine` on ``index``'s map."""
-    return WORK_MS["refine"] + len(index.caster.segments) * WORK_MS["refine_segment"]
+    """Work (reference ms) of one pose's :func:`refine` on ``index``'s map."""
+    assert index.sensor is not None
+    return WORK_MS["refine"] + len(index.sensor.segments) * WORK_MS["refine_segment"]
 
 
 def beams_ms(index: ViewIndex, gconfig: GlobalConfig, beams: int) -> float:
@@ -220,7 +289,7 @@ def beams_ms(index: ViewIndex, gconfig: GlobalConfig, beams: int) -> float:
     return beams * WORK_MS["verify_beam"] + cast_ms(index) + layered
 
 
-def _verify_ms(index: ViewIndex, gconfig: GlobalConfig) -> float:
+def verify_ms(index: ViewIndex, gconfig: GlobalConfig) -> float:
     return WORK_MS["verify"] + beams_ms(index, gconfig, gconfig.verify_beams)
 
 
@@ -280,9 +349,11 @@ def search_steps(
     (:func:`service.core.shapes.matching.induced_alignment`). All poses and the seeds are ranked by
     support (distance field); the best ``gconfig.refine_top`` distinct ones are refined by a
     point-to-line fit against the map and verified (:func:`verify`). Returns distinct
-    hypotheses, best (lowest cost) first, and their :func:`ambiguity`.
+    hypotheses, best (lowest cost) first.
     """
     gconfig = gconfig or GlobalConfig.for_kind(config.kind)
+    sensor = index.sensor
+    assert sensor is not None
     r = np.asarray(ranges, dtype=np.float64)
     a = np.asarray(angles, dtype=np.float64)
     if P is None:
@@ -305,7 +376,7 @@ def search_steps(
             pa = prepare(pu)
             dp = np.hypot(pu[:, 0], pu[:, 1])
             cp = shape_complexity(pu)
-            p_anc, p_dir, p_turn = _anchor(pu)
+            p_anc, p_dir, p_turn = anchor(pu)
             cand = np.nonzero(
                 (index.unit_rmin <= dp.max() + gate)
                 & (index.unit_rmax >= dp.min() - gate)
@@ -352,17 +423,15 @@ def search_steps(
                 n_induced += len(qa)
             yield len(top) * WORK_MS["induced"] + (len(first) % _CHUNK_SSTAR) * WORK_MS["sstar"]
     if not poses and not anchor_poses:
-        return SearchResult(hypotheses=[], ambiguity=1.0, candidates=0, information=information)
+        return SearchResult(hypotheses=[], candidates=0, information=information)
     H = np.vstack([np.asarray(poses).reshape(-1, 3), *anchor_poses])
-    sp = _subsample(pts_all, gconfig.support_points)
+    sp = subsample(pts_all, gconfig.support_points)
     if len(sp) == 0:
-        return SearchResult(
-            hypotheses=[], ambiguity=1.0, candidates=n_induced, information=information
-        )
+        return SearchResult(hypotheses=[], candidates=n_induced, information=information)
     parts = []
     for i in range(0, len(H), _CHUNK_POSES):
         block = H[i : i + _CHUNK_POSES]
-        parts.append(_support_many(index, block, sp, config.support_tolerance))
+        parts.append(sensor.support(block, sp, config.support_tolerance))
         yield len(block) * len(sp) * WORK_MS["support"]
     sup = np.concatenate(parts)
     order = np.argsort(-sup, kind="stable")
@@ -380,7 +449,7 @@ def search_steps(
         )
         reps = order[_first_rows(cells[order])]
         nb = gconfig.shortlist_violation_beams
-        beams = _subsample(np.flatnonzero(np.isfinite(r)), nb) if nb > 0 else np.zeros(0, int)
+        beams = subsample(np.flatnonzero(np.isfinite(r)), nb) if nb > 0 else np.zeros(0, int)
         if beams.size and len(reps):
             # Where the plan shows little of what the laser sees, wrong places whose walls
             # the furniture happens to fit out-score the true one on support; most of their
@@ -390,7 +459,7 @@ def search_steps(
             vparts = []
             for i in range(0, len(reps), _CHUNK_POSES):
                 block = H[reps[i : i + _CHUNK_POSES]]
-                vparts.append(_field_violations(index, block, r[beams], a[beams], margin))
+                vparts.append(sensor.crossings(block, r[beams], a[beams], margin))
                 yield len(block) * beams.size * WORK_MS["field_beam"]
             score = sup[reps] - gconfig.violation_weight * np.concatenate(vparts)
             reps = reps[np.argsort(-score, kind="stable")]
@@ -399,12 +468,12 @@ def search_steps(
         quick_parts = []
         for i in range(0, len(short), _CHUNK_POLISH):
             block = H[short[i : i + _CHUNK_POLISH]]
-            pol, _score = _polish(
-                index, block, sp, gconfig.fine_scale, stages=((0.15, 0.06), (0.05, 0.02))
+            pol, _score = sensor.polish(
+                block, sp, gconfig.fine_scale, stages=((0.15, 0.06), (0.05, 0.02))
             )
             polished_parts.append(pol)
             quick_parts.append(
-                _beam_costs(index, pol, r, a, gconfig.shortlist_beams, config, gconfig)
+                beam_costs(sensor, pol, r, a, gconfig.shortlist_beams, config, gconfig)
             )
             yield len(block) * (
                 polish_ms(len(sp)) + gconfig.shortlist_beams * WORK_MS["beam"] + cast_ms(index)
@@ -416,23 +485,22 @@ def search_steps(
     for i in order.tolist():
         if len(picked) >= gconfig.refine_top:
             break
-        if any(_near(H[i], p) for p in picked):
+        if any(near(H[i], p) for p in picked):
             continue
         picked.append(H[i])
     hyps: list[Hypothesis] = []
     for i in range(0, len(picked), _CHUNK_REFINE):
         block = np.vstack(picked[i : i + _CHUNK_REFINE])
-        refined = _refine(index, block, sp, config, gconfig)
+        refined = refine(index, block, sp, config, gconfig)
         hyps.extend(verify(index, p, r, a, P, config, gconfig) for p in refined)
-        yield len(block) * (refine_ms(index) + _verify_ms(index, gconfig))
+        yield len(block) * (refine_ms(index) + verify_ms(index, gconfig))
     hyps.sort(key=lambda h: h.cost)
     out: list[Hypothesis] = []
     for h in hyps:
-        if all(not _near(h.pose, o.pose) for o in out):
+        if all(not near(h.pose, o.pose) for o in out):
             out.append(h)
     return SearchResult(
         hypotheses=out,
-        ambiguity=ambiguity(out, gconfig),
         candidates=n_induced,
         information=information,
     )
@@ -470,17 +538,18 @@ def self_similar_steps(
     scan's beams that have returns) runs through :func:`global_search` itself; every
     resulting pose distinct from ``best`` is a place the map cannot tell from it, and is
     verified (:func:`verify`) on the real ``ranges`` / ``angles`` both as found and refined on
-    the real scan's points (:func:`_refine`), whichever fits better. Returns the best verified
+    the real scan's points (:func:`refine`), whichever fits better. Returns the best verified
     twin (lowest cost)."""
     ok = np.isfinite(ranges)
-    pred = index.caster.cast(best.pose, angles, config.view_max_range)
+    assert index.sensor is not None
+    pred = index.sensor.caster.cast(best.pose, angles, config.view_max_range)
     pred = np.where(ok, pred, np.nan)
     if np.count_nonzero(np.isfinite(pred)) < 10:
         return None
     res = yield from search_steps(index, pred, angles, config, gconfig)
-    cands = [h.pose for h in res.hypotheses if _distinct(h.pose, best.pose, gconfig)]
+    cands = [h.pose for h in res.hypotheses if distinct(h.pose, best.pose, gconfig)]
     pts = np.vstack([f.points for f in P.features]) if P.features else np.zeros((0, 2))
-    sp = _subsample(pts, gconfig.support_points)
+    sp = subsample(pts, gconfig.support_points)
     if not cands or len(sp) == 0:
         return None
     # the map-only search aligned the twins to the map's own view; each is verified as found
@@ -488,30 +557,12 @@ def self_similar_steps(
     out: Hypothesis | None = None
     for i in range(0, len(cands), _CHUNK_REFINE):
         block = np.vstack(cands[i : i + _CHUNK_REFINE])
-        refined = _refine(index, block, sp, config, gconfig)
+        refined = refine(index, block, sp, config, gconfig)
         for pose in [*block, *refined]:
-            if not _distinct(pose, best.pose, gconfig):
+            if not distinct(pose, best.pose, gconfig):
                 continue
             v = verify(index, pose, ranges, angles, P, config, gconfig)
             if out is None or v.cost < out.cost:
                 out = v
-        yield len(block) * (refine_ms(index) + 2.0 * _verify_ms(index, gconfig))
+        yield len(block) * (refine_ms(index) + 2.0 * verify_ms(index, gconfig))
     return out
-
-
-def ambiguity(hyps: list[Hypothesis], gconfig: GlobalConfig) -> float:
-    """Best vs best distinct alternative in [0, 1]: ``1 - (cost_2 - cost_1) / ambiguity_scale``
-    clipped (1 = tie, 0 = the alternative is worse by the scale or more, or there is none);
-    1 with no hypothesis at all (nothing is known).
-
-    A margin rather than a ratio: on a floor plan every hypothesis, the true one included,
-    leaves the furniture unexplained, so costs share a large common part that a ratio would
-    read as ambiguity."""
-    if not hyps:
-        return 1.0
-    best = hyps[0]
-    for h in hyps[1:]:
-        if _distinct(h.pose, best.pose, gconfig):
-            margin = h.cost - best.cost
-            return float(np.clip(1.0 - margin / gconfig.ambiguity_scale, 0.0, 1.0))
-    return 0.0

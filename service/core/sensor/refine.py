@@ -26,7 +26,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from service.core import kernels, numeric
 from service.core.kernels import map as map_kernels
 from service.core.pose import PoseFit, transform_points
-from service.core.sensor.mapmodel import MapModel, _nearest_numpy
+from service.core.sensor.mapmodel import MapModel, nearest_numpy
 from service.core.types import wrap_angle
 from service.errors import LocalizationError
 
@@ -258,7 +258,7 @@ def _refine_numpy(
         q = transform_points(pose, pts)
         c, s = np.cos(pose[2]), np.sin(pose[2])
         qn = np.column_stack([c * nrm[:, 0] - s * nrm[:, 1], s * nrm[:, 0] + c * nrm[:, 1]])
-        seg, _d, foot, m = _nearest_numpy(model, q, qn, trim, cos_gate)
+        seg, _d, foot, m = nearest_numpy(model, q, qn, trim, cos_gate)
         ok = seg >= 0
         r = np.einsum("ij,ij->i", m[ok], q[ok] - foot[ok])
         jt = m[ok, 0] * (-(q[ok, 1] - pose[1])) + m[ok, 1] * (q[ok, 0] - pose[0])

@@ -423,7 +423,7 @@ class MapViewCache:
     ) -> None:
         self.map_data = map_data
         self.model = model
-        self.caster = RayCaster(map_data.segments() if model is None else model.segments)
+        self.caster = RayCaster(map_data.segments()) if model is None else model.caster
         self.beams = beams
         self.max_range = max_range
         self.reuse_distance = reuse_distance

@@ -39,9 +39,9 @@ from service.core.shapes.configuration import Configuration, Feature
 from service.core.shapes.order_dp import BlockArrays, order_preserving_dp
 from service.core.shapes.shape_cost import (
     ShapeCost,
-    _batched_shape_cost,
-    _gated_shape_cost,
-    _shape_arcs,
+    batched_shape_cost,
+    gated_shape_cost,
+    shape_arcs,
 )
 from service.core.shapes.similarity import ShapeArcs, shape_alignment
 from service.core.shapes.stacked import scan_intervals, scan_samples, stacked_points, view_segments
@@ -225,7 +225,7 @@ def match_with_cost(
     scan."""
     est = np.asarray(estimate, dtype=np.float64)
     cache = {} if cache is None else cache
-    sd = shape_cost or _gated_shape_cost(config, config.max_shape_distance)
+    sd = shape_cost or gated_shape_cost(config, config.max_shape_distance)
     n = len(P)
     q_ord, q_iv = _map_order_arrays(Q, est)
     q_order = q_ord.tolist()
@@ -341,7 +341,7 @@ def match_with_cost(
     if None in svals and shape_cost is None and kernels.HAVE_NUMBA:
         # every missing pair in one compiled call (the same S* as the loop below computes)
         miss = [r for r, v in enumerate(svals) if v is None]
-        got = _batched_shape_cost(
+        got = batched_shape_cost(
             P, Q, p_pieces[miss], q_pieces[miss], config, config.max_shape_distance
         )
         for r, v in zip(miss, got, strict=True):
@@ -358,18 +358,18 @@ def match_with_cost(
             if sdist is None:
                 i_s, i_e, j_s, j_e = cs[r].tolist()
                 if i_s == i_e:
-                    pa = _shape_arcs(P.features[i_s], P.features[i_s].vertices, cache)
+                    pa = shape_arcs(P.features[i_s], P.features[i_s].vertices, cache)
                 else:
-                    pa = _shape_arcs(
+                    pa = shape_arcs(
                         ("P", pid, i_s, i_e),
                         lambda: _concat(P.features[i_s : i_e + 1], "vertices"),  # noqa: B023
                         cache,
                     )
                 if j_s == j_e:
-                    qa = _shape_arcs(Qf[j_s], Qf[j_s].vertices, cache)
+                    qa = shape_arcs(Qf[j_s], Qf[j_s].vertices, cache)
                 else:
                     qf = Qf[j_s : j_e + 1]
-                    qa = _shape_arcs(
+                    qa = shape_arcs(
                         ("Q", *qid[j_s : j_e + 1]),
                         lambda: _concat(qf, "vertices"),  # noqa: B023
                         cache,

@@ -7,10 +7,10 @@ weights of their ``ShapeConfig``, and drop the pairs above a gate:
 
 * :data:`ShapeCost`, the type of a shape cost; :func:`shape_cost_for`, S* with a config's
   weights;
-* :func:`_gated_shape_cost`, the same pruned at the gate, one pair per call;
-* :func:`_batched_shape_cost`, the same for many pairs of joined features in one compiled call
+* :func:`gated_shape_cost`, the same pruned at the gate, one pair per call;
+* :func:`batched_shape_cost`, the same for many pairs of joined features in one compiled call
   (:func:`service.core.shapes.similarity.shape_distances`);
-* :func:`_shape_arcs`, the S*-prepared polylines, cached per scan.
+* :func:`shape_arcs`, the S*-prepared polylines, cached per scan.
 """
 
 from __future__ import annotations
@@ -43,7 +43,7 @@ def shape_cost_for(config: ShapeConfig) -> ShapeCost:
     return cost
 
 
-def _gated_shape_cost(config: ShapeConfig, gate: float) -> ShapeCost:
+def gated_shape_cost(config: ShapeConfig, gate: float) -> ShapeCost:
     """:func:`shape_cost_for` for a caller that drops pairs with S* above ``gate``: the
     search is pruned at the gate (``upper_bound``), values <= ``gate`` are exact and larger
     ones come back as ``inf``."""
@@ -56,7 +56,7 @@ def _gated_shape_cost(config: ShapeConfig, gate: float) -> ShapeCost:
     return cost
 
 
-def _batched_shape_cost(
+def batched_shape_cost(
     P: Configuration,
     Q: Configuration,
     p_rows: np.ndarray,
@@ -64,7 +64,7 @@ def _batched_shape_cost(
     config: ShapeConfig,
     gate: float,
 ) -> list[float]:
-    """:func:`_gated_shape_cost` of many pairs in one compiled call: pair ``r`` joins the
+    """:func:`gated_shape_cost` of many pairs in one compiled call: pair ``r`` joins the
     features ``p_rows[r]`` of ``P`` and ``q_rows[r]`` of ``Q`` (``-1`` = none); values above
     ``gate`` come back as ``inf``."""
     pv, pvo = stacked_vertices(P)
@@ -82,7 +82,7 @@ def _batched_shape_cost(
     ).tolist()
 
 
-def _shape_arcs(
+def shape_arcs(
     f: Feature | tuple, verts: np.ndarray | Callable[[], np.ndarray], cache: dict
 ) -> Any:
     """S*-prepared polyline, cached under ``f`` (a feature or a key); ``verts`` may be a

@@ -57,7 +57,7 @@ from service.core import kernels
 from service.core.kernels import shape as shape_kernels
 from service.core.kernels import similarity as similarity_kernels
 from service.core.shapes.dce import DCE_NOISE_THRESHOLD, CurveEvolution, dce
-from service.core.shapes.similarity_reference import _dp_python
+from service.core.shapes.similarity_reference import dp_python
 from service.errors import LocalizationError
 
 #: Default weight of the length misfit of the first / last matched arc pair (occlusion cuts).
@@ -235,10 +235,10 @@ def _dp(
 
     Runs the compiled kernel :func:`service.core.kernels.similarity.shape_dp` when both
     polylines carry numpy tables (numba available), else
-    :func:`service.core.shapes.similarity_reference._dp_python` (the reference).
+    :func:`service.core.shapes.similarity_reference.dp_python` (the reference).
     """
     if P.tab is None or Q.tab is None:
-        return _dp_python(P, Q, max_merge, end_weight, skip_weight, want_path, upper_bound)
+        return dp_python(P, Q, max_merge, end_weight, skip_weight, want_path, upper_bound)
     best, s, s2, back = similarity_kernels.shape_dp(
         P.cum_a,
         P.tab,

@@ -1,7 +1,7 @@
 """Pure-Python reference of S*'s dynamic programme (paper §5.1; the cost terms and the DP's
 states are described in :mod:`service.core.shapes.similarity`).
 
-:func:`_dp_python` is what :func:`service.core.shapes.similarity._dp` runs when the polylines carry
+:func:`dp_python` is what :func:`service.core.shapes.similarity._dp` runs when the polylines carry
 no numpy tables (numba not installed); the compiled kernel
 :func:`service.core.kernels.similarity.shape_dp` follows it expression by expression (same
 states, moves, order and pruning), and tests compare the two. Plain Python lists and floats:
@@ -32,7 +32,7 @@ def _moves(amax: int, bmax: int) -> tuple[tuple[int, int], ...]:
     return m
 
 
-def _dp_python(
+def dp_python(
     P: ShapeArcs,
     Q: ShapeArcs,
     max_merge: int,

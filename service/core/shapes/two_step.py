@@ -34,9 +34,9 @@ from service.core.shapes.matching import (
 )
 from service.core.shapes.shape_cost import (
     ShapeCost,
-    _batched_shape_cost,
-    _gated_shape_cost,
-    _shape_arcs,
+    batched_shape_cost,
+    gated_shape_cost,
+    shape_arcs,
 )
 from service.core.shapes.similarity import (
     complexity_of,
@@ -234,18 +234,18 @@ def step1_hypotheses(
         # every pair of step 1 in one compiled call (the same S* as the loop below computes)
         ks = np.repeat([k for k, _ in cand], [len(js) for _, js in cand])
         js_all = np.concatenate([js for _, js in cand])
-        vals = _batched_shape_cost(P, Q, p_pieces[ks], q_pieces[js_all], config, gate)
+        vals = batched_shape_cost(P, Q, p_pieces[ks], q_pieces[js_all], config, gate)
         pos = 0
         svals = []
         for _, js in cand:
             svals.append(vals[pos : pos + len(js)])
             pos += len(js)
     else:
-        sd = _gated_shape_cost(config, gate)
+        sd = gated_shape_cost(config, gate)
         svals = [
             [
-                float(sd(_shape_arcs(p_units[k].key, p_units[k].vertices, cache), qa))
-                for qa in (_shape_arcs(q_units[j].key, q_units[j].vertices, cache) for j in js)
+                float(sd(shape_arcs(p_units[k].key, p_units[k].vertices, cache), qa))
+                for qa in (shape_arcs(q_units[j].key, q_units[j].vertices, cache) for j in js)
             ]
             for k, js in cand
         ]
@@ -257,11 +257,11 @@ def step1_hypotheses(
         scored = sorted((s, int(j)) for s, j in zip(vals_k, js.tolist(), strict=True) if s <= gate)
         if not scored:
             continue
-        pa = _shape_arcs(pu.key, pu.vertices, cache)
+        pa = shape_arcs(pu.key, pu.vertices, cache)
         pts = subsample(pu.points, config.align_points)
         for s, j in scored[: config.step1_pairs_per_feature]:
             qu = q_units[j]
-            qa = _shape_arcs(qu.key, qu.vertices, cache)
+            qa = shape_arcs(qu.key, qu.vertices, cache)
             out.append((induced_alignment(pa, qa), s))
             pair_pts.append(pts)
             pair_segs.append(qu.segments)  # type: ignore[arg-type]

@@ -35,6 +35,7 @@ from service.core import numeric
 from service.core.pose import compose
 from service.core.sensor.mapmodel import MapModel
 from service.core.sensor.refine import Refined, refine_pose, scan_normals
+from service.core.sensor.scoring import SensorModel, sensor_model
 from service.core.shapes.configuration import Configuration, MapViewCache, scan_configuration
 from service.core.shapes.two_step import TwoStepResult, two_step_match
 from service.core.tracking.motion import Motion, Prediction, check_pose3
@@ -86,7 +87,8 @@ class ShapeLocalizer:
             raise LocalizationError(f"config must be a ShapeConfig, got {type(config).__name__}")
         self.map_data = map_data
         self.config = config or ShapeConfig.for_kind(map_data.kind)
-        self.model = model if model is not None else MapModel(map_data)
+        self.sensor: SensorModel = sensor_model(map_data) if model is None else SensorModel(model)
+        self.model = self.sensor.model
         self.motion = Motion(self.config.motion)
         #: The shape matching's settings for a turn recovery: cut points all round the circle.
         self._wide = self.config.model_copy(
@@ -111,6 +113,11 @@ class ShapeLocalizer:
         )
         self._pose: np.ndarray | None = None
         self.reset(initial_pose)
+
+    def __setstate__(self, state: dict[str, object]) -> None:
+        self.__dict__.update(state)
+        if "sensor" not in state:  # pickled by an earlier version: no sensor model yet
+            self.sensor = SensorModel(self.model)
 
     @property
     def pose(self) -> np.ndarray | None:
@@ -225,20 +232,25 @@ class ShapeLocalizer:
             m += 3.0 * float(max(pred.sigma[0], pred.sigma[1]))
         return m
 
-    def violations(self, r: np.ndarray, a: np.ndarray, poses: list[np.ndarray]) -> list[float]:
+    def violations(
+        self,
+        r: np.ndarray,
+        a: np.ndarray,
+        poses: list[np.ndarray],
+        margin: float | None = None,
+    ) -> list[float]:
         """Per pose, the share of ``violation_beams`` evenly chosen valid beams whose return
-        lies more than ``violation_margin`` beyond the range the map predicts from that pose
-        (through a wall); the same beams for every pose."""
+        lies more than ``margin`` (default ``violation_margin``) beyond the range the map
+        predicts from that pose (through a wall); the same beams for every pose."""
         cfg = self.config
         ok = np.nonzero(np.isfinite(r) & (r > 0.0))[0]
         if cfg.violation_beams == 0 or ok.size == 0:
             return [0.0] * len(poses)
         sel = ok[np.linspace(0, ok.size - 1, min(cfg.violation_beams, ok.size)).astype(np.intp)]
         rs, ang = r[sel], a[sel]
-        out = []
-        for expect in self._views.caster.cast_many(np.asarray(poses), ang, cfg.view_max_range):
-            out.append(float(np.mean(np.isfinite(expect) & (rs > expect + cfg.violation_margin))))
-        return out
+        m = cfg.violation_margin if margin is None else margin
+        through = self.sensor.through(np.asarray(poses), rs, ang, m, cfg.view_max_range)
+        return [float(v) for v in through]
 
     def _always_doubtful(self, pred: Prediction) -> bool:
         """The shape matching runs whatever the prior's fit: set so, or no odometry."""

@@ -29,6 +29,7 @@ Units: metres, radians; odometry poses ``[x, y, theta]`` in the odometry frame.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -363,3 +364,62 @@ class ScanOdometry:
         self._raw = raw.copy()
         self._out = out.copy()
         return out.copy()
+
+
+@dataclass(frozen=True)
+class OdometryStep:
+    """One scan's odometry as the localiser uses it: ``reading`` the corrected odometry pose
+    (``None``: the scan came without odometry), ``previous`` the last scan's (``None``: none),
+    ``delta`` the robot-frame increment between them (``None`` without both), ``step`` its
+    length (m), ``matched_from`` the reading the increment was scan-matched from (``None``:
+    not matched) and ``broken`` whether the scan-to-scan fit failed to match this scan to
+    the previous one (a break in what the laser sees: a kidnap, a jump)."""
+
+    reading: np.ndarray | None
+    previous: np.ndarray | None = None
+    delta: np.ndarray | None = None
+    step: float = 0.0
+    matched_from: np.ndarray | None = None
+    broken: bool = False
+
+
+class Odometry:
+    """The localiser's one memory of the odometry: each scan's reading corrected by matching
+    the scan to the previous one (:class:`ScanOdometry`, or as received when that is off),
+    the increment since the last scan and the travel so far. A scan without odometry makes
+    the next reading start afresh. Picklable."""
+
+    def __init__(self, motion: MotionConfig) -> None:
+        self.motion = motion
+        self.check = ScanOdometry(motion.scan_odometry, motion)
+        self.last: np.ndarray | None = None
+        self.travel = 0.0
+
+    def reset(self, odom: np.ndarray | None = None) -> None:
+        """Forget the odometry; ``odom`` (if given) is the reading the next increment starts
+        from."""
+        o = None if odom is None else np.asarray(odom, dtype=np.float64).copy()
+        self.check.reset(o)
+        self.last = o
+
+    def step(self, ranges: np.ndarray, angles: np.ndarray, odom: np.ndarray | None) -> OdometryStep:
+        """This scan's :class:`OdometryStep` (``odom`` the raw reading, checked finite)."""
+        if odom is None:
+            self.check.reset(None)
+            self.last = None
+            return OdometryStep(None)
+        raw = np.asarray(odom, dtype=np.float64).reshape(3)
+        matched = None
+        broken = False
+        if self.motion.scan_odometry.enabled:
+            reading = self.check.correct(ranges, angles, raw)
+            matched = self.check.matched_from
+            broken = bool(self.check.explained < self.motion.scan_odometry.min_inliers)
+        else:
+            reading = raw.copy()
+        previous = self.last
+        delta = None if previous is None else compose(invert(previous), reading)
+        step = 0.0 if delta is None else float(np.hypot(delta[0], delta[1]))
+        self.travel += step
+        self.last = reading.copy()
+        return OdometryStep(reading, previous, delta, step, matched, broken)

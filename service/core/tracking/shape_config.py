@@ -1,7 +1,7 @@
 """The shape-based localiser's configuration (:class:`ShapeConfig`; the tracker itself is
 :class:`service.core.tracking.localizer.ShapeLocalizer`). Split out of
 :mod:`service.core.tracking.localizer` when that file passed 800 lines, as
-:mod:`service.core.reloc.global_config` holds the global search's;
+:mod:`service.core.reloc.config` holds the global search's;
 :mod:`service.core.tracking.localizer` re-exports it, so
 ``from service.core.tracking.localizer import ShapeConfig`` keeps working."""
 

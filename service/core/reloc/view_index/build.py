@@ -14,13 +14,13 @@ import json
 import time
 
 import numpy as np
-from scipy import ndimage
 
 from service.core import numeric
-from service.core.reloc.global_config import GlobalConfig
+from service.core.reloc.config import GlobalConfig
 from service.core.reloc.view_index.index import FORMAT_VERSION, ViewIndex
 from service.core.reloc.view_index.viewpoints import candidate_viewpoints
 from service.core.sensor.raycast import RayCaster
+from service.core.sensor.scoring import sensor_model
 from service.core.shapes.configuration import (
     Configuration,
     ExtractionParams,
@@ -59,7 +59,7 @@ def index_key(map_data: MapData, config: ShapeConfig, gconfig: GlobalConfig) -> 
     return h.hexdigest()
 
 
-def _anchor(verts: np.ndarray) -> tuple[np.ndarray, float, float]:
+def anchor(verts: np.ndarray) -> tuple[np.ndarray, float, float]:
     """The unit's most salient vertex ``(2,)`` (largest ``|turn| * min(adjacent arm)``, the
     vertex contributing most to the shape complexity), the direction (rad) of the edge
     leaving it and its signed turn angle (rad). Many viewpoints see the same corner: the
@@ -75,7 +75,7 @@ def _anchor(verts: np.ndarray) -> tuple[np.ndarray, float, float]:
     return verts[1 + k], float(ang[1 + k]), float(turn[k])
 
 
-def _joined(a: np.ndarray, b: np.ndarray, threshold: float) -> np.ndarray:
+def joined(a: np.ndarray, b: np.ndarray, threshold: float) -> np.ndarray:
     """Two consecutive features' vertices as one unit, re-simplified by DCE (eq. 2) so that
     the short junction between them (the two pieces of a corner share about one point) does
     not hide the corner from the shape complexity."""
@@ -90,29 +90,8 @@ def _view_units(Q: Configuration, threshold: float) -> list[np.ndarray]:
     if n >= 2:
         last = n if n > 2 else 1
         for i in range(last):
-            out.append(_joined(Q.features[i].vertices, Q.features[(i + 1) % n].vertices, threshold))
+            out.append(joined(Q.features[i].vertices, Q.features[(i + 1) % n].vertices, threshold))
     return out
-
-
-def _distance_field(
-    segments: np.ndarray, resolution: float, margin: float = 1.0
-) -> tuple[np.ndarray, np.ndarray]:
-    """Distance (m) from each grid cell centre to the nearest segment, float32, and the grid
-    origin (lower-left corner, map frame)."""
-    lo = np.minimum(segments[:, 0:2], segments[:, 2:4]).min(axis=0) - margin
-    hi = np.maximum(segments[:, 0:2], segments[:, 2:4]).max(axis=0) + margin
-    w, h = (np.ceil((hi - lo) / resolution).astype(int) + 1).tolist()
-    occ = np.zeros((h, w), dtype=bool)
-    for s in segments:
-        n = max(2, int(np.ceil(np.hypot(s[2] - s[0], s[3] - s[1]) / (0.25 * resolution))) + 1)
-        t = np.linspace(0.0, 1.0, n)
-        x = s[0] + t * (s[2] - s[0])
-        y = s[1] + t * (s[3] - s[1])
-        ix = np.floor((x - lo[0]) / resolution).astype(int)
-        iy = np.floor((y - lo[1]) / resolution).astype(int)
-        occ[iy, ix] = True
-    dist = ndimage.distance_transform_edt(~occ) * resolution
-    return dist.astype(np.float32), lo
 
 
 #: Anchor cell (m) and edge direction bucket (rad) that make units "the same corner".
@@ -173,7 +152,7 @@ def build_index(
             rmin.append(float(d.min()))
             rmax.append(float(d.max()))
             ucomp.append(shape_complexity(uv))
-            anc, direction, turn = _anchor(uv)
+            anc, direction, turn = anchor(uv)
             uanc.append((float(anc[0]), float(anc[1]), direction, turn))
             cell = np.floor(anc / _GROUP_CELL).astype(int)
             ukey.append((int(cell[0]), int(cell[1]), int(np.floor(direction / _GROUP_ANGLE))))
@@ -181,7 +160,6 @@ def build_index(
     off = np.zeros(len(verts) + 1, dtype=np.int64)
     if verts:
         off[1:] = np.cumsum([len(v) for v in verts])
-    dist, origin = _distance_field(caster.segments, gconfig.grid_resolution)
     return ViewIndex(
         key=index_key(map_data, config, gconfig),
         map_id=map_data.map_id,
@@ -195,9 +173,6 @@ def build_index(
         unit_anchor=np.asarray(uanc, dtype=np.float64).reshape(-1, 4),
         unit_vert_off=off,
         unit_verts=np.vstack(verts) if verts else np.zeros((0, 2)),
-        segments=caster.segments.copy(),
-        dist=dist,
-        origin=origin,
-        resolution=gconfig.grid_resolution,
         build_seconds=time.perf_counter() - t0,
+        sensor=sensor_model(map_data),
     )

@@ -19,9 +19,10 @@ from pathlib import Path
 
 import numpy as np
 
-from service.core.reloc.global_config import GlobalConfig
+from service.core.reloc.config import GlobalConfig
 from service.core.reloc.view_index.build import build_index, index_key
 from service.core.reloc.view_index.index import ViewIndex
+from service.core.sensor.scoring import sensor_model
 from service.core.tracking.localizer import ShapeConfig
 from service.core.types import MapData
 from service.errors import LocalizationError
@@ -120,6 +121,7 @@ def load_or_build_index(
                 save_index(idx, Path(cache_dir))
             except OSError as exc:
                 log.warning("view index of map %s not saved: %s", map_data.map_id, exc)
+    idx.sensor = sensor_model(map_data)
     with _MEMO_LOCK:
         _MEMO[key] = idx
         while len(_MEMO) > _MEMO_SIZE:

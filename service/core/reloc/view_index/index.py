@@ -1,36 +1,30 @@
 """The per-map view index of global localisation: :class:`ViewIndex`.
 
-Per candidate viewpoint the map view reduced to its units, the map's segments and a distance
-field, with the lookups global search makes on them (unit vertices and their S* arcs, ray
-casting, nearby segments, the polish's score table, distances) and the plain-array form the
-on-disk cache stores (:meth:`ViewIndex.to_arrays` / :meth:`ViewIndex.from_arrays`, versioned
-by :data:`FORMAT_VERSION`). Built by :mod:`service.core.reloc.view_index.build`, cached by
-:mod:`service.core.reloc.view_index.cache`.
+Per candidate viewpoint the map view reduced to its units, with the lookups global search
+makes on them (unit vertices and their S* arcs) and the plain-array form the on-disk cache
+stores (:meth:`ViewIndex.to_arrays` / :meth:`ViewIndex.from_arrays`, versioned by
+:data:`FORMAT_VERSION`). Built by :mod:`service.core.reloc.view_index.build`, cached by
+:mod:`service.core.reloc.view_index.cache`. The map itself -- segments, distance field, ray
+casting, scoring -- is the sensor model's (:attr:`ViewIndex.sensor`, attached when the index
+is loaded or built for a map, not stored).
 """
 
 from __future__ import annotations
 
 import json
-import math
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
-from service.core.kernels import search as search_kernels
-from service.core.sensor.raycast import RayCaster
-from service.core.sensor.segment_grid import SegmentGrid, nearby_segments_brute
+from service.core.sensor.scoring import SensorModel
 from service.core.shapes.similarity import ShapeArcs, prepare
 from service.errors import LocalizationError
 
 #: Version of the on-disk index format; bump when the file layout or its meaning changes (2:
-#: bearings from service.core.numeric, the same bits on every CPU, so an index built before
-#: may differ in the last bits from one built now).
-FORMAT_VERSION = 2
-
-#: Up to this many segments (floor plans) measuring every point against every segment is
-#: quicker than the bucket grid (0.12 vs 0.30 ms at 50 segments, even at ~400).
-_BRUTE_SEGMENTS = 256
+#: bearings from service.core.numeric, the same bits on every CPU; 3: the segments and the
+#: distance field left to the sensor model).
+FORMAT_VERSION = 3
 
 
 @dataclass(eq=False)
@@ -61,17 +55,9 @@ class ViewIndex:
     unit_anchor: np.ndarray
     unit_vert_off: np.ndarray
     unit_verts: np.ndarray
-    segments: np.ndarray
-    dist: np.ndarray
-    origin: np.ndarray
-    resolution: float
     build_seconds: float = 0.0
+    sensor: SensorModel | None = field(default=None, repr=False)
     _arcs: list[ShapeArcs | None] = field(default_factory=list, repr=False)
-    _caster: RayCaster | None = field(default=None, repr=False)
-    _grid: SegmentGrid | None = field(default=None, repr=False)
-    _tables: dict[tuple[float, float], tuple[np.ndarray, float]] = field(
-        default_factory=dict, repr=False
-    )
 
     def __len__(self) -> int:
         return int(self.unit_view.size)
@@ -90,46 +76,6 @@ class ViewIndex:
             self._arcs[u] = a
         return a
 
-    @property
-    def caster(self) -> RayCaster:
-        """Ray caster over the map's segments."""
-        if self._caster is None:
-            self._caster = RayCaster(self.segments)
-        return self._caster
-
-    def nearby_segments(self, points: np.ndarray, radius: float) -> np.ndarray:
-        """The map's segments within ``radius`` m of any of map-frame ``points`` ``(n, 2)``,
-        in their stored order, all of them if none is (a :class:`SegmentGrid`, built lazily;
-        the same rows as :func:`nearby_segments_brute`)."""
-        if len(self.segments) <= _BRUTE_SEGMENTS:
-            return nearby_segments_brute(self.segments, points, radius)
-        if self._grid is None:
-            self._grid = SegmentGrid(self.segments)
-        return self._grid.nearby(points, radius)
-
-    def score_table(self, sigma: float, cap: float) -> tuple[np.ndarray, float]:
-        """The polish's per-cell score ``exp(-0.5 (min(d, cap) / sigma)²)`` over the distance
-        field, and its value outside the field (built once per ``sigma`` / ``cap``, kept;
-        :mod:`service.core.kernels.search`)."""
-        key = (float(sigma), float(cap))
-        got = self._tables.get(key)
-        if got is None:
-            table = search_kernels.score_table(self.dist, key[0], key[1])
-            outside = float(search_kernels._score(math.inf, key[0], key[1]))
-            got = (table, outside)
-            self._tables[key] = got
-        return got
-
-    def distance(self, points: np.ndarray) -> np.ndarray:
-        """Distance (m) from map-frame points ``(n, 2)`` to the map (distance field lookup,
-        error <= one cell); ``inf`` outside the field."""
-        ij = np.floor((points - self.origin) / self.resolution).astype(np.int64)
-        h, w = self.dist.shape
-        ok = (ij[:, 0] >= 0) & (ij[:, 0] < w) & (ij[:, 1] >= 0) & (ij[:, 1] < h)
-        out = np.full(len(points), np.inf)
-        out[ok] = self.dist[ij[ok, 1], ij[ok, 0]]
-        return out
-
     def to_arrays(self) -> dict[str, np.ndarray]:
         """Plain arrays for :func:`numpy.savez` (no pickled objects)."""
         meta = {
@@ -137,7 +83,6 @@ class ViewIndex:
             "key": self.key,
             "map_id": self.map_id,
             "kind": self.kind,
-            "resolution": self.resolution,
             "build_seconds": self.build_seconds,
         }
         return {
@@ -151,9 +96,6 @@ class ViewIndex:
             "unit_anchor": self.unit_anchor,
             "unit_vert_off": self.unit_vert_off,
             "unit_verts": self.unit_verts,
-            "segments": self.segments,
-            "dist": self.dist,
-            "origin": self.origin,
         }
 
     @staticmethod
@@ -173,10 +115,6 @@ class ViewIndex:
             ua = np.asarray(arrays["unit_anchor"], dtype=np.float64)
             off = np.asarray(arrays["unit_vert_off"], dtype=np.int64)
             verts = np.asarray(arrays["unit_verts"], dtype=np.float64)
-            segs = np.asarray(arrays["segments"], dtype=np.float64)
-            dist = np.asarray(arrays["dist"], dtype=np.float32)
-            origin = np.asarray(arrays["origin"], dtype=np.float64)
-            res = float(meta["resolution"])
         except LocalizationError:
             raise
         except Exception as exc:  # any malformed content: not trusted
@@ -193,17 +131,11 @@ class ViewIndex:
             and off.shape == (u + 1,)
             and verts.ndim == 2
             and verts.shape[1] == 2
-            and segs.ndim == 2
-            and segs.shape[1] == 4
-            and dist.ndim == 2
-            and origin.shape == (2,)
-            and res > 0
         )
         ok = ok and (u == 0 or (uv.min() >= 0 and uv.max() < len(vp)))
         ok = ok and off[0] == 0 and off[-1] == len(verts) and bool(np.all(np.diff(off) >= 2))
-        finite = [vp, rmin, rmax, uc, ua, verts, segs, origin]
+        finite = [vp, rmin, rmax, uc, ua, verts]
         ok = ok and all(bool(np.all(np.isfinite(a))) for a in finite)
-        ok = ok and not bool(np.any(np.isnan(dist)))
         if not ok:
             raise LocalizationError("index arrays are inconsistent")
         return ViewIndex(
@@ -219,9 +151,5 @@ class ViewIndex:
             unit_anchor=ua,
             unit_vert_off=off,
             unit_verts=verts,
-            segments=segs,
-            dist=dist,
-            origin=origin,
-            resolution=res,
             build_seconds=float(meta.get("build_seconds", 0.0)),
         )

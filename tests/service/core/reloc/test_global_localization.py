@@ -1,5 +1,5 @@
 """Global localisation: viewpoints, the cached view index, global search on the office maps,
-ambiguity on a symmetric room, and the kidnapped robot (in process)."""
+ambiguity on a symmetric room, the kidnapped robot and dead reckoning (in process)."""
 
 from __future__ import annotations
 
@@ -9,9 +9,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from service.core import kernels
 from service.core.factory import create_localizer
 from service.core.reloc import global_localization as gl
+from service.core.reloc import states as st
+from service.core.reloc import view_index as vi
+from service.core.reloc.global_search import global_search, self_similar, verify
 from service.core.reloc.view_index import cache as view_index_cache
+from service.core.shapes.configuration import scan_configuration
+from service.core.tracking.scan_odometry import OdometryStep
 from service.core.types import MapData, wrap_angle
 from sim_publisher.laser import LaserSimulator
 from sim_publisher.office import office_metric_map, office_schematic_map, office_world
@@ -44,7 +50,7 @@ def _found(pose: np.ndarray, truth: np.ndarray) -> bool:
 
 def test_viewpoints_office_metric_in_free_space_and_not_in_furniture() -> None:
     md = office_metric_map()
-    vps = gl.candidate_viewpoints(md, 0.6, min_clearance=0.3)
+    vps = vi.candidate_viewpoints(md, 0.6, min_clearance=0.3)
     world = office_world()
     assert len(vps) > 300  # 276 m² of free space at 0.36 m² per cell, minus clearance
     clearance = world.clearance(vps)
@@ -59,7 +65,7 @@ def test_viewpoints_office_metric_in_free_space_and_not_in_furniture() -> None:
 
 def test_viewpoints_small_map_enclosed_outside_box_and_alcove() -> None:
     md = _room_map()
-    vps = gl.candidate_viewpoints(md, 0.25, min_clearance=0.2)
+    vps = vi.candidate_viewpoints(md, 0.25, min_clearance=0.2)
     assert len(vps) > 100
     # inside the room outline (no point outside the walls: the enclosure test)
     inside = (vps[:, 0] > 0) & (vps[:, 0] < 6) & (vps[:, 1] > 0) & (vps[:, 1] < 4)
@@ -78,16 +84,16 @@ def test_index_cache_round_trip_invalidation_and_corrupt_file(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
 ) -> None:
     md = _room_map()
-    gl.clear_memory_cache()
+    vi.clear_memory_cache()
     built = gl.load_or_build_index(md, cache_dir=tmp_path)
     files = sorted(tmp_path.glob("viewindex-*.npz"))
     assert len(files) == 1 and files[0].name.startswith("viewindex-room-")
     assert len(built) > 0 and len(built.viewpoints) > 10
 
     # a fresh process (memory cleared) loads the file and never builds
-    gl.clear_memory_cache()
+    vi.clear_memory_cache()
 
-    def no_build(*_a: object, **_k: object) -> gl.ViewIndex:
+    def no_build(*_a: object, **_k: object) -> vi.ViewIndex:
         raise AssertionError("index rebuilt although a valid cache file exists")
 
     # load_or_build_index looks build_index up in its own module
@@ -100,7 +106,7 @@ def test_index_cache_round_trip_invalidation_and_corrupt_file(
     monkeypatch.undo()
 
     # the map changes (the box moved): new key, rebuilt, the stale file replaced
-    gl.clear_memory_cache()
+    vi.clear_memory_cache()
     md2 = _room_map(box_at=3.0)
     changed = gl.load_or_build_index(md2, cache_dir=tmp_path)
     assert changed.key != built.key
@@ -108,28 +114,28 @@ def test_index_cache_round_trip_invalidation_and_corrupt_file(
     assert len(files2) == 1 and files2[0] != files[0]
 
     # a corrupt file is rebuilt with a warning, never trusted
-    gl.clear_memory_cache()
+    vi.clear_memory_cache()
     files2[0].write_bytes(b"PK\x03\x04 this is not an index")
     with caplog.at_level(logging.WARNING, logger="shapeloc.global"):
         again = gl.load_or_build_index(md2, cache_dir=tmp_path)
     assert any("not usable" in r.getMessage() for r in caplog.records)
     np.testing.assert_array_equal(again.viewpoints, changed.viewpoints)
-    gl.clear_memory_cache()
-    assert gl.load_index(files2[0], changed.key).key == changed.key  # rewritten, valid
+    vi.clear_memory_cache()
+    assert vi.load_index(files2[0], changed.key).key == changed.key  # rewritten, valid
 
 
 def test_index_file_with_wrong_key_or_bad_arrays_is_refused(tmp_path: Path) -> None:
     md = _room_map()
-    idx = gl.build_index(md)
-    path = gl.save_index(idx, tmp_path)
+    idx = vi.build_index(md)
+    path = vi.save_index(idx, tmp_path)
     with pytest.raises(gl.LocalizationError, match="mismatch"):
-        gl.load_index(path, "0" * 64)
+        vi.load_index(path, "0" * 64)
     arrays = idx.to_arrays()
     arrays["unit_view"] = arrays["unit_view"] + 10_000  # points past the viewpoints
     bad = tmp_path / "bad.npz"
     np.savez(bad, **arrays)
     with pytest.raises(gl.LocalizationError, match="inconsistent"):
-        gl.load_index(bad, idx.key)
+        vi.load_index(bad, idx.key)
 
 
 # ------------------------------------------------------------------------- global search
@@ -212,11 +218,17 @@ def test_global_search_ranks_the_true_pose_first_on_a_distinctive_view() -> None
     idx = gl.load_or_build_index(su.map_data)
     truth = su.truth[1836]
     r, a = su.scan(1836)
-    res = gl.global_search(idx, r, a, gl.ShapeConfig.for_kind("metric"))
+    g = gl.GlobalConfig.for_kind("metric")
+    res = global_search(idx, r, a, gl.ShapeConfig.for_kind("metric"), g)
     assert res.candidates > 20
-    assert _found(res.hypotheses[0].pose, truth)
-    assert res.hypotheses[0].hit > 0.9 and res.hypotheses[0].violation < 0.05
-    assert res.ambiguity < 0.5
+    best = res.hypotheses[0]
+    assert _found(best.pose, truth)
+    assert best.hit > 0.9 and best.violation < 0.05
+    # the best distinct alternative explains the scan clearly worse
+    from service.core.reloc.global_search import distinct
+
+    other = next(h for h in res.hypotheses[1:] if distinct(h.pose, best.pose, g))
+    assert other.cost > best.cost + 0.05
 
 
 # ------------------------------------------------------------------------- symmetry
@@ -251,38 +263,36 @@ def test_symmetric_room_stays_ambiguous_after_looking_around() -> None:
         est = loc.update(r, a, odom[s])
         assert est.status == "initializing", f"scan {s}: {est.status} at {est.pose}"
         assert est.ambiguity is not None and est.ambiguity >= 0.8
-    assert len(loc._history) == 3  # the composite held the last 3 scans
+    assert len(loc.state.drive.history) == 3  # the composite held the last 3 scans
     p = truth[-1]
     mirror = np.array([6 - p[0], 4 - p[1], wrap_angle(p[2] + np.pi)])
     assert _found(est.pose, p) or _found(est.pose, mirror), start
 
 
 def test_composite_needs_odometry_and_stays_within_the_travel_limit() -> None:
-    loc = gl.GlobalShapeLocalizer(office_metric_map(), None)
-    assert loc.gconfig.composite_scans == 3 and loc.gconfig.composite_travel == 0.5
+    g = gl.GlobalConfig.for_kind("metric")
+    assert g.composite_scans == 3 and g.composite_travel == 0.5
+    drive = st.dr.Drive()
     a = np.linspace(-np.pi / 2, np.pi / 2, 181)
     r = np.full(181, 2.0)
 
     def feed(odom: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
-        loc._remember_odom(odom)
-        return loc._composite(r, a)
+        return st._composite(drive, st.Scan(r, a, OdometryStep(odom), odom is not None), g)
 
     out, _ = feed(None)  # no odometry: the scan alone, nothing kept
-    assert out is r and loc._history == []
+    assert out is r and drive.history == []
     feed(np.array([0.0, 0.0, 0.0]))
     out, ang = feed(np.array([0.0, 0.0, np.pi]))  # turned around: a full circle
     # 1-degree beams: 360 bins, not 720 (finer bins would leave a hole between beams)
-    assert len(loc._history) == 2 and ang.size == 360
+    assert len(drive.history) == 2 and ang.size == 360
     assert np.isfinite(out).all()
     feed(np.array([0.1, 0.0, np.pi / 2]))
     feed(np.array([0.2, 0.0, 0.0]))
-    assert len(loc._history) == 3  # the newest 3 only
+    assert len(drive.history) == 3  # the newest 3 only
     feed(np.array([2.0, 0.0, 0.0]))  # 1.8 m on: the older scans' occlusions no longer hold
-    assert len(loc._history) == 1
+    assert len(drive.history) == 1
     feed(None)  # odometry stopped: history dropped
-    assert loc._history == []
-    loc.reset(None)
-    assert loc._history == []
+    assert drive.history == []
 
 
 # ------------------------------------------------------------------------- kidnapping
@@ -315,7 +325,7 @@ def test_kidnapped_robot_goes_lost_and_relocalises(setup: int, stride: int) -> N
 # ------------------------------------------------------------------ kernels, evidence, composite
 
 
-@pytest.mark.skipif(not gl.kernels.HAVE_NUMBA, reason="numba kernels not installed")
+@pytest.mark.skipif(not kernels.HAVE_NUMBA, reason="numba kernels not installed")
 def test_field_score_kernel_agrees_with_the_numpy_reference(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
@@ -325,9 +335,9 @@ def test_field_score_kernel_agrees_with_the_numpy_reference(
         [rng.uniform(-1, 15, 300), rng.uniform(-1, 24, 300), rng.uniform(-4, 4, 300)]
     )
     pts = rng.uniform(-6, 6, size=(80, 2))
-    got = gl._field_scores(idx, poses, pts, 0.05)
-    monkeypatch.setattr(gl.kernels, "HAVE_NUMBA", False)
-    ref = gl._field_scores(idx, poses, pts, 0.05)
+    got = idx.sensor.field_score(poses, pts, 0.05)
+    monkeypatch.setattr(kernels, "HAVE_NUMBA", False)
+    ref = idx.sensor.field_score(poses, pts, 0.05)
     assert np.max(np.abs(got - ref)) < 1e-12
     assert np.ptp(ref) > 0.1  # the inputs exercise the field, not only its outside
 
@@ -407,9 +417,9 @@ def test_self_similar_finds_the_congruent_room_from_the_map_alone() -> None:
     idx = gl.load_or_build_index(md)
     cfg = gl.ShapeConfig.for_kind("metric")
     g = gl.GlobalConfig.for_kind("metric")
-    P = gl.scan_configuration(r, a, cfg.extraction())
-    best = gl.verify(idx, truth, r, a, P, cfg, g)
-    twin = gl.self_similar(idx, best, r, a, P, cfg, g)
+    P = scan_configuration(r, a, cfg.extraction())
+    best = verify(idx, truth, r, a, P, cfg, g)
+    twin = self_similar(idx, best, r, a, P, cfg, g)
     assert twin is not None
     assert _found(twin.pose, truth + np.array([7.0, 0.0, 0.0]))
     assert abs(twin.cost - best.cost) < 0.05  # the scan cannot tell them apart
@@ -431,33 +441,6 @@ def test_congruent_rooms_never_give_a_fix() -> None:
 # ------------------------------------------------------------- recovery near the lost track
 
 
-def _track(x: float, y: float, th: float, cost: float) -> gl._Track:
-    p = np.array([x, y, th])
-    return gl._Track(p, [cost], gl.Hypothesis(pose=p, cost=cost))
-
-
-def test_near_track_hypothesis_beats_a_slightly_better_far_twin() -> None:
-    """After a loss, a hypothesis near the dead-reckoned last pose wins over a far one unless
-    the far one is better by more than near_cost_margin; with odometry it must also keep the
-    dead-reckoned heading; before any loss (no anchor) nothing is near."""
-    loc = create_localizer("shape", _room_map(), None)
-    g = loc.gconfig
-    far, near = _track(4.5, 3.0, 0.0, 0.15), _track(1.3, 1.1, 0.1, 0.15 + 0.5 * g.near_cost_margin)
-    assert loc._near_track([far, near], odometry=True) is None  # no loss yet: no anchor
-    loc._start_search(np.array([1.0, 1.0, 0.0]))
-    assert loc._near_track([far, near], odometry=True) is near
-    much_better = _track(4.5, 3.0, 0.0, near.hyp.cost - 2.0 * g.near_cost_margin)
-    assert loc._near_track([much_better, near], odometry=True) is None
-    turned = _track(1.3, 1.1, g.near_turn + 0.3, near.hyp.cost)
-    assert loc._near_track([far, turned], odometry=True) is None
-    assert loc._near_track([far, turned], odometry=False) is turned  # any heading without
-    # odometry; the radius grows with the odometry travel since the loss
-    out = _track(1.0 + g.near_radius + 0.5, 1.0, 0.0, near.hyp.cost)
-    assert loc._near_track([far, out], odometry=True) is None
-    loc._anchor_travel = 0.6 / g.near_growth
-    assert loc._near_track([far, out], odometry=True) is out
-
-
 def _room_scans(poses: list[np.ndarray]) -> tuple[np.ndarray, list[np.ndarray]]:
     from service.core.sensor.raycast import RayCaster
 
@@ -467,37 +450,38 @@ def _room_scans(poses: list[np.ndarray]) -> tuple[np.ndarray, list[np.ndarray]]:
     return ang, [rc.cast(p, ang, 15.0) + rng.normal(0, 0.01, ang.shape) for p in poses]
 
 
-def test_lost_with_odometry_resumes_from_the_dead_reckoned_pose(
-    monkeypatch: pytest.MonkeyPatch,
-) -> None:
-    """After a loss with odometry, when the global search finds nothing, the published pose
-    is the dead-reckoned one, and tracking resumes from it after reacquire_scans accepted
-    scans; scans from elsewhere (a kidnap) never resume."""
+def test_dead_reckoning_relocks_near_its_pose_and_a_kidnap_never_does() -> None:
+    """A robot dead-reckoning (the map did not explain its scans) publishes the dead-reckoned
+    pose with status lost; once the map explains relock_scans scans in a row near it, it
+    tracks again. Scans from elsewhere (a kidnap) never relock: they contradict the pose, and
+    the robot searches with the dead-reckoned pose as its prior."""
     from service.core.pose import compose
 
     poses = [np.array([2.0 + 0.08 * k, 2.4, 0.2]) for k in range(8)]
     frame = np.array([5.0, -3.0, 1.0])  # the odometry's own frame
     odom = [compose(frame, p) for p in poses]
     ang, scans = _room_scans(poses)
-    empty = gl.SearchResult(hypotheses=[], ambiguity=1.0, candidates=0)
-    monkeypatch.setattr(gl, "global_search", lambda *a, **k: empty)
     loc = create_localizer("shape", _room_map(), poses[0])
     g = loc.gconfig
     assert loc.update(scans[0], ang, odom[0]).status == "tracking"
-    loc._start_search(poses[0])  # e.g. a crowd collapsed the track here
-    out = [loc.update(scans[k], ang, odom[k]) for k in range(1, 1 + g.reacquire_scans)]
-    assert [e.status for e in out] == ["lost"] * (g.reacquire_scans - 1) + ["tracking"]
+    loc.state = st.DeadReckoning(poses[0].copy(), np.diag([0.05**2, 0.05**2, 0.02**2]))
+    out = [loc.update(scans[k], ang, odom[k]) for k in range(1, 1 + g.relock_scans)]
+    assert [e.status for e in out] == ["lost"] * (g.relock_scans - 1) + ["tracking"]
+    assert [e.state for e in out] == ["dead_reckoning"] * (g.relock_scans - 1) + ["tracking"]
     for k, e in enumerate(out[:-1], start=1):
         assert np.hypot(*(e.pose[:2] - poses[k][:2])) < 0.05  # dead-reckoned, not zeros
-    assert out[-1].extras["reacquired"] == 1.0
-    assert np.hypot(*(out[-1].pose[:2] - poses[g.reacquire_scans][:2])) < 0.03
+        assert e.covariance is not None and np.all(np.isfinite(e.covariance))
+    assert out[-1].extras["relocked"] == 1.0
+    assert np.hypot(*(out[-1].pose[:2] - poses[g.relock_scans][:2])) < 0.03
     # kidnapped: the odometry says the robot is at poses[k], the scans come from elsewhere
     far = [np.array([4.8, 0.8, 2.5]) for _ in range(6)]
     _, kid = _room_scans(far)
     loc2 = create_localizer("shape", _room_map(), poses[0])
     loc2.update(scans[0], ang, odom[0])
-    loc2._start_search(poses[0])
-    assert all(loc2.update(kid[k], ang, odom[k + 1]).status == "lost" for k in range(6))
+    loc2.state = st.DeadReckoning(poses[0].copy(), np.diag([0.05**2, 0.05**2, 0.02**2]))
+    out2 = [loc2.update(kid[k], ang, odom[k + 1]) for k in range(6)]
+    assert all(e.status == "lost" for e in out2), [e.status for e in out2]
+    assert out2[-1].state == "searching"
 
 
 def test_speed_known_before_a_loss_is_carried_to_the_fix() -> None:

@@ -10,7 +10,7 @@ import numpy as np
 from service.adapters.maps.files import load_map_file
 from service.core.factory import create_localizer
 from service.core.reloc import global_search as gs
-from service.core.reloc.global_config import GlobalConfig
+from service.core.reloc.config import GlobalConfig
 from service.core.reloc.global_localization import load_or_build_index
 from service.core.reloc.global_search import global_search
 from service.core.tracking.localizer import ShapeConfig

@@ -10,7 +10,7 @@ import pytest
 from service.core import kernels
 from service.core.kernels import search as search_kernels
 from service.core.reloc.global_localization import load_or_build_index
-from service.core.sensor import pose_scoring as gs
+from service.core.sensor import scoring as gs
 from sim_publisher.office import office_schematic_map
 
 pytestmark = pytest.mark.skipif(not kernels.HAVE_NUMBA, reason="numba kernels not installed")
@@ -25,13 +25,14 @@ def test_table_scores_equal_the_direct_kernel_bit_for_bit(sigma: float) -> None:
     idx = load_or_build_index(office_schematic_map())
     rng = np.random.default_rng(7)
     poses, pts = _poses(rng, 400), rng.uniform(-6, 6, size=(80, 2))
-    args = (float(idx.origin[0]), float(idx.origin[1]), float(idx.resolution))
-    direct = search_kernels.field_scores(idx.dist, *args, poses, pts, sigma, 10.0)
-    table, outside = idx.score_table(sigma, 10.0)
+    f = idx.sensor.field
+    args = (float(f.origin[0]), float(f.origin[1]), float(f.resolution))
+    direct = search_kernels.field_scores(f.values, *args, poses, pts, sigma, 10.0)
+    table, outside = idx.sensor._score_table(sigma)
     looked_up = search_kernels.table_scores(table, outside, *args, poses, pts)
     assert np.array_equal(direct, looked_up)
     assert np.ptp(direct) > 0.02  # inside and outside the field both occur
-    assert idx.score_table(sigma, 10.0)[0] is table  # built once
+    assert idx.sensor._score_table(sigma)[0] is table  # built once
 
 
 def test_table_scores_with_repeated_headings_equal_the_direct_kernel() -> None:
@@ -43,10 +44,11 @@ def test_table_scores_with_repeated_headings_equal_the_direct_kernel() -> None:
     poses = (_poses(rng, 12)[:, None, :] + grid[None, :, :]).reshape(-1, 3)
     shuffled = poses[rng.permutation(len(poses))]
     pts = rng.uniform(-6, 6, size=(80, 2))
-    args = (float(idx.origin[0]), float(idx.origin[1]), float(idx.resolution))
-    table, outside = idx.score_table(0.05, 10.0)
+    f = idx.sensor.field
+    args = (float(f.origin[0]), float(f.origin[1]), float(f.resolution))
+    table, outside = idx.sensor._score_table(0.05)
     for ps in (poses, shuffled):
-        direct = search_kernels.field_scores(idx.dist, *args, ps, pts, 0.05, 10.0)
+        direct = search_kernels.field_scores(f.values, *args, ps, pts, 0.05, 10.0)
         assert np.array_equal(direct, search_kernels.table_scores(table, outside, *args, ps, pts))
 
 
@@ -58,10 +60,11 @@ def test_grid_scores_equal_the_scores_of_every_grid_pose(steps: tuple[float, flo
     rng = np.random.default_rng(10)
     base, pts = _poses(rng, 12), rng.uniform(-6, 6, size=(80, 2))
     cand = (base[:, None, :] + gs._grid(*steps)[None, :, :]).reshape(-1, 3)
-    args = (float(idx.origin[0]), float(idx.origin[1]), float(idx.resolution))
-    table, outside = idx.score_table(0.05, 10.0)
+    f = idx.sensor.field
+    args = (float(f.origin[0]), float(f.origin[1]), float(f.resolution))
+    table, outside = idx.sensor._score_table(0.05)
     grid = search_kernels.grid_scores(table, outside, *args, base, *gs._axes(*steps), pts)
-    direct = search_kernels.field_scores(idx.dist, *args, cand, pts, 0.05, 10.0)
+    direct = search_kernels.field_scores(f.values, *args, cand, pts, 0.05, 10.0)
     assert grid.shape == (12, 125)
     assert np.array_equal(grid.reshape(-1), direct)
     assert np.ptp(direct) > 0.02
@@ -73,9 +76,9 @@ def test_polish_with_the_grid_kernel_equals_the_numpy_reference(
     idx = load_or_build_index(office_schematic_map())
     rng = np.random.default_rng(11)
     poses, pts = _poses(rng, 20), rng.uniform(-6, 6, size=(80, 2))
-    got, got_score = gs._polish(idx, poses, pts, 0.05, prior=0.02)
+    got, got_score = idx.sensor.polish(poses, pts, 0.05, prior=0.02)
     monkeypatch.setattr(gs.kernels, "HAVE_NUMBA", False)
-    ref, ref_score = gs._polish(idx, poses, pts, 0.05, prior=0.02)
+    ref, ref_score = idx.sensor.polish(poses, pts, 0.05, prior=0.02)
     assert np.array_equal(got, ref)
     assert np.max(np.abs(got_score - ref_score)) < 1e-12
 
@@ -84,9 +87,9 @@ def test_support_kernel_equals_the_numpy_reference(monkeypatch: pytest.MonkeyPat
     idx = load_or_build_index(office_schematic_map())
     rng = np.random.default_rng(8)
     poses, pts = _poses(rng, 300), rng.uniform(-6, 6, size=(80, 2))
-    got = gs._support_many(idx, poses, pts, 0.1)
+    got = idx.sensor.support(poses, pts, 0.1)
     monkeypatch.setattr(gs.kernels, "HAVE_NUMBA", False)
-    ref = gs._support_many(idx, poses, pts, 0.1)
+    ref = idx.sensor.support(poses, pts, 0.1)
     assert np.array_equal(got, ref)
     assert np.ptp(ref) > 0.05
 
@@ -99,8 +102,8 @@ def test_field_crossings_equal_the_numpy_reference(monkeypatch: pytest.MonkeyPat
     poses = _poses(rng, 300)
     angles = np.sort(rng.uniform(-np.pi, np.pi, 40))
     ranges = rng.uniform(0.3, 25.0, 40)
-    compiled = gs._field_violations(idx, poses, ranges, angles, 0.5)
+    compiled = idx.sensor.crossings(poses, ranges, angles, 0.5)
     monkeypatch.setattr(kernels, "HAVE_NUMBA", False)
-    reference = gs._field_violations(idx, poses, ranges, angles, 0.5)
+    reference = idx.sensor.crossings(poses, ranges, angles, 0.5)
     assert np.array_equal(compiled, reference)
     assert compiled.min() == 0.0 and compiled.max() > 0.3  # crossing and clear poses occur

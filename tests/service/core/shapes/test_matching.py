@@ -297,7 +297,7 @@ def test_batched_shape_distances_give_the_per_pair_match(
     from the previous pose and from an estimate 0.2 m / 0.15 rad off."""
     sc = real_scene(setup_id, scan)
     P, Q, cfg, truth = sc.P, sc.Q, sc.config, sc.truth
-    loop_cost = shape_cost._gated_shape_cost(cfg, cfg.max_shape_distance)
+    loop_cost = shape_cost.gated_shape_cost(cfg, cfg.max_shape_distance)
     off = truth[scan] + np.array([0.2, -0.1, 0.15])
     c1: dict = {}  # one cache over the estimates, as two_step_match keeps it for a scan
     c2: dict = {}

@@ -273,6 +273,6 @@ def test_compiled_shape_dp_agrees_with_the_python_reference() -> None:
         ew, sw = (0.1, 0.5) if trial % 2 else (0.02, 0.1)
         bound = math.inf if trial % 3 else 0.8
         got = sim._dp(P, Q, 4, ew, sw, True, bound)
-        ref = similarity_reference._dp_python(P, Q, 4, ew, sw, True, bound)
+        ref = similarity_reference.dp_python(P, Q, 4, ew, sw, True, bound)
         assert got[0] == pytest.approx(ref[0], rel=1e-12, abs=1e-12) or got[0] == ref[0]
         assert got[1] == ref[1]

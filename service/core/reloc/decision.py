@@ -1,0 +1,171 @@
+"""The one decision rule of relocalisation: a log-likelihood ratio of the best place against
+the rest, over the drive's frames, with a prior.
+
+Every kept hypothesis ``h`` has a log-likelihood ``L_h`` (nats) on each frame of the window
+(:mod:`service.core.reloc.drive`). With a prior ``pi`` over poses, the evidence of ``h`` is
+``E_h = sum_k L_h,k + log pi(h)``. The *rest* are the distinct alternatives (farther than
+``distinct_distance`` / ``distinct_angle``) and the *unseen place*, a stand-in for what the
+search has not found, which explains every frame at ``null_cost``. The leader (the largest
+``E`` among the tracks scored on every frame) wins when
+
+    LLR = E_leader - log(sum over the rest of exp(E_a))  >=  fix_llr,
+
+i.e. when the posterior odds of the leader against everything else reach ``exp(fix_llr)``.
+Where an alternative has not been scored on a frame yet it counts as explaining that frame
+as well as the leader does (it can only lower the LLR): a place just found is judged on the
+whole window before it can be ruled out.
+
+The prior (:class:`Prior`): uniform over the map while nothing is known (it cancels); after a
+loss, the dead-reckoned pose's Gaussian with ``kidnap_weight`` of the mass spread evenly over
+the map, so a place near where the robot should be needs far less evidence than one across
+the building. Both are the same rule; only the prior differs.
+
+Units: nats; poses ``[x, y, theta]`` map frame; covariances m², rad².
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from service.core import numeric
+from service.core.pose import compose
+from service.core.reloc.config import GlobalConfig
+from service.core.reloc.drive import Frame, Track
+from service.core.reloc.global_search import distinct
+from service.core.sensor.scoring import EFFECTIVE_BEAMS
+from service.core.types import wrap_angle
+
+
+@dataclass
+class Prior:
+    """Where the robot may be before the scans say: ``mean`` / ``cov`` the dead-reckoned pose
+    and its covariance (``None``: nothing known, uniform), ``kidnap`` the share of the mass
+    spread evenly over ``cells`` distinct places of the map (its free area x 2 pi over a
+    place's volume)."""
+
+    mean: np.ndarray | None
+    cov: np.ndarray | None
+    kidnap: float
+    cells: float
+
+    def log(self, pose: np.ndarray, cell: float) -> float:
+        """Log prior mass (nats) of the place ``pose`` (a cell of volume ``cell`` m² rad)."""
+        uniform = math.log(max(self.kidnap, 1e-300)) - math.log(max(self.cells, 1.0))
+        if self.mean is None or self.cov is None:
+            return uniform
+        e = np.asarray(pose, dtype=np.float64) - self.mean
+        e[2] = wrap_angle(float(e[2]))
+        info = numeric.inv(self.cov)
+        m2 = numeric.quadratic(e, info)
+        det = max(_det3(self.cov), 1e-300)
+        density = math.exp(-0.5 * m2) / math.sqrt((2.0 * math.pi) ** 3 * det)
+        mass = min(1.0, density * cell)
+        return math.log((1.0 - self.kidnap) * mass + math.exp(uniform) + 1e-300)
+
+    def moved(self, delta: np.ndarray, noise: np.ndarray) -> Prior:
+        """The prior after a robot-frame motion ``delta`` with process noise ``noise``
+        (3x3, robot frame)."""
+        if self.mean is None or self.cov is None:
+            return self
+        mean, cov = propagate(self.mean, self.cov, delta, noise)
+        return Prior(mean, cov, self.kidnap, self.cells)
+
+
+def _det3(m: np.ndarray) -> float:
+    """Determinant of a 3x3 matrix (cofactors along the first row)."""
+    return float(
+        m[0, 0] * (m[1, 1] * m[2, 2] - m[1, 2] * m[2, 1])
+        - m[0, 1] * (m[1, 0] * m[2, 2] - m[1, 2] * m[2, 0])
+        + m[0, 2] * (m[1, 0] * m[2, 1] - m[1, 1] * m[2, 0])
+    )
+
+
+def propagate(
+    pose: np.ndarray, cov: np.ndarray, delta: np.ndarray, noise: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Dead reckoning: ``pose (+) delta`` and its covariance ``J cov J' + R noise R'`` (``J``
+    the Jacobian of the composition in the pose, ``R`` the rotation of the robot frame)."""
+    new = compose(pose, delta)
+    c, s = math.cos(float(pose[2])), math.sin(float(pose[2]))
+    dx = -s * float(delta[0]) - c * float(delta[1])
+    dy = c * float(delta[0]) - s * float(delta[1])
+    J = np.array([[1.0, 0.0, dx], [0.0, 1.0, dy], [0.0, 0.0, 1.0]])
+    R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    out = numeric.matmul(numeric.matmul(J, cov), J.T) + numeric.matmul(
+        numeric.matmul(R, noise), R.T
+    )
+    return new, 0.5 * (out + out.T)
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """The decision on the tracks: the ``leader`` (``None`` when no track is scored on every
+    frame of a long enough window), its ``llr`` (nats; ``-inf`` without a leader) and its
+    ``evidence`` and the unseen place's."""
+
+    leader: Track | None
+    llr: float
+    evidence: float = -math.inf
+    null: float = -math.inf
+
+    @property
+    def ambiguity(self) -> float:
+        """The posterior probability that the leader is not the place: ``1 / (1 + e^llr)``."""
+        if self.leader is None:
+            return 1.0
+        return 1.0 / (1.0 + math.exp(min(max(self.llr, -700.0), 700.0)))
+
+
+def cell_volume(g: GlobalConfig) -> float:
+    """Volume (m² rad) of one distinct place: a disc of ``distinct_distance`` by twice
+    ``distinct_angle``."""
+    return math.pi * g.distinct_distance**2 * 2.0 * g.distinct_angle
+
+
+def decide(
+    tracks: list[Track], frames: list[Frame], keys: dict[int, float], prior: Prior, g: GlobalConfig
+) -> Verdict:
+    """The leader of ``tracks`` and its LLR against the rest (module docstring), summed over
+    the frames ``keys`` (key -> weight; the drive's, :meth:`~service.core.reloc.drive.Drive.
+    evidence_keys`). The leader must be scored on every frame of the window ``frames``; no
+    leader before the window holds ``min_frames`` frames. A frame a track was not scored on
+    counts, for a candidate leader, as the unseen place explains it, and for an alternative as
+    the leader does (it can only lower the LLR)."""
+    win = [f.key for f in frames]
+    if len(win) < g.min_frames:
+        return Verdict(None, -math.inf)
+    full = [t for t in tracks if all(k in t.ll for k in win)]
+    if not full:
+        return Verdict(None, -math.inf)
+    cell = cell_volume(g)
+    unseen = -EFFECTIVE_BEAMS * (g.null_cost - g.cost_floor)
+
+    def evidence(t: Track, fill: Track | None = None) -> float:
+        total = 0.0
+        for k, w in keys.items():
+            if k in t.ll:
+                total += t.ll[k]
+            elif fill is not None and k in fill.ll:
+                total += fill.ll[k]
+            else:
+                total += w * unseen
+        return total + prior.log(t.pose, cell)
+
+    scored = [(evidence(t), t) for t in full]
+    best_e, leader = max(scored, key=lambda x: x[0])
+    null_ll = sum(w * unseen for w in keys.values())
+    if prior.mean is None:
+        null = null_ll + prior.log(leader.pose, cell)  # uniform: the same prior as any place
+    else:
+        null = null_ll + math.log(max(prior.kidnap, 1e-300)) - math.log(max(prior.cells, 1.0))
+    rest = [null]
+    for t in tracks:
+        if t is leader or not distinct(t.pose, leader.pose, g):
+            continue
+        rest.append(evidence(t, fill=leader))
+    top = max(rest)
+    log_rest = top + math.log(sum(math.exp(e - top) for e in rest))
+    return Verdict(leader, best_e - log_rest, best_e, null)

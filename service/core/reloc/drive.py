@@ -1,0 +1,487 @@
+"""Hypotheses over a drive: the places a search found, followed scan by scan and judged on the
+same frames of the drive.
+
+Why. A search runs on the scan at hand, so a place it finds is good *now*; a place along a
+corridor with a repeating pattern of doors, or the twin of a room, can be as good now as the
+true place while the drive so far tells them apart. With odometry a hypothesis' pose now
+implies where the robot stood on every earlier scan, so it is scored there too (back-scored):
+every hypothesis is judged on the same keyframes, the ones before a search found it included
+(on the tuning log fr079's floor plan, 16 keyframes over 4.9 m gave the true place a mean
+beam cost of 0.39 and an alias 4.4 m along the corridor 0.55, where the last scans ranked the
+alias first).
+
+What.
+
+* :class:`Frame` -- a scan of the evidence: with odometry a *keyframe*, taken when the robot
+  has driven ``evidence_spacing`` or turned ``evidence_turn`` since the last one (its beams,
+  a subsample of its points and its odometry pose); without odometry every scan (weighted
+  ``scan_weight``: consecutive scans see nearly the same). The window holds the frames of the
+  last ``evidence_span`` metres (at most ``evidence_frames``), or ``scan_window`` scans.
+* :class:`Track` -- a hypothesis: its pose now, its latest verification, its log-likelihood
+  on each frame of the window (:meth:`service.core.sensor.scoring.SensorModel.score`, the
+  beam cost clipped at ``evidence_clip``) and its pose there.
+* :func:`rescore` -- every kept track, moved by the odometry, is fitted to the scan (with
+  odometry a polish on the distance field that keeps the moved pose as a prior; without, the
+  point-to-line refinement) and verified, best first, within a share of the budget.
+* :func:`backfill` -- each track is scored on the keyframes it lacks, newest first: its pose
+  there is the pose at the next newer keyframe moved back by the odometry in between,
+  polished with that as the prior (a track's first keyframe also tries a wider polish).
+* :func:`merge`, :func:`prune` -- a finished search's places join the tracks; the tracks
+  clearly worse than the leader or than the unseen place are let go.
+* :class:`Job`, :func:`advance` -- a search (or a self-similarity check) spread over scans.
+
+Work is counted in reference ms (:data:`service.core.reloc.global_search.WORK_MS`), so the
+same scans give the same poses on any machine and under any load. Units: metres, radians;
+poses ``[x, y, theta]`` in the map frame, odometry poses in the odometry frame.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Generator
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from service.core.pose import compose, invert
+from service.core.reloc.config import GlobalConfig
+from service.core.reloc.global_search import (
+    WORK_MS,
+    Hypothesis,
+    beam_model,
+    beams_ms,
+    distinct,
+    near,
+    polish_ms,
+    refine,
+    refine_ms,
+    verify,
+    verify_ms,
+)
+from service.core.reloc.view_index import ViewIndex
+from service.core.sensor.scoring import EFFECTIVE_BEAMS, beam_fractions, subsample
+from service.core.shapes.configuration import Configuration
+from service.core.tracking.shape_config import ShapeConfig
+from service.core.types import wrap_angle
+
+#: Polish stages (step m, step rad) of a track's first keyframe: +-0.43 m / +-10 degrees.
+WIDE_POLISH = ((0.15, 0.06), (0.05, 0.02), (0.015, 0.006))
+
+
+@dataclass(eq=False)
+class Frame:
+    """A scan of the drive's evidence: ``key`` its serial number; ``ranges`` / ``angles`` the
+    judged beams (valid returns); ``points`` robot-frame return points for the polish;
+    ``odom`` its odometry pose (``None`` without odometry); ``travel`` the drive's odometry
+    travel there (m); ``weight`` what its log-likelihood counts (1 for a keyframe)."""
+
+    key: int
+    ranges: np.ndarray
+    angles: np.ndarray
+    points: np.ndarray
+    odom: np.ndarray | None
+    travel: float
+    weight: float = 1.0
+
+
+@dataclass(eq=False)
+class Track:
+    """A hypothesis followed over the drive: ``pose`` now; ``hyp`` its latest verification;
+    ``ll`` its log-likelihood (nats) per frame key and ``at`` its pose there; ``found`` how
+    many searches found it; ``checked`` whether its self-similarity check ran; ``age`` scans
+    it was re-scored on."""
+
+    pose: np.ndarray
+    hyp: Hypothesis
+    ll: dict[int, float] = field(default_factory=dict)
+    at: dict[int, np.ndarray] = field(default_factory=dict)
+    found: int = 1
+    checked: bool = False
+    age: int = 0
+
+
+@dataclass(eq=False)
+class Job:
+    """A search in progress: its step generator and the odometry pose of the scan it started
+    on (``None`` without odometry); ``track`` the track a self-similarity check is for."""
+
+    steps: Generator[float, None, Any]
+    odom: np.ndarray | None
+    track: Track | None = None
+
+
+def advance(job: Job, spent: float, budget: float) -> tuple[float, bool, Any]:
+    """Run ``job`` until the scan's work ``spent`` reaches ``budget`` (at least one step, so a
+    search always progresses). Returns ``(spent, done, result)``."""
+    while True:
+        try:
+            w = next(job.steps)
+        except StopIteration as stop:
+            return spent, True, stop.value
+        spent += w
+        if spent >= budget:
+            return spent, False, None
+
+
+def odometry_move(since: np.ndarray | None, now: np.ndarray | None) -> np.ndarray | None:
+    """Robot-frame motion from odometry pose ``since`` to ``now`` (``None`` if either is)."""
+    if since is None or now is None:
+        return None
+    return compose(invert(since), now)
+
+
+@dataclass(eq=False)
+class Drive:
+    """The hypotheses over a drive and their evidence: ``tracks``, the ``frames`` of the
+    window (``next_key`` numbers the next), the odometry ``travel`` (m) since the drive
+    began, the pending search ``job`` and self-similarity check ``twin``, the scans of the
+    composite (``history``), the candidates the last finished search induced and the robot's
+    known speed before a loss (map frame, m per scan; ``None``: unknown). The pending jobs
+    are not pickled (generators): a search starts again on the next scan."""
+
+    tracks: list[Track] = field(default_factory=list)
+    frames: list[Frame] = field(default_factory=list)
+    next_key: int = 0
+    travel: float = 0.0
+    job: Job | None = None
+    twin: Job | None = None
+    history: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = field(default_factory=list)
+    candidates: int = 0
+    speed: np.ndarray | None = None
+    #: every keyframe's weight by key, those that left the window included: a hypothesis'
+    #: scores there are kept (they were measured while the odometry between the keyframe and
+    #: its pose then was short), so evidence that told two places apart is not forgotten
+    weights: dict[int, float] = field(default_factory=dict)
+
+    def __getstate__(self) -> dict[str, Any]:
+        state = dict(self.__dict__)
+        state["job"] = None
+        state["twin"] = None
+        return state
+
+    def move(self, delta: np.ndarray, step: float) -> None:
+        """Move every track by the odometry increment ``delta`` (robot frame) of length
+        ``step`` (m)."""
+        self.travel += step
+        for t in self.tracks:
+            t.pose = compose(t.pose, delta)
+
+    def add(self, frame: Frame, g: GlobalConfig) -> None:
+        """Add a frame; the window keeps the recent ones (:func:`window`)."""
+        self.next_key = frame.key + 1
+        self.frames = window([*self.frames, frame], g)
+        if frame.odom is not None:
+            self.weights[frame.key] = frame.weight
+
+    def evidence_keys(self, g: GlobalConfig) -> dict[int, float]:
+        """The frames the decision sums over, key -> weight: every keyframe of the drive with
+        odometry, the window's plain scans without (consecutive scans see nearly the same:
+        their evidence is not carried beyond the window)."""
+        win = window(self.frames, g)
+        if win and win[-1].odom is None:
+            return {f.key: f.weight for f in win}
+        return dict(self.weights)
+
+
+def held(pose: np.ndarray) -> Hypothesis:
+    """The hypothesis of a pose the tracker held until a loss (verified a scan ago)."""
+    return Hypothesis(pose=np.asarray(pose, dtype=np.float64).copy(), cost=0.05)
+
+
+# ------------------------------------------------------------------------------- frames
+def make_frame(
+    key: int,
+    ranges: np.ndarray,
+    angles: np.ndarray,
+    odom: np.ndarray | None,
+    travel: float,
+    g: GlobalConfig,
+) -> Frame:
+    """A :class:`Frame` of one scan (``ranges`` metres, NaN = no return; ``angles`` radians
+    robot frame; ``odom`` its odometry pose or ``None``: then a plain scan's weight)."""
+    r = np.asarray(ranges, dtype=np.float64)
+    a = np.asarray(angles, dtype=np.float64)
+    sel = subsample(np.nonzero(np.isfinite(r))[0], g.verify_beams)
+    rr, aa = r[sel].copy(), a[sel].copy()
+    pts = np.column_stack([rr * np.cos(aa), rr * np.sin(aa)])
+    return Frame(
+        key=key,
+        ranges=rr,
+        angles=aa,
+        points=subsample(pts, g.support_points).copy(),
+        odom=None if odom is None else np.asarray(odom, dtype=np.float64).copy(),
+        travel=float(travel),
+        weight=1.0 if odom is not None else g.scan_weight,
+    )
+
+
+def frame_due(frames: list[Frame], odom: np.ndarray, travel: float, g: GlobalConfig) -> bool:
+    """Whether a scan at odometry pose ``odom`` and drive travel ``travel`` becomes a keyframe:
+    the first, or ``evidence_spacing`` driven or ``evidence_turn`` turned since the last."""
+    if not frames or frames[-1].odom is None:
+        return True
+    last = frames[-1]
+    if travel - last.travel >= g.evidence_spacing:
+        return True
+    return abs(float(wrap_angle(float(odom[2]) - float(last.odom[2])))) >= g.evidence_turn
+
+
+def window(frames: list[Frame], g: GlobalConfig) -> list[Frame]:
+    """The frames of the window: keyframes within ``evidence_span`` metres of the newest (at
+    most ``evidence_frames``), plain scans the last ``scan_window``."""
+    if not frames:
+        return []
+    if frames[-1].odom is None:
+        return [f for f in frames if f.odom is None][-g.scan_window :]
+    newest = frames[-1].travel
+    out = [f for f in frames if f.odom is not None and newest - f.travel <= g.evidence_span]
+    return out[-g.evidence_frames :]
+
+
+def loglik(cost: float, g: GlobalConfig) -> float:
+    """A frame's log-likelihood (nats) from its beam cost: ``-EFFECTIVE_BEAMS x (cost -
+    floor)``, the cost clipped at ``evidence_clip`` (one frame with a person in front of the
+    laser must not outweigh the drive)."""
+    return -EFFECTIVE_BEAMS * (min(cost, g.evidence_clip) - g.cost_floor)
+
+
+def frame_cost(
+    index: ViewIndex, pose: np.ndarray, f: Frame, config: ShapeConfig, g: GlobalConfig
+) -> float:
+    """The beam cost of ``pose`` on frame ``f``'s beams (short returns graded by
+    ``evidence_short_scale``)."""
+    if f.ranges.size == 0:
+        return g.evidence_clip
+    assert index.sensor is not None
+    m = beam_model(config, g, short_scale=g.evidence_short_scale)
+    pred, landed = index.sensor.predict(pose, f.ranges, f.angles, m)
+    return beam_fractions(f.ranges, pred, m, landed).cost(m)
+
+
+def pair_ms(index: ViewIndex, g: GlobalConfig) -> float:
+    """Work (reference ms) of scoring one track on one keyframe: a one-pose polish and the
+    beams."""
+    return WORK_MS["polish_call"] + polish_ms(g.support_points) + beams_ms(index, g, g.verify_beams)
+
+
+# ------------------------------------------------------------------------------- re-scoring
+def rescore(
+    index: ViewIndex,
+    tracks: list[Track],
+    ranges: np.ndarray,
+    angles: np.ndarray,
+    P: Configuration,
+    config: ShapeConfig,
+    g: GlobalConfig,
+    limit: float,
+    scan: Frame | None,
+) -> float:
+    """Fit each track (best first) to this scan and verify it, while the work stays within
+    ``limit`` (reference ms). With odometry (``scan`` is ``None``) the tracks were moved by it
+    and a polish on the distance field, the moved pose as its prior, absorbs its error;
+    without, the point-to-line refinement follows the robot's motion, and the verification
+    is the track's evidence on the plain-scan frame ``scan``. Returns the work spent."""
+    if not tracks:
+        return 0.0
+    pts = np.vstack([f.points for f in P.features]) if P.features else np.zeros((0, 2))
+    sp = subsample(pts, g.support_points)
+    odometry = scan is None
+    fit_ms = polish_ms(len(sp)) if odometry else refine_ms(index)
+    each = fit_ms + verify_ms(index, g)
+    n = len(tracks) if not np.isfinite(limit) else max(1, min(len(tracks), int(limit // each)))
+    chosen = sorted(tracks, key=lambda t: t.hyp.cost)[:n]
+    if len(sp) == 0:
+        return n * each
+    poses = np.vstack([t.pose for t in chosen])
+    if odometry:
+        assert index.sensor is not None
+        fitted, _ = index.sensor.polish(poses, sp, g.fine_scale, prior=g.rescore_prior)
+    else:
+        fitted = refine(index, poses, sp, config, g)
+    for t, p in zip(chosen, fitted, strict=True):
+        h = verify(index, p, ranges, angles, P, config, g)
+        t.pose = h.pose.copy()
+        t.hyp = h
+        t.age += 1
+        if scan is not None:
+            t.ll[scan.key] = scan.weight * loglik(h.cost, g)
+            t.at[scan.key] = h.pose.copy()
+    return n * each
+
+
+def backfill(
+    index: ViewIndex,
+    tracks: list[Track],
+    frames: list[Frame],
+    odom_now: np.ndarray,
+    config: ShapeConfig,
+    g: GlobalConfig,
+    limit: float,
+    first: Track | None = None,
+) -> float:
+    """Score the tracks on the keyframes of ``frames`` (the window) they lack, newest
+    keyframe first and breadth first (every track's recent keyframes before anyone's old
+    ones; ``first``, a winner on probation, before the others), within ``limit`` reference
+    ms (at least one score when anything is missing). Scores older than the window are
+    forgotten. Returns the work spent."""
+    keys = {f.key for f in frames}
+    odom_of = {f.key: f.odom for f in frames}
+    for t in tracks:
+        for k in [k for k in t.at if k not in keys]:
+            del t.at[k]  # the score there is kept (Drive.weights)
+    kf = [f for f in frames if f.odom is not None]
+    if not kf:
+        return 0.0
+    assert index.sensor is not None
+    each = pair_ms(index, g)
+    spent = 0.0
+    ranked = sorted(tracks, key=lambda t: (t is not first, -len(t.ll), t.hyp.cost))
+    for f in reversed(kf):
+        for t in ranked:
+            if f.key in t.ll:
+                continue
+            if spent >= limit:
+                return spent
+            newer = [k for k in t.at if k > f.key]
+            if newer:
+                k = min(newer)
+                start = compose(t.at[k], compose(invert(odom_of[k]), f.odom))
+            else:
+                start = compose(t.pose, compose(invert(odom_now), f.odom))
+            narrow, _ = index.sensor.polish(
+                start[None, :], f.points, g.fine_scale, prior=g.rescore_prior
+            )
+            pose, cost = narrow[0], frame_cost(index, narrow[0], f, config, g)
+            if not t.ll:
+                # a track's first keyframe: also a wider polish without a prior, and the pose
+                # as given; the one the beams explain best is kept (a hypothesis some degrees
+                # off converges before it is judged; tuning building 16: a twin 0.2 m / 10
+                # degrees off the true pose, judged with the narrow polish only, lost to a
+                # mirrored alias)
+                wide, _ = index.sensor.polish(start[None, :], f.points, g.fine_scale, WIDE_POLISH)
+                for alt in (wide[0], start):
+                    c = frame_cost(index, alt, f, config, g)
+                    if c < cost:
+                        pose, cost = alt, c
+                spent += 0.5 * polish_ms(len(f.points)) + 2 * each
+            t.ll[f.key] = f.weight * loglik(cost, g)
+            t.at[f.key] = pose.copy()
+            spent += each
+    return spent
+
+
+# ------------------------------------------------------------------------------- the tracks
+def merge(
+    tracks: list[Track], hyps: list[Hypothesis], move: np.ndarray | None, keep: int
+) -> list[Track]:
+    """Add the best ``keep`` of a finished search's hypotheses (found on an earlier scan;
+    ``move`` the robot-frame odometry motion since, or ``None``) to ``tracks`` unless one
+    already holds that pose (which then counts one more ``found``)."""
+    out = list(tracks)
+    counted: list[Track] = []
+    for h in hyps[:keep]:
+        pose = compose(h.pose, move) if move is not None else np.asarray(h.pose, dtype=float)
+        held = [t for t in out if near(t.pose, pose)]
+        for t in held:
+            if t not in counted:
+                t.found += 1
+                counted.append(t)
+        if held:
+            continue
+        hyp = Hypothesis(
+            pose=pose.copy(),
+            cost=h.cost,
+            hit=h.hit,
+            violation=h.violation,
+            explained=h.explained,
+            short=h.short,
+        )
+        out.append(Track(pose.copy(), hyp))
+    return out
+
+
+def common(a: Track, b: Track, keys: dict[int, float]) -> tuple[float, float, int]:
+    """The summed log-likelihoods of ``a`` and of ``b`` over the frames of ``keys`` both were
+    scored on, and how many those are."""
+    both = [k for k in keys if k in a.ll and k in b.ll]
+    return sum(a.ll[k] for k in both), sum(b.ll[k] for k in both), len(both)
+
+
+def prune(
+    tracks: list[Track],
+    frames: list[Frame],
+    keys: dict[int, float],
+    leader: Track | None,
+    g: GlobalConfig,
+) -> list[Track]:
+    """The tracks to keep: a track trailing the ``leader`` by ``evidence_drop`` nats per
+    frame, or the unseen place as much, on at least 3 common frames of ``keys`` goes; of the
+    rest the best ``keep`` judged on every frame of the window ``frames`` and ``keep`` still
+    being judged, one per place."""
+    null = -EFFECTIVE_BEAMS * (g.null_cost - g.cost_floor)
+
+    def dropped(t: Track) -> bool:
+        mine = [t.ll[k] / w for k, w in keys.items() if k in t.ll]
+        if len(mine) < 3:
+            return False
+        if sum(mine) / len(mine) < null - g.evidence_drop:
+            return True
+        if leader is None or t is leader:
+            return False
+        a, b, m = common(leader, t, keys)
+        return m >= 3 and (a - b) / m > g.evidence_drop
+
+    live = [t for t in tracks if not dropped(t)]
+    win = [f.key for f in frames]
+    full = [t for t in live if all(k in t.ll for k in win)]
+
+    def total(t: Track) -> float:
+        return -sum(t.ll.get(k, 0.0) for k in keys)
+
+    done = sorted(full, key=total)
+    if leader is not None and leader in done:
+        done.remove(leader)
+        done.insert(0, leader)
+    pending = sorted((t for t in live if t not in full), key=lambda t: (-len(t.ll), t.hyp.cost))
+    out: list[Track] = []
+    for group in (done, pending):
+        taken = 0
+        for t in group:
+            if taken >= g.keep:
+                break
+            if any(near(t.pose, o.pose) for o in out):
+                continue
+            out.append(t)
+            taken += 1
+    return out
+
+
+def candidates(tracks: list[Track], k: int = 5) -> np.ndarray:
+    """The first ``k`` tracks as ``(k, 4)`` rows ``[x, y, theta, cost]`` (for the wire)."""
+    rows = [[*map(float, t.pose), float(t.hyp.cost)] for t in tracks[:k]]
+    return np.array(rows, dtype=np.float64).reshape(-1, 4)
+
+
+#: Earlier versions' name of a frame (a localiser state pickled by them names it).
+Keyframe = Frame
+
+__all__ = [
+    "WIDE_POLISH",
+    "Drive",
+    "Frame",
+    "Job",
+    "Track",
+    "advance",
+    "backfill",
+    "candidates",
+    "common",
+    "distinct",
+    "frame_due",
+    "held",
+    "make_frame",
+    "merge",
+    "odometry_move",
+    "prune",
+    "rescore",
+    "window",
+]

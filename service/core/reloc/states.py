@@ -1,0 +1,650 @@
+"""Relocalisation as a state machine: the states as objects and one transition function,
+:func:`step` (``(state, scan) -> (state, estimate)``).
+
+* :class:`Tracking` -- the shape tracker follows the robot. With odometry a *dead-reckoned
+  reference* rides along: the pose the odometry carried from the last scan the map explained
+  well (``good_support``), with its growing covariance. A fit of a poorly explained scan is
+  believed only within ``gate_sigmas`` of it, and a rejected scan (the tracker keeps the
+  odometry's pose) only while the reference's sigma is below ``track_sigma``; beyond either,
+  the robot dead-reckons. A scan that contradicts the pose (beams through drawn walls, or the
+  scan-to-scan fit broken: a kidnap) ``lost_after`` times in a row starts a search. Without
+  odometry the tracker's own ``lost`` (or a scan that fits nothing) starts one.
+* :class:`DeadReckoning` -- the map does not explain the scans: the published pose is the
+  dead-reckoned one with its growing covariance (status ``lost``: not map-confirmed). Every
+  scan the tracker is run from it; ``relock_scans`` scans in a row that it explains well
+  within the gate fix the robot again. A dead-reckoned pose the scans contradict, or one
+  whose sigma passed ``max_dead_reckoning_sigma``, gives way to a search, with the
+  dead-reckoned pose as the prior.
+* :class:`Searching` -- the global search over a drive (:mod:`service.core.reloc.drive`),
+  within the per-scan budget (none: a whole search per scan); the decision
+  (:func:`service.core.reloc.decision.decide`) names a winner, the tracker confirms it.
+* :class:`Probation` -- with odometry a winner is tracked ``probation_travel`` metres while
+  the evidence goes on, and fixed if the decision still names it then.
+
+The localiser (:class:`service.core.reloc.global_localization.GlobalShapeLocalizer`) holds
+the state and the parts every state uses (tracker, map index, odometry): :class:`Context`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+
+from service.core import numeric
+from service.core.reloc import drive as dr
+from service.core.reloc.composite import composite_scan
+from service.core.reloc.config import GlobalConfig
+from service.core.reloc.decision import Prior, Verdict, cell_volume, decide, propagate
+from service.core.reloc.global_search import search_steps, self_similar_steps
+from service.core.reloc.view_index import ViewIndex
+from service.core.shapes.configuration import Configuration, scan_configuration
+from service.core.tracking.localizer import ShapeConfig, ShapeLocalizer
+from service.core.tracking.scan_odometry import OdometryStep
+from service.core.types import Estimate, Status, wrap_angle
+
+#: Heading offsets (rad) under which a kept hypothesis seeds the next search: a robot may turn
+#: that much between two scans, more than the fit recovers.
+SEED_TURNS = (0.0, -0.4, 0.4, -0.8, 0.8)
+#: Work (reference ms) of the tracker's confirmation of a winner: a tracker update from a
+#: fresh reset, measured 10 / 21 ms median on the office's metric / schematic map.
+CONFIRM_MS = 20.0
+#: Covariance (m², rad²) of a pose the map has just confirmed, at least: the reference starts
+#: there, and a fit is compared with a dead-reckoned pose within it. A fit's own covariance
+#: says how well the points pin it, not how far a wrong association moves it: consecutive
+#: accepted fits on the tuning logs differ from the odometry's step by up to ~5 cm and ~1.5
+#: degrees.
+FIX_COV = np.diag([0.05**2, 0.05**2, 0.03**2])
+#: Without odometry the prior around the last tracked pose widens by this many metres per
+#: scan and per metre of the robot's known speed per scan (it may turn any amount).
+HELD_GROWTH = 2.0
+
+
+@dataclass(frozen=True)
+class Scan:
+    """One scan and its odometry: ``ranges`` (m, NaN = none) and ``angles`` (rad, robot
+    frame), the :class:`~service.core.tracking.scan_odometry.OdometryStep`, and whether the
+    tracker uses the odometry as its prior (``odometry``)."""
+
+    ranges: np.ndarray
+    angles: np.ndarray
+    odom: OdometryStep
+    odometry: bool
+
+
+class Context(Protocol):
+    """What the states use of the localiser."""
+
+    config: ShapeConfig
+    gconfig: GlobalConfig
+    tracker: ShapeLocalizer
+    work_ms: float
+    searches: int
+
+    @property
+    def index(self) -> ViewIndex: ...
+
+
+# ------------------------------------------------------------------------------- the states
+@dataclass
+class Tracking:
+    """The tracker follows; ``ref`` / ``cov`` the dead-reckoned reference (module docstring;
+    ``None`` without odometry), ``strikes`` scans in a row that contradicted the pose,
+    ``since_fix`` scans since a search's fix (a service keeps such a robot on its search
+    worker for ``settle_scans``)."""
+
+    ref: np.ndarray | None = None
+    cov: np.ndarray | None = None
+    strikes: int = 0
+    since_fix: int = 1 << 30
+    name: str = "tracking"
+
+
+@dataclass
+class DeadReckoning:
+    """The map does not explain the scans: ``pose`` / ``cov`` dead-reckoned; ``relock`` scans
+    in a row the tracker explained well from it, ``strikes`` scans in a row that contradicted
+    it."""
+
+    pose: np.ndarray
+    cov: np.ndarray
+    relock: int = 0
+    strikes: int = 0
+    name: str = "dead_reckoning"
+
+
+@dataclass
+class Searching:
+    """The search over a drive: ``drive`` the hypotheses and frames, ``prior`` where the robot
+    may be, ``status`` published (``initializing`` before any fix, ``lost`` after one),
+    ``scans`` searched so far; with a dead-reckoned prior and odometry, ``relock`` scans in a
+    row the tracker explained well from the prior's mean (as :class:`DeadReckoning`)."""
+
+    drive: dr.Drive
+    prior: Prior
+    status: Status = "initializing"
+    scans: int = 0
+    relock: int = 0
+    name: str = "searching"
+
+
+@dataclass
+class Probation:
+    """A winner tracked before it is published: ``winner`` its track among the ``drive``'s,
+    ``left`` the travel (m) still to go, ``rejected`` scans in a row the tracker rejected."""
+
+    drive: dr.Drive
+    prior: Prior
+    winner: dr.Track
+    left: float
+    status: Status = "initializing"
+    rejected: int = 0
+    name: str = "probation"
+
+
+State = Tracking | DeadReckoning | Searching | Probation
+
+
+# ------------------------------------------------------------------------------- helpers
+def sigma_xy(cov: np.ndarray) -> float:
+    """Largest position standard deviation (m) of a pose covariance."""
+    return float(math.sqrt(max(0.0, float(numeric.eigh_sym2(cov[:2, :2])[0][-1]))))
+
+
+def odometry_noise(delta: np.ndarray, config: ShapeConfig) -> np.ndarray:
+    """Process noise (robot frame) of one odometry increment for dead reckoning: the classic
+    odometry model's ``alpha`` terms (translation and turn), without the per-scan floors of
+    the tracker's prior (a robot standing still does not drift)."""
+    c = config.motion
+    d = float(np.hypot(delta[0], delta[1]))
+    t = abs(float(delta[2]))
+    s_t = c.alpha_trans_trans * d + c.alpha_trans_rot * t
+    s_r = c.alpha_rot_rot * t + c.alpha_rot_trans * d
+    return np.diag([s_t**2, s_t**2, s_r**2])
+
+
+def mahalanobis2(pose: np.ndarray, mean: np.ndarray, cov: np.ndarray) -> float:
+    """Squared Mahalanobis distance of ``pose`` from ``mean`` under ``cov`` (plus the fit's
+    own covariance, :data:`FIX_COV`)."""
+    e = np.asarray(pose, dtype=np.float64) - mean
+    e[2] = wrap_angle(float(e[2]))
+    return float(numeric.quadratic(e, numeric.inv(cov + FIX_COV)))
+
+
+def fit_cov(est: Estimate) -> np.ndarray:
+    """The covariance a fix starts the reference with: the fit's, at least :data:`FIX_COV`."""
+    if est.covariance is None:
+        return FIX_COV.copy()
+    c = np.asarray(est.covariance, dtype=np.float64).reshape(3, 3)
+    return np.maximum(c, 0.0) * np.eye(3) + FIX_COV if np.all(np.isfinite(c)) else FIX_COV.copy()
+
+
+def _contradicts(ctx: Context, scan: Scan, pose: np.ndarray, cov: np.ndarray | None = None) -> bool:
+    """Whether the scan contradicts ``pose``: more than ``contradiction`` of the tracker's
+    violation beams return from beyond a drawn wall, by more than the tracker's margin plus,
+    for a dead-reckoned pose of covariance ``cov``, ``gate_sigmas`` of its position sigma (a
+    wall the pose may be that far off from is no contradiction)."""
+    margin = ctx.config.violation_margin
+    if cov is not None:
+        margin += ctx.gconfig.gate_sigmas * sigma_xy(cov)
+    share = ctx.tracker.violations(scan.ranges, scan.angles, [pose], margin)[0]
+    return share > ctx.gconfig.contradiction
+
+
+def start_search(ctx: Context, status: Status, prior: Prior | None = None) -> Searching:
+    """A new search (no hypotheses yet) with ``prior`` (default: uniform over the map)."""
+    return Searching(dr.Drive(), prior or Prior(None, None, 1.0, 1.0), status)
+
+
+def lost_prior(ctx: Context, pose: np.ndarray, cov: np.ndarray) -> Prior:
+    """The prior of a search after a loss: the dead-reckoned Gaussian, ``kidnap_weight``
+    spread over the map's places."""
+    return Prior(
+        np.asarray(pose, dtype=np.float64).copy(), cov.copy(), ctx.gconfig.kidnap_weight, 0.0
+    )
+
+
+# ------------------------------------------------------------------------------- the step
+def step(ctx: Context, state: State, scan: Scan) -> tuple[State, Estimate]:
+    """The one transition function: the next state and the estimate to publish."""
+    if isinstance(state, Tracking):
+        new, est = _tracking(ctx, state, scan)
+    elif isinstance(state, DeadReckoning):
+        new, est = _dead_reckoning(ctx, state, scan)
+    elif isinstance(state, Probation):
+        new, est = _probation(ctx, state, scan)
+    else:
+        new, est = _searching(ctx, state, scan)
+    est.state = "searching" if isinstance(new, Searching) else new.name  # type: ignore[assignment]
+    if not isinstance(new, Tracking) and est.status == "tracking":
+        est.status = "lost"
+    return new, est
+
+
+def _tracking(ctx: Context, s: Tracking, scan: Scan) -> tuple[State, Estimate]:
+    g = ctx.gconfig
+    o = scan.odom
+    if o.delta is not None and not scan.odometry and abs(float(o.delta[2])) > g.odom_turn_assist:
+        # a turn the shape tracker cannot bridge without its odometry prior (a look-around
+        # spin after the fix): the odometry's heading change moves its pose first
+        ctx.tracker.predict(o.delta)
+    est = ctx.tracker.update(scan.ranges, scan.angles, o.reading, o.matched_from)
+    if est.ambiguity is not None:
+        # the tracker's own ambiguity compares step-2 hypotheses that often converge to one
+        # pose: no integrity signal; the published ambiguity is the search's
+        est.extras["tracker_ambiguity"] = float(est.ambiguity)
+    est.ambiguity = None
+    s.since_fix += 1
+    rejected = "rejected" in est.extras
+    if not scan.odometry:
+        s.ref = s.cov = None
+        if est.status == "lost" or (rejected and est.score < g.collapse_score):
+            # with no odometry to bridge it, a scan that fits the map nowhere near the pose
+            # ends the track
+            est.extras["collapsed"] = 1.0
+            return _lost(ctx, est.pose, None), est
+        return s, est
+    if o.delta is None or s.ref is None or s.cov is None:
+        s.ref, s.cov = est.pose.copy(), fit_cov(est)  # the reference starts here
+        return s, est
+    s.ref, s.cov = propagate(s.ref, s.cov, o.delta, odometry_noise(o.delta, ctx.config))
+    if not rejected and (est.explained or 0.0) >= g.good_support:
+        s.ref, s.cov, s.strikes = est.pose.copy(), fit_cov(est), 0
+        return s, est
+    # a poorly explained scan: does it contradict the pose (a kidnap)?
+    contradicted = o.broken or _contradicts(ctx, scan, est.pose)
+    s.strikes = s.strikes + 1 if contradicted else 0
+    if s.strikes >= ctx.config.lost_after:
+        est.extras["contradicted"] = 1.0
+        return _lost(ctx, s.ref, s.cov), est
+    stray = not rejected and mahalanobis2(est.pose, s.ref, s.cov) > g.gate_sigmas**2
+    if stray or est.status == "lost" or sigma_xy(s.cov) > g.track_sigma:
+        est.extras["stray" if stray else "unexplained"] = 1.0
+        ctx.tracker.reset(None)
+        dead = DeadReckoning(s.ref.copy(), s.cov.copy())
+        return dead, _dead_estimate(dead, est)
+    return s, est
+
+
+def _lost(ctx: Context, pose: np.ndarray, cov: np.ndarray | None) -> Searching:
+    """A search after the track is lost at ``pose`` (with odometry: dead-reckoned, ``cov``;
+    without: the last tracked pose, widened scan by scan)."""
+    speed = ctx.tracker.known_speed()
+    ctx.tracker.reset(None)
+    if cov is None:
+        step_m = 0.0 if speed is None else float(np.hypot(*speed))
+        grow = (HELD_GROWTH * max(step_m, 0.05)) ** 2
+        cov = np.diag([grow, grow, math.pi**2])
+    prior = lost_prior(ctx, pose, cov)
+    srch = start_search(ctx, "lost", prior)
+    srch.drive.tracks = [dr.Track(np.asarray(pose, dtype=np.float64).copy(), dr.held(pose))]
+    srch.drive.speed = speed
+    return srch
+
+
+def _dead_estimate(d: DeadReckoning, est: Estimate) -> Estimate:
+    return Estimate(
+        pose=d.pose.copy(),
+        status="lost",
+        score=est.score,
+        explained=est.explained,
+        covariance=d.cov.copy(),
+        extras=est.extras,
+    )
+
+
+def _relock(
+    ctx: Context, pose: np.ndarray, cov: np.ndarray, scan: Scan
+) -> tuple[Estimate, np.ndarray, np.ndarray, bool]:
+    """The tracker run from the dead-reckoned ``pose`` (covariance ``cov``), this scan's
+    odometry increment its prior. Returns the fit, the dead-reckoned pose and covariance
+    after this scan (the fit's pose when it is good), and whether it is good: accepted,
+    explaining ``good_support`` of the scan, within ``gate_sigmas`` of the dead-reckoned
+    pose."""
+    g = ctx.gconfig
+    o = scan.odom
+    assert o.delta is not None
+    ctx.tracker.reset(pose, o.previous)
+    est = ctx.tracker.update(scan.ranges, scan.angles, o.reading, o.matched_from)
+    est.ambiguity = None
+    # (the tracker keeps this fit: if it relocks, tracking goes on from it)
+    pose, cov = propagate(pose, cov, o.delta, odometry_noise(o.delta, ctx.config))
+    good = (
+        "rejected" not in est.extras
+        and est.status == "tracking"
+        and (est.explained or 0.0) >= g.good_support
+        and mahalanobis2(est.pose, pose, cov) <= g.gate_sigmas**2
+    )
+    if good:
+        pose = est.pose.copy()  # follow the fit; the odometry carries it from here
+    return est, pose, cov, good
+
+
+def _dead_reckoning(ctx: Context, d: DeadReckoning, scan: Scan) -> tuple[State, Estimate]:
+    g = ctx.gconfig
+    o = scan.odom
+    if not scan.odometry or o.delta is None or o.previous is None:
+        # the odometry stopped: nothing carries the pose any more
+        return _lost(ctx, d.pose, d.cov), Estimate(d.pose.copy(), "lost", 0.0)
+    est, d.pose, d.cov, good = _relock(ctx, d.pose, d.cov, scan)
+    d.relock = d.relock + 1 if good else 0
+    if d.relock >= g.relock_scans:
+        est.extras["relocked"] = 1.0
+        return Tracking(est.pose.copy(), fit_cov(est)), est
+    d.strikes = d.strikes + 1 if _contradicts(ctx, scan, d.pose, d.cov) else 0
+    out = _dead_estimate(d, est)
+    if d.strikes >= ctx.config.lost_after or sigma_xy(d.cov) > g.max_dead_reckoning_sigma:
+        # a search, the dead-reckoned pose its prior (and still relocked the same way)
+        out.extras["contradicted" if d.strikes else "dead_reckoning_expired"] = 1.0
+        return _lost(ctx, d.pose, d.cov), out
+    return d, out
+
+
+# ------------------------------------------------------------------------------- searching
+def _seeds(drive: dr.Drive, prior: Prior, odometry: bool) -> list[np.ndarray]:
+    """The kept tracks as the next search's seeds, each turned by :data:`SEED_TURNS`, and the
+    prior's mean (all round the circle without odometry: the robot may have turned)."""
+    out = [
+        np.array([t.pose[0], t.pose[1], wrap_angle(t.pose[2] + dth)])
+        for t in drive.tracks
+        for dth in SEED_TURNS
+    ]
+    if prior.mean is not None:
+        turns = SEED_TURNS if odometry else tuple(np.arange(8) * (np.pi / 4))
+        x, y, th = prior.mean
+        out += [np.array([x, y, wrap_angle(th + t)]) for t in turns]
+    return out
+
+
+def _composite(drive: dr.Drive, scan: Scan, g: GlobalConfig) -> tuple[np.ndarray, np.ndarray]:
+    """The scan the search matches: this one, or with odometry the virtual 360-degree
+    composite of the last ``composite_scans`` within ``composite_travel``."""
+    r, a, here = scan.ranges, scan.angles, scan.odom.reading
+    if here is None or g.composite_scans <= 1:
+        drive.history = []
+        return r, a
+    drive.history = [
+        h
+        for h in drive.history[-(g.composite_scans - 1) :]
+        if np.hypot(*(h[2][:2] - here[:2])) <= g.composite_travel
+    ]
+    drive.history.append((r, a, here.copy()))
+    if len(drive.history) == 1:
+        return r, a
+    inc = float(np.median(np.abs(np.diff(a)))) if a.size > 1 else 0.0
+    bins = g.composite_bins
+    if inc > 0.0:  # no finer than the laser's beams (holes would split every polyline)
+        bins = int(min(bins, max(8, np.floor(2.0 * np.pi / inc + 1e-6))))
+    return composite_scan(drive.history, bins)
+
+
+def _search_work(
+    ctx: Context, drv: dr.Drive, prior: Prior, scan: Scan
+) -> tuple[float, int, tuple[np.ndarray, np.ndarray, Configuration]]:
+    """One scan's search work within the budget: frames, re-scoring, back-scoring, the
+    pending self-similarity check or search. Returns the work spent, the finished search's
+    candidates (-1: none finished) and the scan the search matched (ranges, angles and its
+    configuration)."""
+    g = ctx.gconfig
+    budget = math.inf if g.search_budget_ms is None else float(g.search_budget_ms)
+    o = scan.odom
+    rs, as_ = _composite(drv, scan, g)
+    P = scan_configuration(rs, as_, ctx.config.extraction())
+    frame = None
+    if o.reading is not None:
+        if dr.frame_due(drv.frames, o.reading, drv.travel, g):
+            drv.add(
+                dr.make_frame(drv.next_key, scan.ranges, scan.angles, o.reading, drv.travel, g), g
+            )
+    else:
+        frame = dr.make_frame(drv.next_key, scan.ranges, scan.angles, None, drv.travel, g)
+        drv.add(frame, g)
+    spent = dr.rescore(
+        ctx.index, drv.tracks, rs, as_, P, ctx.config, g, budget * g.rescore_share, frame
+    )
+    if o.reading is not None:
+        frames = dr.window(drv.frames, g)
+        spent += dr.backfill(
+            ctx.index, drv.tracks, frames, o.reading, ctx.config, g, budget * g.evidence_share
+        )
+    found = -1
+    if drv.twin is not None:
+        spent, done, twin = dr.advance(drv.twin, spent, budget)
+        if done:
+            job, drv.twin = drv.twin, None
+            if job.track is not None:
+                job.track.checked = True
+            if twin is not None:
+                move = dr.odometry_move(job.odom, o.reading)
+                drv.tracks = dr.merge(drv.tracks, [twin], move, 1)
+    if drv.twin is None and spent < budget:
+        if drv.job is None:
+            seeds = _seeds(drv, prior, o.reading is not None)
+            steps = search_steps(ctx.index, rs, as_, ctx.config, g, seeds=seeds, P=P)
+            drv.job = dr.Job(steps, None if o.reading is None else o.reading.copy())
+        spent, done, res = dr.advance(drv.job, spent, budget)
+        if done:
+            move = dr.odometry_move(drv.job.odom, o.reading)
+            drv.tracks = dr.merge(drv.tracks, res.hypotheses, move, g.keep)
+            drv.job = None
+            found = res.candidates
+    return spent, found, (rs, as_, P)
+
+
+def _decide(ctx: Context, drv: dr.Drive, prior: Prior) -> Verdict:
+    g = ctx.gconfig
+    frames = dr.window(drv.frames, g)
+    if prior.cells <= 0.0:
+        prior.cells = max(
+            1.0, len(ctx.index.viewpoints) * g.spacing**2 * 2.0 * math.pi / cell_volume(g)
+        )
+    keys = drv.evidence_keys(g)
+    verdict = decide(drv.tracks, frames, keys, prior, g)
+    drv.tracks = dr.prune(drv.tracks, frames, keys, verdict.leader, g)
+    return verdict
+
+
+def _searching(ctx: Context, s: Searching, scan: Scan) -> tuple[State, Estimate]:
+    g = ctx.gconfig
+    ctx.searches += 1
+    s.scans += 1
+    o = scan.odom
+    drv = s.drive
+    if o.delta is not None:
+        drv.move(o.delta, o.step)
+        if s.prior.mean is not None and s.prior.cov is not None and scan.odometry:
+            # the dead-reckoned pose relocks as in DeadReckoning while the search goes on
+            est, mean, cov, good = _relock(ctx, s.prior.mean, s.prior.cov, scan)
+            s.prior = Prior(mean, cov, s.prior.kidnap, s.prior.cells)
+            s.relock = s.relock + 1 if good else 0
+            if s.relock >= g.relock_scans:
+                est.extras["relocked"] = 1.0
+                return Tracking(est.pose.copy(), fit_cov(est)), est
+        else:
+            s.prior = s.prior.moved(o.delta, odometry_noise(o.delta, ctx.config))
+    elif s.prior.mean is not None and s.prior.cov is not None:
+        speed = 0.0 if drv.speed is None else float(np.hypot(*drv.speed))
+        grow = (HELD_GROWTH * max(0.05, speed)) ** 2
+        s.prior = Prior(
+            s.prior.mean, s.prior.cov + np.diag([grow, grow, 0.0]), s.prior.kidnap, s.prior.cells
+        )
+    spent, found, (rs, as_, P) = _search_work(ctx, drv, s.prior, scan)
+    verdict = _decide(ctx, drv, s.prior)
+    lead = verdict.leader
+    extras: dict[str, float] = {
+        "hypotheses": float(len(drv.tracks)),
+        "llr": max(-99.0, min(verdict.llr, 99.0)),
+        "work_ms": spent,
+    }
+    if found >= 0:
+        drv.candidates = found
+        extras["search_done"] = 1.0
+    if lead is not None:
+        extras["lead_checked"] = float(lead.checked)
+        extras["lead_found"] = float(lead.found)
+    if lead is not None and not lead.checked and drv.twin is None:
+        tg = g.model_copy(
+            update={
+                "shortlist": min(g.shortlist, g.twin_shortlist),
+                "refine_top": min(g.refine_top, g.twin_refine_top),
+            }
+        )
+        steps = self_similar_steps(ctx.index, lead.hyp, rs, as_, P, ctx.config, tg)
+        drv.twin = dr.Job(steps, None if o.reading is None else o.reading.copy(), track=lead)
+    ctx.work_ms = spent
+    if lead is not None and verdict.llr >= g.fix_llr and lead.checked and lead.found >= g.min_found:
+        ctx.work_ms += CONFIRM_MS
+        est = _confirm(ctx, drv, lead, scan)
+        if est is not None:
+            est.ambiguity = verdict.ambiguity
+            est.extras.update(extras)
+            if o.reading is not None and g.probation_travel > 0.0:
+                p = Probation(drv, s.prior, lead, g.probation_travel, s.status)
+                return p, _probation_estimate(p, est)
+            est.extras["global_fix"] = 1.0
+            return Tracking(
+                est.pose.copy() if scan.odometry else None, fit_cov(est), since_fix=0
+            ), est
+        extras["confirm_rejected"] = 1.0
+    return s, _guess(drv, s, verdict, extras)
+
+
+def _guess(
+    drv: dr.Drive, s: Searching | Probation, verdict: Verdict, extras: dict[str, float]
+) -> Estimate:
+    """The best guess while the search goes on: the leader, else the best track by cost,
+    else the prior's mean (or the origin)."""
+    lead = verdict.leader
+    if s.prior.mean is not None and verdict.llr < 0.0:
+        lead = None  # the dead-reckoned pose until a place is more probable than the rest
+    elif lead is None and drv.tracks:
+        lead = min(drv.tracks, key=lambda t: t.hyp.cost)
+    if lead is not None:
+        pose, hyp = lead.pose.copy(), lead.hyp
+        score = float(np.clip(1.0 - hyp.cost + 0.05, 0.0, 1.0))
+        explained = float(hyp.explained)
+    else:
+        pose = np.zeros(3) if s.prior.mean is None else s.prior.mean.copy()
+        score, explained = 0.0, 0.0
+    order = ([lead] if lead is not None else []) + [t for t in drv.tracks if t is not lead]
+    return Estimate(
+        pose=pose,
+        status=s.status,
+        score=score,
+        explained=explained,
+        ambiguity=verdict.ambiguity,
+        covariance=None
+        if s.prior.cov is None or verdict.leader is not None
+        else s.prior.cov.copy(),
+        extras=extras,
+        hypotheses=len(drv.tracks),
+        candidates=dr.candidates(order),
+    )
+
+
+def _confirm(ctx: Context, drv: dr.Drive, lead: dr.Track, scan: Scan) -> Estimate | None:
+    """The tracker, reset to the winner with this scan's odometry, must accept the scan within
+    ``confirm_distance`` / ``confirm_angle`` of it with a position sigma of at most
+    ``confirm_sigma``; then tracking starts (the estimate); ``None`` otherwise."""
+    g = ctx.gconfig
+    o = scan.odom
+    ctx.tracker.reset(lead.pose, o.reading)
+    if drv.speed is not None:
+        ctx.tracker.set_speed(drv.speed)
+    est = ctx.tracker.update(scan.ranges, scan.angles, o.reading, o.matched_from)
+    close = (
+        np.hypot(*(est.pose[:2] - lead.pose[:2])) <= g.confirm_distance
+        and abs(float(wrap_angle(est.pose[2] - lead.pose[2]))) <= g.confirm_angle
+        and est.covariance is not None
+        and sigma_xy(np.asarray(est.covariance).reshape(3, 3)) <= g.confirm_sigma
+    )
+    if est.status == "tracking" and "rejected" not in est.extras and close:
+        return est
+    ctx.tracker.reset(None)
+    return None
+
+
+# ------------------------------------------------------------------------------- probation
+def _probation_estimate(p: Probation, est: Estimate) -> Estimate:
+    est.status = p.status
+    est.extras["probation"] = max(0.0, p.left)
+    est.hypotheses = len(p.drive.tracks)
+    order = [p.winner, *(t for t in p.drive.tracks if t is not p.winner)]
+    est.candidates = dr.candidates(order)
+    return est
+
+
+def _probation(ctx: Context, p: Probation, scan: Scan) -> tuple[State, Estimate]:
+    g = ctx.gconfig
+    o = scan.odom
+    est = ctx.tracker.update(scan.ranges, scan.angles, o.reading, o.matched_from)
+    est.ambiguity = None
+    drv = p.drive
+    rejected = "rejected" in est.extras
+    p.rejected = p.rejected + 1 if rejected else 0
+    ctx.work_ms = 0.0
+    if o.delta is not None and o.reading is not None:
+        drv.move(o.delta, o.step)
+        p.prior = p.prior.moved(o.delta, odometry_noise(o.delta, ctx.config))
+        p.winner.pose = est.pose.copy()
+        p.left -= o.step
+        if dr.frame_due(drv.frames, o.reading, drv.travel, g):
+            drv.add(
+                dr.make_frame(drv.next_key, scan.ranges, scan.angles, o.reading, drv.travel, g), g
+            )
+        budget = math.inf if g.search_budget_ms is None else float(g.search_budget_ms)
+        frames = dr.window(drv.frames, g)
+        ctx.work_ms = dr.backfill(
+            ctx.index,
+            drv.tracks,
+            frames,
+            o.reading,
+            ctx.config,
+            g,
+            budget * g.evidence_share,
+            first=p.winner,
+        )
+    else:
+        p.left = math.inf  # no travel to count: the probation cannot end well
+    if est.status == "lost" or p.rejected >= ctx.config.lost_after or p.left == math.inf:
+        return _fail(ctx, p, {"probation_failed": 1.0})
+    frames = dr.window(drv.frames, g)
+    complete = all(f.key in p.winner.ll for f in frames)
+    if p.left > 0.0 or rejected or not complete:
+        # a probation passes only on a scan the tracker accepted, once the winner is scored
+        # on the whole window (the verdict compares it with the rest there)
+        return p, _probation_estimate(p, est)
+    verdict = _decide(ctx, drv, p.prior)
+    if verdict.leader is p.winner and verdict.llr >= g.fix_llr:
+        est.ambiguity = verdict.ambiguity
+        est.extras.update(
+            {"global_fix": 1.0, "probation_passed": 1.0, "llr": min(verdict.llr, 99.0)}
+        )
+        return Tracking(est.pose.copy(), fit_cov(est), since_fix=0), est
+    return _fail(ctx, p, {"probation_failed": 1.0, "probation_beaten": 1.0})
+
+
+def _fail(ctx: Context, p: Probation, extras: dict[str, float]) -> tuple[State, Estimate]:
+    """A failed probation: the search goes on with the hypotheses it held (the winner among
+    them)."""
+    ctx.tracker.reset(None)
+    s = Searching(p.drive, p.prior, p.status)
+    verdict = Verdict(None, -math.inf)
+    extras["hypotheses"] = float(len(p.drive.tracks))
+    return s, _guess(p.drive, s, verdict, extras)
+
+
+__all__ = [
+    "CONFIRM_MS",
+    "Context",
+    "DeadReckoning",
+    "Probation",
+    "Scan",
+    "Searching",
+    "State",
+    "Tracking",
+    "start_search",
+    "step",
+]
