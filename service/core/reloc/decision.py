@@ -33,7 +33,7 @@ import numpy as np
 from service.core import numeric
 from service.core.pose import compose
 from service.core.reloc.config import GlobalConfig
-from service.core.reloc.drive import Frame, Track
+from service.core.reloc.drive import Frame, Track, judged
 from service.core.reloc.global_search import distinct
 from service.core.sensor.scoring import EFFECTIVE_BEAMS
 from service.core.types import wrap_angle
@@ -130,14 +130,15 @@ def decide(
 ) -> Verdict:
     """The leader of ``tracks`` and its LLR against the rest (module docstring), summed over
     the frames ``keys`` (key -> weight; the drive's, :meth:`~service.core.reloc.drive.Drive.
-    evidence_keys`). The leader must be scored on every frame of the window ``frames``; no
-    leader before the window holds ``min_frames`` frames. A frame a track was not scored on
+    evidence_keys`). The leader must be scored on the frames of the window ``frames`` that
+    :func:`~service.core.reloc.drive.judged` names; no leader before the window holds
+    ``min_frames`` frames. A frame a track was not scored on
     counts, for a candidate leader, as the unseen place explains it, and for an alternative as
     the leader does (it can only lower the LLR)."""
-    win = [f.key for f in frames]
-    if len(win) < g.min_frames:
+    if len(frames) < g.min_frames:
         return Verdict(None, -math.inf)
-    full = [t for t in tracks if all(k in t.ll for k in win)]
+    need = judged(frames)
+    full = [t for t in tracks if all(k in t.ll for k in need)]
     if not full:
         return Verdict(None, -math.inf)
     cell = cell_volume(g)

@@ -103,11 +103,14 @@ class Track:
 @dataclass(eq=False)
 class Job:
     """A search in progress: its step generator and the odometry pose of the scan it started
-    on (``None`` without odometry); ``track`` the track a self-similarity check is for."""
+    on (``None`` without odometry); ``track`` the track a self-similarity check is for;
+    ``frame`` without odometry the plain-scan frame it searched (its places' verification is
+    their evidence there)."""
 
     steps: Generator[float, None, Any]
     odom: np.ndarray | None
     track: Track | None = None
+    frame: Frame | None = None
 
 
 def advance(job: Job, spent: float, budget: float) -> tuple[float, bool, Any]:
@@ -236,6 +239,18 @@ def window(frames: list[Frame], g: GlobalConfig) -> list[Frame]:
     newest = frames[-1].travel
     out = [f for f in frames if f.odom is not None and newest - f.travel <= g.evidence_span]
     return out[-g.evidence_frames :]
+
+
+def judged(frames: list[Frame]) -> list[int]:
+    """Keys of the window's frames a track must be scored on to be judged: with odometry every
+    keyframe (back-scoring reaches those before it was found); without, the newest scan only,
+    since no odometry carries a place found later back to an earlier scan (those frames count
+    as the unseen place explains them)."""
+    if not frames:
+        return []
+    if frames[-1].odom is None:
+        return [frames[-1].key]
+    return [f.key for f in frames]
 
 
 def loglik(cost: float, g: GlobalConfig) -> float:
@@ -372,11 +387,18 @@ def backfill(
 
 # ------------------------------------------------------------------------------- the tracks
 def merge(
-    tracks: list[Track], hyps: list[Hypothesis], move: np.ndarray | None, keep: int
+    tracks: list[Track],
+    hyps: list[Hypothesis],
+    move: np.ndarray | None,
+    keep: int,
+    scored: tuple[Frame, GlobalConfig] | None = None,
 ) -> list[Track]:
     """Add the best ``keep`` of a finished search's hypotheses (found on an earlier scan;
     ``move`` the robot-frame odometry motion since, or ``None``) to ``tracks`` unless one
-    already holds that pose (which then counts one more ``found``)."""
+    already holds that pose (which then counts one more ``found``). ``scored``: the plain-scan
+    frame the search ran on, still in the window: a new track's verification there is its
+    evidence on it (without it, a place just found would count as explaining the frames as
+    well as the leader, and no LLR could grow while searches keep finding places)."""
     out = list(tracks)
     counted: list[Track] = []
     for h in hyps[:keep]:
@@ -396,7 +418,12 @@ def merge(
             explained=h.explained,
             short=h.short,
         )
-        out.append(Track(pose.copy(), hyp))
+        track = Track(pose.copy(), hyp)
+        if scored is not None:
+            frame, g = scored
+            track.ll[frame.key] = frame.weight * loglik(h.cost, g)
+            track.at[frame.key] = pose.copy()
+        out.append(track)
     return out
 
 
@@ -432,7 +459,7 @@ def prune(
         return m >= 3 and (a - b) / m > g.evidence_drop
 
     live = [t for t in tracks if not dropped(t)]
-    win = [f.key for f in frames]
+    win = judged(frames)
     full = [t for t in live if all(k in t.ll for k in win)]
 
     def total(t: Track) -> float:
@@ -478,6 +505,7 @@ __all__ = [
     "distinct",
     "frame_due",
     "held",
+    "judged",
     "make_frame",
     "merge",
     "odometry_move",

@@ -92,6 +92,7 @@ class Context(Protocol):
 class Tracking:
     """The tracker follows; ``ref`` / ``cov`` the dead-reckoned reference (module docstring;
     ``None`` without odometry), ``strikes`` scans in a row that contradicted the pose,
+    ``broken`` whether the scan-to-scan fit broke since the last scan the map explained well,
     ``since_fix`` scans since a search's fix (a service keeps such a robot on its search
     worker for ``settle_scans``)."""
 
@@ -99,6 +100,7 @@ class Tracking:
     cov: np.ndarray | None = None
     strikes: int = 0
     since_fix: int = 1 << 30
+    broken: bool = False
     name: str = "tracking"
 
 
@@ -106,12 +108,13 @@ class Tracking:
 class DeadReckoning:
     """The map does not explain the scans: ``pose`` / ``cov`` dead-reckoned; ``relock`` scans
     in a row the tracker explained well from it, ``strikes`` scans in a row that contradicted
-    it."""
+    it, ``broken`` as :class:`Tracking`'s."""
 
     pose: np.ndarray
     cov: np.ndarray
     relock: int = 0
     strikes: int = 0
+    broken: bool = False
     name: str = "dead_reckoning"
 
 
@@ -251,10 +254,14 @@ def _tracking(ctx: Context, s: Tracking, scan: Scan) -> tuple[State, Estimate]:
         return s, est
     s.ref, s.cov = propagate(s.ref, s.cov, o.delta, odometry_noise(o.delta, ctx.config))
     if not rejected and (est.explained or 0.0) >= g.good_support:
-        s.ref, s.cov, s.strikes = est.pose.copy(), fit_cov(est), 0
+        s.ref, s.cov, s.strikes, s.broken = est.pose.copy(), fit_cov(est), 0, False
         return s, est
-    # a poorly explained scan: does it contradict the pose (a kidnap)?
-    contradicted = o.broken or _contradicts(ctx, scan, est.pose)
+    # a poorly explained scan: does it contradict the pose (a kidnap)? After a break of the
+    # scan-to-scan fit every scan the map fits poorly does: the scans after a kidnap match
+    # each other again, and a floor plan's outline may half explain them without a beam
+    # through a wall
+    s.broken = (s.broken or o.broken) and est.score < g.collapse_score
+    contradicted = s.broken or _contradicts(ctx, scan, est.pose)
     s.strikes = s.strikes + 1 if contradicted else 0
     if s.strikes >= ctx.config.lost_after:
         est.extras["contradicted"] = 1.0
@@ -263,7 +270,7 @@ def _tracking(ctx: Context, s: Tracking, scan: Scan) -> tuple[State, Estimate]:
     if stray or est.status == "lost" or sigma_xy(s.cov) > g.track_sigma:
         est.extras["stray" if stray else "unexplained"] = 1.0
         ctx.tracker.reset(None)
-        dead = DeadReckoning(s.ref.copy(), s.cov.copy())
+        dead = DeadReckoning(s.ref.copy(), s.cov.copy(), strikes=s.strikes, broken=s.broken)
         return dead, _dead_estimate(dead, est)
     return s, est
 
@@ -330,10 +337,12 @@ def _dead_reckoning(ctx: Context, d: DeadReckoning, scan: Scan) -> tuple[State, 
         return _lost(ctx, d.pose, d.cov), Estimate(d.pose.copy(), "lost", 0.0)
     est, d.pose, d.cov, good = _relock(ctx, d.pose, d.cov, scan)
     d.relock = d.relock + 1 if good else 0
+    d.broken = (d.broken or o.broken) and est.score < g.collapse_score  # as in Tracking
     if d.relock >= g.relock_scans:
         est.extras["relocked"] = 1.0
         return Tracking(est.pose.copy(), fit_cov(est)), est
-    d.strikes = d.strikes + 1 if _contradicts(ctx, scan, d.pose, d.cov) else 0
+    contradicted = d.broken or _contradicts(ctx, scan, d.pose, d.cov)
+    d.strikes = d.strikes + 1 if contradicted else 0
     out = _dead_estimate(d, est)
     if d.strikes >= ctx.config.lost_after or sigma_xy(d.cov) > g.max_dead_reckoning_sigma:
         # a search, the dead-reckoned pose its prior (and still relocked the same way)
@@ -404,14 +413,13 @@ def _search_work(
     spent = dr.rescore(
         ctx.index, drv.tracks, rs, as_, P, ctx.config, g, budget * g.rescore_share, frame
     )
-    if o.reading is not None:
-        frames = dr.window(drv.frames, g)
-        spent += dr.backfill(
-            ctx.index, drv.tracks, frames, o.reading, ctx.config, g, budget * g.evidence_share
-        )
+    # the evidence's share is scored after the search, so the places it found this scan are
+    # judged on the window before the decision (unscored, each would count as the leader)
+    evidence = budget * g.evidence_share if o.reading is not None else 0.0
+    search_limit = budget - evidence if math.isfinite(budget) else budget
     found = -1
     if drv.twin is not None:
-        spent, done, twin = dr.advance(drv.twin, spent, budget)
+        spent, done, twin = dr.advance(drv.twin, spent, search_limit)
         if done:
             job, drv.twin = drv.twin, None
             if job.track is not None:
@@ -419,17 +427,23 @@ def _search_work(
             if twin is not None:
                 move = dr.odometry_move(job.odom, o.reading)
                 drv.tracks = dr.merge(drv.tracks, [twin], move, 1)
-    if drv.twin is None and spent < budget:
+    if drv.twin is None and spent < search_limit:
         if drv.job is None:
             seeds = _seeds(drv, prior, o.reading is not None)
             steps = search_steps(ctx.index, rs, as_, ctx.config, g, seeds=seeds, P=P)
-            drv.job = dr.Job(steps, None if o.reading is None else o.reading.copy())
-        spent, done, res = dr.advance(drv.job, spent, budget)
+            drv.job = dr.Job(steps, None if o.reading is None else o.reading.copy(), frame=frame)
+        spent, done, res = dr.advance(drv.job, spent, search_limit)
         if done:
             move = dr.odometry_move(drv.job.odom, o.reading)
-            drv.tracks = dr.merge(drv.tracks, res.hypotheses, move, g.keep)
+            searched = drv.job.frame
+            live = searched is not None and any(f is searched for f in dr.window(drv.frames, g))
+            scored = (searched, g) if live and searched is not None else None
+            drv.tracks = dr.merge(drv.tracks, res.hypotheses, move, g.keep, scored)
             drv.job = None
             found = res.candidates
+    if o.reading is not None:
+        frames = dr.window(drv.frames, g)
+        spent += dr.backfill(ctx.index, drv.tracks, frames, o.reading, ctx.config, g, evidence)
     return spent, found, (rs, as_, P)
 
 

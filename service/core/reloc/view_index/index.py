@@ -37,10 +37,9 @@ class ViewIndex:
     of different viewpoints with the same anchor — the same physical corner — share it),
     ``unit_anchor`` ``(u, 4)`` the anchor vertex x, y (map frame), the direction of the edge
     leaving it and its signed turn (rad), vertices
-    ``unit_verts[unit_vert_off[u]:unit_vert_off[u+1]]`` (map frame). ``segments`` ``(s, 4)``
-    the map's segments. ``dist`` the distance field (m, float32, row = y, column = x) with
-    cell ``resolution`` metres and ``origin`` its lower-left corner. ``key`` the cache key,
-    ``build_seconds`` how long the build took.
+    ``unit_verts[unit_vert_off[u]:unit_vert_off[u+1]]`` (map frame). ``key`` the cache key,
+    ``build_seconds`` how long the build took. ``sensor`` the map's sensor model (segments,
+    distance field, ray casting), attached when the index is loaded or built, not stored.
     """
 
     key: str

@@ -171,13 +171,13 @@ def test_the_localiser_uses_the_checked_odometry_and_can_switch_it_off() -> None
         want = ref.correct(z["ranges"][i], z["angles"][i], z["odom"][i])
         on.update(z["ranges"][i], z["angles"][i], z["odom"][i])
         off.update(z["ranges"][i], z["angles"][i], z["odom"][i])
-        np.testing.assert_array_equal(on._last_odom, want)
-        np.testing.assert_array_equal(off._last_odom, z["odom"][i])
+        np.testing.assert_array_equal(on.odometry.last, want)
+        np.testing.assert_array_equal(off.odometry.last, z["odom"][i])
     # a malformed scan is refused before the odometry check sees it
-    before = on._scan_odometry._raw.copy()
+    before = pickle.dumps(on.odometry)
     with pytest.raises(LocalizationError):
         on.update(z["ranges"][8][:-1], z["angles"][8], z["odom"][8])
-    np.testing.assert_array_equal(on._scan_odometry._raw, before)
+    assert pickle.dumps(on.odometry) == before
 
 
 def test_surface_normals_follow_the_wall_not_the_range_noise(
@@ -215,8 +215,9 @@ def test_a_scan_matched_turn_keeps_the_floor_plan_tracker_off_the_furniture() ->
     """``MotionConfig.matched_turn_noise``: tuning building 16's floor plan (setup 2), tracked
     with its odometry from the true pose of scan 160. With the raw odometry's turn noise on
     the scan-matched increments the tracker can slide onto furniture (measured: 0.47-0.80 m
-    within 10 scans, depending on the tour's last bits); with a matched increment's sigmas it
-    stays on the true pose, and never further off than with the raw noise."""
+    within 10 scans, depending on the tour's last bits); with a matched increment's sigmas the
+    published pose (tracked, or dead-reckoned where the plan explains too little) stays on
+    the true pose, and never further off than with the raw noise."""
     from sim_publisher.generator import BuildingParams, generate_building
     from sim_publisher.scenario import building_setup
 
@@ -231,7 +232,9 @@ def test_a_scan_matched_turn_keeps_the_floor_plan_tracker_off_the_furniture() ->
         err = []
         for i in range(160, 180):
             est = loc.update(*su.scan(i), su.odom[i])
-            assert est.status == "tracking"
+            # the plan explains a third of these scans: tracked or dead-reckoned, never lost
+            # to a search
+            assert est.state in ("tracking", "dead_reckoning"), (i, est.state)
             err.append(float(np.hypot(*(est.pose[:2] - su.truth[i][:2]))))
         return max(err)
 
