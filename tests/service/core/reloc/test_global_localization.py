@@ -247,7 +247,9 @@ def test_symmetric_room_stays_initializing_with_high_ambiguity() -> None:
         r, a = laser.scan(p, s)
         est = loc.update(r, a)
         assert est.status == "initializing", f"scan {s}: {est.status} at {est.pose}"
-        assert est.ambiguity is not None and est.ambiguity >= 0.8  # a tie is 1
+        # the posterior probability that the leader is not the place: a tie with the twin is
+        # 0.5 or more (a confident leader would be near 0)
+        assert est.ambiguity is not None and est.ambiguity >= 0.5
         mirror = np.array([6 - p[0], 4 - p[1], wrap_angle(p[2] + np.pi)])
         assert _found(est.pose, p) or _found(est.pose, mirror)
 
@@ -264,7 +266,7 @@ def test_symmetric_room_stays_ambiguous_after_looking_around() -> None:
         r, a = laser.scan(truth[s], s)
         est = loc.update(r, a, odom[s])
         assert est.status == "initializing", f"scan {s}: {est.status} at {est.pose}"
-        assert est.ambiguity is not None and est.ambiguity >= 0.8
+        assert est.ambiguity is not None and est.ambiguity >= 0.5  # a tie, as above
     assert len(loc.state.drive.history) == 3  # the composite held the last 3 scans
     p = truth[-1]
     mirror = np.array([6 - p[0], 4 - p[1], wrap_angle(p[2] + np.pi)])
