@@ -266,11 +266,16 @@ def test_symmetric_room_stays_ambiguous_after_looking_around() -> None:
         r, a = laser.scan(truth[s], s)
         est = loc.update(r, a, odom[s])
         assert est.status == "initializing", f"scan {s}: {est.status} at {est.pose}"
-        assert est.ambiguity is not None and est.ambiguity >= 0.5  # a tie, as above
+        # the twins are back-scored on the keyframes from odometry-moved poses: their
+        # log-likelihoods differ by the polish's noise (~1 nat), so the posterior of the
+        # leader may drift from a tie, but stays far below the odds a fix takes (e^fix_llr)
+        assert est.ambiguity is not None and est.ambiguity >= 0.1
     assert len(loc.state.drive.history) == 3  # the composite held the last 3 scans
     p = truth[-1]
     mirror = np.array([6 - p[0], 4 - p[1], wrap_angle(p[2] + np.pi)])
     assert _found(est.pose, p) or _found(est.pose, mirror), start
+    cands = est.candidates[:, :3]
+    assert any(_found(c, p) for c in cands) and any(_found(c, mirror) for c in cands)
 
 
 def test_composite_needs_odometry_and_stays_within_the_travel_limit() -> None:
@@ -378,7 +383,7 @@ def test_look_around_start_fixes_within_four_scans_and_keeps_tracking(start: flo
     # may wait one scan more (a winner must be best on two scans): at 0.35 the true place and
     # a wrong one are within 0.03 on the second scan, and which of them leads there differs
     # between machines (the last bits of numpy's vector kernels: x86-64 v3 here, where the
-    # fix comes on the fourth scan; on the machines before stop 42, on the third).
+    # fix comes on the fourth scan; on older machines, on the third).
     run = _sim_run(start, 40)
     decided = [s == "tracking" or p for s, _ok, p in run]
     assert True in decided[:4], run
