@@ -259,9 +259,12 @@ def _tracking(ctx: Context, s: Tracking, scan: Scan) -> tuple[State, Estimate]:
     # a poorly explained scan: does it contradict the pose (a kidnap)? After a break of the
     # scan-to-scan fit every scan the map fits poorly does: the scans after a kidnap match
     # each other again, and a floor plan's outline may half explain them without a beam
-    # through a wall
-    s.broken = (s.broken or o.broken) and est.score < g.collapse_score
-    contradicted = s.broken or _contradicts(ctx, scan, est.pose)
+    # through a wall. Otherwise only a scan the tracker rejects, scoring low, whose beams
+    # cross drawn walls: beams through a deleted or moved piece of furniture cross one too,
+    # on a scan the tracker still fits (a map from another day)
+    low = est.score < g.collapse_score
+    s.broken = (s.broken or o.broken) and low
+    contradicted = s.broken or (rejected and low and _contradicts(ctx, scan, est.pose))
     s.strikes = s.strikes + 1 if contradicted else 0
     if s.strikes >= ctx.config.lost_after:
         est.extras["contradicted"] = 1.0
