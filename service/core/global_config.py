@@ -22,7 +22,9 @@ class GlobalConfig(DriveConfig):
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
-    kind: Literal["metric", "schematic"] = "metric"
+    kind: Literal["metric", "schematic"] = Field(
+        "metric", description="The map kind these values are the preset of (for_kind)."
+    )
     # --- viewpoints and index ----------------------------------------------------------------
     spacing: float = Field(0.6, gt=0, description="Viewpoint grid spacing (m).")
     min_clearance: float = Field(0.3, ge=0, description="Viewpoint distance to any polyline (m).")

@@ -66,6 +66,7 @@ log = logging.getLogger("shapeloc.service")
 
 
 def _default_workers() -> int:
+    """One per core."""
     return max(1, os.cpu_count() or 1)
 
 
@@ -86,7 +87,8 @@ class Flag:
     repeat: bool = False
 
 
-def _flag_of(field: Any) -> Flag | None:
+def flag_of(field: Any) -> Flag | None:
+    """The :class:`Flag` of a :class:`ServiceSettings` field, or ``None``."""
     return next((m for m in field.metadata if isinstance(m, Flag)), None)
 
 
@@ -562,7 +564,7 @@ def _env_only_epilog() -> str:
     ]
     global_names = {"listen", "connect", "mode", "zenoh_config", "prefix", "config"}
     for name, field in ServiceSettings.model_fields.items():
-        if _flag_of(field) is None and name not in global_names:
+        if flag_of(field) is None and name not in global_names:
             lines.append(f"  {name} (default: {_default_text(name)})")
     lines.append("")
     lines.append(
@@ -586,7 +588,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_global_options(p, GLOBAL_OPTIONS)
     g = p.add_argument_group("service settings")
     for name, field in ServiceSettings.model_fields.items():
-        flag = _flag_of(field)
+        flag = flag_of(field)
         if flag is None:
             continue
         help_text = f"{field.description} (default: {_default_text(name)})"
@@ -608,7 +610,7 @@ def _source_of(
 ) -> str:
     env_name = ENV_PREFIX + name.upper()
     if name in cli:
-        flag = _flag_of(ServiceSettings.model_fields[name])
+        flag = flag_of(ServiceSettings.model_fields[name])
         return f"flag {flag.name}" if flag else f"flag --{name.replace('_', '-')}"
     if env_name in environ:
         return env_name

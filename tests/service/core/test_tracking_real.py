@@ -33,8 +33,8 @@ def test_the_odometry_bridges_a_hall_the_floor_plan_draws_as_its_outline(
     """In the east hall the plan explains a quarter to a third of each scan, so the tracker
     rejects scan after scan; none of them sends a beam through a mapped wall, so the
     odometry bridges them (``GlobalConfig.collapse_violation``) and the track holds within
-    0.3 m of the reference on every scan. Under the rule before stop 42 (-1: three unfit
-    scans in a row end the track) it is lost at scan 4121, 0.04 m from the truth, and a
+    0.3 m of the reference on every scan. Under the older rule (-1: three unfit scans in a
+    row end the track) it is lost at scan 4121, 0.04 m from the truth, and a
     search re-fixes it metres off."""
     z = np.load(DATA / "fr079.4100-4199.npz")
     for rule in (None, -1.0):
@@ -63,10 +63,10 @@ def test_a_kidnapped_robot_is_still_lost_within_three_scans(tmp_path: Path, at: 
     from the hall. Its scans no longer match the one before (the scan-to-scan fit breaks), so
     from then on every scan the map does not explain counts towards the collapse, accepted by
     the tracker or not: the floor plan's outline half explains some of the room's scans
-    from the hall, and the tracker accepts them. Lost within three scans, as before stop 42;
-    never published as tracking more than 0.5 m off once lost. (Carried away after 60
+    from the hall, and the tracker accepts them. Lost within three scans, as under the older
+    rule; never published as tracking more than 0.5 m off once lost. (Carried away after 60
     scans it is lost as fast, but the search, recovering near the dead-reckoned hall pose,
-    re-fixes the hall 24 m from the truth 23 scans later: docs/global.md, Stop 42.)"""
+    re-fixes the hall 24 m from the truth 23 scans later.)"""
     z = np.load(DATA / "fr079.4100-4199.npz")
     w = np.load(DATA / "fr079.1174-1329.npz")
     loc = _localizer(tmp_path, z["reference"][0])
