@@ -1,4 +1,5 @@
-"""Where localisation runs: per-robot localisers owned by workers, sharded by robot id.
+"""Where localisation runs: per-robot localisers owned by workers (which worker owns which
+robot: :mod:`service.node.assignment`).
 
 :class:`WorkerCore` holds the maps and, for the robots it owns, their configuration, last
 pose and localiser; :meth:`WorkerCore.handle` executes one request tuple and returns one reply
@@ -23,6 +24,8 @@ Requests (all picklable):
 * ``("forget", robot_id)``.
 * ``("index", map_id)``: build (or load) the map's view index of global localisation into the
   on-disk cache (:func:`service.node.prepare.build_index`); replies the seconds taken.
+* ``("batch", [request, ...])`` (a process worker's pipe only; :meth:`ProcessWorker.call_batch`):
+  the requests in order, one reply for each sent as soon as it is ready.
 
 A tracking worker process warms up (:func:`service.node.prepare.warm_up_worker`) before it
 reports itself ready, and prepares every map it is given (:func:`service.node.prepare.
@@ -39,16 +42,15 @@ searches or was fixed by a search a few scans ago: the node keeps it on the sear
 from __future__ import annotations
 
 import contextlib
-import hashlib
 import logging
 import math
 import multiprocessing as mp
 import os
 import select
 import signal
-import threading
 import time
 import traceback
+from collections.abc import Callable
 from dataclasses import dataclass
 from multiprocessing.connection import Connection
 from pathlib import Path
@@ -64,72 +66,6 @@ from service.node.prepare import build_index, prepare_map, warm_up_worker
 log = logging.getLogger("shapeloc.service.worker")
 
 Reply = tuple[str, Any]
-
-
-def shard_of(robot_id: str, n: int) -> int:
-    """Stable hash index of a robot id in ``[0, n)`` (BLAKE2b of the id; same on every run)."""
-    h = hashlib.blake2b(robot_id.encode("utf-8"), digest_size=8).digest()
-    return int.from_bytes(h, "little") % max(1, n)
-
-
-class Assignment:
-    """Which worker owns which robot: configured robots go to the worker with the fewest
-    robots (ties: lowest index) and stay there; an unassigned id maps to :func:`shard_of`.
-
-    Hashing alone spreads few robots badly (two robots share one of two workers half of the
-    time), which halves throughput when the method is CPU-bound. Not thread-safe for writers
-    (the control thread assigns); readers may call :meth:`index_of` from any thread.
-    """
-
-    def __init__(self, n: int, extra: int = 0) -> None:
-        self.n = max(1, n)
-        self._owner: dict[str, int] = {}
-        self._load = [0] * (self.n + max(0, extra))
-        self._lock = threading.Lock()
-
-    def assign(self, robot_id: str) -> int:
-        """Owner of ``robot_id``, choosing the least-loaded worker on first assignment (among
-        the first ``n``: the ``extra`` ones, e.g. the search worker, are only moved to)."""
-        with self._lock:
-            idx = self._owner.get(robot_id)
-            if idx is None:
-                idx = self._least()
-                self._load[idx] += 1
-                self._owner[robot_id] = idx
-            return idx
-
-    def _least(self) -> int:
-        return min(range(self.n), key=lambda i: (self._load[i], i))
-
-    def least_loaded(self) -> int:
-        """The least-loaded of the first ``n`` workers."""
-        with self._lock:
-            return self._least()
-
-    def move(self, robot_id: str, idx: int) -> None:
-        """Make worker ``idx`` (any, extra ones included) the robot's owner."""
-        with self._lock:
-            old = self._owner.get(robot_id)
-            if old is not None:
-                self._load[old] -= 1
-            self._load[idx] += 1
-            self._owner[robot_id] = idx
-
-    def release(self, robot_id: str) -> None:
-        """Forget the robot's owner."""
-        with self._lock:
-            idx = self._owner.pop(robot_id, None)
-            if idx is not None:
-                self._load[idx] -= 1
-
-    def index_of(self, robot_id: str) -> int:
-        """Assigned owner, else the hash index."""
-        idx = self._owner.get(robot_id)
-        return shard_of(robot_id, self.n) if idx is None else idx
-
-    def load(self) -> list[int]:
-        """Robots per worker."""
-        return list(self._load)
 
 
 @dataclass
@@ -421,6 +357,16 @@ class InlineWorker:
         """Run one request synchronously (``timeout_s`` is ignored in-process)."""
         return self.core.handle(req)
 
+    def call_batch(
+        self,
+        reqs: list[tuple[Any, ...]],
+        timeout_s: float | None,
+        on_reply: Callable[[int, Reply], None],
+    ) -> None:
+        """Run ``reqs`` in order, ``on_reply(i, reply)`` after each."""
+        for i, req in enumerate(reqs):
+            on_reply(i, self.core.handle(req))
+
     def alive(self) -> bool:
         """Always true in-process."""
         return True
@@ -467,6 +413,10 @@ def _worker_main(
             break
         if req[0] == "stop":
             break
+        if req[0] == "batch":  # one reply per request, each as soon as it is ready
+            for r in req[1]:
+                conn.send(core.handle(r))
+            continue
         conn.send(core.handle(req))
     conn.close()
 
@@ -563,6 +513,34 @@ class ProcessWorker:
         self.kill()
         raise ServiceTimeout(
             f"worker {self.index} took longer than {timeout_s:.1f} s on a {req[0]} request; "
+            "restarted"
+        )
+
+    def call_batch(
+        self,
+        reqs: list[tuple[Any, ...]],
+        timeout_s: float | None,
+        on_reply: Callable[[int, Reply], None],
+    ) -> None:
+        """Send ``reqs`` as one batch and call ``on_reply(i, reply)`` for each reply as it
+        arrives (each within ``timeout_s`` of the previous one); raises like :meth:`call`."""
+        if len(reqs) == 1:
+            on_reply(0, self.call(reqs[0], timeout_s))
+            return
+        self.wait_ready()
+        try:
+            self._conn.send(("batch", reqs))
+            for i in range(len(reqs)):
+                if not self._readable(timeout_s):
+                    break
+                on_reply(i, self._conn.recv())
+            else:
+                return
+        except (EOFError, OSError, BrokenPipeError) as e:
+            raise self._died(e) from e
+        self.kill()
+        raise ServiceTimeout(
+            f"worker {self.index} took longer than {timeout_s:.1f} s on a scan of a batch; "
             "restarted"
         )
 

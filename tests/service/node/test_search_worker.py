@@ -14,7 +14,8 @@ import numpy as np
 
 from service.core.global_localization import GlobalShapeLocalizer
 from service.core.raycast import RayCaster
-from service.node.workers import Assignment, WorkerCore
+from service.node.assignment import Assignment
+from service.node.workers import WorkerCore
 from sim_publisher.scenario import make_setup
 from tests.service.node.harness import ANGLES, START, Harness
 
