@@ -18,7 +18,7 @@ Three parts, each a table of the markdown page ``--out`` writes:
   service's CPU per scan, on each of ``--world`` x ``--map`` (default the office, the held-out
   building 1000 and that building's floor plan); the largest N per world that meets the
   capacity line (>= 99 % answered, p99 <= 100 ms, every pose within 0.1 m).
-* ``--acceptance``: both, with the issue's settings: the cold start (20 robots, 10 runs on
+* ``--acceptance``: all three with the acceptance settings: the cold start (20 robots, 10 runs on
   buildings 1000-1009), the 50-robot line (50 robots x 10 Hz, 3 runs on the office and
   building 1000) and the curve (10, 20, 50, 100 robots on the office, building 1000 and its
   floor plan); prints PASS/FAIL per line and writes docs/results/fleet.md with ``--out``.
@@ -60,7 +60,7 @@ from bench.scale_walks import Pool, make_pool, world_name
 
 #: The cold start's acceptance.
 COLD_ANSWERED, COLD_P99_MS, COLD_FIRST_MS = 0.99, 50.0, 200.0
-#: The capacity line (section 3 of the issue).
+#: The capacity line: what a fleet size must meet to count as served.
 LINE_ANSWERED, LINE_P99_MS = 0.99, 100.0
 
 
@@ -271,7 +271,7 @@ def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--cold", action="store_true", help="the cold-start fleet")
     ap.add_argument("--curve", action="store_true", help="robots against capacity")
-    ap.add_argument("--acceptance", action="store_true", help="the issue's three parts")
+    ap.add_argument("--acceptance", action="store_true", help="all three parts")
     ap.add_argument("--robots", default=None, help="N (cold) or a comma list (curve)")
     ap.add_argument("--reps", type=int, default=None, help="runs per N (cold: 10, curve: 1)")
     ap.add_argument("--world", default=None, help="comma list; a-b is a range of seeds")

@@ -17,7 +17,7 @@ Figures per run: the robot's scans answered (of those sent), replaced unprocesse
 (``scan.Skipped``), latency p50/p99 (receipt minus the scan's stamp), poses more than 0.1 m
 off, garbage sent and rejected (per kind, from health), and where the CPU went: the service
 process (intake, notices, scheduling), the robot's worker, and the service's own account of
-the robot's scans (``Health.scan_cpu_ms``). Acceptance (issue, section 2): >= 95 % of the
+the robot's scans (``Health.scan_cpu_ms``). Acceptance: >= 95 % of the
 robot's scans answered in every run.
 
 Usage: ``python -m bench.bench_flood [--runs 5] [--rate 20] [--garbage-rate 150]
