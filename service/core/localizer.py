@@ -86,7 +86,7 @@ class ShapeLocalizer:
             raise LocalizationError(f"config must be a ShapeConfig, got {type(config).__name__}")
         self.map_data = map_data
         self.config = config or ShapeConfig.for_kind(map_data.kind)
-        self.model = model if model is not None else MapModel(map_data)
+        self.model = model if model is not None else MapModel.shared(map_data)
         self.motion = Motion(self.config.motion)
         #: The shape matching's settings for a turn recovery: cut points all round the circle.
         self._wide = self.config.model_copy(

@@ -59,6 +59,7 @@ from typing import Any
 import numpy as np
 
 from service.core.factory import create_localizer
+from service.core.mapmodel import MapModel
 from service.core.types import Localizer, MapData, wrap_angle
 from service.errors import LocalizationError, ServiceTimeout, ShapelocError
 from service.node.prepare import build_index, prepare_map, warm_up_worker
@@ -130,6 +131,8 @@ class WorkerCore:
         #: their view index is built here instead (``("index", map_id)``)
         self.search = search
         self.maps: dict[str, MapData] = {}
+        #: each map's model, shared by its robots' trackers (kept while the map is stored)
+        self.models: dict[str, MapModel] = {}
         self.robots: dict[str, _Robot] = {}
         self.cache_dir = cache_dir  # per-map view index cache of global localisation
         #: per-scan work of a global search while the robot is alone on this worker; half of
@@ -178,6 +181,9 @@ class WorkerCore:
 
     def _map(self, md: MapData) -> None:
         self.maps[md.map_id] = md
+        self.models.pop(md.map_id, None)
+        with contextlib.suppress(LocalizationError):  # no segment: its robots get the error
+            self.models[md.map_id] = MapModel.shared(md)
         for r in self.robots.values():
             if r.map_id == md.map_id:
                 r.localizer = None  # rebuilt on the next scan from its last pose
@@ -208,6 +214,7 @@ class WorkerCore:
 
     def _map_delete(self, map_id: str) -> None:
         self.maps.pop(map_id, None)
+        self.models.pop(map_id, None)
         for r in self.robots.values():
             if r.map_id == map_id:
                 r.localizer = None

@@ -16,6 +16,7 @@ import pytest
 from service.core.types import MapData
 from service.node.prepare import free_pose, prepare_map, warm_up_worker
 from service.node.readiness import Readiness
+from service.node.workers import WorkerCore
 from tests.service.node.harness import ROOM, Harness, wait_for
 
 
@@ -99,3 +100,16 @@ def test_warm_up_and_map_preparation_run_the_methods(caplog: pytest.LogCaptureFi
         assert prepare_map(md) >= 0.0
     assert not caplog.records
     assert free_pose(MapData.from_lists("line", "metric", [[[0.0, 0.0], [1.0, 0.0]]])) is None
+
+
+def test_a_workers_robots_share_their_maps_model() -> None:
+    """Every robot on a map uses the model the worker built when the map was put (built once
+    per map, not once per robot); a map put again gets a new one."""
+    core = WorkerCore()
+    core.handle(("map", MapData.from_lists("room", "metric", ROOM)))
+    for rid in ("a", "b"):
+        assert core.handle(("config", rid, "shape", "room", [1.0, 1.5, 0.2], None, None))[0] == "ok"
+    models = {id(core.robots[r].localizer.tracker.model) for r in ("a", "b")}  # type: ignore[union-attr]
+    assert models == {id(core.models["room"])}
+    core.handle(("map", MapData.from_lists("room", "metric", ROOM)))
+    assert id(core.models["room"]) not in models
