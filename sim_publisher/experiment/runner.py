@@ -29,6 +29,7 @@ from sim_publisher.experiment.results import (
     MethodRun,
     SetupInfo,
 )
+from sim_publisher.results_page import Provenance
 from sim_publisher.scenario import Setup, make_setup, run_stats
 
 #: Relative cost per scan used only to start the slowest runs first.
@@ -109,16 +110,18 @@ def run_experiment(
     methods: Sequence[str] = ("shape", "icp", "lines"),
     seed: int = 0,
     max_scans: int | None = None,
-    out_dir: Path | None = Path("docs/experiment"),
+    out_dir: Path | None = Path("docs/results/experiment"),
     progress: bool = True,
     jobs: int = 2,
     plots: bool = True,
+    command: str | None = None,
 ) -> ExperimentResult:
     """Run every ``method`` on every ``setup`` and write the results to ``out_dir``.
 
     ``max_scans`` shortens each run to its first scans. ``jobs`` > 1 runs the
     (setup, method) pairs in a process pool; results do not depend on it. ``out_dir`` ``None``
-    writes nothing. Raises :class:`LocalizationError` for an unknown setup or method.
+    writes nothing; ``command`` is the command line the results page names (default: this
+    call). Raises :class:`LocalizationError` for an unknown setup or method.
     """
     setups = tuple(dict.fromkeys(int(s) for s in setups))
     methods = tuple(dict.fromkeys(methods))
@@ -134,10 +137,16 @@ def run_experiment(
         raise LocalizationError("nothing to run: no setup or no method selected")
     if max_scans is not None and max_scans < 1:
         raise LocalizationError(f"max_scans must be >= 1, got {max_scans}")
+    if command is None:
+        command = (
+            f"sim_publisher.experiment.run_experiment(setups={setups}, methods={methods}, "
+            f"seed={seed}, max_scans={max_scans})"
+        )
+    provenance = Provenance.capture(command)
     t_start = time.perf_counter()
     setup_objs = {s: _make_setup(s, seed, max_scans) for s in setups}
     infos = {s: _setup_info(s, o) for s, o in setup_objs.items()}
-    result = ExperimentResult(seed=seed, max_scans=max_scans, setups=infos)
+    result = ExperimentResult(seed=seed, max_scans=max_scans, setups=infos, provenance=provenance)
     tasks = [(s, m) for s in setups for m in methods]
     tasks.sort(key=lambda t: -infos[t[0]].scans * _COST.get(t[1], 1.0))
     total = sum(infos[s].scans for s, _ in tasks)
