@@ -222,7 +222,8 @@ class ServiceSettings(BaseSettings):
         "deterministic work model; the search goes on with the robot's next scans. A robot "
         "alone on its worker gets all of it, half while others share the worker. 50 fixes "
         "sooner than 25 (drive bench: held-out mit-csail metric map 6.6 -> 3.0 m of travel to "
-        "the fix) at a cost to the other robots' latency of a few ms at p99 (docs/global.md). "
+        "the fix) at a cost to the other robots' latency of a few ms at p99 "
+        "(docs/decisions/0005-search-budget-and-work-model.md). "
         "0: a whole search on one scan.",
     )
     search_worker: Annotated[bool, Flag("--no-search-worker", const=False)] = Field(
@@ -238,7 +239,7 @@ class ServiceSettings(BaseSettings):
         le=19,
         description="Nice level of the search worker (batch scheduling class). 19 keeps "
         "searches out of the tracked robots' way; lower it where the service shares its cores "
-        "with other busy work, or searches may starve (docs/service.md).",
+        "with other busy work, or searches may starve (docs/decisions/0006-search-worker.md).",
     )
     worker_timeout_s: float = Field(
         default=30.0,
