@@ -13,7 +13,7 @@ It follows the convention of every shapeloc program (:mod:`schemas.cli`): the gl
 one JSON object a line); help shows the defaults. It connects as a Zenoh client to
 ``--connect`` (default ``tcp/127.0.0.1:7447``) and fails at once if nothing listens;
 ``--zenoh-config FILE`` (Zenoh JSON5: TLS, mutual TLS, user/password) is the base
-configuration and ``--connect`` replaces its endpoints (see docs/reliability.md). Exit code 0
+configuration and ``--connect`` replaces its endpoints (see docs/security.md). Exit code 0
 on success, 1 on an error (one line on stderr), 2 on bad usage.
 
 Deprecated for one release (a warning on stderr): ``configure --pose X Y THETA`` (now

@@ -131,7 +131,7 @@ class ServiceSettings(BaseSettings):
     zenoh_config: Path | None = Field(
         default=None,
         description="Zenoh JSON5 configuration file used as the base (TLS, mutual TLS, "
-        "user/password, access control: docs/reliability.md). mode, listen and connect, when "
+        "user/password, access control: docs/security.md). mode, listen and connect, when "
         "set by a flag, the environment or the configuration file, replace its values.",
     )
     prefix: str = Field(
