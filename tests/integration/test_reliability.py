@@ -127,8 +127,8 @@ def test_flood_on_own_key_costs_the_robot_no_valid_scan(
 
 
 def test_soak_60_s(tmp_path: Path) -> None:
-    """``bench/soak.py`` for one minute with 10 robots (the 10-minute, 50-robot run and its
-    figures are in docs/reliability.md)."""
+    """``bench/soak.py`` for one minute with 10 robots (the 10-minute, 50-robot run writes its
+    figures to docs/results/soak.md)."""
     out = tmp_path / "soak.json"
     run = subprocess.run(
         [sys.executable, str(SOAK), "--minutes", "1", "--robots", "10", "--interval", "10",
