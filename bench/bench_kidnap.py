@@ -219,7 +219,7 @@ def main(argv: list[str] | None = None) -> int:
     with ProcessPoolExecutor(max_workers=args.jobs) as pool:
         rows = list(pool.map(run_trial, *zip(*jobs, strict=True)))
     print(f"{len(jobs)} trials in {time.time() - t0:.0f} s, load {os.getloadavg()[0]:.2f}")
-    extra = {"pre": args.pre, "post": args.post, "seed": args.seed, **here.as_row()}
+    extra = {"pre": args.pre, "post": args.post, "seed": args.seed, **here.ended().as_row()}
     rows = [{**r, **extra} for r in rows]
     args.out.mkdir(parents=True, exist_ok=True)
     with open(csv_path, "w", newline="", encoding="utf-8") as fh:

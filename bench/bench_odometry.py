@@ -264,7 +264,8 @@ def main(argv: list[str] | None = None) -> int:
         "p50 / p90 / p99 deg |\n|---|---|---|---|---|\n"
     )
     body = [head + "\n".join(rows), turn_head + "\n".join(turns)]
-    text = report.page("Odometry checked against the scans", PARAGRAPH, [(here, "")], body)
+    runs = [(here.ended(), "")]
+    text = report.page("Odometry checked against the scans", PARAGRAPH, runs, body)
     report.write_page(args.out, text)
     print(f"wrote {args.out} in {time.perf_counter() - t0:.0f} s")
     return 0

@@ -344,13 +344,13 @@ def print_table(rows: list[dict[str, object]]) -> None:
 
 
 PARAGRAPH = (
-    "Each method localises every scan of three whole logs of the Freiburg SLAM benchmark"
+    "Each method localises {scans} of three whole logs of the Freiburg SLAM benchmark"
     " (Kümmerle et al. 2009), starting at the first scan's reference pose, with the robot's"
     " odometry (`odom on`) or without it (`off`, the seed paper's mode), on the metric map drawn"
     " from the log and on that map schematised to a floor plan. intel and fr079 are the tuning"
     " logs; **mit-csail is held out** (nothing was tuned on it). Errors are the distance of the"
     " estimated laser position from the GMapping-corrected (flag-1) reference, on those scans"
-    " only ({scans}); `lost` is the share of scans after the first not `tracking`; relations is"
+    " only; `lost` is the share of scans after the first not `tracking`; relations is"
     " Kümmerle et al.'s metric over the whole estimated track (translation mean ± std, rotation"
     " mean), beside the reference track's own figure and the published Rao-Blackwellised"
     " particle filter's; ms is the `update` call alone, per scan. Definitions: the docstring of"
@@ -521,7 +521,7 @@ def render(
             if fig is not None:
                 print(f"wrote {fig}")
     figures = [f"{out.name}/{k}.png" for k in logs if (out / f"{k}.png").exists()]
-    n_label = "all scans" if limit is None else f"first {limit} scans"
+    n_label = "every scan" if limit is None else f"the first {limit} scans"
     text = markdown(shown, reference, n_label, figures, fallback)
     return report.write_page(out.with_suffix(".md"), text)
 
@@ -634,7 +634,7 @@ def main(argv: list[str] | None = None) -> int:
         row = summarise(
             run, load_log(args.data, run.log, limit), relations[run.log], poses, tracking, times
         )
-        prov = Provenance(here.command, here.commit, here.machine, load1, here.date)
+        prov = Provenance(here.command, here.commit, here.machine, load1, here.date).ended()
         row.update(wall_s=wall, jobs=args.jobs, **prov.as_row())
         rows[:] = merge_rows(rows, [row])
         write_csv(csv_path, rows)

@@ -388,6 +388,7 @@ def main(
             )
     wall = time.perf_counter() - t0
     print(f"{len(runs)} runs in {wall:.0f} s wall with {jobs} processes (load {os.getloadavg()})")
+    here = here.ended()
     done = [(r, here, people) for r in runs]
     csv_path = out / "results.csv"
     if update and csv_path.exists():

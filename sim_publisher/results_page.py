@@ -16,6 +16,7 @@ rendered again from the CSV alone, and renders the page with :func:`page`.
 
 from __future__ import annotations
 
+import dataclasses
 import datetime
 import hashlib
 import math
@@ -31,7 +32,9 @@ REPO = Path(__file__).resolve().parents[1]
 #: The code an offline benchmark runs: uncommitted changes there are named in its commit.
 BENCHED_CODE = ("service/core", "service/adapters", "sim_publisher")
 #: CSV columns of :meth:`Provenance.as_row`.
-PROVENANCE_FIELDS = ("command", "commit", "machine", "load1", "date")
+PROVENANCE_FIELDS = ("command", "commit", "machine", "load1", "load_end", "date")
+#: Options that only say where a benchmark writes or caches (left out of a page's command).
+OUTPUT_OPTIONS = ("--out", "--cache")
 
 
 def cpu_model() -> str:
@@ -108,11 +111,19 @@ class Provenance:
     machine: str
     load1: float  # 1-minute load average when the run started
     date: str  # ISO date (UTC)
+    #: 1-minute load average when the run ended (NaN: not recorded). The start alone can
+    #: understate the load a timing was taken under: other work may start meanwhile.
+    load_end: float = math.nan
 
     @classmethod
     def capture(cls, command: str, paths: Sequence[str] = BENCHED_CODE) -> Provenance:
         """The provenance of a run starting now (call it before the run loads the machine)."""
         return cls(command, git_commit(paths), machine(), load_average(), today())
+
+    def ended(self, load_end: float | None = None) -> Provenance:
+        """This provenance with the load average at the run's end (now, unless given)."""
+        end = load_average() if load_end is None else load_end
+        return dataclasses.replace(self, load_end=end)
 
     def as_row(self) -> dict[str, str]:
         """The CSV columns :data:`PROVENANCE_FIELDS`."""
@@ -121,6 +132,7 @@ class Provenance:
             "commit": self.commit,
             "machine": self.machine,
             "load1": f"{self.load1:.2f}",
+            "load_end": "" if not math.isfinite(self.load_end) else f"{self.load_end:.2f}",
             "date": self.date,
         }
 
@@ -137,49 +149,92 @@ class Provenance:
                 return str(getattr(fallback, name))
             return str(v)
 
-        try:
-            load = float(get("load1"))
-        except ValueError:
-            load = math.nan
-        return cls(get("command"), get("commit"), get("machine"), load, get("date"))
+        def number(v: object) -> float:
+            try:
+                return float(v)  # type: ignore[arg-type]
+            except (TypeError, ValueError):
+                return math.nan
+
+        return cls(
+            get("command"),
+            get("commit"),
+            get("machine"),
+            number(get("load1")),
+            get("date"),
+            number(row.get("load_end")),
+        )
 
 
-def _loads(values: Sequence[float]) -> str:
+def shown_command(command: str) -> str:
+    """``command`` without its output locations (:data:`OUTPUT_OPTIONS`): they change where
+    the figures go, not the figures, and the published page is the default output."""
+    try:
+        words = shlex.split(command)
+    except ValueError:
+        return command
+    out: list[str] = []
+    skip = False
+    for w in words:
+        if skip:
+            skip = False
+            continue
+        if w in OUTPUT_OPTIONS:
+            skip = True
+            continue
+        if any(w.startswith(o + "=") for o in OUTPUT_OPTIONS):
+            continue
+        out.append(w)
+    return " ".join(shlex.quote(w) if w != "-m" else w for w in out)
+
+
+def _span(values: Sequence[float]) -> str | None:
     finite = [v for v in values if math.isfinite(v)]
     if not finite:
-        return "load average unknown"
+        return None
     lo, hi = min(finite), max(finite)
-    if len(finite) == 1 or abs(hi - lo) < 0.005:
-        return f"load average {lo:.2f} at start"
-    return f"load average {lo:.2f}–{hi:.2f} at the runs' starts"
+    return f"{lo:.2f}" if abs(hi - lo) < 0.005 else f"{lo:.2f}–{hi:.2f}"
+
+
+def _loads(starts: Sequence[float], ends: Sequence[float]) -> str:
+    start, end = _span(starts), _span(ends)
+    if start is None:
+        return "load average unknown"
+    several = len(starts) > 1 and "–" in start
+    when, until = ("the runs' starts", "their ends") if several else ("start", "the end")
+    text = f"load average {start} at {when}"
+    if end is not None:
+        text += f", {end} at {until}"
+    return text
 
 
 def provenance_block(runs: Sequence[tuple[Provenance, str]]) -> str:
     """How the page's rows were produced: one line per distinct command, commit and date
-    (``runs``: each run's provenance and a label of the rows it produced, may be empty)."""
-    groups: dict[tuple[str, str, str, str], tuple[list[float], list[str]]] = {}
+    (``runs``: each run's provenance and a label of the rows it produced, may be empty).
+    Commands are shown without their output locations (:func:`shown_command`)."""
+    groups: dict[tuple[str, str, str, str], tuple[list[float], list[float], list[str]]] = {}
     for prov, label in runs:
-        key = (prov.command, prov.commit, prov.date, prov.machine)
-        loads, labels = groups.setdefault(key, ([], []))
-        loads.append(prov.load1)
+        key = (shown_command(prov.command), prov.commit, prov.date, prov.machine)
+        starts, ends, labels = groups.setdefault(key, ([], [], []))
+        starts.append(prov.load1)
+        ends.append(prov.load_end)
         if label and label not in labels:
             labels.append(label)
     machines = {k[3] for k in groups}
     one_machine = len(machines) == 1
     lines = []
     if len(groups) == 1:
-        (command, commit, date, mach), (loads, _labels) = next(iter(groups.items()))
+        (command, commit, date, mach), (starts, ends, _labels) = next(iter(groups.items()))
         lines += [
             f"- Command: `{command}`",
             f"- Commit: {commit}",
-            f"- Machine: {mach}; {_loads(loads)}",
+            f"- Machine: {mach}; {_loads(starts, ends)}",
             f"- Date: {date}",
         ]
         return "\n".join(lines) + "\n"
-    for (command, commit, date, mach), (loads, labels) in groups.items():
+    for (command, commit, date, mach), (starts, ends, labels) in groups.items():
         rows = f" ({', '.join(labels)})" if labels else ""
         where = "" if one_machine else f", {mach}"
-        lines.append(f"- `{command}`{rows}: commit {commit}, {date}{where}, {_loads(loads)}")
+        lines.append(f"- `{command}`{rows}: commit {commit}, {date}{where}, {_loads(starts, ends)}")
     if one_machine:
         lines.append(f"- Machine: {machines.pop()}")
     return "\n".join(lines) + "\n"

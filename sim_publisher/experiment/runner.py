@@ -178,6 +178,7 @@ def run_experiment(
                 bar.set_postfix(runs=f"{len(result.runs)}/{len(tasks)}")
     bar.close()
     result.wall_seconds = time.perf_counter() - t_start
+    result.provenance = provenance.ended()
     if out_dir is not None:
         write_outputs(result, Path(out_dir), setup_objs if plots else None)
     return result
