@@ -262,6 +262,7 @@ class LaserOdometry:
         self._before = np.zeros(3)  # the pose of the scan before it
         #: Keyframes of the local map: (pose, points, normals) of matched scans, oldest first.
         self._frames: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        self._frame_last = False  # the previous scan is the last keyframe
 
     @property
     def has_previous(self) -> bool:
@@ -296,6 +297,7 @@ class LaserOdometry:
         self._scan = (ranges, angles)
         self._surface_cache = None
         self._frames = []
+        self._frame_last = False
         self._before = self._pose.copy()
         if delta is None:
             self._last = np.zeros(3)
@@ -324,8 +326,8 @@ class LaserOdometry:
 
     def _local_map(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         """The keyframes' points and normals in the previous scan's frame, with their
-        direction histogram (``None`` with fewer than two keyframes)."""
-        if len(self._frames) < 2:
+        direction histogram (``None`` when it holds nothing beyond the previous scan)."""
+        if not self._frames or (len(self._frames) == 1 and self._frame_last):
             return None
         back = invert(self._pose)
         pts, nrm = [], []
@@ -408,8 +410,10 @@ class LaserOdometry:
         self._scan = (ranges, angles)
         self._surface_cache = cur
         self._before = self._pose.copy()
+        self._frame_last = False
         if prev is None:
             self._frames = [(self._pose.copy(), cur[0], cur[1])]
+            self._frame_last = True
             return None
         guess = self.guess()
         if len(cur[0]) < 10 or len(prev[0]) < 10:
@@ -432,11 +436,11 @@ class LaserOdometry:
         return LaserStep(best.copy(), True, share, fits)
 
     def _unmatched(self, guess: np.ndarray, share: float, fits: int) -> LaserStep:
-        """An unknown increment: the guess stands in (until :meth:`remember`); the local map
-        starts afresh from this scan (its pose relative to the keyframes is unknown)."""
+        """An unknown increment: the guess stands in (until :meth:`remember`). The scan does
+        not join the local map (its pose is not measured); the next scan is matched against
+        it and, if that fails, against the keyframes, which then also correct the motion
+        assumed for this one."""
         self._pose = compose(self._before, guess)
-        assert self._surface_cache is not None
-        self._frames = [(self._pose.copy(), self._surface_cache[0], self._surface_cache[1])]
         return LaserStep(guess.copy(), False, share, fits)
 
     def _add_frame(self, pts: np.ndarray, nrm: np.ndarray) -> None:
@@ -450,8 +454,8 @@ class LaserOdometry:
             moved = math.hypot(float(rel[0]), float(rel[1]))
             if moved < cfg.frame_distance and abs(float(rel[2])) < cfg.frame_turn:
                 return
-        # a keyframe's pose is re-anchored by remember(): keep the unmatched scan out
         self._frames.append((self._pose.copy(), pts, nrm))
+        self._frame_last = True
         here = self._pose
         self._frames = [
             f
