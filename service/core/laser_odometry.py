@@ -56,11 +56,13 @@ the robot frame of the older scan.
 from __future__ import annotations
 
 import dataclasses
+import inspect
 import math
 from typing import Any
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
+from scipy.spatial import cKDTree
 
 from service.core import numeric
 from service.core.baselines import scan_points
@@ -74,6 +76,8 @@ __all__ = [
     "LaserOdometryConfig",
     "LaserOdometryLocalizer",
     "LaserStep",
+    "config_for_kind",
+    "observability",
     "turn_candidates",
     "with_laser_odometry",
 ]
@@ -155,6 +159,40 @@ class LaserOdometryConfig(BaseModel):
         "wins without trying the other candidates (small motion: the common case at a "
         "scan rate of 10 Hz and more).",
     )
+    observed_share: float = Field(
+        0.05,
+        gt=0,
+        le=0.5,
+        description="A direction of the position that less than this share of the matched "
+        "points' weight observes (their normals' projection) is not measured: the increment "
+        "there is the constant-velocity guess, and its noise model gets the guess's recent "
+        "miss along it (LaserStep.spread).",
+    )
+    unobserved_unknown: bool = Field(
+        True,
+        description="An increment with a direction of the position its points do not observe "
+        "(a corridor's axis: there it is the constant-velocity guess) is not given as "
+        "odometry: the scan gets the localiser's weak hold prior, as an unknown increment "
+        "does, and the map decides along that direction. Metric maps: on (their doors and "
+        "furniture tell the position along a corridor: tuning log intel, robot stopping and "
+        "starting in corridors, 97.4 -> 99.3 % of references within 0.5 m). Floor plans: off "
+        "(a plan has only the walls; the guess is the better prior: tuning buildings 0-19, "
+        "worst building 100 -> 95.4 % with it on).",
+    )
+    guess_sigma_initial: float = Field(
+        0.05,
+        gt=0,
+        description="How far (m) the constant-velocity guess of the translation per scan is "
+        "assumed to miss until fully measured scans tell (their miss's exponential mean "
+        "square, guess_smoothing): a simulated robot at constant speed ~0.01 m, the tuning "
+        "log intel's stop-and-go with scans out of order ~0.05-0.1 m.",
+    )
+    guess_sigma_floor: float = Field(
+        0.01, gt=0, description="Smallest miss (m) the guess is credited with."
+    )
+    guess_smoothing: float = Field(
+        0.05, gt=0, le=1, description="Weight of the newest miss in its mean square."
+    )
     local_map_frames: int = Field(
         20,
         ge=0,
@@ -181,6 +219,12 @@ class LaserOdometryConfig(BaseModel):
     )
 
 
+def config_for_kind(kind: str) -> LaserOdometryConfig:
+    """The laser odometry's defaults for a map ``kind`` (``metric`` | ``schematic``): the
+    same but for ``unobserved_unknown`` (on for metric maps only)."""
+    return LaserOdometryConfig(unobserved_unknown=kind != "schematic")
+
+
 @dataclasses.dataclass(frozen=True)
 class LaserStep:
     """One scan's increment: ``delta`` ``[dx, dy, dtheta]`` (robot frame of the previous
@@ -191,6 +235,54 @@ class LaserStep:
     matched: bool
     explained: float
     fits: int
+    #: Translation variance (2x2, m^2, the previous scan's frame) the fit could not remove:
+    #: along a direction its points do not observe (a corridor's axis, where the increment is
+    #: the constant-velocity guess) the guess's recent mean squared miss, zero elsewhere.
+    spread: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((2, 2)))
+
+
+def observability(
+    ref_points: np.ndarray,
+    ref_normals: np.ndarray,
+    points: np.ndarray,
+    normals: np.ndarray,
+    delta: np.ndarray,
+    config: ScanOdometryConfig,
+) -> tuple[np.ndarray, float]:
+    """The translation block (2x2) of the normal matrix of ``points`` (robot frame, unit
+    ``normals``) moved by ``delta`` and paired with their nearest ``ref_points`` within
+    ``config.gate_final`` whose normal agrees within ``normal_gate`` (Cauchy weights of the
+    point-to-line residuals, ``robust_scale``), and the weights' sum: which directions of the
+    position the pairs pin (the same quantity :func:`service.core.scan_odometry.observed`
+    judges)."""
+    if len(points) == 0 or len(ref_points) == 0:
+        return np.zeros((2, 2)), 0.0
+    c, s = math.cos(float(delta[2])), math.sin(float(delta[2]))
+    q = np.column_stack(
+        [
+            c * points[:, 0] - s * points[:, 1] + delta[0],
+            s * points[:, 0] + c * points[:, 1] + delta[1],
+        ]
+    )
+    m = np.column_stack(
+        [c * normals[:, 0] - s * normals[:, 1], s * normals[:, 0] + c * normals[:, 1]]
+    )
+    tree = cKDTree(ref_points)
+    k = min(8, len(ref_points))
+    dist, j = tree.query(q, k=k, distance_upper_bound=config.gate_final)
+    dist = dist.reshape(len(q), k)
+    j = np.minimum(j.reshape(len(q), k), len(ref_points) - 1)
+    agree = np.abs(np.einsum("ikj,ij->ik", ref_normals[j], m)) >= math.cos(config.normal_gate)
+    good = np.isfinite(dist) & agree
+    first = np.argmax(good, axis=1)
+    ok = good[np.arange(len(q)), first]
+    if not np.any(ok):
+        return np.zeros((2, 2)), 0.0
+    jj = j[np.arange(len(q)), first][ok]
+    nn = ref_normals[jj]
+    r = np.einsum("ij,ij->i", nn, q[ok] - ref_points[jj])
+    w = 1.0 / (1.0 + (r / config.robust_scale) ** 2)
+    return numeric.matmul(nn.T * w, nn), float(w.sum())
 
 
 def _oriented(points: np.ndarray, normals: np.ndarray) -> np.ndarray:
@@ -263,6 +355,8 @@ class LaserOdometry:
         #: Keyframes of the local map: (pose, points, normals) of matched scans, oldest first.
         self._frames: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
         self._frame_last = False  # the previous scan is the last keyframe
+        #: Mean squared miss (m^2) of the constant-velocity guess on fully measured scans.
+        self._guess_var = self.config.guess_sigma_initial**2
 
     @property
     def has_previous(self) -> bool:
@@ -352,10 +446,11 @@ class LaserOdometry:
         cur: tuple[np.ndarray, np.ndarray, np.ndarray],
         guess: np.ndarray,
         widest: float,
-    ) -> tuple[bool, float, np.ndarray, int]:
+    ) -> tuple[bool, float, np.ndarray, int, np.ndarray]:
         """The candidate fits of ``cur`` (points, normals, histogram; robot frame) to
         ``ref`` (the previous scan's frame) from ``guess`` and the turns the histograms allow
-        within ``widest``: (matched, share, increment, fits) of the best ranked."""
+        within ``widest``: (matched, share, increment, fits, spread) of the best ranked
+        (spread: :attr:`LaserStep.spread`)."""
         cfg = self.config
         ref_pts, ref_nrm, ref_hist = ref
         pts, nrm, hist = cur
@@ -399,7 +494,14 @@ class LaserOdometry:
             far = far or abs(float(wrap_angle(float(other[2] - best[2])))) > 0.1
             if far and ranks[k] >= ranks[order[0]] - cfg.ambiguity_margin:
                 matched = False
-        return matched, float(share), best, len(fits)
+        spread = np.zeros((2, 2))
+        if matched:
+            normal, total = observability(ref_pts, ref_nrm, p, n, best, cfg.fit)
+            vals, vecs = numeric.eigh_sym2(normal)
+            for k in range(2):
+                if total <= 0.0 or vals[k] < cfg.observed_share * total:
+                    spread += self._guess_var * np.outer(vecs[:, k], vecs[:, k])
+        return matched, float(share), best, len(fits), spread
 
     def step(self, ranges: np.ndarray, angles: np.ndarray) -> LaserStep | None:
         """The increment of this scan since the previous one (``None`` on the first scan
@@ -420,20 +522,31 @@ class LaserOdometry:
             return self._unmatched(guess, 0.0, 0)
         span = float(np.max(angles) - np.min(angles))
         widest = min(cfg.max_turn, max(0.0, span - cfg.min_overlap))
-        matched, share, best, fits = self._match(prev, cur, guess, widest)
-        if (not matched or share < cfg.local_map_below) and cfg.local_map_frames > 0:
+        matched, share, best, fits, spread = self._match(prev, cur, guess, widest)
+        partial = cfg.unobserved_unknown and bool(np.any(spread))
+        if (not matched or partial or share < cfg.local_map_below) and cfg.local_map_frames > 0:
             local = self._local_map()
             if local is not None:
-                m2, s2, b2, f2 = self._match(local, cur, guess, math.pi)
+                m2, s2, b2, f2, sp2 = self._match(local, cur, guess, math.pi)
                 fits += f2
-                if m2 and (not matched or s2 > share):
-                    matched, share, best = True, s2, b2
+                better = not matched or s2 > share or (partial and not np.any(sp2))
+                if m2 and better:
+                    matched, share, best, spread = True, s2, b2, sp2
+        if matched and cfg.unobserved_unknown and np.any(spread):
+            # part of the motion is the guess: not a measurement to give as odometry
+            self._pose = compose(self._before, best)
+            return LaserStep(best.copy(), False, share, fits, spread)
         if not matched:
             return self._unmatched(guess, share, fits)
+        if not np.any(spread):
+            # fully measured: how far the constant-velocity guess was off
+            miss = float((best[0] - guess[0]) ** 2 + (best[1] - guess[1]) ** 2)
+            a = cfg.guess_smoothing
+            self._guess_var = max((1.0 - a) * self._guess_var + a * miss, cfg.guess_sigma_floor**2)
         self._last = best.copy()
         self._pose = compose(self._before, best)
         self._add_frame(cur[0], cur[1])
-        return LaserStep(best.copy(), True, share, fits)
+        return LaserStep(best.copy(), True, share, fits, spread)
 
     def _unmatched(self, guess: np.ndarray, share: float, fits: int) -> LaserStep:
         """An unknown increment: the guess stands in (until :meth:`remember`). The scan does
@@ -476,7 +589,12 @@ class LaserOdometryLocalizer:
 
     def __init__(self, inner: Localizer, config: LaserOdometryConfig | None = None) -> None:
         self.inner = inner
-        self.odometry = LaserOdometry(config)
+        #: ``None``: the defaults of the inner localiser's map kind (:func:`config_for_kind`)
+        self.config = config
+        self._kind = str(inner.map_data.kind)
+        self.odometry = LaserOdometry(config or config_for_kind(self._kind))
+        #: the inner localiser takes an increment's extra variance (``odom_spread``)
+        self._spreads = "odom_spread" in inspect.signature(inner.update).parameters
         self._reading: np.ndarray | None = None  # the odometry pose last given to ``inner``
         self._fresh: np.ndarray | None = None  # the last one that was not a repeat
         #: Wheel readings given as ``frame (+) odom``; ``None`` until a scan without odometry
@@ -529,12 +647,23 @@ class LaserOdometryLocalizer:
         """Localise one scan: with the robot's odometry pose ``odom`` when it sends one, else
         with the laser odometry's (see the class docstring)."""
         r, a = check_scan(ranges, angles)
+        kind = str(self.inner.map_data.kind)
+        if self.config is None and kind != self._kind:  # a map of the other kind now
+            self._kind = kind
+            self.odometry.config = config_for_kind(kind)
+        spread = None
         if odom is None:
             reading = self._laser_reading(r, a)
             self._wheel = None
+            step = self.last_step
+            if step is not None and step.matched and np.any(step.spread) and self._spreads:
+                spread = step.spread
         else:
             reading = self._wheel_reading(r, a, odom)
-        est = self.inner.update(r, a, reading)
+        if spread is None:
+            est = self.inner.update(r, a, reading)
+        else:
+            est = self.inner.update(r, a, reading, odom_spread=spread)  # type: ignore[call-arg]
         self._after(est)
         return est
 
