@@ -41,6 +41,9 @@ from schemas.messages import Health, RobotConfig
 
 #: A pose farther than this (m) from the scan's true pose is "off".
 OFF_M = 0.1
+#: A pose is *wrong* beyond these (the scale benchmark's correctness, bench_service): a floor
+#: plan's own scale error keeps a well-tracked robot 0.1-0.2 m from its true pose there.
+WRONG_M, WRONG_DEG = 0.5, 10.0
 
 
 @dataclass
@@ -235,7 +238,8 @@ def summarise_fleet(
     status)``: answered (poses over scans sent, mean and worst robot), latency (receipt minus
     the scan's stamp, its send time) p50 / p99 / max, the first scan's latency (each robot's
     seq 0; ``inf`` if it was not answered), poses more than :data:`OFF_M` from the truth and the
-    largest error, and poses whose status is not ``tracking``."""
+    largest error, *wrong* poses (:data:`WRONG_M`, :data:`WRONG_DEG`) and poses whose status is
+    not ``tracking``."""
     got: dict[str, dict[int, tuple[float, list[float], str]]] = {p.robot_id: {} for p in plans}
     t_first = min((r[2] for r in rows), default=0.0)
     by_second: dict[int, list[float]] = {}
@@ -246,11 +250,13 @@ def summarise_fleet(
     frac = np.array([len(got[p.robot_id]) / count for p in plans])
     lat = np.array([v[0] for g in got.values() for v in g.values()])
     first = np.array([got[p.robot_id].get(0, (math.inf,))[0] for p in plans])
-    err, not_tracking = [], 0
+    err, not_tracking, wrong = [], 0, 0
     for p in plans:
         for seq, (_l, pose, status) in got[p.robot_id].items():
             t = p.truth[seq]
             err.append(math.hypot(pose[0] - t[0], pose[1] - t[1]))
+            dth = abs((pose[2] - t[2] + math.pi) % (2 * math.pi) - math.pi)
+            wrong += err[-1] >= WRONG_M or math.degrees(dth) >= WRONG_DEG
             not_tracking += status != "tracking"
     e = np.asarray(err)
     return {
@@ -266,6 +272,7 @@ def summarise_fleet(
         "first_p50": float(np.median(first)),
         "first_answered": int(np.sum(np.isfinite(first))),
         "off": int(np.sum(e > OFF_M)),
+        "wrong": int(wrong),
         "err_max": float(e.max()) if e.size else math.nan,
         "not_tracking": int(not_tracking),
         # latency p99 of the scans sent in each second of the run (the cold start's transient)

@@ -172,6 +172,8 @@ def shown_command(command: str) -> str:
         words = shlex.split(command)
     except ValueError:
         return command
+    if not any(w.split("=", 1)[0] in OUTPUT_OPTIONS for w in words):
+        return command  # as written (a call in Python, a command without output options)
     out: list[str] = []
     skip = False
     for w in words:

@@ -67,6 +67,16 @@ _SHARED: weakref.WeakValueDictionary[int, MapModel] = weakref.WeakValueDictionar
 _SHARED_LOCK = threading.Lock()
 
 
+def _same_map(a: MapData, b: MapData) -> bool:
+    """Whether two maps are equal (id, kind and every polyline's points)."""
+    return (
+        a.map_id == b.map_id
+        and a.kind == b.kind
+        and len(a.polylines) == len(b.polylines)
+        and all(np.array_equal(p, q) for p, q in zip(a.polylines, b.polylines, strict=True))
+    )
+
+
 @dataclass(eq=False)
 class MapModel:
     """Segments, normals and the association grid of one map.
@@ -118,12 +128,17 @@ class MapModel:
         shared by every localiser given that object while any of them (or whoever keeps the
         model) lives: a worker holds one ``MapData`` per map, so its robots share one model (a
         160-polyline building's model costs ~12 ms and its grid's memory once per map, not
-        once per robot). Thread-safe."""
+        once per robot). A copy of a map that has a model (a localiser unpickled in another
+        process) gets that model too. Thread-safe."""
         key = id(map_data)
         with _SHARED_LOCK:
             model = _SHARED.get(key)
             if model is not None and model.map_data is map_data:
                 return model
+            equal = [m for m in _SHARED.values() if _same_map(m.map_data, map_data)]
+            if equal:
+                _SHARED[key] = equal[0]
+                return equal[0]
         model = cls(map_data)  # outside the lock: another map's model may be built meanwhile
         with _SHARED_LOCK:
             hit = _SHARED.get(key)

@@ -668,8 +668,9 @@ def zenoh_config(settings: ServiceSettings) -> zenoh.Config:
     authentication, access control, ...) if given, else an empty config. Mode, listen and
     connect endpoints from the settings are applied on top, except that with a file only the
     options explicitly set (flag, environment or configuration file) override it. Multicast
-    scouting is switched off unless ``multicast_scouting`` is true; ``scouting/delay`` is 0 so
-    open returns at once. Unless
+    scouting is switched off unless ``multicast_scouting`` is true. Zenoh's scouting delay is
+    kept: in peer mode open waits (up to 500 ms) for the connect endpoints, because a query
+    sent before a peer link is up never reaches the queryables behind it. Unless
     the file sets ``connect/retry``, lost connections are retried every 250 ms doubling up to
     ``reconnect_max_ms`` (Zenoh's own default backs off to 4 s), so the service is back within
     about a second of its router.
@@ -708,7 +709,6 @@ def zenoh_config(settings: ServiceSettings) -> zenoh.Config:
     conf.insert_json5(
         "scouting/multicast/enabled", "true" if settings.multicast_scouting else "false"
     )
-    conf.insert_json5("scouting/delay", "0")
     return conf
 
 

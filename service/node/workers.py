@@ -46,6 +46,7 @@ import logging
 import math
 import multiprocessing as mp
 import os
+import pickle
 import select
 import signal
 import time
@@ -59,7 +60,6 @@ from typing import Any
 import numpy as np
 
 from service.core.factory import create_localizer
-from service.core.mapmodel import MapModel
 from service.core.types import Localizer, MapData, wrap_angle
 from service.errors import LocalizationError, ServiceTimeout, ShapelocError
 from service.node.prepare import build_index, prepare_map, warm_up_worker
@@ -132,7 +132,7 @@ class WorkerCore:
         self.search = search
         self.maps: dict[str, MapData] = {}
         #: each map's model, shared by its robots' trackers (kept while the map is stored)
-        self.models: dict[str, MapModel] = {}
+        self.models: dict[str, Any] = {}
         self.robots: dict[str, _Robot] = {}
         self.cache_dir = cache_dir  # per-map view index cache of global localisation
         #: per-scan work of a global search while the robot is alone on this worker; half of
@@ -182,6 +182,10 @@ class WorkerCore:
     def _map(self, md: MapData) -> None:
         self.maps[md.map_id] = md
         self.models.pop(md.map_id, None)
+        # imported here: the service process imports this module, and the model's compiled
+        # kernels would cost it ~125 MB of memory with worker processes
+        from service.core.mapmodel import MapModel
+
         with contextlib.suppress(LocalizationError):  # no segment: its robots get the error
             self.models[md.map_id] = MapModel.shared(md)
         for r in self.robots.values():
@@ -190,17 +194,23 @@ class WorkerCore:
         if not self.search:
             prepare_map(md)  # the map's first-use work, before the service calls it ready
 
-    def _export(self, robot_id: str) -> _Robot:
+    def _export(self, robot_id: str) -> bytes:
         """Hand a robot (configuration, last pose and odometry, localiser with its state)
-        over to another worker: removed here, returned picklable."""
+        over to another worker: removed here, returned pickled. As bytes, so the service
+        process only passes it on: unpickling a localiser there would import every method
+        and the compiled kernels into it (+25 MB of the service's memory on the first move
+        in a soak)."""
         r = self.robots.pop(robot_id, None)
         if r is None:
             raise LocalizationError(f"robot {robot_id!r} has no configuration in this worker")
-        return r
+        return pickle.dumps(r, protocol=pickle.HIGHEST_PROTOCOL)
 
-    def _import(self, robot_id: str, robot: _Robot) -> None:
-        """Take over a robot exported by another worker; its localiser is re-pointed at this
-        worker's copy of the map (or rebuilt from the last pose when the map changed)."""
+    def _import(self, robot_id: str, robot: _Robot | bytes) -> None:
+        """Take over a robot exported by another worker (its pickled state); its localiser is
+        re-pointed at this worker's copy of the map (or rebuilt from the last pose when the
+        map changed)."""
+        if isinstance(robot, bytes):
+            robot = pickle.loads(robot)  # only ever our own worker's export
         if not isinstance(robot, _Robot):
             raise LocalizationError(f"import of {robot_id!r}: not a robot state")
         md = self.maps.get(robot.map_id)

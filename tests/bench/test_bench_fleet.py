@@ -26,7 +26,7 @@ def test_summarise_counts_answered_first_scans_and_poses_off() -> None:
         ("a", 0, 10.0, 10.010, [0.0, 0.0, 0.0], "tracking"),
         ("a", 1, 10.1, 10.130, [0.1, 0.0, 0.0], "tracking"),
         ("a", 1, 10.1, 10.200, [9.0, 0.0, 0.0], "tracking"),  # a repeat: the first counts
-        ("a", 3, 10.3, 10.320, [0.5, 0.0, 0.0], "lost"),  # 0.2 m off
+        ("a", 3, 10.3, 10.320, [0.5, 0.0, 0.3], "lost"),  # 0.2 m and 17 deg off: wrong
         ("b", 2, 10.2, 10.260, [0.2, 0.0, 0.0], "tracking"),  # its first scan was replaced
         ("b", 9, 10.9, 10.950, [0.0, 0.0, 0.0], "tracking"),  # not a scan of the run
     ]
@@ -34,17 +34,27 @@ def test_summarise_counts_answered_first_scans_and_poses_off() -> None:
     assert r["poses"] == 4 and math.isclose(r["answered"], 0.5)
     assert math.isclose(r["answered_min"], 0.25)
     assert r["first_answered"] == 1 and math.isinf(r["first_max"])
-    assert r["off"] == 1 and math.isclose(r["err_max"], 0.2)
+    assert r["off"] == 1 and math.isclose(r["err_max"], 0.2) and r["wrong"] == 1
     assert r["not_tracking"] == 1
     assert math.isclose(r["max"], 60.0, abs_tol=1e-6)
 
 
 def test_verdicts_and_the_largest_fleet() -> None:
-    good = {"answered": 0.995, "off": 0, "p99": 40.0, "first_max": 30.0}
+    good = {
+        "answered": 0.995,
+        "off": 0,
+        "wrong": 0,
+        "p99": 40.0,
+        "first_max": 30.0,
+        "map": "metric",
+    }
     assert cold_ok(good) and line_ok(good)
     assert not cold_ok({**good, "first_max": math.inf})
     assert not cold_ok({**good, "p99": 60.0}) and line_ok({**good, "p99": 60.0})
-    assert not line_ok({**good, "off": 1})
+    assert not line_ok({**good, "off": 1}) and not line_ok({**good, "wrong": 1})
+    # a floor plan's scale error puts tracked poses 0.1-0.2 m from the truth: only wrong counts
+    assert line_ok({**good, "map": "schematic", "off": 9})
+    assert not line_ok({**good, "map": "schematic", "off": 9, "wrong": 1})
     runs = [
         {**good, "world": "office", "map": "metric", "n": 10},
         {**good, "world": "office", "map": "metric", "n": 50},

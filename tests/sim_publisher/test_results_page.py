@@ -66,6 +66,8 @@ def test_the_shown_command_leaves_out_where_the_output_goes() -> None:
     assert (
         rp.shown_command("python -m bench.x --seeds '1, 2'") == "python -m bench.x --seeds '1, 2'"
     )
+    call = "f(setups=(2,), methods=('shape', 'icp'))"  # not a shell command: kept as written
+    assert rp.shown_command(call) == call
 
 
 def test_one_run_gives_command_commit_machine_load_and_date() -> None:

@@ -75,7 +75,7 @@ def test_export_import_carries_the_localiser_state() -> None:
         r, ang = su.scan(i)
         if i == 2003:
             st, robot = c.handle(("export", "s"))
-            assert isinstance(robot.localizer, GlobalShapeLocalizer)
+            assert isinstance(pickle.loads(robot).localizer, GlobalShapeLocalizer)  # pickled
             assert d.handle(("import", "s", pickle.loads(pickle.dumps(robot))))[0] == "ok"
         core = c if i < 2003 else d
         out = core.handle(("scan", "s", r, ang, su.odom[i]))[1]
