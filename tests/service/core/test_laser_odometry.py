@@ -11,17 +11,24 @@ from typing import Any
 import numpy as np
 import pytest
 
+from service.core import numeric
+from service.core.baselines import scan_points
 from service.core.factory import create_localizer
 from service.core.global_localization import GlobalShapeLocalizer
 from service.core.laser_odometry import (
     LaserOdometry,
+    LaserOdometryConfig,
     LaserOdometryLocalizer,
+    config_for_kind,
+    observability,
     turn_candidates,
     with_laser_odometry,
 )
-from service.core.motion import MotionConfig, odometry_sigmas
+from service.core.motion import MotionConfig, OdometryMotion, odometry_sigmas
 from service.core.mounting import MountedLocalizer
 from service.core.pose import compose, invert
+from service.core.raycast import RayCaster
+from service.core.scan_odometry import surface_normals
 from service.core.types import Estimate, MapData, wrap_angle
 from service.errors import LocalizationError
 from sim_publisher.generator import BuildingParams, generate_building
@@ -232,3 +239,119 @@ def test_the_factory_wraps_shape_only_unless_asked_and_mounts_outside() -> None:
     assert isinstance(mounted.inner, LaserOdometryLocalizer)  # the laser's motion, laser frame
     plain = _Recorder()
     assert with_laser_odometry(plain, False) is plain  # type: ignore[arg-type]
+
+
+def _walls(*corners: tuple[float, float]) -> np.ndarray:
+    """Closed polyline through ``corners`` as segments ``[x0, y0, x1, y1]``."""
+    c = np.array([*corners, corners[0]], dtype=np.float64)
+    return np.hstack([c[:-1], c[1:]])
+
+
+def _scans(
+    walls: np.ndarray, poses: list[np.ndarray], fov: float = math.pi
+) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Noise-free scans (361 beams over ``fov``, 30 m) of ``walls`` taken at ``poses``."""
+    caster = RayCaster(walls)
+    angles = np.linspace(-fov / 2.0, fov / 2.0, 361)
+    return [(caster.cast(np.asarray(p, dtype=np.float64), angles, 30.0), angles) for p in poses]
+
+
+# An L-shaped room with a pillar: walls in two directions and corners, so both directions of
+# the position and the heading are seen.
+_ROOM = np.vstack(
+    [
+        _walls((-3.0, -2.0), (6.0, -2.0), (6.0, 1.0), (2.0, 1.0), (2.0, 4.0), (-3.0, 4.0)),
+        _walls((0.5, 0.0), (1.0, 0.0), (1.0, 0.5), (0.5, 0.5)),
+    ]
+)
+# A straight corridor 2 m wide and 200 m long: along it no wall ends within the laser's range.
+_CORRIDOR = np.vstack(
+    [np.array([[-100.0, -1.0, 100.0, -1.0]]), np.array([[-100.0, 1.0, 100.0, 1.0]])]
+)
+
+
+def test_a_scan_pair_with_a_known_motion_gives_that_increment_fully_observed() -> None:
+    start = np.array([-1.0, -0.5, 0.2])
+    truth = np.array([0.12, -0.04, 0.3])
+    (s0, a0), (s1, a1) = _scans(_ROOM, [start, compose(start, truth)])
+    lo = LaserOdometry()
+    assert lo.step(s0, a0) is None
+    step = lo.step(s1, a1)
+    assert step is not None and step.matched
+    et, er = _error(step.delta, truth)
+    assert et < 0.01 and er < math.radians(0.5), (et, er)
+    assert not np.any(step.spread)  # every direction of the position is measured
+
+
+def test_a_corridor_pair_reports_the_axis_as_unobserved_and_measures_the_rest() -> None:
+    """Two scans 0.15 m apart along a featureless corridor (and 0.05 m across it, turned 3
+    degrees): the walls tell the motion across the corridor and the turn, not the motion along
+    it. The step says so: its extra variance lies along the corridor's axis only. On a floor
+    plan's defaults the increment is still given as odometry (the guess along the axis), on a
+    metric map's it is not (the map decides along the axis)."""
+    start = np.array([0.0, -0.1, 0.0])
+    truth = np.array([0.15, 0.05, math.radians(3.0)])
+    scans = _scans(_CORRIDOR, [start, compose(start, truth)])
+    for kind, given in (("schematic", True), ("metric", False)):
+        lo = LaserOdometry(config_for_kind(kind))
+        lo.step(*scans[0])
+        step = lo.step(*scans[1])
+        assert step is not None and step.matched is given, kind
+        assert abs(step.delta[1] - truth[1]) < 0.01, kind  # across the corridor: measured
+        assert abs(float(wrap_angle(float(step.delta[2] - truth[2])))) < math.radians(0.5)
+        assert step.spread[0, 0] > 0.0, kind  # along the axis: the guess's miss
+        assert step.spread[1, 1] == pytest.approx(0.0, abs=1e-12), kind
+        assert step.spread[0, 1] == pytest.approx(0.0, abs=1e-12), kind
+
+
+def test_observability_of_a_corridor_has_no_weight_along_its_axis() -> None:
+    """The normal matrix of a corridor's pairs: all its weight across the corridor; a room's:
+    weight in both directions."""
+    cfg = LaserOdometryConfig().fit
+    for walls, both in ((_CORRIDOR, False), (_ROOM, True)):
+        ((r, a),) = _scans(walls, [np.array([0.0, -0.5 if both else 0.0, 0.1])])
+        pts = scan_points(r, a, cfg.max_range)
+        nrm = surface_normals(pts, cfg.normal_window, cfg.normal_radius, cfg.max_flatness)
+        ok = np.all(np.isfinite(nrm), axis=1)
+        pts, nrm = pts[ok], nrm[ok]
+        normal, total = observability(pts, nrm, pts, nrm, np.zeros(3), cfg)
+        assert total > 0.5 * len(pts)  # a scan against itself: nearly every point is paired
+        vals, _ = numeric.eigh_sym2(normal)
+        if both:
+            assert min(vals) > 0.05 * total
+        else:
+            assert min(vals) < 1e-6 * total
+
+
+def test_an_unobserved_direction_weakens_the_prior_along_it_only() -> None:
+    """The tracker's odometry prior with an increment's extra variance along the robot's x
+    axis (heading 90 degrees: the map's y axis): less information along it, the same across
+    it, the heading's untouched; a non-finite spread is refused."""
+    motion = OdometryMotion(MotionConfig())
+    pose = np.array([1.0, 2.0, math.pi / 2.0])
+    motion.predict(pose, np.zeros(3))
+    plain = motion.predict(pose, np.array([0.1, 0.0, 0.0])).information
+    motion = OdometryMotion(MotionConfig())
+    motion.predict(pose, np.zeros(3))
+    spread = np.diag([0.05**2, 0.0])
+    wide = motion.predict(pose, np.array([0.1, 0.0, 0.0]), spread=spread).information
+    assert wide[1, 1] < 0.5 * plain[1, 1]  # robot x is map y at this heading
+    assert wide[0, 0] == pytest.approx(plain[0, 0])
+    assert wide[2, 2] == pytest.approx(plain[2, 2])
+    with pytest.raises(LocalizationError):
+        motion.predict(pose, np.array([0.2, 0.0, 0.0]), spread=np.full((2, 2), np.nan))
+
+
+def test_the_map_kind_picks_the_defaults_and_a_new_map_switches_them() -> None:
+    assert config_for_kind("metric").unobserved_unknown
+    assert not config_for_kind("schematic").unobserved_unknown
+    inner = _Recorder()
+    loc = LaserOdometryLocalizer(inner)
+    assert loc.odometry.config.unobserved_unknown  # the recorder's map is metric
+    inner.map_data = MapData.from_lists("p", "schematic", [[[0.0, 0.0], [1.0, 0.0]]])
+    su = _floor_plan(0)
+    loc.update(*su.scan(0))
+    assert not loc.odometry.config.unobserved_unknown
+    fixed = LaserOdometryLocalizer(inner, LaserOdometryConfig(unobserved_unknown=True))
+    fixed.update(*su.scan(0))
+    assert fixed.odometry.config.unobserved_unknown  # an explicit config is kept
