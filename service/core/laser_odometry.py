@@ -582,15 +582,17 @@ class LaserOdometryLocalizer:
     """A localiser fed the laser odometry on scans that carry no odometry (module docstring).
 
     Wraps ``inner`` (any :class:`~service.core.types.Localizer`); :attr:`pose`, ``method``
-    and everything else are the inner localiser's (``map_data`` is read and set on it).
+    and everything else are the inner localiser's, read and set on it (``loc.gconfig = ...``
+    changes the inner localiser's), except the wrapper's own attributes (``_OWN``).
     ``reset(initial_pose, odom)`` forgets the previous scan (the robot may have been moved).
     Picklable when the inner localiser is.
     """
 
     def __init__(self, inner: Localizer, config: LaserOdometryConfig | None = None) -> None:
         self.inner = inner
-        #: ``None``: the defaults of the inner localiser's map kind (:func:`config_for_kind`)
-        self.config = config
+        #: ``None``: the defaults of the inner localiser's map kind (:func:`config_for_kind`).
+        #: Not ``config``: that name reads the inner localiser's own configuration.
+        self.laser_config = config
         self._kind = str(inner.map_data.kind)
         self.odometry = LaserOdometry(config or config_for_kind(self._kind))
         #: the inner localiser takes an increment's extra variance (``odom_spread``)
@@ -648,7 +650,7 @@ class LaserOdometryLocalizer:
         with the laser odometry's (see the class docstring)."""
         r, a = check_scan(ranges, angles)
         kind = str(self.inner.map_data.kind)
-        if self.config is None and kind != self._kind:  # a map of the other kind now
+        if self.laser_config is None and kind != self._kind:  # a map of the other kind now
             self._kind = kind
             self.odometry.config = config_for_kind(kind)
         spread = None
@@ -727,6 +729,41 @@ class LaserOdometryLocalizer:
         if inner is None or name.startswith("__"):
             raise AttributeError(name)
         return getattr(inner, name)
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        # an attribute read from the inner localiser is set there too: else a caller tuning
+        # it (a benchmark's ablation, a test) would change a shadow copy the scans never use
+        inner = self.__dict__.get("inner")
+        if (
+            inner is not None
+            and name not in _OWN
+            and not hasattr(type(self), name)
+            and hasattr(inner, name)
+        ):
+            setattr(inner, name, value)
+        else:
+            object.__setattr__(self, name, value)
+
+
+#: The attributes :class:`LaserOdometryLocalizer` keeps for itself (everything else it reads
+#: and sets on the inner localiser).
+_OWN = frozenset(
+    {
+        "inner",
+        "laser_config",
+        "odometry",
+        "last_step",
+        "_kind",
+        "_spreads",
+        "_reading",
+        "_fresh",
+        "_frame",
+        "_wheel",
+        "_pending",
+        "_last_pose",
+        "_last_status",
+    }
+)
 
 
 def with_laser_odometry(

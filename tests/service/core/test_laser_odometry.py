@@ -355,3 +355,18 @@ def test_the_map_kind_picks_the_defaults_and_a_new_map_switches_them() -> None:
     fixed = LaserOdometryLocalizer(inner, LaserOdometryConfig(unobserved_unknown=True))
     fixed.update(*su.scan(0))
     assert fixed.odometry.config.unobserved_unknown  # an explicit config is kept
+
+
+def test_the_wrappers_reads_and_writes_reach_the_inner_localiser() -> None:
+    """A caller that tunes the localiser it got from the factory (``loc.gconfig = ...``) tunes
+    the one that localises, and ``loc.config`` is the inner localiser's configuration."""
+    su = _floor_plan(0)
+    loc = create_localizer("shape", su.map_data, None)
+    assert isinstance(loc, LaserOdometryLocalizer)
+    inner = loc.inner
+    assert isinstance(inner, GlobalShapeLocalizer)
+    assert loc.config is inner.config
+    loc.gconfig = inner.gconfig.model_copy(update={"settle_scans": 7})
+    assert inner.gconfig.settle_scans == 7 and "gconfig" not in loc.__dict__
+    loc.last_step = None  # the wrapper's own attributes stay its own
+    assert "last_step" in loc.__dict__
