@@ -113,13 +113,13 @@ class DriveConfig(BaseModel):
         "newest keyframe the hypothesis was scored on; its keyframe scores are then redone "
         "from the new pose. Without it the search's refined pose is dropped and the "
         "hypothesis stays where the re-scoring's narrow polish (+-0.13 m) holds it: on "
-        "building 65 (never tuned on before stop 41) the true place's hypothesis sat 0.18 m "
+        "building 65 (not tuned on when this was found) the true place's hypothesis sat 0.18 m "
         "off for 40 scans and a congruent room 4.6 m away was fixed and tracked to the end. "
         "At 0.1 the generated buildings' floor plans gain fixes and lose wrong ones "
         "(buildings 60-99: 796 -> 799 of 800 within 15 m, 2 -> 1 wrong), but it helps a "
         "wrong place as much as the true one: on the tuning log intel (start 3636) a wrong "
         "place 24 m off, re-found at a better pose, won the drive by 0.16 (0.11 before) and "
-        "was fixed. Off by default (docs/global.md, Stop 41).",
+        "was fixed. Off by default.",
     )
     refound_offset: float = Field(0.05, gt=0, description="See refound_margin.")
     refound_turn: float = Field(0.02, gt=0, description="See refound_margin.")
@@ -193,8 +193,7 @@ class DriveConfig(BaseModel):
         "after that does not show the tracker has the place again. 0 = off, the default: "
         "the case that showed it (tuning log fr079 fed every 3rd scan, start 1174, 1.29 m "
         "off) came with a search setting not kept, and at 0.5 m it delayed 23 of 880 "
-        "tuning fixes by 0.2-2.2 m without changing a first fix (docs/global.md, "
-        "'Stop 38').",
+        "tuning fixes by 0.2-2.2 m without changing a first fix.",
     )
     probation_hold_violation: float = Field(
         0.1,
@@ -290,7 +289,7 @@ class DriveConfig(BaseModel):
         "up to twice the cost; its keyframes then scored 0.2-0.3 worse than a congruent room "
         "8 m away, which won (3 wrong first fixes at 50 ms). Off by default: on the 800 "
         "drives of buildings 20-59 at 50 ms it fixed those 3 and brought 2 others, one of "
-        "them a place 2.7 m off tracked to the end (docs/global.md, 'Stop 39').",
+        "them a place 2.7 m off tracked to the end.",
     )
     probation_reversal: bool = Field(
         False,
@@ -430,8 +429,8 @@ class DriveConfig(BaseModel):
         "when the twin trails it by the ambiguity bar. A repeated check searches the map "
         "for the twin the hypotheses already hold: on the office floor plan a leader was "
         "re-checked every 2 scans for the whole drive (32 checks in 103 scans, about half "
-        "the search's CPU). The work goes to searches instead. Tuning split, floor plans "
-        "(docs/global.md, stop 44): office CPU to the fix p50 -15 %, travel p90 7.7 -> 7.0 "
+        "the search's CPU). The work goes to searches instead. Tuning split, floor plans: "
+        "office CPU to the fix p50 -15 %, travel p90 7.7 -> 7.0 "
         "m; buildings 60-99 travel p90 6.5 -> 5.9 m, 799 -> 797 of 800 within 15 m (more "
         "searches find more aliases that tie the true place on single scans); no wrong fix.",
     )

@@ -5,7 +5,7 @@ the evidence rule and the outcome of a twin check. The pieces it drives are in
 :mod:`service.core.hypotheses` (re-scoring, merging, jobs), :mod:`service.core.evidence`
 (keyframes, back-scoring, pruning by the drive's evidence) and
 :mod:`service.core.window_refine` (contenders placed before a verdict); the winner's
-probation is :mod:`service.core.probation`. docs/global.md, "Search over a drive"."""
+probation is :mod:`service.core.probation`."""
 
 from __future__ import annotations
 
@@ -29,7 +29,7 @@ from service.core.pose import compose
 from service.core.pose_scoring import Hypothesis
 
 # Probation is named here too: localiser states pickled before it moved to
-# service.core.probation (stop 43) refer to service.core.drive_search.Probation
+# service.core.probation refer to service.core.drive_search.Probation
 from service.core.probation import Probation, ProbationSteps  # noqa: F401
 from service.core.types import Estimate
 
@@ -223,7 +223,7 @@ class DriveSearch(ProbationSteps):
             # the rule, tuning log intel start 5781 was fixed wrong on the drive bench). Holding
             # it back also while the alternative trails by less than drive_margin was tried
             # and not kept: at fr079's east end aliases along the corridor stay within 0.01-0.09
-            # of the true place for the whole drive, and it was never fixed (docs/global.md).
+            # of the true place for the whole drive, and it was never fixed.
             confirmed = False
             extras["drive_beaten"] = 1.0
         if near_track is None and best.found < g.fix_min_found:

@@ -74,7 +74,7 @@ class GlobalConfig(DriveConfig):
         "wall (pose_scoring._field_violations); 0 = by support alone. Schematic: 40 (where the "
         "plan shows less than half of a scan, wrong places whose walls the furniture fits "
         "out-rank the true pose on support, but let a third to two thirds of their beams "
-        "through walls, the true pose 0-15 %: fr079's east hall, docs/global.md 'Stop 45').",
+        "through walls, the true pose 0-15 %: fr079's east hall).",
     )
     refine_top: int = Field(
         16, ge=1, description="Hypotheses refined and verified. Schematic: 32 (twin rooms)."
@@ -284,8 +284,7 @@ class GlobalConfig(DriveConfig):
         "unexplained stretch there ended the track, 0.04 m from the truth, and a search "
         "re-fixed it 0.4-0.9 m off (unexplained scans at the true pose: violation share "
         "0.011 / 0.033 p50 / p90; kidnapped: 0.06 / 0.24 p10 / p50). Not applied to a "
-        "winner on probation. -1: every unexplained scan counts (the rule before stop 42; "
-        "docs/global.md, Stop 42).",
+        "winner on probation. -1: every unexplained scan counts (the earlier rule).",
     )
 
     @classmethod

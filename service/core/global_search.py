@@ -168,10 +168,10 @@ def global_search(
 #: at or above the slowest map's measurement, so a budget does not buy more CPU than it names.
 #: The model of 2026-11-23 (no segment term) overestimated the CPU of a floor-plan search
 #: 2.5-3x and underestimated the casts on the real metric maps. Since the casts were compiled
-#: (stop 30, service/core/_raycast_kernels.py) the cast terms (beam, cast_segment) overstate
+#: (service/core/_raycast_kernels.py) the cast terms (beam, cast_segment) overstate
 #: them ~2.5x; left as they are, since lowering them made the search faster and fixed a tuning
-#: alias wrong (docs/global.md, "Measured: global localisation while driving"). The
-#: shortlist's march on the distance field (field_beam, stop 45) measured 0.00012-0.00016 ms
+#: alias wrong (the drive bench, bench/global_drive.py). The
+#: shortlist's march on the distance field (field_beam) measured 0.00012-0.00016 ms
 #: per pose and beam on the floor plans (the only maps that run it; 2026-11-27), set at the
 #: office's and intel's: up to 1.35x below building 3's, a few per cent of a search's work,
 #: which the cast terms' overstatement more than covers.

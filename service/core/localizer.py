@@ -1,7 +1,8 @@
 """Shape-based localisation (SBL, paper §4-§6): :class:`ShapeLocalizer` (its configuration,
 :class:`~service.core.shape_config.ShapeConfig`, is re-exported here).
 
-What runs where, per scan (:meth:`ShapeLocalizer.update`; ``docs/core.md`` has the table):
+What runs where, per scan (:meth:`ShapeLocalizer.update`; docs/architecture.md follows a
+scan through the core):
 
 1. **Motion prior** -- :class:`service.core.motion.Motion`: the odometry increment since the
    last scan when the scan carries ``odom`` (and ``motion.use_odometry``), else the robot's own
@@ -56,7 +57,7 @@ class ShapeLocalizer:
     :meth:`ShapeConfig.for_kind` of the map); ``model`` a shared
     :class:`~service.core.mapmodel.MapModel` of ``map_data`` (built if not given).
 
-    Per scan (see ``docs/core.md`` for what runs where):
+    Per scan (docs/architecture.md follows a scan through the core):
 
     1. the motion model (:class:`~service.core.motion.Motion`) predicts the pose -- the
        odometry increment when the scan carries ``odom``, else the robot's own velocity;

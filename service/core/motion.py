@@ -126,8 +126,7 @@ class ScanOdometryConfig(BaseModel):
         "fed every 3rd scan it corrects 11 of the 14 increments left > 0.2 m off. Off by "
         "default because on intel fed every scan it breaks a self-cancelling odometry "
         "glitch (scans 12710-12712: 0.7 m back, 0.8 m forward; only the second is "
-        "replaced), and the drive bench then has 9 tracking poses off after a fix "
-        "(docs/global.md, 'Stop 38').",
+        "replaced), and the drive bench then has 9 tracking poses off after a fix.",
     )
     fallback_gain: float = Field(
         0.2,
@@ -167,7 +166,7 @@ class MotionConfig(BaseModel):
         "odometry's grows with the turn (fr079 1.7 -> 3.3 deg, intel 5.4 -> 9.5; "
         "bench/bench_odometry.py). With the turn terms, the floor-plan tracker of tuning "
         "building 16, whose scans come 0.1 m apart with turns of up to 150 deg between them, "
-        "slid 0.8 m / 17 deg onto furniture within 10 scans (docs/global.md, 'Stop 40').",
+        "slid 0.8 m / 17 deg onto furniture within 10 scans.",
     )
     sigma_xy_floor: float = Field(
         0.03, gt=0, description="Smallest odometry position sigma per scan (m)."

@@ -3,7 +3,7 @@
 driving while the search's hypotheses are kept, moved by the odometry and judged on the
 drive's keyframes, before it is published; it fails where tracking would have ended, and a
 single-scan winner is judged at its end (``probation_verdict``, after the refinement of
-:mod:`service.core.window_refine`). docs/global.md, "Search over a drive"."""
+:mod:`service.core.window_refine`)."""
 
 from __future__ import annotations
 

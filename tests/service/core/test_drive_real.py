@@ -19,16 +19,16 @@ from service.core.types import Estimate, wrap_angle
 
 DATA = Path(__file__).resolve().parents[2] / "data" / "real"
 
-#: The drive as stop 35 ran it: keyframes with the flat short credit, no search during a
-#: probation, no polish on the window, the evidence rule on the window's mean only. The
-#: mechanisms below were found on that drive and are checked on it; with the defaults since
-#: stop 36 (``GlobalConfig.evidence_short_scale``, ``probation_searches``, ``window_polish``)
-#: and 37 (``drive_recent_frames``) several of these starts are fixed at the true place
-#: without reaching them, which each test checks too. Stop 43's refinement and stop 44's
-#: held twins (``verdict_refine``, ``twin_hold_kept``) came later too, and so did stop 45's
-#: shortlist ranked by violations (``shortlist_violation_beams``) and its contested window
-#: winners (``probation_contest_all``).
-STOP35 = {
+#: The drive without its later mechanisms: keyframes with the flat short credit, no search
+#: during a probation, no polish on the window, the evidence rule on the window's mean only.
+#: The mechanisms below were found on that drive and are checked on it; with the defaults
+#: (``GlobalConfig.evidence_short_scale``, ``probation_searches``, ``window_polish``,
+#: ``drive_recent_frames``) several of these starts are fixed at the true place without
+#: reaching them, which each test checks too. The refinement and the held twins
+#: (``verdict_refine``, ``twin_hold_kept``), the shortlist ranked by violations
+#: (``shortlist_violation_beams``) and the contested window winners
+#: (``probation_contest_all``) are off in it too.
+BARE_DRIVE = {
     "evidence_short_scale": 0.0,
     "probation_searches": 0,
     "window_polish": False,
@@ -52,8 +52,8 @@ def test_start_1174_is_fixed_at_the_true_place_and_its_twin_is_judged_by_the_dri
     back, and the robot is fixed at the true place within the excerpt. At 20 ms (about the
     CPU the work model of 2026-11-23 bought at 50 on a floor plan) the twin joins the
     hypotheses, loses the drive by the margin and the check is answered (``twin_judged``);
-    no pose is published away from the true place meanwhile (on stop 35's drive,
-    ``STOP35``)."""
+    no pose is published away from the true place meanwhile (on the bare drive,
+    ``BARE_DRIVE``)."""
     md = load_map_file(DATA / "fr079.schematic.geojson", kind="schematic")
     z = np.load(DATA / "fr079.1174-1329.npz")
     for budget in (50.0, 20.0):
@@ -63,7 +63,7 @@ def test_start_1174_is_fixed_at_the_true_place_and_its_twin_is_judged_by_the_dri
         assert isinstance(loc, LaserOdometryLocalizer)  # the factory default
         assert isinstance(loc.inner, GlobalShapeLocalizer)
         if budget == 20.0:
-            loc.gconfig = loc.gconfig.model_copy(update=STOP35)
+            loc.gconfig = loc.gconfig.model_copy(update=BARE_DRIVE)
         judged, fix = False, None
         for i in range(len(z["ranges"])):
             est = loc.update(z["ranges"][i], z["angles"][i], z["odom"][i])
@@ -174,7 +174,7 @@ def test_a_probation_whose_winner_the_drive_explains_worse_fails_at_its_end(
     probation keeps up the drive's evidence, on which the true place explains the keyframes
     better by its end, so it fails there (``GlobalConfig.probation_verdict``) and the true
     place is fixed by the evidence rule 3 m later. With the verdict off the wrong place is
-    published. Both on stop 35's drive (``STOP35``); with the defaults the place 18 m off
+    published. Both on the bare drive (``BARE_DRIVE``); with the defaults the place 18 m off
     never wins and the true place is fixed, no pose published elsewhere."""
     md = load_map_file(DATA / "fr079.schematic.geojson", kind="schematic")
     z = np.load(DATA / "fr079.2871-2985.npz")
@@ -184,7 +184,7 @@ def test_a_probation_whose_winner_the_drive_explains_worse_fails_at_its_end(
         assert isinstance(loc.inner, GlobalShapeLocalizer)
         assert loc.gconfig.probation_verdict
         if verdict is not None:
-            update = {**STOP35, "probation_verdict": verdict}
+            update = {**BARE_DRIVE, "probation_verdict": verdict}
             loc.gconfig = loc.gconfig.model_copy(update=update)
         beaten, wrong, fix = 0, 0, None
         for i in range(len(z["ranges"])):
@@ -213,7 +213,7 @@ def test_a_winner_of_the_drive_is_confirmed_under_the_prior_the_drive_gives(
     the tracker swung the pose 0.2-0.5 m and up to 34 degrees, or rejected the scan, on every
     try (a third of the scan lies on the plan) and the start was never fixed in 20 m. Under
     the prior the drive gives (``GlobalConfig.confirm_drive_prior``) it is confirmed, and its
-    probation tracks the true place. Both on stop 35's drive (``STOP35``); with the defaults
+    probation tracks the true place. Both on the bare drive (``BARE_DRIVE``); with the defaults
     (the winner polished on the window, ``window_polish``) it is confirmed and tracked too."""
     md = load_map_file(DATA / "fr079.schematic.geojson", kind="schematic")
     z = np.load(DATA / "fr079.4361-4510.npz")
@@ -224,7 +224,7 @@ def test_a_winner_of_the_drive_is_confirmed_under_the_prior_the_drive_gives(
         assert isinstance(loc.inner, GlobalShapeLocalizer)
         assert loc.gconfig.confirm_drive_prior
         if prior is not None:
-            update = {**STOP35, "confirm_drive_prior": prior}
+            update = {**BARE_DRIVE, "confirm_drive_prior": prior}
             loc.gconfig = loc.gconfig.model_copy(update=update)
         refused = on_probation = 0
         for i in range(first, len(z["ranges"])):
@@ -260,8 +260,8 @@ def test_a_scan_that_explains_itself_better_elsewhere_is_not_confirmed_under_the
     unexplained shares (``GlobalConfig.confirm_unexplained``: 0.09 against 0.31) lets the
     place the scan pointed to join the hypotheses instead, the drive judges it, and the robot
     is fixed at the true place (13.2 m into the drive on the bench, against the wrong fix's
-    10.4 m). With the bar at (nearly) 0 the wrong fix returns. Both on stop 35's drive
-    (``STOP35``); with the defaults the winner is polished on the window first
+    10.4 m). With the bar at (nearly) 0 the wrong fix returns. Both on the bare drive
+    (``BARE_DRIVE``); with the defaults the winner is polished on the window first
     (``window_polish``), is confirmed alone and the first fix lies at the true place."""
     md = load_map_file(DATA / "intel.schematic.geojson", kind="schematic")
     z = np.load(DATA / "intel.8329-8648.every4.npz")
@@ -271,7 +271,7 @@ def test_a_scan_that_explains_itself_better_elsewhere_is_not_confirmed_under_the
         assert isinstance(loc.inner, GlobalShapeLocalizer)
         assert loc.gconfig.confirm_unexplained == 0.5
         if bar is not None:
-            update = {**STOP35, "confirm_unexplained": bar}
+            update = {**BARE_DRIVE, "confirm_unexplained": bar}
             loc.gconfig = loc.gconfig.model_copy(update=update)
         elsewhere, first = 0, None
         for i in range(len(z["ranges"])):

@@ -89,7 +89,8 @@ def test_the_evidence_rule_names_a_winner_after_its_rivals_are_placed_where_the_
 
 
 def test_a_probation_pickled_before_it_moved_module_still_loads() -> None:
-    """Localiser states saved before stop 43 name ``service.core.drive_search.Probation``;
+    """Localiser states saved before probation had its module name
+    ``service.core.drive_search.Probation``;
     that name still resolves to the class now in :mod:`service.core.probation`."""
     import pickle
 

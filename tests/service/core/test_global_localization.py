@@ -198,12 +198,12 @@ def test_look_around_schematic_office_random_poses() -> None:
     assert found >= LOOK_AROUND_FOUND_BAR * n, f"found {found}/{n}"
 
 
-#: What the schematic map reaches on these seeded subsets (the acceptance asks 0.9; see
-#: docs/global.md for the measured figures and why this floor plan falls short: its rooms
+#: What the schematic map reaches on these seeded subsets (why this floor plan falls short
+#: of the 0.9 asked of floor plans: its rooms
 #: W1 and W4 are congruent within 15 cm). Creeping 3 cm per scan with a 180-degree laser:
 SCHEMATIC_FOUND_BAR = 0.15
 #: Turning 90 degrees in place per scan (the 3 scans fused into one 360-degree view); 7 of
-#: these 16 poses are found (see docs/global.md for the 200-pose figures):
+#: these 16 poses are found:
 LOOK_AROUND_FOUND_BAR = 0.35
 
 
@@ -363,8 +363,8 @@ def test_look_around_start_fixes_within_four_scans_and_keeps_tracking(start: flo
     # The composite holds all three look-around scans from the third scan on; the decision
     # may wait one scan more (a winner must be best on two scans): at 0.35 the true place and
     # a wrong one are within 0.03 on the second scan, and which of them leads there differs
-    # between machines (the last bits of numpy's vector kernels: x86-64 v3 here, where the
-    # fix comes on the fourth scan; on the machines before stop 42, on the third).
+    # between machines (the last bits of numpy's vector kernels: on x86-64 v3 the fix comes
+    # on the fourth scan, on others on the third).
     run = _sim_run(start, 40)
     decided = [s == "tracking" or p for s, _ok, p in run]
     assert True in decided[:4], run

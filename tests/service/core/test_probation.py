@@ -179,7 +179,7 @@ def test_a_single_scan_winner_the_drive_explains_worse_fails_at_its_probation_en
     not, nor one that trails it by ``probation_verdict_margin`` or more. Without
     ``probation_contest_all`` a winner of the evidence rule's window mean is not judged so
     (its window slides past what told it apart; fr079 every 3rd scan, starts 1174 / 1201);
-    with it (floor plans since stop 45) it is, as a winner of the newest keyframes
+    with it (the floor plans' default) it is, as a winner of the newest keyframes
     (``drive_recent``) always was: what named it is still in the window (tuning building 1,
     start 13)."""
     su = make_setup(2)
@@ -218,7 +218,7 @@ def test_a_drive_winner_fails_its_probation_when_the_newest_keyframes_name_anoth
     and 0.01 and on the newest keyframes by far). It passes when the alternative leads the
     newest keyframes by less, or leads them but explains the window worse (the older
     keyframes, which named the winner, still count), or with the rule off. Checked without
-    ``probation_contest_all`` (with it, the floor plans' default since stop 45, such a winner
+    ``probation_contest_all`` (with it, the floor plans' default, such a winner
     is judged by the verdict instead, which fails it where the alternative explains the
     window better by ``probation_verdict_margin``)."""
     su = make_setup(2)
