@@ -54,10 +54,8 @@ def _page(out: Path) -> None:
     page ``out.md`` and ``out/results.csv``, saying that no odometry was fed."""
     md, csv_ = out / "drive.md", out / "drive.csv"
     text = md.read_text(encoding="utf-8")
-    text = text.replace(
-        "# Global localisation while driving (issue 13)",
-        "# Global localisation while driving, without odometry",
-    )
+    title, _, rest = text.partition("\n")
+    text = f"{title}, without odometry\n{rest}"
     text = text.replace(
         "feeds every following scan with its odometry",
         "feeds every following scan WITHOUT odometry (`odom=None`: the localiser's laser "
