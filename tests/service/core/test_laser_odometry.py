@@ -189,10 +189,10 @@ def test_wheel_odometry_passes_bit_for_bit_and_a_switch_keeps_one_frame() -> Non
         assert inc == pytest.approx(wheel, abs=1e-9)
 
 
-def test_an_unknown_increment_repeats_the_reading_and_the_next_one_counts_the_motion() -> None:
-    """The inner localiser's stale-odometry rule holds an unmatched scan on the weak prior;
-    the next fresh reading spans both scans' motion (the guess while the inner localiser does
-    not track)."""
+def test_an_unknown_increment_goes_without_odometry_and_the_next_one_counts_the_motion() -> None:
+    """An unmatched scan goes to the inner localiser without odometry (the paper's mode: a
+    rejected scan counts towards lost at once, as a kidnap needs); the next fresh reading
+    spans both scans' motion (the guess while the inner localiser does not track)."""
     su = _floor_plan(0)
     inner = _Recorder()
     loc = LaserOdometryLocalizer(inner)
@@ -201,10 +201,10 @@ def test_an_unknown_increment_repeats_the_reading_and_the_next_one_counts_the_mo
     r, a = su.scan(5)
     loc.update(np.full_like(r, 0.3), a)  # a scan of nothing it saw: unmatched
     assert loc.last_step is not None and not loc.last_step.matched
-    assert np.array_equal(inner.odoms[5], inner.odoms[4])
+    assert inner.odoms[5] is None
     loc.update(*su.scan(6))
     assert loc.last_step is not None
-    assert not np.array_equal(inner.odoms[6], inner.odoms[5])
+    assert inner.odoms[6] is not None and not np.array_equal(inner.odoms[6], inner.odoms[4])
 
 
 def test_the_wrapper_delegates_resets_and_pickles() -> None:
