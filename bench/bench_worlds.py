@@ -7,7 +7,9 @@ two setups -- 1: exact metric map, a scan every ~11 mm; 2: the building's schema
 (furniture dropped, corners moved 2-10 cm, scale error up to +-2 %), every ~104 mm -- each
 method tracks the whole tour from the true first pose, exactly as the paper's experiment does
 on the office (no odometry), and with ``--odom`` also with the simulated odometry every scan
-carries.
+carries. Without odometry ``shape`` measures the motion between scans from the scans (its laser
+odometry, :mod:`service.core.laser_odometry`); ``--methods shape-paper`` runs it as the paper
+does, with no odometry of any kind (``bench/methods.py``).
 
 Per setup, method and odometry mode, over the worlds of a split: the median, worst decile
 (10th percentile) and worst world of the proximity test (the paper's: 100 mm / 45 deg on
@@ -93,12 +95,12 @@ def run_one(
     seed: int, setup: int, method: str, odom: bool, people: int, max_scans: int | None
 ) -> tuple[Run, np.ndarray | None]:
     """Track one tour; returns the run's figures and (for ``shape``) the estimated poses."""
-    from service.core.factory import create_localizer
+    from bench.methods import make_localizer
     from sim_publisher.scenario import building_setup
 
     b = _building(seed, people)
     s = building_setup(b, setup, seed=0, max_scans=max_scans)
-    loc = create_localizer(method, s.map_data, s.reference[0])
+    loc = make_localizer(method, s.map_data, s.reference[0])
     n = len(s)
     err = np.empty(n)
     deg = np.empty(n)

@@ -264,12 +264,18 @@ class GlobalShapeLocalizer(Confirmation, DriveSearch):
         self.work_ms = 0.0
 
     def update(
-        self, ranges: np.ndarray, angles: np.ndarray, odom: np.ndarray | None = None
+        self,
+        ranges: np.ndarray,
+        angles: np.ndarray,
+        odom: np.ndarray | None = None,
+        odom_spread: np.ndarray | None = None,
     ) -> Estimate:
         """Localise one scan (see the class docstring). ``ranges`` metres (NaN = no return),
         ``angles`` radians robot frame, ``odom`` optional odometry pose (own frame; only used
         to move the kept hypotheses between scans; corrected by the scans first,
-        ``ShapeConfig.motion.scan_odometry``)."""
+        ``ShapeConfig.motion.scan_odometry``); ``odom_spread`` its increment's translation
+        variance beyond the odometry model's (the tracker's prior,
+        :meth:`service.core.motion.MotionModel.predict`)."""
         r, a = check_scan(ranges, angles)
         odom = self._corrected_odom(r, a, odom)
         if not self._searching:
@@ -285,7 +291,7 @@ class GlobalShapeLocalizer(Confirmation, DriveSearch):
                 # a turn the shape tracker cannot bridge (e.g. a look-around spin that goes on
                 # after the fix): trust the odometry's heading change for the prior
                 self.tracker.predict(delta)
-            est = self.tracker.update(r, a, odom, self._matched_from)
+            est = self.tracker.update(r, a, odom, self._matched_from, odom_spread)
             # The tracker's own ambiguity compares its step-2 hypotheses, which often converge
             # to the same pose (a "tie" of one pose with itself): not an integrity signal.
             # It stays in extras; the published ambiguity is the global one (None here).

@@ -281,11 +281,13 @@ class ShapeLocalizer:
         angles: np.ndarray,
         odom: np.ndarray | None = None,
         matched_from: np.ndarray | None = None,
+        odom_spread: np.ndarray | None = None,
     ) -> Estimate:
         """Localise one scan. ``ranges`` metres (NaN = no return), ``angles`` radians in the
         robot frame (same length), ``odom`` optional odometry pose (own frame);
         ``matched_from`` the reading ``odom``'s increment was measured from by a scan-to-scan
-        fit, if it was (:meth:`service.core.motion.MotionModel.predict`).
+        fit, if it was; ``odom_spread`` the increment's translation variance beyond the
+        odometry model's, if any (both: :meth:`service.core.motion.MotionModel.predict`).
 
         Raises :class:`LocalizationError` on empty, mismatched, non-finite-angle or negative
         range input.
@@ -297,7 +299,7 @@ class ShapeLocalizer:
                 check_pose3(odom, "odom")
             return Estimate(pose=np.zeros(3), status="initializing", score=0.0)
         cfg = self.config
-        pred = self.motion.predict(self._pose, odom, matched_from)
+        pred = self.motion.predict(self._pose, odom, matched_from, odom_spread)
         P = scan_configuration(r, a, self._params)
         pts, nrm, own = self._fit_points(P)
         if len(pts) < 3:

@@ -228,12 +228,18 @@ class MotionModel(Protocol):
         ...
 
     def predict(
-        self, pose: np.ndarray, odom: np.ndarray | None, matched_from: np.ndarray | None = None
+        self,
+        pose: np.ndarray,
+        odom: np.ndarray | None,
+        matched_from: np.ndarray | None = None,
+        spread: np.ndarray | None = None,
     ) -> Prediction:
         """Prior for the scan that carries ``odom`` (or ``None``), from the last ``pose``.
         ``matched_from``: the odometry reading ``odom``'s increment was measured from by a
         kept scan-to-scan fit (:attr:`service.core.scan_odometry.ScanOdometry.matched_from`),
-        ``None`` if it was not."""
+        ``None`` if it was not. ``spread``: translation variance (2x2, m^2, robot frame of
+        the previous reading) the increment carries beyond the odometry model's
+        (:attr:`service.core.laser_odometry.LaserStep.spread`), ``None``: none."""
         ...
 
     def accepted(self, previous: np.ndarray, pose: np.ndarray) -> None:
@@ -277,6 +283,18 @@ def _information(theta: float, sx: float, sy: float, st: float) -> np.ndarray:
     info[:2, :2] = numeric.matmul(numeric.matmul(R, np.diag([1.0 / sx**2, 1.0 / sy**2])), R.T)
     info[2, 2] = 1.0 / st**2
     return info
+
+
+def _spread_information(theta: float, s_trans: float, spread: np.ndarray) -> np.ndarray:
+    """Position information (2x2, map frame) of an increment with isotropic sigma ``s_trans``
+    plus the variance ``spread`` (2x2, robot frame at heading ``theta``)."""
+    sp = np.asarray(spread, dtype=np.float64).reshape(2, 2)
+    if not np.all(np.isfinite(sp)):
+        raise LocalizationError("odometry spread must be finite")
+    c, s = np.cos(theta), np.sin(theta)
+    R = np.array([[c, -s], [s, c]])
+    cov = s_trans**2 * np.eye(2) + numeric.matmul(numeric.matmul(R, 0.5 * (sp + sp.T)), R.T)
+    return numeric.inv(cov)
 
 
 class OdometryMotion:
@@ -355,7 +373,11 @@ class OdometryMotion:
         return delta
 
     def predict(
-        self, pose: np.ndarray, odom: np.ndarray | None, matched_from: np.ndarray | None = None
+        self,
+        pose: np.ndarray,
+        odom: np.ndarray | None,
+        matched_from: np.ndarray | None = None,
+        spread: np.ndarray | None = None,
     ) -> Prediction:
         if odom is None:
             raise LocalizationError("OdometryMotion.predict needs odometry")
@@ -377,6 +399,8 @@ class OdometryMotion:
         s_trans, s_rot = odometry_sigmas(delta, c, matched)
         prior = compose(base, delta)
         info = _information(float(prior[2]), s_trans, s_trans, s_rot)
+        if spread is not None:
+            info[:2, :2] = _spread_information(float(base[2]), s_trans, spread)
         return Prediction(pose=prior, information=info, source="odometry", delta=delta)
 
     def accepted(self, previous: np.ndarray, pose: np.ndarray) -> None:
@@ -450,12 +474,16 @@ class Motion:
         self.velocity.reset()
 
     def predict(
-        self, pose: np.ndarray, odom: np.ndarray | None, matched_from: np.ndarray | None = None
+        self,
+        pose: np.ndarray,
+        odom: np.ndarray | None,
+        matched_from: np.ndarray | None = None,
+        spread: np.ndarray | None = None,
     ) -> Prediction:
         if odom is not None and self.config.use_odometry:
             if self.odometry.stale(odom):
                 return self.odometry.hold(pose)
-            return self.odometry.predict(pose, odom, matched_from)
+            return self.odometry.predict(pose, odom, matched_from, spread)
         if odom is not None:
             check_pose3(odom, "odom")  # same validation whether it is used or not
         self.odometry.reset()  # a gap in the odometry: the next increment starts afresh

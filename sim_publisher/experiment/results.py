@@ -31,17 +31,20 @@ PROXIMITY: dict[int, tuple[float, float]] = {
     2: (0.500, math.radians(45.0)),
 }
 BLOCK_TITLES = {1: "map-based SL", 2: "SL using schematized map"}
-#: The service's methods plus ``shape-tracker``: the shape tracker alone (no global search
-#: after a loss), closest to the paper's SBL; not part of the default run.
-EXPERIMENT_METHODS: tuple[str, ...] = (*METHODS, "shape-tracker")
+#: The service's methods plus ``shape-paper``: ``shape`` without its laser odometry (the
+#: motion between scans measured from the scans, service.core.laser_odometry), the seed
+#: paper's own mode; and ``shape-tracker``: the shape tracker alone (no global search after a
+#: loss, no laser odometry), closest to the paper's SBL. Neither is part of the default run.
+EXPERIMENT_METHODS: tuple[str, ...] = (*METHODS, "shape-paper", "shape-tracker")
 METHOD_NAMES = {
     "icp": "ICP",
     "lines": "line-based",
     "shape": "shape-based",
+    "shape-paper": "shape-based, paper's mode",
     "shape-tracker": "shape-based, tracker only",
 }
 #: Paper's row order in Table 1.
-METHOD_ORDER = ("icp", "lines", "shape", "shape-tracker")
+METHOD_ORDER = ("icp", "lines", "shape", "shape-paper", "shape-tracker")
 TABLE_COLUMNS = (
     "method",
     "position [mm]",

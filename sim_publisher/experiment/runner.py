@@ -33,7 +33,7 @@ from sim_publisher.results_page import Provenance
 from sim_publisher.scenario import Setup, make_setup, run_stats
 
 #: Relative cost per scan used only to start the slowest runs first.
-_COST = {"shape": 6.0, "shape-tracker": 6.0, "icp": 1.0, "lines": 1.0}
+_COST = {"shape": 6.0, "shape-paper": 6.0, "shape-tracker": 6.0, "icp": 1.0, "lines": 1.0}
 
 
 def run_method(
@@ -51,6 +51,8 @@ def run_method(
         from service.core.localizer import ShapeLocalizer
 
         loc: Any = ShapeLocalizer(setup_obj.map_data, truth[0].copy(), None)
+    elif method == "shape-paper":
+        loc = create_localizer("shape", setup_obj.map_data, truth[0].copy(), laser_odometry=False)
     else:
         loc = create_localizer(method, setup_obj.map_data, truth[0].copy(), None)
     est = np.empty((n, 3), dtype=np.float64)

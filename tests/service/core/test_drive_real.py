@@ -12,6 +12,7 @@ import numpy as np
 from service.adapters.maps.files import load_map_file
 from service.core.factory import create_localizer
 from service.core.global_localization import GlobalShapeLocalizer
+from service.core.laser_odometry import LaserOdometryLocalizer
 from service.core.pose import compose, invert
 from service.core.probation import Probation
 from service.core.types import Estimate, wrap_angle
@@ -59,7 +60,8 @@ def test_start_1174_is_fixed_at_the_true_place_and_its_twin_is_judged_by_the_dri
         loc = create_localizer(
             "shape", md, None, cache_dir=tmp_path / str(budget), search_budget_ms=budget
         )
-        assert isinstance(loc, GlobalShapeLocalizer)
+        assert isinstance(loc, LaserOdometryLocalizer)  # the factory default
+        assert isinstance(loc.inner, GlobalShapeLocalizer)
         if budget == 20.0:
             loc.gconfig = loc.gconfig.model_copy(update=BARE_DRIVE)
         judged, fix = False, None
@@ -88,7 +90,8 @@ def test_a_probation_that_slides_off_the_odometry_into_walls_is_put_back(tmp_pat
     md = load_map_file(DATA / "fr079.schematic.geojson", kind="schematic")
     z = np.load(DATA / "fr079.4361-4510.npz")
     loc = create_localizer("shape", md, None, cache_dir=tmp_path, search_budget_ms=50.0)
-    assert isinstance(loc, GlobalShapeLocalizer)
+    assert isinstance(loc, LaserOdometryLocalizer)  # the factory default
+    assert isinstance(loc.inner, GlobalShapeLocalizer)
     g = loc.gconfig
     put_back, checked = 0, 0
     for i in np.flatnonzero(z["flag"])[::10]:
@@ -143,7 +146,8 @@ def test_a_winner_of_the_drive_is_held_through_rejected_scans_it_does_not_contra
     first = 4401 - 4361
     for hold in (None, 0.0):
         loc = create_localizer("shape", md, None, cache_dir=tmp_path, search_budget_ms=50.0)
-        assert isinstance(loc, GlobalShapeLocalizer)
+        assert isinstance(loc, LaserOdometryLocalizer)  # the factory default
+        assert isinstance(loc.inner, GlobalShapeLocalizer)
         if hold is not None:
             loc.gconfig = loc.gconfig.model_copy(update={"probation_hold_violation": hold})
         held = failed = on_probation = 0
@@ -176,7 +180,8 @@ def test_a_probation_whose_winner_the_drive_explains_worse_fails_at_its_end(
     z = np.load(DATA / "fr079.2871-2985.npz")
     for verdict in (True, False, None):
         loc = create_localizer("shape", md, None, cache_dir=tmp_path, search_budget_ms=45.0)
-        assert isinstance(loc, GlobalShapeLocalizer)
+        assert isinstance(loc, LaserOdometryLocalizer)  # the factory default
+        assert isinstance(loc.inner, GlobalShapeLocalizer)
         assert loc.gconfig.probation_verdict
         if verdict is not None:
             update = {**BARE_DRIVE, "probation_verdict": verdict}
@@ -215,7 +220,8 @@ def test_a_winner_of_the_drive_is_confirmed_under_the_prior_the_drive_gives(
     first = 4371 - 4361
     for prior in (True, False, None):
         loc = create_localizer("shape", md, None, cache_dir=tmp_path, search_budget_ms=50.0)
-        assert isinstance(loc, GlobalShapeLocalizer)
+        assert isinstance(loc, LaserOdometryLocalizer)  # the factory default
+        assert isinstance(loc.inner, GlobalShapeLocalizer)
         assert loc.gconfig.confirm_drive_prior
         if prior is not None:
             update = {**BARE_DRIVE, "confirm_drive_prior": prior}
@@ -261,7 +267,8 @@ def test_a_scan_that_explains_itself_better_elsewhere_is_not_confirmed_under_the
     z = np.load(DATA / "intel.8329-8648.every4.npz")
     for bar in (0.5, 1e-6, None):
         loc = create_localizer("shape", md, None, cache_dir=tmp_path, search_budget_ms=50.0)
-        assert isinstance(loc, GlobalShapeLocalizer)
+        assert isinstance(loc, LaserOdometryLocalizer)  # the factory default
+        assert isinstance(loc.inner, GlobalShapeLocalizer)
         assert loc.gconfig.confirm_unexplained == 0.5
         if bar is not None:
             update = {**BARE_DRIVE, "confirm_unexplained": bar}
@@ -298,7 +305,8 @@ def test_a_winner_is_held_against_the_rivals_it_won_against(tmp_path: Path) -> N
         """(scan of the first fix or -1, its error m, held through rejections, places
         joined during a probation)."""
         loc = create_localizer("shape", md, None, cache_dir=tmp_path, search_budget_ms=50.0)
-        assert isinstance(loc, GlobalShapeLocalizer)
+        assert isinstance(loc, LaserOdometryLocalizer)  # the factory default
+        assert isinstance(loc.inner, GlobalShapeLocalizer)
         assert loc.gconfig.probation_contest_all
         grew = False
         for i in range(len(z["ranges"])):

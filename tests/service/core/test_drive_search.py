@@ -17,6 +17,7 @@ from service.core import hypotheses as hy
 from service.core.factory import create_localizer
 from service.core.global_config import GlobalConfig
 from service.core.global_localization import GlobalShapeLocalizer
+from service.core.laser_odometry import LaserOdometryLocalizer
 from service.core.types import MapData, wrap_angle
 from sim_publisher.laser import LaserSimulator
 from sim_publisher.scenario import make_setup
@@ -199,7 +200,8 @@ def test_congruent_rooms_never_fix_with_a_budget() -> None:
 def test_the_factory_passes_the_budget_to_the_global_search() -> None:
     su = make_setup(1, max_scans=2)
     loc = create_localizer("shape", su.map_data, None, search_budget_ms=12.5)
-    assert isinstance(loc, GlobalShapeLocalizer)
+    assert isinstance(loc, LaserOdometryLocalizer)  # the factory default
+    assert isinstance(loc.inner, GlobalShapeLocalizer)
     assert loc.gconfig.search_budget_ms == 12.5
     assert create_localizer("shape", su.map_data, None).gconfig.search_budget_ms is None
 

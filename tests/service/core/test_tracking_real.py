@@ -13,6 +13,7 @@ import pytest
 from service.adapters.maps.files import load_map_file
 from service.core.factory import create_localizer
 from service.core.global_localization import GlobalShapeLocalizer
+from service.core.laser_odometry import LaserOdometryLocalizer
 from service.core.pose import compose, relative
 
 DATA = Path(__file__).resolve().parents[2] / "data" / "real"
@@ -21,7 +22,8 @@ DATA = Path(__file__).resolve().parents[2] / "data" / "real"
 def _localizer(tmp_path: Path, pose: np.ndarray, collapse_violation: float | None = None):
     md = load_map_file(DATA / "fr079.schematic.geojson", kind="schematic")
     loc = create_localizer("shape", md, pose.copy(), cache_dir=tmp_path)
-    assert isinstance(loc, GlobalShapeLocalizer)
+    assert isinstance(loc, LaserOdometryLocalizer)  # the factory default
+    assert isinstance(loc.inner, GlobalShapeLocalizer)
     if collapse_violation is not None:
         loc.gconfig = loc.gconfig.model_copy(update={"collapse_violation": collapse_violation})
     return loc
@@ -91,7 +93,7 @@ def test_a_state_saved_before_the_break_flag_existed_still_loads(tmp_path: Path)
     loc = _localizer(tmp_path, z["reference"][0])
     for i in range(5):
         loc.update(z["ranges"][i], z["angles"][i], z["odom"][i])
-    state = loc.__getstate__()
+    state = loc.inner.__getstate__()  # the global localiser inside the factory's wrapper
     del state["_broken"]
     old = GlobalShapeLocalizer.__new__(GlobalShapeLocalizer)
     old.__dict__.update(state)
