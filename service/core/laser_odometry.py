@@ -71,7 +71,7 @@ from service.core.baselines import scan_points
 from service.core.motion import ScanOdometryConfig, check_pose3
 from service.core.pose import compose, invert
 from service.core.scan_odometry import match_increment, surface_normals
-from service.core.types import Estimate, Localizer, check_scan, wrap_angle
+from service.core.types import Estimate, Localizer, LocalizerWrapper, check_scan, wrap_angle
 
 __all__ = [
     "LaserOdometry",
@@ -580,7 +580,7 @@ class LaserOdometry:
         ]
 
 
-class LaserOdometryLocalizer:
+class LaserOdometryLocalizer(LocalizerWrapper):
     """A localiser fed the laser odometry on scans that carry no odometry (module docstring).
 
     Wraps ``inner`` (any :class:`~service.core.types.Localizer`); :attr:`pose`, ``method``
@@ -591,7 +591,7 @@ class LaserOdometryLocalizer:
     """
 
     def __init__(self, inner: Localizer, config: LaserOdometryConfig | None = None) -> None:
-        self.inner = inner
+        super().__init__(inner)
         #: ``None``: the defaults of the inner localiser's map kind (:func:`config_for_kind`).
         #: Not ``config``: that name reads the inner localiser's own configuration.
         self.laser_config = config
@@ -610,25 +610,6 @@ class LaserOdometryLocalizer:
         self._last_status = ""
         #: The last scan's laser increment (``None``: none, e.g. the scan carried odometry).
         self.last_step: LaserStep | None = None
-
-    @property
-    def method(self) -> str:
-        """The inner localiser's method name."""
-        return self.inner.method
-
-    @property
-    def map_data(self) -> Any:
-        """The inner localiser's map."""
-        return self.inner.map_data
-
-    @map_data.setter
-    def map_data(self, value: Any) -> None:
-        self.inner.map_data = value
-
-    @property
-    def pose(self) -> np.ndarray | None:
-        """The inner localiser's last estimate."""
-        return self.inner.pose
 
     def reset(self, initial_pose: np.ndarray | None, odom: np.ndarray | None = None) -> None:
         """Restart the inner localiser at ``initial_pose`` (``None``: global localisation)
@@ -732,12 +713,6 @@ class LaserOdometryLocalizer:
             self.odometry.remember(d)
         self._last_pose = pose
         self._last_status = est.status
-
-    def __getattr__(self, name: str) -> Any:
-        inner = self.__dict__.get("inner")
-        if inner is None or name.startswith("__"):
-            raise AttributeError(name)
-        return getattr(inner, name)
 
     def __setattr__(self, name: str, value: Any) -> None:
         # an attribute read from the inner localiser is set there too: else a caller tuning
