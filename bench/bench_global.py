@@ -17,7 +17,7 @@
    ``initial_pose`` null; of all estimates with status ``tracking``, the fraction passing the
    setup's proximity test (setup 1: 100 mm / 45 deg, setup 2: 500 mm / 45 deg).
 
-Drive trials (``--drive``, issue 13): global localisation WHILE THE ROBOT DRIVES
+Drive trials (``--drive``): global localisation WHILE THE ROBOT DRIVES
 -------------------------------------------------------------------------------
 ``python -m bench.bench_global --drive [--groups office,worlds,real] [--starts 200]
 [--worlds 8] [--real-starts 40] [--logs intel,fr079,mit-csail] [--data DIR] [--jobs 2]

@@ -1,12 +1,13 @@
-"""Kidnapped robot with odometry on the real logs (reads /work/shared/data/real; stop 42).
+"""Kidnapped robot with odometry on the real logs, writes docs/results/kidnap.md.
 
-Each trial tracks a log from a random scan's reference pose for ``--pre`` scans, then carries
-the robot to a random stretch of the same log at least 3 m away: the scans come from there
-while the odometry runs on from the old place with that stretch's own increments (the wheels
-report the drive, not the jump). ``--post`` scans follow. Both collapse rules run on the same
-trials: the default (``GlobalConfig.collapse_violation``: an unexplained scan ends the track
-only if it contradicts the pose, or after a break in the scan-to-scan fit) and ``-1`` (every
-unexplained scan counts, the rule before stop 42).
+READS ../shared (the real logs, /work/shared/data/real, as ``bench_real.py``). Each trial
+tracks a log from a random scan's reference pose for ``--pre`` scans, then carries the robot to
+a random stretch of the same log at least 3 m away: the scans come from there while the
+odometry runs on from the old place with that stretch's own increments (the wheels report the
+drive, not the jump). ``--post`` scans follow. Two collapse rules run on the same trials: the
+default (``GlobalConfig.collapse_violation``: an unexplained scan ends the track only if it
+contradicts the pose, or after a break in the scan-to-scan fit) and ``-1`` (every unexplained
+scan counts towards ``lost_after``), which shows what the default rule buys.
 
 Columns, per log, map and rule:
 
@@ -19,8 +20,9 @@ Columns, per log, map and rule:
   reference (scored on flag-1 scans), summed over the trials, and the trials with any;
 - ``re-fixed``: trials published ``tracking`` within 0.5 m / 10 deg again after a loss.
 
-Deterministic (``--seed``); ``--jobs`` processes. Writes ``table.md`` and ``results.csv`` to
-``--out`` (default docs/kidnap).
+Deterministic (``--seed``); ``--jobs`` processes. ``--out DIR`` (default docs/results/kidnap):
+the page ``DIR.md`` (overwritten) and ``DIR/results.csv`` (one row per trial, with the run's
+provenance); ``--report-only`` renders the page again from that CSV without running.
 """
 
 from __future__ import annotations
@@ -38,8 +40,11 @@ import numpy as np
 
 from bench import bench_real as br
 from bench.harness import REPO
+from sim_publisher import results_page as report
+from sim_publisher.results_page import Provenance
 
-RULES = {"default": None, "before stop 42 (-1)": -1.0}
+#: The collapse rules compared, by their label in the table.
+RULES = {"default": None, "every unexplained scan (-1)": -1.0}
 
 
 def pick_trials(log: br.LogData, n: int, pre: int, post: int, seed: int) -> list[tuple[int, int]]:
@@ -121,6 +126,51 @@ def summarise(rows: list[dict[str, object]]) -> dict[str, str]:
     }
 
 
+PARAGRAPH = (
+    "How a tracked robot notices that it was carried elsewhere, and how often it publishes a"
+    " wrong pose as `tracking` meanwhile. Each trial tracks a real log (the Freiburg SLAM"
+    " benchmark's intel and fr079, the tuning logs, and mit-csail, held out) from a random"
+    " scan's reference pose for {pre} scans, then the scans come from a random stretch of the"
+    " same log at least 3 m away while the odometry runs on from the old place with that"
+    " stretch's own increments; {post} scans follow. Two collapse rules run on the same trials:"
+    " the default (an unexplained scan ends the track only if it contradicts the pose, or after"
+    " a break in the scan-to-scan fit) and -1 (every unexplained scan counts). `lost <= 3`:"
+    " trials no longer `tracking` within 3 scans of the jump; `lost at`: scans until then;"
+    " `wrong scans`: `tracking` poses after the jump more than 0.5 m or 10° from the reference"
+    " (trials with any); `re-fixed`: trials `tracking` at the right place again after a loss."
+    " Definitions: the docstring of `bench/bench_kidnap.py`."
+)
+HEAD = ["log", "map", "rule", "trials", "lost <= 3", "never lost", "lost at p50 / max",
+        "wrong scans (trials)", "re-fixed"]  # fmt: skip
+
+
+def _rule(v: object) -> float | None:
+    return None if v in (None, "", "None") else float(v)  # type: ignore[arg-type]
+
+
+def render(path: Path, rows: list[dict[str, object]]) -> Path:
+    """The page ``path`` of the trial ``rows`` (read back from the CSV or fresh)."""
+    logs = list(dict.fromkeys(str(r["log"]) for r in rows))
+    maps = list(dict.fromkeys(str(r["map"]) for r in rows))
+    cells = []
+    for name in logs:
+        for kind in maps:
+            for label, rule in RULES.items():
+                sel = [
+                    r for r in rows if (r["log"], r["map"], _rule(r["rule"])) == (name, kind, rule)
+                ]
+                if not sel:
+                    continue
+                held = " (HELD-OUT)" if name in br.HELD_OUT else ""
+                cells.append([name + held, kind, label, *summarise(sel).values()])
+    table = report.md_table(HEAD, cells)
+    print(table)
+    first = rows[0]
+    paragraph = PARAGRAPH.format(pre=first["pre"], post=first["post"])
+    runs = [(Provenance.from_row(r), "") for r in rows]
+    return report.write_page(path, report.page("Kidnapped robot", paragraph, runs, [table]))
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--logs", default="intel,fr079,mit-csail")
@@ -130,8 +180,34 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--post", type=int, default=60)
     ap.add_argument("--seed", type=int, default=5)
     ap.add_argument("--jobs", type=int, default=2)
-    ap.add_argument("--out", type=Path, default=REPO / "docs" / "kidnap")
+    ap.add_argument(
+        "--out",
+        type=Path,
+        default=REPO / "docs" / "results" / "kidnap",
+        help="results.csv goes in OUT, the page is OUT.md",
+    )
+    ap.add_argument(
+        "--report-only", action="store_true", help="render the page from OUT/results.csv"
+    )
     args = ap.parse_args(argv)
+    csv_path = args.out / "results.csv"
+    page = args.out.with_suffix(".md")
+    if args.report_only:
+        with open(csv_path, newline="", encoding="utf-8") as fh:
+            rows: list[dict[str, object]] = [
+                {
+                    **r,
+                    "lost_at": int(r["lost_at"]) if r["lost_at"] else None,
+                    "wrong": int(r["wrong"]),
+                    "refixed": r["refixed"] == "True",
+                }
+                for r in csv.DictReader(fh)
+            ]
+        print(f"wrote {render(page, rows)} from {csv_path}")
+        return 0
+    here = Provenance.capture(
+        report.command_line("bench.bench_kidnap", sys.argv[1:] if argv is None else argv)
+    )
     t0 = time.time()
     jobs = []
     for name in args.logs.split(","):
@@ -142,31 +218,15 @@ def main(argv: list[str] | None = None) -> int:
                 jobs += [(name, kind, rule, k0, j, args.pre, args.post) for k0, j in pairs]
     with ProcessPoolExecutor(max_workers=args.jobs) as pool:
         rows = list(pool.map(run_trial, *zip(*jobs, strict=True)))
+    print(f"{len(jobs)} trials in {time.time() - t0:.0f} s, load {os.getloadavg()[0]:.2f}")
+    extra = {"pre": args.pre, "post": args.post, "seed": args.seed, **here.ended().as_row()}
+    rows = [{**r, **extra} for r in rows]
     args.out.mkdir(parents=True, exist_ok=True)
-    with open(args.out / "results.csv", "w", newline="", encoding="utf-8") as fh:
+    with open(csv_path, "w", newline="", encoding="utf-8") as fh:
         w = csv.DictWriter(fh, fieldnames=list(rows[0]))
         w.writeheader()
         w.writerows(rows)
-    head = ["log", "map", "rule", "trials", "lost <= 3", "never lost", "lost at p50 / max",
-            "wrong scans (trials)", "re-fixed"]  # fmt: skip
-    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    for name in args.logs.split(","):
-        for kind in args.maps.split(","):
-            for label, rule in RULES.items():
-                sel = [r for r in rows if (r["log"], r["map"], r["rule"]) == (name, kind, rule)]
-                held = " (HELD-OUT)" if name == "mit-csail" else ""
-                s = summarise(sel)
-                lines.append("| " + " | ".join([name + held, kind, label, *s.values()]) + " |")
-    command = "python -m bench.bench_kidnap " + " ".join(sys.argv[1:] if argv is None else argv)
-    text = (
-        "# Kidnapped robot with odometry on the real logs (stop 42)\n\n"
-        f"Written by `{command}` ({len(jobs)} trials in {time.time() - t0:.0f} s, "
-        f"--jobs {args.jobs}, load at end {os.getloadavg()[0]:.2f}); see the script's "
-        "docstring for the columns. intel and fr079 are the tuning logs, mit-csail is held "
-        "out.\n\n" + "\n".join(lines) + "\n"
-    )
-    (args.out / "table.md").write_text(text, encoding="utf-8")
-    print(text)
+    print(f"wrote {render(page, rows)} and {csv_path}")
     return 0
 
 

@@ -1,5 +1,5 @@
-"""Maps of the real logs (issue 11): build, schematise and score them; write the maps the
-real-data benchmark uses.
+"""Maps of the real logs: build, schematise and score them; write the maps the real-data
+benchmark uses (``bench/data/maps``).
 
 READS /work/shared (not in a user's clone): the raw logs ``intel.orig.bag``,
 ``fr079.orig.bag``, ``mit-csail.clf`` and the per-scan references
@@ -17,7 +17,7 @@ the same selection without every second flag-1 scan and scored on those. The cho
 schematised (:func:`service.adapters.maps.schematize.schematize`, default parameters) and scored
 too.
 
-Writes ``docs/real/maps/{log}.geojson`` (metric polylines), ``{log}_schematic.geojson``,
+Writes ``bench/data/maps/{log}.geojson`` (metric polylines), ``{log}_schematic.geojson``,
 ``{log}.yaml`` + ``{log}.pgm`` (the occupancy grid, coarsened to ``--grid-resolution`` m to keep
 the files small: a coarse cell is occupied if any fine cell is, else free if any is, else
 unknown). Prints one table; ``--markdown`` prints it as Markdown (for docs/maps.md).
@@ -180,7 +180,7 @@ def main(
     logs: list[str],
     *,
     max_carried: float = DEFAULT_MAX_CARRIED,
-    out_dir: Path | None = REPO / "docs" / "real" / "maps",
+    out_dir: Path | None = REPO / "bench" / "data" / "maps",
     grid_res: float = 0.05,
     markdown: bool = False,
 ) -> dict[str, list[dict]]:
@@ -215,14 +215,14 @@ if __name__ == "__main__":
     ap.add_argument("--logs", nargs="+", choices=sorted(LOGS), default=list(LOGS))
     ap.add_argument("--max-carried", type=float, default=DEFAULT_MAX_CARRIED)
     ap.add_argument("--grid-resolution", type=float, default=0.05, help="written grid, m")
-    ap.add_argument("--no-write", action="store_true", help="do not write docs/real/maps")
+    ap.add_argument("--no-write", action="store_true", help="do not write bench/data/maps")
     ap.add_argument("--markdown", action="store_true")
     a = ap.parse_args()
     main(
         a.data,
         a.logs,
         max_carried=a.max_carried,
-        out_dir=None if a.no_write else REPO / "docs" / "real" / "maps",
+        out_dir=None if a.no_write else REPO / "bench" / "data" / "maps",
         grid_res=a.grid_resolution,
         markdown=a.markdown,
     )

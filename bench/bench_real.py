@@ -1,11 +1,11 @@
-"""Real-data benchmark (issue 11, part 5): every method on whole recorded laser logs.
+"""Real robot logs: every method on whole recorded laser logs, writes docs/results/real.md.
 
-READS /work/shared (not in a user's clone): the raw logs ``intel.orig.bag``, ``fr079.orig.bag``,
+READS ../shared (not in a user's clone): the raw logs ``intel.orig.bag``, ``fr079.orig.bag``,
 ``mit-csail.clf``, their ``*.relations`` and the per-scan references
 ``corrected/*.gfs_reference_per_scan.txt`` under ``--data`` (default /work/shared/data/real; see
-its README.md). The maps are the committed ``docs/real/maps/{log}.geojson`` (metric, drawn from
-the log at its reference poses) and ``{log}_schematic.geojson`` (schematised), see
-docs/maps.md.
+its README.md). The maps are the committed ``bench/data/maps/{log}.geojson`` (metric, drawn from
+the log at its reference poses by ``bench/bench_maps.py``) and ``{log}_schematic.geojson``
+(schematised), see docs/maps.md.
 
 intel and fr079 are the TUNING logs; mit-csail is HELD-OUT (nothing is tuned on it) and is
 marked so in every table.
@@ -26,36 +26,35 @@ scan, as the service runs it (its default 50; write those rows to another ``--ou
 - relations: Kümmerle et al.'s relations error of the whole estimated track (every scan's
   published pose, whatever its status, scored by :func:`service.adapters.logs.relations_error` at
   the scans' own stamps): translation mean ± std (m), rotation mean (deg); relations whose stamps
-  fall outside a ``--limit`` run are skipped. The reference track's own figure is printed per
-  log for comparison (intel 0.057, fr079 0.058, mit-csail 0.077 m; published RBPF 0.070, 0.061,
-  0.049 m).
+  fall outside a ``--limit`` run are skipped. The reference track's own figure is given per
+  log for comparison, beside the published Rao-Blackwellised particle filter's.
 - ``ms p50`` / ``ms p99``: wall time of the ``update`` call alone (perf_counter), per scan.
   Timings are only meaningful with the machine's load beside them: the 1-minute load average is
   recorded per run. ``--jobs`` defaults to 1 so that one run at a time owns a core; with
-  ``--jobs 2`` on this 2-core machine runs share it with each other (and other users).
+  ``--jobs 2`` on a 2-core machine runs share it with each other (and other users).
 
-Outputs (``--out``, default docs/real): the printed table, ``table.md`` (the table, the command
-lines, git commits and loads that produced its rows), ``results.csv`` (one row per run; a rerun
-replaces the row with the same log/method/odom/map/scans), and ``{log}.png`` per log: the metric
-map's polylines in grey, the flag-1 reference path, the ``shape`` + odometry estimate on the
-metric map, its non-tracking scans and its scored scans more than 0.3 m off marked. Each run's
-estimated track is cached in ``--cache`` (default build/bench_real, git-ignored) for the
-figures; ``--resume`` skips runs already in results.csv with the same scan count.
+Outputs (``--out DIR``, default docs/results/real): ``DIR.md`` (the results page: the table,
+the commands, commits, machine and loads that produced its rows; overwritten), ``DIR/results.csv``
+(one row per run with its provenance; a rerun replaces the row with the same
+log/method/odom/map/scans) and ``DIR/{log}.png`` per log: the metric map's polylines in grey, the
+flag-1 reference path, the ``shape`` + odometry estimate on the metric map, its non-tracking
+scans and its scored scans more than 0.3 m off marked. Each run's estimated track is cached in
+``--cache`` (default build/bench_real, git-ignored) for the figures; ``--resume`` skips runs
+already in results.csv with the same scan count. ``--report-only`` runs nothing: it renders the
+page (and, from ``--cache``, the figures) again from ``DIR/results.csv``, after merging into it
+the rows of the CSVs given with ``--merge`` (the ``results.csv`` of runs written elsewhere).
 
     .venv/bin/python -m bench.bench_real [--logs intel,fr079,mit-csail] [--methods shape,icp,lines]
         [--odom on,off] [--maps metric,schematic] [--limit N] [--jobs 1] [--resume]
-        [--out docs/real] [--no-plot]
+        [--out docs/results/real] [--no-plot] [--report-only [--merge CSV ...]]
 """
 
 from __future__ import annotations
 
 import argparse
 import csv
-import hashlib
 import math
 import os
-import shlex
-import subprocess
 import sys
 import time
 from collections.abc import Iterable
@@ -65,13 +64,21 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.results import publish
+from sim_publisher import results_page as report
+from sim_publisher.results_page import Provenance, git_commit
+
+__all__ = ["git_commit", "load_log", "map_path"]
 
 REPO = Path(__file__).resolve().parents[1]
+#: The maps of the logs (written by bench/bench_maps.py).
+MAPS_DIR = REPO / "bench" / "data" / "maps"
 DEFAULT_DATA = Path("/work/shared/data/real")
 LOG_FILES = {"intel": "intel.orig.bag", "fr079": "fr079.orig.bag", "mit-csail": "mit-csail.clf"}
 HELD_OUT = frozenset({"mit-csail"})
 METHODS = ("shape", "icp", "lines")
+#: What --methods accepts: also ``shape-paper``, shape without the laser odometry on scans
+#: without odometry (the seed paper's mode; bench/methods.py).
+ALL_METHODS = ("shape", "shape-paper", "icp", "lines")
 MAPS = ("metric", "schematic")
 #: Published Rao-Blackwellised particle filter relations errors (Kümmerle et al. 2009), m.
 RBPF = {"intel": 0.070, "fr079": 0.061, "mit-csail": 0.049}
@@ -100,10 +107,8 @@ FIELDS = [
     "ms_p50",
     "ms_p99",
     "wall_s",
-    "load1",
     "jobs",
-    "commit",
-    "command",
+    *report.PROVENANCE_FIELDS,
 ]
 KEY = ("log", "method", "odom", "map", "limit")
 
@@ -163,14 +168,14 @@ def load_log(data: Path, name: str, limit: int | None) -> LogData:
 
 def map_path(name: str, kind: str) -> Path:
     suffix = "" if kind == "metric" else "_schematic"
-    return REPO / "docs" / "real" / "maps" / f"{name}{suffix}.geojson"
+    return MAPS_DIR / f"{name}{suffix}.geojson"
 
 
 def execute(run: Run, data: Path) -> tuple[Run, np.ndarray, np.ndarray, np.ndarray, float]:
     """Run one localiser over the log; return the run, the estimated poses ``(n, 3)``, the
     tracking flags ``(n,)``, the ``update`` times ``(n,)`` (s) and the wall time (s)."""
+    from bench.methods import make_localizer
     from service.adapters.maps.files import load_map_file
-    from service.core.factory import create_localizer
 
     log = load_log(data, run.log, run.limit)
     kind = run.map
@@ -178,7 +183,7 @@ def execute(run: Run, data: Path) -> tuple[Run, np.ndarray, np.ndarray, np.ndarr
     first = int(np.flatnonzero(np.all(np.isfinite(log.reference), axis=1))[0])
     if first != 0:
         raise SystemExit(f"{run.log}: the first scan has no reference pose")
-    loc = create_localizer(run.method, m, log.reference[0].copy(), search_budget_ms=run.budget)
+    loc = make_localizer(run.method, m, log.reference[0].copy(), search_budget_ms=run.budget)
     n = len(log.ranges)
     poses = np.full((n, 3), np.nan)
     tracking = np.zeros(n, dtype=bool)
@@ -234,27 +239,6 @@ def summarise(
     return row
 
 
-def git_commit() -> str:
-    try:
-        out = subprocess.run(
-            ["git", "-C", str(REPO), "rev-parse", "--short", "HEAD"],
-            capture_output=True,
-            text=True,
-            check=True,
-        )
-        diff = subprocess.run(
-            ["git", "-C", str(REPO), "diff", "HEAD", "--", "service"],
-            capture_output=True,
-            check=True,
-        )
-        if not diff.stdout:
-            return out.stdout.strip()
-        # uncommitted changes under service/: name them by a hash of the diff
-        return f"{out.stdout.strip()}+service-diff-{hashlib.sha1(diff.stdout).hexdigest()[:8]}"
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
-
-
 def read_csv(path: Path) -> list[dict[str, str]]:
     if not path.exists():
         return []
@@ -288,7 +272,7 @@ def order_key(r: dict[str, object]) -> tuple[int, int, int, int]:
     return (  # log, map, method, odometry on first
         logs.index(str(r["log"])) if r["log"] in logs else 99,
         MAPS.index(str(r["map"])) if r["map"] in MAPS else 9,
-        METHODS.index(str(r["method"])) if r["method"] in METHODS else 9,
+        ALL_METHODS.index(str(r["method"])) if r["method"] in ALL_METHODS else 9,
         0 if r["odom"] == "on" else 1,
     )
 
@@ -362,48 +346,66 @@ def print_table(rows: list[dict[str, object]]) -> None:
             print("  ".join("-" * w for w in widths))
 
 
-def markdown(rows: list[dict[str, object]], reference: dict[str, str], scans_label: str) -> str:
-    lines = [
-        "# Real-data benchmark (issue 11)",
-        "",
-        "Written by `bench/bench_real.py` (reads /work/shared/data/real; see its docstring for"
-        " every column). intel and fr079 are the tuning logs; **mit-csail is HELD-OUT**. Each run"
-        " starts at the first scan's reference pose and localises every scan"
-        f" ({scans_label}); errors are scored on flag-1 (GMapping-corrected) scans only; `lost` ="
-        " % of scans after the first not `tracking`; relations = Kümmerle et al.'s metric over the"
-        " whole estimated track (translation mean ± std, rotation mean); ms = the `update` call"
-        " alone.",
-        "",
-        "| " + " | ".join(COLUMNS) + " |",
-        "|" + "|".join("---" for _ in COLUMNS) + "|",
-    ]
-    lines += ["| " + " | ".join(table_cells(r)) + " |" for r in rows]
-    lines += [
-        "",
-        "Reference tracks scored by the same relations metric (GMapping per-scan references,"
-        " all rows): "
-        + "; ".join(f"{k} {v}" for k, v in reference.items())
-        + ". Published RBPF: "
-        + ", ".join(f"{k} {v:.3f} m" for k, v in RBPF.items())
-        + ".",
-        "",
-        "Produced by (command, git commit of HEAD — `+service-diff-HASH` when service/ had"
-        " uncommitted changes, HASH naming that diff —, 1-minute load average at each run's"
-        " start on this 2-core machine, parallel jobs):",
-        "",
-    ]
-    prov: dict[tuple[str, str, str], list[str]] = {}
-    for r in rows:
-        prov.setdefault((str(r["command"]), str(r["commit"]), str(r["jobs"])), []).append(
-            _f(r["load1"], ".2f")
+PARAGRAPH = (
+    "Each method localises {scans} of three whole logs of the Freiburg SLAM benchmark"
+    " (Kümmerle et al. 2009), starting at the first scan's reference pose, with the robot's"
+    " odometry (`odom on`) or without it (`off`: `shape` then measures the motion between scans"
+    " from the scans, its laser odometry; `shape-paper` is the seed paper's mode, no odometry of"
+    " any kind), on the metric map drawn"
+    " from the log and on that map schematised to a floor plan. intel and fr079 are the tuning"
+    " logs; **mit-csail is held out** (nothing was tuned on it). Errors are the distance of the"
+    " estimated laser position from the GMapping-corrected (flag-1) reference, on those scans"
+    " only; `lost` is the share of scans after the first not `tracking`; relations is"
+    " Kümmerle et al.'s metric over the whole estimated track (translation mean ± std, rotation"
+    " mean), beside the reference track's own figure and the published Rao-Blackwellised"
+    " particle filter's; ms is the `update` call alone, per scan. Definitions: the docstring of"
+    " `bench/bench_real.py`."
+)
+
+
+def reference_relations(
+    data: Path, logs: Iterable[str], limit: int | None
+) -> dict[str, tuple[float, float, int]]:
+    """Kümmerle et al.'s relations error of each log's own reference track: translation mean,
+    std (m) and the relations used."""
+    from service.adapters.logs import load_relations, relations_error
+
+    out = {}
+    for k in logs:
+        lg = load_log(data, k, limit)
+        rr = relations_error(lg.stamps, lg.reference, load_relations(data / f"{k}.relations"))
+        out[k] = (rr.translation_mean, rr.translation_std, rr.used)
+    return out
+
+
+def markdown(
+    rows: list[dict[str, object]],
+    reference: dict[str, tuple[float, float, int]],
+    scans_label: str,
+    figures: list[str],
+    fallback: Provenance,
+) -> str:
+    """The results page of ``rows`` (each carrying its provenance; ``fallback`` for rows
+    written before the CSV kept it)."""
+    runs = [(Provenance.from_row(r, fallback), str(r["method"])) for r in rows]
+    body = [report.md_table(COLUMNS, (table_cells(r) for r in rows))]
+    if reference:
+        body.append(
+            report.md_table(
+                ("log", "reference track: relations m (± std)", "relations", "published RBPF m"),
+                (
+                    (
+                        k + (" (HELD-OUT)" if k in HELD_OUT else ""),
+                        f"{report.fmt(m, '.3f')} ± {report.fmt(sd, '.3f')}",
+                        n,
+                        f"{RBPF[k]:.3f}",
+                    )
+                    for k, (m, sd, n) in reference.items()
+                ),
+            )
         )
-    for (cmd, commit, jobs), loads in prov.items():
-        lo = min(_num(x) for x in loads)
-        hi = max(_num(x) for x in loads)
-        lines.append(
-            f"- `{cmd}` — commit {commit}, --jobs {jobs}, {len(loads)} runs, load {lo:.2f}–{hi:.2f}"
-        )
-    return "\n".join(lines) + "\n"
+    body += [f"![{Path(f).stem}: shape + odometry on the metric map]({f})" for f in figures]
+    return report.page("Real robot logs", PARAGRAPH.format(scans=scans_label), runs, body)
 
 
 def plot_log(name: str, out: Path, cache: Path, data: Path, limit: int | None) -> Path | None:
@@ -471,6 +473,64 @@ def parse_list(text: str, allowed: Iterable[str], what: str) -> list[str]:
     return items
 
 
+def merge_rows(
+    rows: list[dict[str, object]], more: Iterable[dict[str, object]]
+) -> list[dict[str, object]]:
+    """``rows`` with ``more`` added; a row of ``more`` replaces the one with its key."""
+    merged = {row_key(r): r for r in rows}
+    for r in more:
+        merged[row_key(r)] = r
+    return sorted(merged.values(), key=order_key)
+
+
+def read_reference(path: Path) -> dict[str, tuple[float, float, int]]:
+    return {
+        r["log"]: (float(r["mean_m"]), float(r["std_m"]), int(r["used"])) for r in read_csv(path)
+    }
+
+
+def write_reference(path: Path, reference: dict[str, tuple[float, float, int]]) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "w", newline="", encoding="utf-8") as fh:
+        w = csv.writer(fh)
+        w.writerow(["log", "mean_m", "std_m", "used"])
+        for k, (m, sd, n) in reference.items():
+            w.writerow([k, f"{m:.6g}", f"{sd:.6g}", n])
+
+
+def render(
+    out: Path,
+    rows: list[dict[str, object]],
+    data: Path,
+    cache: Path,
+    limit: int | None,
+    plot: bool,
+    fallback: Provenance,
+) -> Path:
+    """Print the table of ``rows`` of this ``limit``, draw the figures (``plot``, from the
+    tracks in ``cache``) and write the page ``out.md``; returns the page's path."""
+    lim_label = "all" if limit is None else str(limit)
+    shown = sorted((r for r in rows if str(r["limit"]) == lim_label), key=order_key)
+    logs = [k for k in LOG_FILES if any(r["log"] == k for r in shown)]
+    ref_csv = out / ("reference.csv" if limit is None else f"reference_{limit}.csv")
+    reference = {k: v for k, v in read_reference(ref_csv).items() if k in logs}
+    if set(reference) != set(logs) and data.is_dir():
+        reference = reference_relations(data, logs, limit)
+        write_reference(ref_csv, reference)
+    print_table(shown)
+    for k, (m, sd, n) in reference.items():
+        print(f"reference track {k}: relations {m:.3f} ± {sd:.3f} m ({n}); RBPF {RBPF[k]:.3f} m")
+    if plot and data.is_dir():
+        for k in logs:
+            fig = plot_log(k, out, cache, data, limit)
+            if fig is not None:
+                print(f"wrote {fig}")
+    figures = [f"{out.name}/{k}.png" for k in logs if (out / f"{k}.png").exists()]
+    n_label = "every scan" if limit is None else f"the first {limit} scans"
+    text = markdown(shown, reference, n_label, figures, fallback)
+    return report.write_page(out.with_suffix(".md"), text)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--data", type=Path, default=DEFAULT_DATA)
@@ -480,9 +540,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--maps", default=",".join(MAPS))
     ap.add_argument("--limit", type=int, default=None, help="first N scans of each log")
     ap.add_argument("--jobs", type=int, default=1, help="process pool size (1: clean timing)")
-    ap.add_argument("--out", type=Path, default=REPO / "docs" / "real")
     ap.add_argument(
-        "--results", type=Path, default=None, help="also write the page real-logs.md there"
+        "--out",
+        type=Path,
+        default=REPO / "docs" / "results" / "real",
+        help="results.csv and figures go in OUT, the page is OUT.md",
     )
     ap.add_argument("--cache", type=Path, default=REPO / "build" / "bench_real")
     ap.add_argument("--resume", action="store_true", help="skip runs already in results.csv")
@@ -495,24 +557,63 @@ def main(argv: list[str] | None = None) -> int:
         "budget (reference ms) as the service does (its default 50); default: a whole search "
         "on the scan the track was lost on (the published tables); write to another --out",
     )
+    ap.add_argument(
+        "--report-only",
+        action="store_true",
+        help="run nothing: render the page (and the figures, from --cache) from OUT/results.csv",
+    )
+    ap.add_argument(
+        "--merge",
+        type=Path,
+        nargs="+",
+        default=[],
+        metavar="CSV",
+        help="with --report-only: first merge these results.csv into OUT/results.csv (a row "
+        "replaces the one of the same log, method, odometry, map and scans)",
+    )
     args = ap.parse_args(argv)
-    if not args.data.is_dir():
-        raise SystemExit(f"{args.data}: no data directory (this benchmark reads /work/shared)")
-    logs = parse_list(args.logs, LOG_FILES, "logs")
-    methods = parse_list(args.methods, METHODS, "methods")
-    odoms = [t == "on" for t in parse_list(args.odom, ("on", "off"), "odom")]
-    maps = parse_list(args.maps, MAPS, "maps")
-    limit: int | None = args.limit
-    command = "python -m bench.bench_real " + shlex.join(sys.argv[1:] if argv is None else argv)
-    commit = git_commit()
     out: Path = args.out
     cache: Path = args.cache
-    cache.mkdir(parents=True, exist_ok=True)
     csv_path = out / "results.csv"
-    rows = read_csv(csv_path)
+    limit: int | None = args.limit
+    raw_argv = sys.argv[1:] if argv is None else argv
+    here = Provenance.capture(report.command_line("bench.bench_real", raw_argv))
+    if args.merge and not args.report_only:
+        raise SystemExit("--merge goes with --report-only")
+    if args.report_only:
+        rows: list[dict[str, object]] = list(read_csv(csv_path))
+        for extra in args.merge:
+            if not extra.exists():
+                raise SystemExit(f"{extra}: no such CSV")
+            # a CSV written before the rows kept their machine and date: the same machine
+            # renders it, on the day the file was last written
+            written = time.strftime("%Y-%m-%d", time.gmtime(extra.stat().st_mtime))
+            fill = Provenance("", "", here.machine, math.nan, written)
+            more = []
+            for r in read_csv(extra):
+                prov = Provenance.from_row(r, fill)
+                more.append({**r, **prov.as_row()})
+            rows = merge_rows(rows, more)
+            print(f"merged {len(more)} rows of {extra}")
+        if not rows:
+            raise SystemExit(f"{csv_path}: no rows to render")
+        if args.merge:
+            write_csv(csv_path, rows)
+        page = render(out, rows, args.data, cache, limit, not args.no_plot, here)
+        print(f"wrote {page} from {csv_path}")
+        return 0
+
+    if not args.data.is_dir():
+        raise SystemExit(f"{args.data}: no data directory (this benchmark reads ../shared/data)")
+    logs = parse_list(args.logs, LOG_FILES, "logs")
+    methods = parse_list(args.methods, ALL_METHODS, "methods")
+    odoms = [t == "on" for t in parse_list(args.odom, ("on", "off"), "odom")]
+    maps = parse_list(args.maps, MAPS, "maps")
+    cache.mkdir(parents=True, exist_ok=True)
+    rows = list(read_csv(csv_path))
     done = {row_key(r) for r in rows}
 
-    from service.adapters.logs import load_relations, relations_error
+    from service.adapters.logs import load_relations
 
     relations = {k: load_relations(args.data / f"{k}.relations") for k in LOG_FILES}
     lim_label = "all" if limit is None else str(limit)
@@ -529,8 +630,8 @@ def main(argv: list[str] | None = None) -> int:
                     runs.append(run)
     runs.sort(key=expected_cost, reverse=True)  # longest first keeps both workers busy
     print(
-        f"{len(runs)} runs, --jobs {args.jobs} (default 1 keeps timings clean; 2 shares this"
-        f" machine's 2 cores), commit {commit}, load {os.getloadavg()}"
+        f"{len(runs)} runs, --jobs {args.jobs} (1 keeps timings clean), commit {here.commit}, "
+        f"{here.machine}, load {here.load1:.2f}"
     )
 
     def finish(run: Run, poses, tracking, times, wall: float, load1: float) -> None:  # type: ignore[no-untyped-def]
@@ -538,10 +639,10 @@ def main(argv: list[str] | None = None) -> int:
         row = summarise(
             run, load_log(args.data, run.log, limit), relations[run.log], poses, tracking, times
         )
-        row.update(wall_s=wall, load1=load1, jobs=args.jobs, commit=commit, command=command)
-        key = row_key(row)
-        rows[:] = [r for r in rows if row_key(r) != key] + [row]
-        write_csv(csv_path, sorted(rows, key=order_key))
+        prov = Provenance(here.command, here.commit, here.machine, load1, here.date).ended()
+        row.update(wall_s=wall, jobs=args.jobs, **prov.as_row())
+        rows[:] = merge_rows(rows, [row])
+        write_csv(csv_path, rows)
         print(
             f"{run.tag()}: {row['within_0.3']:.1f} % < 0.3 m, lost {row['lost_pct']:.1f} %, "
             f"rel {row['rel_trans_mean_m']:.3f} m, p50 {row['ms_p50']:.1f} ms, wall {wall:.0f} s",
@@ -551,38 +652,18 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.time()
     if args.jobs <= 1:
         for run in runs:
-            load1 = os.getloadavg()[0]
+            load1 = report.load_average()
             _, poses, tracking, times, wall = execute(run, args.data)
             finish(run, poses, tracking, times, wall, load1)
     else:
         with ProcessPoolExecutor(max_workers=args.jobs) as pool:
-            futs = {pool.submit(execute, run, args.data): os.getloadavg()[0] for run in runs}
+            futs = {pool.submit(execute, run, args.data): report.load_average() for run in runs}
             for fut in as_completed(futs):
                 run, poses, tracking, times, wall = fut.result()
                 finish(run, poses, tracking, times, wall, futs[fut])
     print(f"{len(runs)} runs in {time.time() - t0:.0f} s wall; load {os.getloadavg()}")
-
-    n_label = "all scans" if limit is None else f"first {limit} scans"
-    shown = sorted((r for r in rows if str(r["limit"]) == lim_label), key=order_key)
-    reference: dict[str, str] = {}
-    for k in LOG_FILES:
-        if any(r["log"] == k for r in shown):
-            lg = load_log(args.data, k, limit)
-            rr = relations_error(lg.stamps, lg.reference, relations[k])
-            reference[k] = (
-                f"{rr.translation_mean:.3f} ± {rr.translation_std:.3f} m ({rr.used} relations)"
-            )
-    print_table(shown)
-    for k, v in reference.items():
-        print(f"reference track {k}: relations {v}; published RBPF {RBPF[k]:.3f} m")
-    (out / "table.md").write_text(markdown(shown, reference, n_label), encoding="utf-8")
-    print(f"wrote {out / 'table.md'} and {csv_path}")
-    publish(args.results, "real-logs", markdown(shown, reference, n_label))
-    if not args.no_plot:
-        for k in logs:
-            p = plot_log(k, out, cache, args.data, limit)
-            if p is not None:
-                print(f"wrote {p}")
+    page = render(out, rows, args.data, cache, limit, not args.no_plot, here)
+    print(f"wrote {page} and {csv_path}")
     return 0
 
 

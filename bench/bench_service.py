@@ -49,17 +49,18 @@ mean; *correct* = answered poses within ``--correct-m`` (0.5 m) and ``--correct-
 process and the publisher) in % of one core, and the 1-min load average at the window's end:
 both share the machine's cores with the service.
 
-``--acceptance`` runs issue 15's acceptance table in one command: office metric and
+``--acceptance`` runs the staggered fleet's acceptance table in one command: office metric and
 schematic, held-out building 1000 metric and schematic, N=20 at 10 Hz; office metric N=40 at
 5 Hz; and office metric N=20 at 10 Hz with K=0 and K=1 searching robots. It prints PASS/FAIL
 per line: >= 99 % answered, p99 <= 50 ms, none starved; a searching robot adds <= 5 ms to the
-tracked robots' p99. ``--out docs/scale.md`` writes the tables as markdown with the command,
-the git commit and the date.
+tracked robots' p99. ``--out docs/results/service.md`` writes the tables as markdown with
+the command, the git commit and the date.
 
 Usage: ``python -m bench.bench_service [--robots 1,5,10,20,30] [--method shape]
 [--world office,1000] [--map metric,schematic] [--rate 10] [--searching 0,1]
 [--workers 2] [--duration 10] [--out FILE] [--json FILE]`` (every comma list is crossed into
-rows), or ``python -m bench.bench_service --acceptance [--duration 20] --out docs/scale.md``.
+rows), or ``python -m bench.bench_service --acceptance [--duration 20]
+--out docs/results/service.md``.
 Numbers depend on the machine load; the load average is printed with every row.
 
 The work is split along its seams: ``scale_walks`` (worlds, scans, walks, odometry, robot
@@ -225,7 +226,9 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--stride", type=int, default=5, help="tour samples (11 mm) between scans")
     ap.add_argument("--correct-m", type=float, default=0.5)
     ap.add_argument("--correct-deg", type=float, default=10.0)
-    ap.add_argument("--acceptance", action="store_true", help="issue 15's acceptance table")
+    ap.add_argument(
+        "--acceptance", action="store_true", help="the staggered fleet's acceptance table"
+    )
     ap.add_argument("--out", type=Path, default=None, help="write the markdown report here")
     ap.add_argument("--json", type=Path, default=None, help="write the raw rows here")
     ap.add_argument("--note", default="", help="a line quoted at the top of the --out report")
@@ -400,7 +403,7 @@ def main(argv: list[str] | None = None) -> int:
             )
     failed = False
     if args.acceptance:
-        print("\n# acceptance (issue 15)")
+        print("\n# acceptance (staggered fleet of 20 robots)")
         for name, ok, figs in acceptance_lines(results):
             failed |= not ok
             print(f"{'PASS' if ok else 'FAIL'}  {name}: {figs}")

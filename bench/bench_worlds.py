@@ -1,28 +1,38 @@
-"""Corpus benchmark: every method on generated buildings it was not tuned on (issue 12).
+"""Generated buildings: every method on buildings it was not tuned on, writes
+docs/results/worlds.md.
 
-Seeds 0-19 are the **tuning** split, seeds >= 1000 the **held-out** split; this benchmark is
-the only place the held-out split is run, and it is what the README reports. For each
-building (``sim_publisher.generator``) and each of the paper's two setups -- 1: exact metric
-map, a scan every ~11 mm; 2: the building's schematic map (furniture dropped, corners moved
-2-10 cm, scale error up to +-2 %), every ~104 mm -- each method tracks the whole tour from the
-true first pose, exactly as the paper's experiment does on the office (no odometry), and with
-``--odom`` also with the simulated odometry every scan carries.
+Seeds 0-19 are the **tuning** split, seeds >= 1000 the **held-out** split; the published page
+is the held-out split. For each building (``sim_publisher.generator``) and each of the paper's
+two setups -- 1: exact metric map, a scan every ~11 mm; 2: the building's schematic map
+(furniture dropped, corners moved 2-10 cm, scale error up to +-2 %), every ~104 mm -- each
+method tracks the whole tour from the true first pose, exactly as the paper's experiment does
+on the office (no odometry), and with ``--odom`` also with the simulated odometry every scan
+carries. Without odometry ``shape`` measures the motion between scans from the scans (its laser
+odometry, :mod:`service.core.tracking.laser_odometry`); ``--methods shape-paper`` runs it as the
+paper does, with no odometry of any kind (``bench/methods.py``).
 
 Per setup, method and odometry mode, over the worlds of a split: the median, worst decile
 (10th percentile) and worst world of the proximity test (the paper's: 100 mm / 45 deg on
 setup 1, 500 mm / 45 deg on setup 2), the mean position error (median world), the share of
 lost scans (median and worst world, and how many worlds lost any scan) and the share of
 ``tracking`` poses that fail the proximity test ("confident wrong", pooled over all worlds).
-A figure of the worst world of each setup (shape method) goes beside the table.
+A figure of the worst world of each setup (shape method, no odometry) goes beside the table.
 
     python -m bench.bench_worlds                       # held-out seeds 1000-1023, 2 processes
     python -m bench.bench_worlds --split tuning        # seeds 0-19 (for tuning work)
     python -m bench.bench_worlds --odom --people 2     # also with odometry; moving people
     python -m bench.bench_worlds --methods icp,lines --odom-only --baseline-odom --update
                                                        # add the baselines' odometry rows
+    python -m bench.bench_worlds --report-only --merge OTHER/results.csv
+                                                       # the page again, with another run's rows
 
-Writes ``docs/worlds/table.md``, ``docs/worlds/results.csv`` and ``docs/worlds/worst_*.png``
-(``--out``). Uses no data outside the repository.
+``--out DIR`` (default docs/results/worlds): the page ``DIR.md`` (overwritten; it names the
+command, commit, machine and load of every row it shows), ``DIR/results.csv`` (one row per
+tour, with its provenance) and ``DIR/worst_setup{1,2}.png``. ``--update`` keeps the earlier
+rows of ``results.csv`` that this run does not repeat; ``--report-only`` runs nothing and
+renders the page from ``results.csv`` (after merging the rows of ``--merge`` CSVs), drawing a
+worst-world figure from the poses cached in ``--cache`` or, without them, by running that one
+tour again. Uses no data outside the repository.
 """
 
 from __future__ import annotations
@@ -44,7 +54,8 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import numpy as np
 
 from bench.harness import REPO as ROOT
-from bench.results import publish
+from sim_publisher import results_page as report
+from sim_publisher.results_page import Provenance
 
 SPLITS = {"tuning": list(range(0, 20)), "held-out": list(range(1000, 1024))}
 
@@ -84,12 +95,12 @@ def run_one(
     seed: int, setup: int, method: str, odom: bool, people: int, max_scans: int | None
 ) -> tuple[Run, np.ndarray | None]:
     """Track one tour; returns the run's figures and (for ``shape``) the estimated poses."""
-    from service.core.factory import create_localizer
+    from bench.methods import make_localizer
     from sim_publisher.scenario import building_setup
 
     b = _building(seed, people)
     s = building_setup(b, setup, seed=0, max_scans=max_scans)
-    loc = create_localizer(method, s.map_data, s.reference[0])
+    loc = make_localizer(method, s.map_data, s.reference[0])
     n = len(s)
     err = np.empty(n)
     deg = np.empty(n)
@@ -234,6 +245,103 @@ def figure(run: Run, poses: np.ndarray, people: int, max_scans: int | None, path
     plt.close(fig)
 
 
+PARAGRAPH = (
+    "Each method tracks the whole tour of every generated building of the {split} split"
+    " ({n} worlds, seeds {first}-{last}{held}) from the true first pose, on the paper's two"
+    " setups: 1, the exact metric map and a scan every ~11 mm; 2, the building's floor plan"
+    " (furniture dropped, corners moved 2-10 cm, scale error up to ±2 %) and a scan every"
+    " ~104 mm. Without odometry it is the paper's experiment; with odometry every scan carries"
+    " the simulated wheel odometry. Per setup, method and odometry mode: the share of scans"
+    " passing the paper's proximity test (100 mm / 45° on setup 1, 500 mm / 45° on setup 2) in"
+    " the median world, the worst decile and the worst world; the mean position error of the"
+    " median world; the share of `lost` scans (median world / worst world / worlds with any);"
+    " the share of `tracking` poses failing the proximity test (confident wrong, over all"
+    " worlds); the `update` call's time per scan (median over worlds). Moving people per"
+    " building: {people}."
+)
+#: CSV columns beside the :class:`Run` fields.
+EXTRA_FIELDS = ("people", *report.PROVENANCE_FIELDS)
+
+
+def _poses_file(cache: Path, seed: int, setup: int, odom: bool) -> Path:
+    return cache / f"shape_{seed}_s{setup}_{'odom' if odom else 'noodom'}.npy"
+
+
+def write_results(path: Path, runs: list[tuple[Run, Provenance, int]]) -> None:
+    """``results.csv``: one row per tour, with its provenance and moving people."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fields = [*Run.__dataclass_fields__, *EXTRA_FIELDS]
+    with open(path, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=fields)
+        w.writeheader()
+        for r, prov, people in sorted(runs, key=lambda x: _run_key(x[0])):
+            w.writerow({**asdict(r), "people": people, **prov.as_row()})
+
+
+def _run_key(r: Run) -> tuple[int, str, bool, int]:
+    return (r.setup, r.method, r.odom, r.seed)
+
+
+def read_results(path: Path, fallback: Provenance) -> list[tuple[Run, Provenance, int]]:
+    """The runs of a ``results.csv`` with their provenance (``fallback`` for a CSV written
+    before it kept one) and moving people."""
+    runs = _read_results(path)
+    with open(path, newline="") as f:
+        extra = list(csv.DictReader(f))
+    return [
+        (r, Provenance.from_row(row, fallback), int(row.get("people") or 0))
+        for r, row in zip(runs, extra, strict=True)
+    ]
+
+
+def split_of(seeds: list[int]) -> str:
+    """The split the seeds belong to (:data:`SPLITS`: held-out seeds are >= 1000)."""
+    if all(s >= 1000 for s in seeds):
+        return "held-out"
+    return "tuning" if all(s < 1000 for s in seeds) else "tuning and held-out"
+
+
+def render(out: Path, runs: list[tuple[Run, Provenance, int]], cache: Path) -> Path:
+    """The page ``out.md`` of ``runs`` with the worst worlds' figures (drawn from the poses in
+    ``cache``, or by running those tours again); returns its path."""
+    plain = [r for r, _, _ in runs]
+    people = sorted({p for _, _, p in runs})
+    rows = summarise(plain)
+    text = table(rows)
+    print(text)
+    figs = []
+    for setup in (1, 2):
+        rs = [r for r in plain if r.method == "shape" and r.setup == setup and not r.odom]
+        if not rs:
+            continue
+        worst = min(rs, key=lambda r: (r.proximity, -r.mean_mm))
+        ppl = next(p for r, _, p in runs if r is worst)
+        cached = _poses_file(cache, worst.seed, setup, False)
+        if cached.exists():
+            poses = np.load(cached)
+        else:
+            print(f"no cached poses of seed {worst.seed} setup {setup}: running that tour again")
+            poses = run_one(worst.seed, setup, "shape", False, ppl, worst.scans)[1]
+        name = f"worst_setup{setup}.png"
+        figure(worst, poses, ppl, worst.scans, out / name)
+        figs.append(f"{out.name}/{name}")
+    seeds = sorted({r.seed for r in plain})
+    split = split_of(seeds)
+    held = ", not tuned on" if split == "held-out" else ""
+    paragraph = PARAGRAPH.format(
+        split=split,
+        n=len(seeds),
+        first=seeds[0],
+        last=seeds[-1],
+        held=held,
+        people=", ".join(str(p) for p in people),
+    )
+    provs = [(prov, f"{r.method}{' + odometry' if r.odom else ''}") for r, prov, _ in runs]
+    body = [text, *(f"![worst world of setup {f[-5]}]({f})" for f in figs)]
+    title = f"Generated buildings, {split} split"
+    return report.write_page(out.with_suffix(".md"), report.page(title, paragraph, provs, body))
+
+
 def main(
     split: str,
     methods: list[str],
@@ -247,7 +355,12 @@ def main(
     odom_only: bool = False,
     update: bool = False,
     baseline_odom: bool = False,
+    command: str = "",
+    cache: Path | None = None,
 ) -> list[Run]:
+    here = Provenance.capture(command or report.command_line("bench.bench_worlds", sys.argv[1:]))
+    cache = cache if cache is not None else ROOT / "build" / "bench_worlds"
+    cache.mkdir(parents=True, exist_ok=True)
     seeds = seeds if seeds is not None else SPLITS[split]
     modes = [True] if odom_only else ([False, True] if odom else [False])
     work = [
@@ -263,12 +376,11 @@ def main(
     work.sort(key=lambda w: (w[2] != "shape", w[1] != 1))
     t0 = time.perf_counter()
     runs: list[Run] = []
-    poses: dict[tuple, np.ndarray] = {}
     with ProcessPoolExecutor(max_workers=jobs) as ex:
         for k, (run, p) in enumerate(ex.map(_job, work, chunksize=1)):
             runs.append(run)
             if p is not None:
-                poses[(run.seed, run.setup, run.odom)] = p
+                np.save(_poses_file(cache, run.seed, run.setup, run.odom), p)
             print(
                 f"[{k + 1}/{len(work)}] seed {run.seed} setup {run.setup} {run.method:5s} "
                 f"odom={int(run.odom)}: {100 * run.proximity:5.1f} % "
@@ -277,63 +389,46 @@ def main(
                 flush=True,
             )
     wall = time.perf_counter() - t0
-    if update and (out / "results.csv").exists():
+    print(f"{len(runs)} runs in {wall:.0f} s wall with {jobs} processes (load {os.getloadavg()})")
+    here = here.ended()
+    done = [(r, here, people) for r in runs]
+    csv_path = out / "results.csv"
+    if update and csv_path.exists():
         # keep the earlier runs this invocation did not repeat (same seed/setup/method/odom)
         fresh = {(r.seed, r.setup, r.method, r.odom) for r in runs}
         kept = [
-            r
-            for r in _read_results(out / "results.csv")
-            if (r.seed, r.setup, r.method, r.odom) not in fresh
+            x
+            for x in read_results(csv_path, here)
+            if (x[0].seed, x[0].setup, x[0].method, x[0].odom) not in fresh
         ]
-        print(f"--update: {len(kept)} earlier runs kept from {out / 'results.csv'}")
-        runs = runs + kept
-    rows = summarise(runs)
-    text = table(rows)
-    print(text)
-    print(f"{len(runs)} runs in {wall:.0f} s wall with {jobs} processes (load {os.getloadavg()})")
-    out.mkdir(parents=True, exist_ok=True)
-    with open(out / "results.csv", "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(asdict(runs[0]).keys()))
-        w.writeheader()
-        for r in sorted(runs, key=lambda r: (r.setup, r.method, r.odom, r.seed)):
-            w.writerow(asdict(r))
-    figs = []
-    for setup in (1, 2):
-        rs = [r for r in runs if r.method == "shape" and r.setup == setup and not r.odom]
-        if rs:
-            worst = min(rs, key=lambda r: (r.proximity, -r.mean_mm))
-            name = f"worst_setup{setup}.png"
-            if (worst.seed, setup, False) in poses:
-                figure(worst, poses[(worst.seed, setup, False)], people, max_scans, out / name)
-                figs.append(name)
-            elif (out / name).exists():  # --update without rerunning that row: keep it
-                figs.append(name)
-    cmd = "python -m bench.bench_worlds " + " ".join(sys.argv[1:])
-    from bench.bench_real import git_commit
-
-    commit = git_commit()
-    earlier = ""
-    if update and (out / "table.md").exists():
-        old_lines = (out / "table.md").read_text().splitlines()
-        earlier = " ".join(ln for ln in old_lines if ln.startswith(("Generated by", "Rows of")))
-    md = [
-        f"# Generated buildings: {split} split ({len(seeds)} worlds, seeds {seeds[0]}-{seeds[-1]})",
-        "",
-        (
-            f"{earlier}\n\nRows of `{cmd.strip()}` (commit {commit}, {wall:.0f} s wall) "
-            "replace the earlier runs of the same seed, setup, method and odometry mode."
-            if earlier
-            else f"Generated by `{cmd.strip()}` at commit {commit} in {wall:.0f} s wall with "
-            f"{jobs} processes on the 2-core machine (load {os.getloadavg()[0]:.1f}). Moving "
-            f"people per building: {people}. Every run starts at the true first pose; 'no' "
-            "odometry is the paper's experiment."
-        ),
-        "",
-        text,
-    ]
-    md += [f"![worst world of setup {f[-5]}]({f})" for f in figs]
-    (out / "table.md").write_text("\n".join(md) + "\n")
+        print(f"--update: {len(kept)} earlier runs kept from {csv_path}")
+        done += kept
+    write_results(csv_path, done)
+    page = render(out, done, cache)
+    print(f"wrote {page} and {csv_path}")
     return runs
+
+
+def report_only(out: Path, merge: list[Path], cache: Path, command: str) -> Path:
+    """Render the page from ``out/results.csv`` after merging the runs of the ``merge`` CSVs
+    into it (a run replaces the one of the same seed, setup, method and odometry)."""
+    here = Provenance.capture(command)
+    csv_path = out / "results.csv"
+    runs = read_results(csv_path, here) if csv_path.exists() else []
+    for extra in merge:
+        # a CSV written before the rows kept their machine and date: the same machine renders
+        # it, on the day the file was last written
+        written = time.strftime("%Y-%m-%d", time.gmtime(extra.stat().st_mtime))
+        fill = Provenance("", "", here.machine, math.nan, written)
+        more = read_results(extra, fill)
+        fresh = {_run_key(r) for r, _, _ in more}
+        runs = [x for x in runs if _run_key(x[0]) not in fresh] + more
+        print(f"merged {len(more)} runs of {extra}")
+    if not runs:
+        raise SystemExit(f"{csv_path}: no runs to render")
+    if merge:
+        write_results(csv_path, runs)
+    return render(out, runs, cache)
 
 
 def cli(argv: list[str] | None = None) -> None:
@@ -345,11 +440,14 @@ def cli(argv: list[str] | None = None) -> None:
     p.add_argument("--people", type=int, default=0, help="moving people per building")
     p.add_argument("--jobs", type=int, default=2)
     p.add_argument("--max-scans", type=int, default=None, help="truncate tours (quick runs)")
-    p.add_argument("--out", type=Path, default=ROOT / "docs" / "worlds")
-    p.add_argument("--setups", default="1,2", help="comma list of setups to run")
     p.add_argument(
-        "--results", type=Path, default=None, help="also write the page buildings.md there"
+        "--out",
+        type=Path,
+        default=ROOT / "docs" / "results" / "worlds",
+        help="results.csv and figures go in OUT, the page is OUT.md",
     )
+    p.add_argument("--cache", type=Path, default=ROOT / "build" / "bench_worlds")
+    p.add_argument("--setups", default="1,2", help="comma list of setups to run")
     p.add_argument("--odom-only", action="store_true", help="only the odometry rows")
     p.add_argument(
         "--update",
@@ -359,7 +457,28 @@ def cli(argv: list[str] | None = None) -> None:
     p.add_argument(
         "--baseline-odom", action="store_true", help="odometry rows for icp and lines too"
     )
+    p.add_argument(
+        "--report-only",
+        action="store_true",
+        help="run nothing: render the page from OUT/results.csv",
+    )
+    p.add_argument(
+        "--merge",
+        type=Path,
+        nargs="+",
+        default=[],
+        metavar="CSV",
+        help="with --report-only: first merge these results.csv into OUT/results.csv",
+    )
+    raw = sys.argv[1:] if argv is None else argv
     a = p.parse_args(argv)
+    command = report.command_line("bench.bench_worlds", raw)
+    if a.merge and not a.report_only:
+        raise SystemExit("--merge goes with --report-only")
+    if a.report_only:
+        page = report_only(a.out, a.merge, a.cache, command)
+        print(f"wrote {page}")
+        return
     seeds = [int(x) for x in a.seeds.split(",")] if a.seeds else None
     setups = tuple(int(x) for x in a.setups.split(","))
     main(
@@ -375,8 +494,9 @@ def cli(argv: list[str] | None = None) -> None:
         a.odom_only,
         a.update,
         a.baseline_odom,
+        command,
+        a.cache,
     )
-    publish(a.results, "buildings", (a.out / "table.md").read_text(encoding="utf-8"))
 
 
 if __name__ == "__main__":

@@ -1,4 +1,4 @@
-"""The drive benchmark of ``bench_global.py --drive`` (issue 13): its maps, tours and trials.
+"""The drive benchmark of ``bench_global.py --drive``: its maps, tours and trials.
 
 What a trial is and how it is scored: the constants (travel limits, the first fix's test),
 :class:`DriveMap` (a tour and map), :class:`DriveSource` (the tour as a trial reads it,

@@ -67,7 +67,6 @@ def client_config(endpoint: str, extra: dict[str, Any] | None = None) -> zenoh.C
     conf.insert_json5("mode", json.dumps("client"))
     conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
     conf.insert_json5("scouting/multicast/enabled", "false")
-    conf.insert_json5("scouting/delay", "0")
     for path, value in (extra or {}).items():
         conf.insert_json5(path, json.dumps(value))
     return conf
@@ -210,7 +209,6 @@ conf = zenoh.Config()
 conf.insert_json5("mode", '"router"')
 conf.insert_json5("listen/endpoints", json.dumps([sys.argv[1]]))
 conf.insert_json5("scouting/multicast/enabled", "false")
-conf.insert_json5("scouting/delay", "0")
 stop = threading.Event()
 signal.signal(signal.SIGTERM, lambda *a: stop.set())
 with zenoh.open(conf):

@@ -1,8 +1,8 @@
 """Tables and the report of the service scale benchmark (``bench/bench_service.py``).
 
-Issue 15's acceptance: its thresholds, the rows (:func:`acceptance_rows`) and the PASS/FAIL
-lines (:func:`acceptance_lines`, :func:`row_ok`); what a searching robot adds to the tracked
-robots' latency (:func:`search_pairs`); the cells of the rows, searchers and pairs tables as
+The staggered fleet's acceptance: its thresholds, the rows (:func:`acceptance_rows`) and the
+PASS/FAIL lines (:func:`acceptance_lines`, :func:`row_ok`); what a searching robot adds to the
+tracked robots' latency (:func:`search_pairs`); the cells of the rows, searchers and pairs tables as
 plain text (:func:`text_table`) or markdown (:func:`markdown_table`); and the markdown report
 ``--out`` writes (:func:`report`, with the commit from :func:`git_commit` and
 :data:`METHOD_TEXT`).
@@ -20,7 +20,7 @@ from bench.scale_walks import world_name
 
 REPO = Path(__file__).resolve().parents[1]
 
-#: Acceptance thresholds of issue 15.
+#: Acceptance thresholds of the staggered fleet (20 robots x 10 Hz, starts spread).
 ACCEPT_ANSWERED = 0.99
 ACCEPT_P99_MS = 50.0
 ACCEPT_SEARCH_ADDS_MS = 5.0
@@ -174,7 +174,7 @@ def text_table(head: tuple[str, ...], rows: list[list[str]]) -> str:
 
 
 def acceptance_rows() -> list[RowSpec]:
-    """Issue 15's acceptance table."""
+    """The staggered fleet's acceptance table."""
     return [
         RowSpec("office", "metric", 20, 10.0),
         RowSpec("office", "schematic", 20, 10.0),
@@ -284,7 +284,7 @@ def report(
         if pairs:
             lines += ["", markdown_table(PAIR_HEAD, [pair_cells(p) for p in pairs])]
     if acceptance:
-        lines += ["", "Acceptance (issue 15):", ""]
+        lines += ["", "Acceptance (staggered fleet of 20 robots):", ""]
         for name, ok, figs in acceptance_lines(results):
             lines.append(f"- **{'PASS' if ok else 'FAIL'}** {name}: {figs}")
     lines += ["", METHOD_TEXT]

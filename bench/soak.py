@@ -7,7 +7,9 @@ plan), configures ``--robots`` robots (alternately on the metric and the schemat
 
 * a publisher sending every robot's scans at ``--rate`` Hz (robots staggered within the
   period; each walks back and forth along the first part of the office tour from its own
-  starting point, ~11 mm per scan; ranges as float32 bytes, ``stamp`` = send time);
+  starting point, ~11 mm per scan; ranges as float32 bytes, ``stamp`` = send time; with
+  ``--odom`` each scan carries exact odometry, else none: the shape matching runs on every
+  scan);
 * a garbage publisher at ``--garbage-rate`` msg/s: malformed msgpack, wrong types, non-finite
   numbers, too many beams, oversize payloads, bad JSON, scan deletes -- most of them on the
   real robots' own scan keys -- plus scans of unknown robots and invalid maps/configs.
@@ -18,13 +20,16 @@ method), robots served in that interval, RSS of the service process and of its w
 the rejections counted in health during the interval by kind, and tracking statuses. It ends
 with a summary: RSS growth after the first two minutes (the service must stay flat, <= 5 %),
 crashes (service exit or worker restarts: must be 0) and starved robots (a robot with no pose
-in some interval after the first: must be none). ``--json FILE`` writes all of it.
+in some interval after the first: must be none). ``--json FILE`` writes all of it, ``--out
+FILE`` the results page (:mod:`bench.soak_report`; docs/results/soak.md). The robots start
+once the service reports both maps ready (``Health.maps_ready``).
 
 The run is bounded: it stops by itself after ``--minutes`` (plus start-up and a few seconds
 of drain) and sends only to 127.0.0.1. Reads nothing outside the repository.
 
 Usage: ``python -m bench.soak [--minutes 10] [--robots 50] [--rate 10] [--garbage-rate 100]
-[--method shape] [--workers N] [--interval 60] [--json out.json]``; ``python -m bench.soak
+[--method shape] [--odom] [--workers N] [--interval 60] [--json out.json] [--out page.md]``;
+``python -m bench.soak
 --garbage-only --connect tcp/127.0.0.1:PORT --garbage-rate R --duration S --targets id,...``
 runs only the garbage publisher (used by the flood test).
 """
@@ -51,8 +56,11 @@ import numpy as np
 import zenoh
 
 # the loopback helpers of the service benchmark
+from bench.fleet_run import map_ready
 from bench.harness import client_config, free_endpoint, start_service, wait_ready
 from bench.scale_load import health as scale_health
+from bench.scale_walks import odometry_frame
+from bench.soak_report import page
 from schemas.codec import encode
 from schemas.messages import Health, RobotConfig
 
@@ -105,9 +113,11 @@ def publisher_main(
     duration: float,
     t0: float,
     counts: Any,
+    truth: np.ndarray | None = None,
 ) -> None:
     """Child process: each robot's scans at ``rate`` Hz from ``t0`` for ``duration`` s;
-    ``counts[i]`` = scans sent by robot ``i``."""
+    ``counts[i]`` = scans sent by robot ``i``. With ``truth`` (the pool's true poses) every
+    scan carries exact odometry (the true pose in the robot's own odometry frame)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     n, m = len(robots), len(ranges)
     enc = zenoh.Encoding("application/msgpack")
@@ -133,6 +143,9 @@ def publisher_main(
                     "range_max": info["range_max"],
                     "ranges": ranges[pos[i]],
                 }
+                if truth is not None:
+                    pair = odometry_frame(truth[[starts[i], pos[i]]])
+                    msg["odom"] = [float(v) for v in pair[1]]
                 pubs[i].put(msgpack.packb(msg))
                 counts[i] += 1
                 nxt = pos[i] + direction[i]
@@ -287,6 +300,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "robots": args.robots,
         "rate_hz": args.rate,
         "garbage_rate": args.garbage_rate,
+        "odom": args.odom,
         "method": args.method,
         "workers": workers,
         "minutes": args.minutes,
@@ -311,6 +325,11 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             with session:
                 for md in (office_metric_map(MAPS[0]), office_schematic_map(MAPS[1])):
                     session.put(f"{P}/maps/{md.map_id}", encode(map_message_of(md)))
+                deadline = time.time() + 120  # the maps' acknowledgement (Health.maps_ready)
+                while not all(map_ready(health(session), m) for m in MAPS):
+                    if time.time() > deadline:
+                        raise RuntimeError("maps not ready in 120 s")
+                    time.sleep(0.1)
                 for i, (r, st) in enumerate(zip(robots, starts, strict=True)):
                     cfg = RobotConfig(
                         map_id=MAPS[i % 2], method=args.method, initial_pose=list(truth[st])
@@ -322,7 +341,10 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                 t0 = time.time() + 1.0
                 sent = ctx.Array("l", len(robots), lock=False)
                 junk = ctx.Array("l", 1, lock=False)
-                pub_args = (endpoint, robots, starts, ranges, info, args.rate, duration, t0, sent)
+                pub_args = (
+                    endpoint, robots, starts, ranges, info, args.rate, duration, t0, sent,
+                    truth if args.odom else None,
+                )  # fmt: skip
                 procs = [
                     ctx.Process(target=publisher_main, args=pub_args),
                     ctx.Process(
@@ -509,6 +531,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--pool", type=int, default=400, help="scans in the tour pool")
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--json", type=Path, help="write the report here")
+    ap.add_argument("--out", type=Path, help="write the markdown results page here")
+    ap.add_argument(
+        "--odom", action=argparse.BooleanOptionalAction, default=False, help="send odometry"
+    )
     ap.add_argument("--garbage-only", action="store_true", help="only the garbage publisher")
     ap.add_argument("--connect", help="--garbage-only: the service's endpoint")
     ap.add_argument("--duration", type=float, default=10.0, help="--garbage-only: seconds")
@@ -527,6 +553,10 @@ def main(argv: list[str] | None = None) -> int:
     report = run(args)
     if args.json:
         args.json.write_text(json.dumps(report, indent=1, default=float))
+    if args.out:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        cmd = "python -m bench.soak " + " ".join(sys.argv[1:] if argv is None else argv)
+        args.out.write_text(page(report, cmd))
     return 1 if report["summary"]["crashes"] else 0
 
 

@@ -13,7 +13,7 @@ It follows the convention of every shapeloc program (:mod:`schemas.cli`): the gl
 one JSON object a line); help shows the defaults. It connects as a Zenoh client to
 ``--connect`` (default ``tcp/127.0.0.1:7447``) and fails at once if nothing listens;
 ``--zenoh-config FILE`` (Zenoh JSON5: TLS, mutual TLS, user/password) is the base
-configuration and ``--connect`` replaces its endpoints (see docs/reliability.md). Exit code 0
+configuration and ``--connect`` replaces its endpoints (see docs/security.md). Exit code 0
 on success, 1 on an error (one line on stderr), 2 on bad usage.
 
 Deprecated for one release (a warning on stderr): ``configure --pose X Y THETA`` (now
@@ -59,6 +59,10 @@ from schemas.messages import METHODS, Map, PoseMsg
 from service.errors import ShapelocError, UnknownMap, Unreachable
 
 #: The global options of ``shapeloc`` (schemas.cli): a Zenoh client that queries the service.
+#: how long ``map put`` waits for the map to be ready by default: preparing a map takes
+#: seconds, and tens of seconds for a large building on a loaded machine
+MAP_READY_WAIT_S = 120.0
+
 GLOBAL_OPTIONS = GlobalOptions(listen=False, timeout=True, modes=("client", "peer"))
 
 
@@ -182,6 +186,14 @@ def _add_map(p: argparse.ArgumentParser) -> None:
     put.add_argument(
         "--kind", choices=("metric", "schematic"), help="map kind (default: from the file)"
     )
+    put.add_argument(
+        "--wait",
+        type=float,
+        default=MAP_READY_WAIT_S,
+        metavar="S",
+        help="wait up to S seconds until the service reports the map ready (every worker holds "
+        "it prepared, like map_server's load_map answering once loaded); 0: return once stored",
+    )
     add_json_option(put, "a summary of the stored map")
     get = add_command(msub, "get", GLOBAL_OPTIONS, help="show one stored map")
     get.add_argument("map_id")
@@ -198,11 +210,17 @@ def _run_map(args: argparse.Namespace, out: TextIO) -> int:
     with connect(args) as c:
         if args.map_command == "put":
             c.health()
+            t0 = time.monotonic()
             m = c.put_map(args.file, map_id=args.map_id, kind=args.kind, confirm=True)
+            ready = args.wait > 0
+            if ready:
+                c.wait_map_ready(m.map_id, args.wait)
+            waited = time.monotonic() - t0
             if args.json:
-                _print_json(map_summary(m), out)
+                _print_json({**map_summary(m), "ready": ready, "seconds": round(waited, 3)}, out)
             else:
-                print(f"stored {_fmt_map(m)}", file=out)
+                how = f"ready in {waited:.1f} s" if ready else "not waiting for ready"
+                print(f"stored {_fmt_map(m)}  ({how})", file=out)
         elif args.map_command == "get":
             m = c.get_map(args.map_id)
             if args.json:

@@ -58,6 +58,8 @@ __all__ = [
 DEFAULT_CONNECT = "tcp/127.0.0.1:7447"
 DEFAULT_PREFIX = "shapeloc"
 DEFAULT_TIMEOUT = 2.0
+#: the least time :meth:`ShapelocClient.configure` waits for a confirmation (seconds)
+CONFIGURE_WAIT_S = 10.0
 
 
 def _remote_error(key: str, payload: bytes) -> ShapelocError:
@@ -337,12 +339,15 @@ class ShapelocClient:
         laser_offset: Sequence[float] | np.ndarray | None = None,
         confirm: bool = False,
         grace: float = 0.5,
+        within: float | None = None,
     ) -> RobotConfig:
         """Configure (and reset) a robot: its map, method and initial pose of its base
         (``None``: global; map frame, metres and radians), and ``laser_offset``, the laser's
         pose ``[x, y, theta]`` on the base (``None``: ``[0, 0, 0]``).
 
-        With ``confirm``, wait (up to ``timeout``) until the service knows the robot, and raise
+        With ``confirm``, wait (up to ``within`` seconds; default the client's ``timeout``,
+        at least 10 s, as the service applies a configuration on the robot's worker, which may
+        be preparing a map) until the service knows the robot, and raise
         :class:`RemoteError` if the service publishes an error notice for this configuration
         meanwhile or within ``grace`` seconds after (best effort for re-configurations: a
         rejection reported later than that is not seen).
@@ -360,7 +365,8 @@ class ShapelocClient:
             self.session, keys.errors_key(self.prefix), ErrorNotice, lambda e: e.key == key
         ) as notices:
             self._put(key, msg)
-            end = time.monotonic() + self.timeout
+            wait = max(self.timeout, CONFIGURE_WAIT_S) if within is None else within
+            end = time.monotonic() + wait
             known_at = None
             while True:
                 item = notices.get(timeout=0.05)
@@ -382,7 +388,7 @@ class ShapelocClient:
                 if known_at is None and now >= end:
                     raise ServiceTimeout(
                         f"the service did not take the configuration of {robot_id!r} within "
-                        f"{self.timeout} s"
+                        f"{wait} s"
                     )
 
     def send_scan(self, robot_id: str, scan: Scan) -> None:

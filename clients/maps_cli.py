@@ -282,8 +282,8 @@ def run(args: argparse.Namespace, out: TextIO | None = None) -> int:
             endpoints = args.connect or [DEFAULT_CONNECT]
             with ShapelocClient(endpoints, prefix=args.prefix, timeout=args.timeout) as c:
                 c.health()
-                c.put_map(m, confirm=True)
-            print(f"stored map {m.map_id} on the service", file=out)
+                c.put_map(m, ready=True, within=120.0)
+            print(f"stored map {m.map_id} on the service (ready)", file=out)
     elif act == "build":
         t0 = time.perf_counter()
         logged = load_logged_scans(args.log, args.poses)

@@ -1,4 +1,4 @@
-"""The office test environment (see docs/world.md) and its two maps.
+"""The office test environment (see docs/simulator.md) and its two maps.
 
 ``office_world()`` is the TRUE world (walls, furniture, non-linear obstacles) that scans are
 simulated against. ``office_metric_map()`` is its exact metric map; ``office_schematic_map()``

@@ -11,7 +11,8 @@ Costs are bounded so that the view never competes with the service it watches:
 * scans are **not** decoded on arrival: each robot keeps its last few raw scan payloads, and
   a frame decodes only the one that answers the robot's latest pose (same ``seq``), only for
   robots some page shows, and only once (the decoded beams are kept with the payload);
-* beams are thinned to at most ``max_beams`` per scan, ranges rounded to a millimetre;
+* beams are thinned to at most ``max_beams`` per scan, ranges packed as millimetres in
+  base64 (no float formatting for the frame's JSON);
 * the number of robots and maps kept is capped (ids come from the network).
 
 Every network input is untrusted: a payload that does not decode, a key that is not a valid
@@ -21,6 +22,7 @@ robot or map key, or a pose whose ``robot_id`` differs from its key is counted i
 
 from __future__ import annotations
 
+import base64
 import logging
 import math
 from collections import Counter, deque
@@ -113,18 +115,38 @@ def map_payload(m: Map) -> dict[str, Any]:
     }
 
 
+#: A range sent to the page is a little-endian uint16 count of ``u`` metres; this value is
+#: "no return". ``u`` is 1 mm, or 1 cm for a laser reaching past 65 m.
+NO_RETURN = 0xFFFF
+
+
 def scan_beams(scan: Scan, max_beams: int = MAX_BEAMS) -> dict[str, Any]:
-    """A scan's beams for the page: ``a0`` (rad), ``da`` (rad between the beams sent) and
-    ``r`` (m, rounded to 1 mm; ``None`` = no return), thinned to at most ``max_beams``."""
+    """A scan's beams for the page, thinned to at most ``max_beams``: ``a0`` (rad), ``da``
+    (rad between the beams sent), ``u`` (metres per unit) and ``d``, the ranges as base64 of
+    little-endian uint16 units (:data:`NO_RETURN` where nothing was hit). Packed, a scan is a
+    third of its JSON number list and costs the server no float formatting."""
     ranges, _angles = scan_arrays(scan)
     step = max(1, math.ceil(ranges.size / max(1, max_beams)))
-    r = np.round(ranges[::step], 3)
+    r = ranges[::step]
+    unit = 0.001 if scan.range_max < (NO_RETURN - 1) * 0.001 else 0.01
+    units = np.full(r.shape, NO_RETURN, dtype="<u2")
+    ok = np.isfinite(r)
+    units[ok] = np.clip(np.rint(r[ok] / unit), 0, NO_RETURN - 1)
     return {
         "seq": scan.seq,
         "a0": float(scan.angle_min),
         "da": float(scan.angle_increment * step),
-        "r": [None if v != v else v for v in r.tolist()],
+        "u": unit,
+        "d": base64.b64encode(units.tobytes()).decode("ascii"),
     }
+
+
+def unpack_ranges(beams: dict[str, Any]) -> np.ndarray:
+    """The ranges (m, NaN = no return) of :func:`scan_beams`' output (what the page does)."""
+    units = np.frombuffer(base64.b64decode(beams["d"]), dtype="<u2")
+    out = units.astype(np.float64) * beams["u"]
+    out[units == NO_RETURN] = np.nan
+    return out
 
 
 class ViewState:

@@ -50,6 +50,7 @@ MOVED: dict[str, str] = {
     "shape_config": "tracking.shape_config",
     "motion": "tracking.motion",
     "scan_odometry": "tracking.scan_odometry",
+    "laser_odometry": "tracking.laser_odometry",
     "global_localization": "reloc.global_localization",
     "global_search": "reloc.global_search",
     "view_index": "reloc.view_index",

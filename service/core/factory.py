@@ -21,6 +21,7 @@ def create_localizer(
     cache_dir: Path | None = None,
     search_budget_ms: float | None = None,
     laser_offset: Sequence[float] | np.ndarray | None = None,
+    laser_odometry: bool | None = None,
 ) -> Localizer:
     """Return a fresh localiser for one robot.
 
@@ -41,6 +42,13 @@ def create_localizer(
     global search). ``search_budget_ms`` spreads its global search over scans within that
     per-scan work budget (``GlobalConfig.search_budget_ms``; ``None``: a whole search per
     scan).
+
+    ``laser_odometry``: a scan that carries no odometry gets the motion measured between it
+    and the previous scan as its odometry, decided per scan
+    (:class:`service.core.tracking.laser_odometry.LaserOdometryLocalizer`; scans with odometry pass
+    unchanged). ``False``: the method alone, as the seed paper runs it without odometry;
+    ``None`` (default): on for ``shape``, off for the baselines (``icp`` and ``lines`` stay
+    the paper's comparison methods, which start each scan from their previous estimate).
     """
     offset = None
     start = initial_pose
@@ -53,6 +61,10 @@ def create_localizer(
         elif initial_pose is not None:
             start = to_laser(np.asarray(initial_pose, dtype=np.float64), offset)
     loc = _method_localizer(method, map_data, start, config, cache_dir, search_budget_ms)
+    if laser_odometry or (laser_odometry is None and method == "shape"):
+        from service.core.tracking.laser_odometry import with_laser_odometry
+
+        loc = with_laser_odometry(loc)
     if offset is None:
         return loc
     from service.core.mounting import MountedLocalizer

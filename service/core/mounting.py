@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from service.core.types import Estimate, Localizer, wrap_angle
+from service.core.types import Estimate, Localizer, LocalizerWrapper, wrap_angle
 from service.errors import LocalizationError
 
 __all__ = [
@@ -88,7 +88,7 @@ def base_covariance(laser: np.ndarray, cov: np.ndarray, offset: np.ndarray) -> n
     return J @ np.asarray(cov, dtype=np.float64).reshape(3, 3) @ J.T
 
 
-class MountedLocalizer:
+class MountedLocalizer(LocalizerWrapper):
     """A localiser of the laser's pose seen as one of the base's pose (module docstring).
 
     ``update`` takes the scan (laser frame, unchanged) and the base's odometry; ``reset``
@@ -99,22 +99,8 @@ class MountedLocalizer:
     """
 
     def __init__(self, inner: Localizer, offset: Sequence[float] | np.ndarray) -> None:
-        self.inner = inner
+        super().__init__(inner)
         self.offset = check_offset(offset)
-
-    @property
-    def method(self) -> str:
-        """The wrapped localiser's method name."""
-        return self.inner.method
-
-    @property
-    def map_data(self) -> Any:
-        """The wrapped localiser's map."""
-        return self.inner.map_data
-
-    @map_data.setter
-    def map_data(self, value: Any) -> None:
-        self.inner.map_data = value
 
     @property
     def pose(self) -> np.ndarray | None:
@@ -153,12 +139,6 @@ class MountedLocalizer:
                 c[:, :3] = to_base(c[:, :3], self.offset)
             changes["candidates"] = c
         return dataclasses.replace(est, **changes)
-
-    def __getattr__(self, name: str) -> Any:
-        inner = self.__dict__.get("inner")
-        if inner is None or name.startswith("__"):
-            raise AttributeError(name)
-        return getattr(inner, name)
 
 
 def mount(loc: Localizer, offset: Sequence[float] | np.ndarray | None) -> Localizer:

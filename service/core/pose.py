@@ -195,7 +195,8 @@ def pose_from_matches(
     prior_weight: float = 0.0,
     covariance: bool = True,
 ) -> PoseFit:
-    """Robot pose from matched polyline pairs by least squares over points of the pairs.
+    """Robot pose from matched polyline pairs (paper §5: the pose that brings the matched scan
+    polylines onto their map polylines) by least squares over points of the pairs.
 
     ``pairs``: one ``(scan_points (k, 2) robot frame, map_segments (s, 4) map frame)`` per
     matched pair of the configuration matching. ``initial_pose`` ``[x, y, theta]`` map frame

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Literal, Protocol
+from typing import Any, Literal, Protocol
 
 import numpy as np
 
@@ -173,3 +173,38 @@ class Localizer(Protocol):
     def pose(self) -> np.ndarray | None:
         """Last pose estimate, or ``None`` before the first fix."""
         ...
+
+
+class LocalizerWrapper:
+    """Base of a localiser that wraps another (the laser's mounting, the laser odometry):
+    ``method``, ``map_data`` (read and set) and :attr:`pose` are the wrapped localiser's, and
+    every attribute the wrapper does not have itself is read from it. Picklable when the
+    wrapped localiser is (``__getattr__`` answers nothing before ``inner`` is restored)."""
+
+    def __init__(self, inner: Localizer) -> None:
+        self.inner = inner
+
+    @property
+    def method(self) -> str:
+        """The wrapped localiser's method name."""
+        return self.inner.method
+
+    @property
+    def map_data(self) -> MapData:
+        """The wrapped localiser's map."""
+        return self.inner.map_data
+
+    @map_data.setter
+    def map_data(self, value: MapData) -> None:
+        self.inner.map_data = value
+
+    @property
+    def pose(self) -> np.ndarray | None:
+        """The wrapped localiser's last estimate."""
+        return self.inner.pose
+
+    def __getattr__(self, name: str) -> Any:
+        inner = self.__dict__.get("inner")
+        if inner is None or name.startswith("__"):
+            raise AttributeError(name)
+        return getattr(inner, name)

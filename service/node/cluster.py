@@ -50,9 +50,9 @@ from service.node.state import StateStore
 from service.node.workers import config_request
 
 if TYPE_CHECKING:
+    from service.node.assignment import Assignment
     from service.node.scheduler import WorkerLink
     from service.node.settings import ServiceSettings
-    from service.node.workers import Assignment
 
 log = logging.getLogger("shapeloc.service")
 

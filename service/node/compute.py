@@ -28,9 +28,10 @@ from service.errors import (
     UnknownMap,
     UnknownRobot,
 )
+from service.node.assignment import Assignment
 from service.node.control import as_list
 from service.node.intake import ValidScan
-from service.node.workers import Assignment, InlineWorker, ProcessWorker, config_request
+from service.node.workers import InlineWorker, ProcessWorker, config_request
 
 if TYPE_CHECKING:
     from service.node.scheduler import Worker, WorkerLink
@@ -134,16 +135,57 @@ class ComputePlane:
             )
 
     def process_scan(self, link: WorkerLink, scan: ValidScan) -> None:
-        """Localise one valid scan on ``link``'s worker and publish the pose; its CPU time (this
-        thread's, the worker's and the intake's validation) goes to :attr:`scan_cpu_ms`."""
+        """Localise one valid scan on ``link``'s worker and publish the pose."""
+        self.process_batch(link, [scan])
+
+    def process_batch(self, link: WorkerLink, scans: list[ValidScan]) -> None:
+        """Localise valid scans of different robots on ``link``'s worker in one request and
+        publish each pose as soon as the worker answers it; then move the robots that started
+        or stopped searching. Each scan's CPU time (this thread's share of the batch, the
+        worker's and the intake's validation) goes to :attr:`scan_cpu_ms`."""
         cpu0 = time.thread_time()
+        todo = [(scan, cfg) for scan in scans if (cfg := self._admit(link, scan)) is not None]
+        if not todo:
+            return
+        worker_ms = [0.0] * len(todo)
+        published = [False] * len(todo)
+        moves: list[tuple[str, bool]] = []
+
+        def on_reply(i: int, reply: tuple[str, Any]) -> None:
+            scan, cfg = todo[i]
+            status, out = reply
+            if status != "ok":
+                self.reject(scan.key, "scan", LocalizationError(str(out)))
+                return
+            worker_ms[i] = float(out.get("cpu_ms", 0.0))
+            published[i] = self._publish(scan, cfg, out)
+            unsettled = bool(out.get("unsettled"))
+            search = self.search_link
+            if published[i] and search is not None and unsettled != (link is search):
+                moves.append((scan.robot_id, unsettled))
+
+        link.call_batch(
+            [("scan", s.robot_id, s.ranges, s.angles, s.odom, s.skipped_odom) for s, _ in todo],
+            on_reply,
+        )
+        own_ms = (time.thread_time() - cpu0) * 1e3 / len(todo)
+        for i, (scan, _cfg) in enumerate(todo):
+            if published[i]:
+                self.scan_cpu_ms.append(own_ms + worker_ms[i] + scan.intake_ms)
+        for robot_id, to_search in moves:
+            self._migrate(link, robot_id, to_search)
+
+    def _admit(self, link: WorkerLink, scan: ValidScan) -> RobotConfig | None:
+        """The robot's configuration if ``scan`` is to be localised on ``link`` now; ``None``
+        if it is not (handed over to another instance, re-queued on the robot's new worker, or
+        rejected with a notice: unknown robot, map not stored)."""
         robot_id, key = scan.robot_id, scan.key
         if not self.serves(robot_id):
-            return  # handed over to another instance since it arrived
+            return None  # handed over to another instance since it arrived
         owner = self._link_of(robot_id)
         if owner is not link:  # assigned to another worker after the scan was queued here
             owner.slots.offer(robot_id, scan)
-            return
+            return None
         try:
             keys.validate_id(robot_id, "robot_id")
             with self.lock:
@@ -161,13 +203,14 @@ class ComputePlane:
                 )
         except ShapelocError as e:
             self.reject(key, "scan", e)
-            return
-        status, out = link.call(
-            ("scan", robot_id, scan.ranges, scan.angles, scan.odom, scan.skipped_odom)
-        )
-        if status != "ok":
-            self.reject(key, "scan", LocalizationError(str(out)))
-            return
+            return None
+        return cfg
+
+    def _publish(self, scan: ValidScan, cfg: RobotConfig, out: dict[str, Any]) -> bool:
+        """Publish the worker's estimate ``out`` of ``scan`` as the robot's pose and keep it
+        as its last pose (with the scan's odometry); whether it was published (not if the
+        robot was reconfigured meanwhile, or the estimate is not a valid pose message)."""
+        robot_id = scan.robot_id
         try:
             pose_msg = PoseMsg(
                 robot_id=robot_id,
@@ -189,11 +232,11 @@ class ComputePlane:
             )
             payload = codec.encode(pose_msg)
         except ShapelocError as e:
-            self.reject(key, "scan", LocalizationError(f"estimate not publishable: {e}"))
-            return
+            self.reject(scan.key, "scan", LocalizationError(f"estimate not publishable: {e}"))
+            return False
         with self.lock:
             if self.configs.get(robot_id) is not cfg:
-                return  # reconfigured meanwhile: this estimate belongs to the old config
+                return False  # reconfigured meanwhile: this estimate belongs to the old config
             self.poses[robot_id] = pose_msg
             if scan.odom is not None:
                 self.odoms[robot_id] = (
@@ -206,12 +249,7 @@ class ComputePlane:
         self.session.put(
             keys.robot_key(self.prefix, robot_id, "pose"), payload, encoding=codec.MSGPACK_ENCODING
         )
-        own_ms = (time.thread_time() - cpu0) * 1e3
-        self.scan_cpu_ms.append(own_ms + float(out.get("cpu_ms", 0.0)) + scan.intake_ms)
-        if self.search_link is not None and bool(out.get("unsettled")) != (
-            link is self.search_link
-        ):
-            self._migrate(link, robot_id, to_search=bool(out.get("unsettled")))
+        return True
 
     def _migrate(self, link: WorkerLink, robot_id: str, to_search: bool) -> None:
         """Move a robot that started searching to the search worker, or one that has tracked

@@ -32,10 +32,11 @@ from service.errors import (
     UnknownMap,
     UnknownRobot,
 )
+from service.node.assignment import Assignment
 from service.node.intake import Inbound, ScanIntake
 from service.node.readiness import Readiness
 from service.node.state import SavedPose, StateStore
-from service.node.workers import Assignment, config_request
+from service.node.workers import config_request
 
 if TYPE_CHECKING:
     from service.node.mirror import Mirror

@@ -39,6 +39,7 @@ from service.errors import (
     UnknownRobot,
 )
 from service.node import queries
+from service.node.assignment import Assignment
 from service.node.cluster import ClusterPlane
 from service.node.compute import ComputePlane
 from service.node.control import ControlPlane, Restored, as_list, load_state
@@ -55,11 +56,14 @@ from service.node.readiness import Readiness
 from service.node.scheduler import LatestSlots, WorkerLink
 from service.node.settings import ServiceSettings
 from service.node.state import StateStore
-from service.node.workers import Assignment, config_request
+from service.node.workers import config_request
 
 __all__ = ["MAX_SCAN_BYTES", "LatestSlots", "RejectLog", "ServiceNode"]
 
 log = logging.getLogger("shapeloc.service")
+
+#: Scans of different robots a tracking worker takes in one request (see WorkerLink).
+SCAN_BATCH = 8
 
 _MSGPACK = codec.MSGPACK_ENCODING
 
@@ -167,7 +171,13 @@ class ServiceNode(ClusterPlane, ControlPlane, ComputePlane):
         # with worker processes, one more (at a lower priority) takes the robots that search:
         # a search then never holds a worker that tracked robots wait for
         extra = 1 if self.settings.workers > 0 and self.settings.search_worker else 0
-        self.links = [WorkerLink(self, i, cap) for i in range(n + extra)]
+        # tracking worker processes take the pending scans in batches (one request, a reply
+        # each); the search worker one at a time (a search step takes tens of milliseconds),
+        # in-process workers too (no pipe to save)
+        batch = SCAN_BATCH if self.settings.workers > 0 else 1
+        self.links = [
+            WorkerLink(self, i, cap, batch=batch if i < n else 1) for i in range(n + extra)
+        ]
         self.search_link = self.links[n] if extra else None
         self.assignment = Assignment(n, extra)
         self.readiness = Readiness(indexing=self.search_link is not None)

@@ -23,14 +23,13 @@ import zenoh
 
 def router_config(listen: Sequence[str], connect: Sequence[str] = ()) -> zenoh.Config:
     """Router-mode config listening on ``listen`` (and linking to the routers in
-    ``connect``), multicast scouting off, no scouting delay."""
+    ``connect``), multicast scouting off."""
     conf = zenoh.Config()
     conf.insert_json5("mode", json.dumps("router"))
     conf.insert_json5("listen/endpoints", json.dumps(list(listen)))
     if connect:
         conf.insert_json5("connect/endpoints", json.dumps(list(connect)))
     conf.insert_json5("scouting/multicast/enabled", "false")
-    conf.insert_json5("scouting/delay", "0")
     return conf
 
 

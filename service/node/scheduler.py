@@ -81,6 +81,15 @@ class LatestSlots:
                 return None
             return self._items.popitem(last=False)
 
+    def take_more(self, limit: int) -> list[tuple[str, Any]]:
+        """Up to ``limit`` more pending robots (oldest first) with their newest items, without
+        waiting."""
+        with self._cond:
+            out = []
+            while self._items and len(out) < limit:
+                out.append(self._items.popitem(last=False))
+            return out
+
     def discard(self, robot_id: str) -> None:
         """Drop a pending item (robot forgotten)."""
         with self._cond:
@@ -112,17 +121,27 @@ class LinkHost(Protocol):
         """Replace ``link.worker`` by a fresh one and replay maps/configs into it."""
         ...
 
-    def process_scan(self, link: WorkerLink, scan: ValidScan) -> None:
-        """Run ``scan`` on ``link`` and publish the result."""
+    def process_batch(self, link: WorkerLink, scans: list[ValidScan]) -> None:
+        """Run ``scans`` (of different robots) on ``link`` and publish each result."""
         ...
 
 
 class WorkerLink:
-    """A worker plus the thread that feeds it (control requests first, then scans)."""
+    """A worker plus the thread that feeds it (control requests first, then scans).
 
-    def __init__(self, host: LinkHost, index: int, slot_capacity: int) -> None:
+    The thread takes up to ``batch`` pending robots' scans at once and sends them to the
+    worker in one request; the worker answers each as soon as it is localised, so the first
+    pose of a batch is published as early as if it had been sent alone, and the worker never
+    waits for the thread between two scans. A scan in a batch is committed to the worker (a
+    newer scan of its robot waits for the next batch), so ``batch`` bounds how stale a
+    committed scan can get and how long a control request waits (a batch of tracked scans,
+    ~2 ms each, is over in tens of milliseconds).
+    """
+
+    def __init__(self, host: LinkHost, index: int, slot_capacity: int, batch: int = 1) -> None:
         self.host = host
         self.index = index
+        self.batch = max(1, batch)
         self.worker: Worker = host.new_worker(index)
         self.slots = LatestSlots(capacity=slot_capacity, merge=_replace_scan)
         self.control: queue.SimpleQueue[tuple[tuple[Any, ...], Future[Any]]] = queue.SimpleQueue()
@@ -144,6 +163,30 @@ class WorkerLink:
             log.error("worker %d: %s; restarting it", self.index, e)
             self.host.restart_worker(self)
             return ("err", str(e))
+
+    def call_batch(
+        self, reqs: list[tuple[Any, ...]], on_reply: Callable[[int, tuple[str, Any]], None]
+    ) -> None:
+        """Run ``reqs`` on the worker as one batch; ``on_reply(i, reply)`` is called for each
+        as it arrives, in order. If the worker dies or exceeds ``worker_timeout_s`` on one of
+        them it is restarted and every request not answered gets ``("err", reason)``."""
+        if len(reqs) == 1:
+            on_reply(0, self.call(reqs[0]))
+            return
+        done = 0
+
+        def got(i: int, reply: tuple[str, Any]) -> None:
+            nonlocal done
+            done = i + 1
+            on_reply(i, reply)
+
+        try:
+            self.worker.call_batch(reqs, self.host.worker_timeout_s, got)
+        except (WorkerDiedError, ServiceTimeout) as e:
+            log.error("worker %d: %s; restarting it", self.index, e)
+            self.host.restart_worker(self)
+            for i in range(done, len(reqs)):
+                on_reply(i, ("err", str(e)))
 
     def _drain_control(self) -> None:
         while True:
@@ -170,12 +213,14 @@ class WorkerLink:
             got = self.slots.take(timeout_s=0.5)
             if got is None:
                 continue
-            _robot_id, scan = got
-            self._await_control(scan.ctl)
+            scans = [got[1]] + [item for _r, item in self.slots.take_more(self.batch - 1)]
+            self._await_control(max(scan.ctl for scan in scans))
             try:
-                host.process_scan(self, scan)
+                host.process_batch(self, scans)
             except Exception:  # never let the link die
-                log.exception("unexpected error processing a scan of %s", scan.robot_id)
+                log.exception(
+                    "unexpected error processing scans of %s", [s.robot_id for s in scans]
+                )
         # drain control so no caller waits forever
         while True:
             try:

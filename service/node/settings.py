@@ -66,6 +66,7 @@ log = logging.getLogger("shapeloc.service")
 
 
 def _default_workers() -> int:
+    """One per core."""
     return max(1, os.cpu_count() or 1)
 
 
@@ -86,7 +87,8 @@ class Flag:
     repeat: bool = False
 
 
-def _flag_of(field: Any) -> Flag | None:
+def flag_of(field: Any) -> Flag | None:
+    """The :class:`Flag` of a :class:`ServiceSettings` field, or ``None``."""
     return next((m for m in field.metadata if isinstance(m, Flag)), None)
 
 
@@ -129,7 +131,7 @@ class ServiceSettings(BaseSettings):
     zenoh_config: Path | None = Field(
         default=None,
         description="Zenoh JSON5 configuration file used as the base (TLS, mutual TLS, "
-        "user/password, access control: docs/reliability.md). mode, listen and connect, when "
+        "user/password, access control: docs/security.md). mode, listen and connect, when "
         "set by a flag, the environment or the configuration file, replace its values.",
     )
     prefix: str = Field(
@@ -220,7 +222,8 @@ class ServiceSettings(BaseSettings):
         "deterministic work model; the search goes on with the robot's next scans. A robot "
         "alone on its worker gets all of it, half while others share the worker. 50 fixes "
         "sooner than 25 (drive bench: held-out mit-csail metric map 6.6 -> 3.0 m of travel to "
-        "the fix) at a cost to the other robots' latency of a few ms at p99 (docs/global.md). "
+        "the fix) at a cost to the other robots' latency of a few ms at p99 "
+        "(docs/decisions/0005-search-budget-and-work-model.md). "
         "0: a whole search on one scan.",
     )
     search_worker: Annotated[bool, Flag("--no-search-worker", const=False)] = Field(
@@ -236,7 +239,7 @@ class ServiceSettings(BaseSettings):
         le=19,
         description="Nice level of the search worker (batch scheduling class). 19 keeps "
         "searches out of the tracked robots' way; lower it where the service shares its cores "
-        "with other busy work, or searches may starve (docs/service.md).",
+        "with other busy work, or searches may starve (docs/decisions/0006-search-worker.md).",
     )
     worker_timeout_s: float = Field(
         default=30.0,
@@ -562,7 +565,7 @@ def _env_only_epilog() -> str:
     ]
     global_names = {"listen", "connect", "mode", "zenoh_config", "prefix", "config"}
     for name, field in ServiceSettings.model_fields.items():
-        if _flag_of(field) is None and name not in global_names:
+        if flag_of(field) is None and name not in global_names:
             lines.append(f"  {name} (default: {_default_text(name)})")
     lines.append("")
     lines.append(
@@ -586,7 +589,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_global_options(p, GLOBAL_OPTIONS)
     g = p.add_argument_group("service settings")
     for name, field in ServiceSettings.model_fields.items():
-        flag = _flag_of(field)
+        flag = flag_of(field)
         if flag is None:
             continue
         help_text = f"{field.description} (default: {_default_text(name)})"
@@ -608,7 +611,7 @@ def _source_of(
 ) -> str:
     env_name = ENV_PREFIX + name.upper()
     if name in cli:
-        flag = _flag_of(ServiceSettings.model_fields[name])
+        flag = flag_of(ServiceSettings.model_fields[name])
         return f"flag {flag.name}" if flag else f"flag --{name.replace('_', '-')}"
     if env_name in environ:
         return env_name
@@ -665,8 +668,9 @@ def zenoh_config(settings: ServiceSettings) -> zenoh.Config:
     authentication, access control, ...) if given, else an empty config. Mode, listen and
     connect endpoints from the settings are applied on top, except that with a file only the
     options explicitly set (flag, environment or configuration file) override it. Multicast
-    scouting is switched off unless ``multicast_scouting`` is true; ``scouting/delay`` is 0 so
-    open returns at once. Unless
+    scouting is switched off unless ``multicast_scouting`` is true. Zenoh's scouting delay is
+    kept: in peer mode open waits (up to 500 ms) for the connect endpoints, because a query
+    sent before a peer link is up never reaches the queryables behind it. Unless
     the file sets ``connect/retry``, lost connections are retried every 250 ms doubling up to
     ``reconnect_max_ms`` (Zenoh's own default backs off to 4 s), so the service is back within
     about a second of its router.
@@ -705,7 +709,6 @@ def zenoh_config(settings: ServiceSettings) -> zenoh.Config:
     conf.insert_json5(
         "scouting/multicast/enabled", "true" if settings.multicast_scouting else "false"
     )
-    conf.insert_json5("scouting/delay", "0")
     return conf
 
 

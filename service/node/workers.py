@@ -1,4 +1,5 @@
-"""Where localisation runs: per-robot localisers owned by workers, sharded by robot id.
+"""Where localisation runs: per-robot localisers owned by workers (which worker owns which
+robot: :mod:`service.node.assignment`).
 
 :class:`WorkerCore` holds the maps and, for the robots it owns, their configuration, last
 pose and localiser; :meth:`WorkerCore.handle` executes one request tuple and returns one reply
@@ -23,6 +24,8 @@ Requests (all picklable):
 * ``("forget", robot_id)``.
 * ``("index", map_id)``: build (or load) the map's view index of global localisation into the
   on-disk cache (:func:`service.node.prepare.build_index`); replies the seconds taken.
+* ``("batch", [request, ...])`` (a process worker's pipe only; :meth:`ProcessWorker.call_batch`):
+  the requests in order, one reply for each sent as soon as it is ready.
 
 A tracking worker process warms up (:func:`service.node.prepare.warm_up_worker`) before it
 reports itself ready, and prepares every map it is given (:func:`service.node.prepare.
@@ -40,14 +43,16 @@ searches or was fixed by a search a few scans ago: the node keeps it on the sear
 from __future__ import annotations
 
 import contextlib
-import hashlib
 import logging
+import math
 import multiprocessing as mp
 import os
+import pickle
+import select
 import signal
-import threading
 import time
 import traceback
+from collections.abc import Callable
 from dataclasses import dataclass
 from multiprocessing.connection import Connection
 from pathlib import Path
@@ -63,72 +68,6 @@ from service.node.prepare import build_index, prepare_map, warm_up_worker
 log = logging.getLogger("shapeloc.service.worker")
 
 Reply = tuple[str, Any]
-
-
-def shard_of(robot_id: str, n: int) -> int:
-    """Stable hash index of a robot id in ``[0, n)`` (BLAKE2b of the id; same on every run)."""
-    h = hashlib.blake2b(robot_id.encode("utf-8"), digest_size=8).digest()
-    return int.from_bytes(h, "little") % max(1, n)
-
-
-class Assignment:
-    """Which worker owns which robot: configured robots go to the worker with the fewest
-    robots (ties: lowest index) and stay there; an unassigned id maps to :func:`shard_of`.
-
-    Hashing alone spreads few robots badly (two robots share one of two workers half of the
-    time), which halves throughput when the method is CPU-bound. Not thread-safe for writers
-    (the control thread assigns); readers may call :meth:`index_of` from any thread.
-    """
-
-    def __init__(self, n: int, extra: int = 0) -> None:
-        self.n = max(1, n)
-        self._owner: dict[str, int] = {}
-        self._load = [0] * (self.n + max(0, extra))
-        self._lock = threading.Lock()
-
-    def assign(self, robot_id: str) -> int:
-        """Owner of ``robot_id``, choosing the least-loaded worker on first assignment (among
-        the first ``n``: the ``extra`` ones, e.g. the search worker, are only moved to)."""
-        with self._lock:
-            idx = self._owner.get(robot_id)
-            if idx is None:
-                idx = self._least()
-                self._load[idx] += 1
-                self._owner[robot_id] = idx
-            return idx
-
-    def _least(self) -> int:
-        return min(range(self.n), key=lambda i: (self._load[i], i))
-
-    def least_loaded(self) -> int:
-        """The least-loaded of the first ``n`` workers."""
-        with self._lock:
-            return self._least()
-
-    def move(self, robot_id: str, idx: int) -> None:
-        """Make worker ``idx`` (any, extra ones included) the robot's owner."""
-        with self._lock:
-            old = self._owner.get(robot_id)
-            if old is not None:
-                self._load[old] -= 1
-            self._load[idx] += 1
-            self._owner[robot_id] = idx
-
-    def release(self, robot_id: str) -> None:
-        """Forget the robot's owner."""
-        with self._lock:
-            idx = self._owner.pop(robot_id, None)
-            if idx is not None:
-                self._load[idx] -= 1
-
-    def index_of(self, robot_id: str) -> int:
-        """Assigned owner, else the hash index."""
-        idx = self._owner.get(robot_id)
-        return shard_of(robot_id, self.n) if idx is None else idx
-
-    def load(self) -> list[int]:
-        """Robots per worker."""
-        return list(self._load)
 
 
 @dataclass
@@ -193,6 +132,8 @@ class WorkerCore:
         #: their view index is built here instead (``("index", map_id)``)
         self.search = search
         self.maps: dict[str, MapData] = {}
+        #: each map's model, shared by its robots' trackers (kept while the map is stored)
+        self.models: dict[str, Any] = {}
         self.robots: dict[str, _Robot] = {}
         self.cache_dir = cache_dir  # per-map view index cache of global localisation
         #: per-scan work of a global search while the robot is alone on this worker; half of
@@ -241,23 +182,36 @@ class WorkerCore:
 
     def _map(self, md: MapData) -> None:
         self.maps[md.map_id] = md
+        self.models.pop(md.map_id, None)
+        # imported here: the service process imports this module, and the model's compiled
+        # kernels would cost it ~125 MB of memory with worker processes
+        from service.core.sensor.mapmodel import MapModel
+
+        with contextlib.suppress(LocalizationError):  # no segment: its robots get the error
+            self.models[md.map_id] = MapModel.shared(md)
         for r in self.robots.values():
             if r.map_id == md.map_id:
                 r.localizer = None  # rebuilt on the next scan from its last pose
         if not self.search:
             prepare_map(md)  # the map's first-use work, before the service calls it ready
 
-    def _export(self, robot_id: str) -> _Robot:
+    def _export(self, robot_id: str) -> bytes:
         """Hand a robot (configuration, last pose and odometry, localiser with its state)
-        over to another worker: removed here, returned picklable."""
+        over to another worker: removed here, returned pickled. As bytes, so the service
+        process only passes it on: unpickling a localiser there would import every method
+        and the compiled kernels into it (+25 MB of the service's memory on the first move
+        in a soak)."""
         r = self.robots.pop(robot_id, None)
         if r is None:
             raise LocalizationError(f"robot {robot_id!r} has no configuration in this worker")
-        return r
+        return pickle.dumps(r, protocol=pickle.HIGHEST_PROTOCOL)
 
-    def _import(self, robot_id: str, robot: _Robot) -> None:
-        """Take over a robot exported by another worker; its localiser is re-pointed at this
-        worker's copy of the map (or rebuilt from the last pose when the map changed)."""
+    def _import(self, robot_id: str, robot: _Robot | bytes) -> None:
+        """Take over a robot exported by another worker (its pickled state); its localiser is
+        re-pointed at this worker's copy of the map (or rebuilt from the last pose when the
+        map changed)."""
+        if isinstance(robot, bytes):
+            robot = pickle.loads(robot)  # only ever our own worker's export
         if not isinstance(robot, _Robot):
             raise LocalizationError(f"import of {robot_id!r}: not a robot state")
         md = self.maps.get(robot.map_id)
@@ -271,6 +225,7 @@ class WorkerCore:
 
     def _map_delete(self, map_id: str) -> None:
         self.maps.pop(map_id, None)
+        self.models.pop(map_id, None)
         for r in self.robots.values():
             if r.map_id == map_id:
                 r.localizer = None
@@ -421,6 +376,16 @@ class InlineWorker:
         """Run one request synchronously (``timeout_s`` is ignored in-process)."""
         return self.core.handle(req)
 
+    def call_batch(
+        self,
+        reqs: list[tuple[Any, ...]],
+        timeout_s: float | None,
+        on_reply: Callable[[int, Reply], None],
+    ) -> None:
+        """Run ``reqs`` in order, ``on_reply(i, reply)`` after each."""
+        for i, req in enumerate(reqs):
+            on_reply(i, self.core.handle(req))
+
     def alive(self) -> bool:
         """Always true in-process."""
         return True
@@ -467,6 +432,10 @@ def _worker_main(
             break
         if req[0] == "stop":
             break
+        if req[0] == "batch":  # one reply per request, each as soon as it is ready
+            for r in req[1]:
+                conn.send(core.handle(r))
+            continue
         conn.send(core.handle(req))
     conn.close()
 
@@ -507,6 +476,16 @@ class ProcessWorker:
         )
         self._proc.start()
         child.close()
+        # one poll object for the pipe's lifetime: Connection.poll builds (and closes) a
+        # selector per call, which was a sixth of the service process's GIL time with 50
+        # robots at 10 Hz
+        self._poller = select.poll()
+        self._poller.register(self._conn.fileno(), select.POLLIN | select.POLLHUP | select.POLLERR)
+
+    def _readable(self, timeout_s: float | None) -> bool:
+        """Whether the child's reply (or its exit) can be read within ``timeout_s``."""
+        ms = None if timeout_s is None else max(0, math.ceil(timeout_s * 1000.0))
+        return bool(self._poller.poll(ms))
 
     @property
     def pid(self) -> int | None:
@@ -526,7 +505,7 @@ class ProcessWorker:
         if self._ready:
             return
         try:
-            started = self._conn.poll(self._start_timeout_s)
+            started = self._readable(self._start_timeout_s)
             msg = self._conn.recv() if started else None
         except (EOFError, OSError, BrokenPipeError) as e:
             raise self._died(e) from e
@@ -546,13 +525,41 @@ class ProcessWorker:
         self.wait_ready()
         try:
             self._conn.send(req)
-            if self._conn.poll(timeout_s):
+            if self._readable(timeout_s):
                 return self._conn.recv()
         except (EOFError, OSError, BrokenPipeError) as e:
             raise self._died(e) from e
         self.kill()
         raise ServiceTimeout(
             f"worker {self.index} took longer than {timeout_s:.1f} s on a {req[0]} request; "
+            "restarted"
+        )
+
+    def call_batch(
+        self,
+        reqs: list[tuple[Any, ...]],
+        timeout_s: float | None,
+        on_reply: Callable[[int, Reply], None],
+    ) -> None:
+        """Send ``reqs`` as one batch and call ``on_reply(i, reply)`` for each reply as it
+        arrives (each within ``timeout_s`` of the previous one); raises like :meth:`call`."""
+        if len(reqs) == 1:
+            on_reply(0, self.call(reqs[0], timeout_s))
+            return
+        self.wait_ready()
+        try:
+            self._conn.send(("batch", reqs))
+            for i in range(len(reqs)):
+                if not self._readable(timeout_s):
+                    break
+                on_reply(i, self._conn.recv())
+            else:
+                return
+        except (EOFError, OSError, BrokenPipeError) as e:
+            raise self._died(e) from e
+        self.kill()
+        raise ServiceTimeout(
+            f"worker {self.index} took longer than {timeout_s:.1f} s on a scan of a batch; "
             "restarted"
         )
 

@@ -56,7 +56,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     conf = zenoh.Config.from_file(args.zenoh_config) if args.zenoh_config else zenoh.Config()
     conf.insert_json5("mode", json.dumps(args.mode))
     conf.insert_json5("scouting/multicast/enabled", "false")
-    conf.insert_json5("scouting/delay", "0")
     if args.connect:
         conf.insert_json5("connect/endpoints", json.dumps(args.connect))
     if args.listen:

@@ -1,5 +1,6 @@
-"""Output files of the Table-1 experiment: ``results.csv``, ``table.md`` and one figure per
-setup (``setupN.png``, like the paper's Fig. 7 and 8)."""
+"""Output files of the Table-1 experiment: in ``out_dir``, ``results.csv`` and one figure per
+setup (``setupN.png``, like the paper's Fig. 7 and 8); beside it, the results page
+``<out_dir>.md`` (``docs/results/experiment.md`` by default)."""
 
 from __future__ import annotations
 
@@ -8,20 +9,25 @@ from typing import Any
 
 import numpy as np
 
+from sim_publisher import results_page
 from sim_publisher.experiment.results import BLOCK_TITLES, METHOD_NAMES, ExperimentResult
 from sim_publisher.plot import plot_map, plot_path
 
 
 def write_outputs(result: ExperimentResult, out_dir: Path, setup_objs: dict | None) -> list[Path]:
-    """Write ``results.csv``, ``table.md`` and (if ``setup_objs`` is given) one PNG per setup
-    into ``out_dir``; returns the written paths."""
+    """Write ``results.csv`` and (if ``setup_objs`` is given) one PNG per setup into
+    ``out_dir``, and the page ``<out_dir>.md`` (overwritten) beside it; returns the written
+    paths."""
     out_dir.mkdir(parents=True, exist_ok=True)
-    paths = [out_dir / "results.csv", out_dir / "table.md"]
+    paths = [out_dir / "results.csv"]
     result.write_csv(paths[0])
-    paths[1].write_text(result.markdown(), encoding="utf-8")
+    figures = []
     if setup_objs is not None:
         for s, obj in setup_objs.items():
             paths.append(plot_setup(result, s, obj, out_dir / f"setup{s}.png"))
+            figures.append(f"{out_dir.name}/setup{s}.png")
+    page = out_dir.with_suffix(".md")
+    paths.append(results_page.write_page(page, result.markdown(figures)))
     return paths
 
 

@@ -29,10 +29,11 @@ from sim_publisher.experiment.results import (
     MethodRun,
     SetupInfo,
 )
+from sim_publisher.results_page import Provenance
 from sim_publisher.scenario import Setup, make_setup, run_stats
 
 #: Relative cost per scan used only to start the slowest runs first.
-_COST = {"shape": 6.0, "shape-tracker": 6.0, "icp": 1.0, "lines": 1.0}
+_COST = {"shape": 6.0, "shape-paper": 6.0, "shape-tracker": 6.0, "icp": 1.0, "lines": 1.0}
 
 
 def run_method(
@@ -50,6 +51,8 @@ def run_method(
         from service.core.tracking.localizer import ShapeLocalizer
 
         loc: Any = ShapeLocalizer(setup_obj.map_data, truth[0].copy(), None)
+    elif method == "shape-paper":
+        loc = create_localizer("shape", setup_obj.map_data, truth[0].copy(), laser_odometry=False)
     else:
         loc = create_localizer(method, setup_obj.map_data, truth[0].copy(), None)
     est = np.empty((n, 3), dtype=np.float64)
@@ -109,16 +112,18 @@ def run_experiment(
     methods: Sequence[str] = ("shape", "icp", "lines"),
     seed: int = 0,
     max_scans: int | None = None,
-    out_dir: Path | None = Path("docs/experiment"),
+    out_dir: Path | None = Path("docs/results/experiment"),
     progress: bool = True,
     jobs: int = 2,
     plots: bool = True,
+    command: str | None = None,
 ) -> ExperimentResult:
     """Run every ``method`` on every ``setup`` and write the results to ``out_dir``.
 
     ``max_scans`` shortens each run to its first scans. ``jobs`` > 1 runs the
     (setup, method) pairs in a process pool; results do not depend on it. ``out_dir`` ``None``
-    writes nothing. Raises :class:`LocalizationError` for an unknown setup or method.
+    writes nothing; ``command`` is the command line the results page names (default: this
+    call). Raises :class:`LocalizationError` for an unknown setup or method.
     """
     setups = tuple(dict.fromkeys(int(s) for s in setups))
     methods = tuple(dict.fromkeys(methods))
@@ -134,10 +139,16 @@ def run_experiment(
         raise LocalizationError("nothing to run: no setup or no method selected")
     if max_scans is not None and max_scans < 1:
         raise LocalizationError(f"max_scans must be >= 1, got {max_scans}")
+    if command is None:
+        command = (
+            f"sim_publisher.experiment.run_experiment(setups={setups}, methods={methods}, "
+            f"seed={seed}, max_scans={max_scans})"
+        )
+    provenance = Provenance.capture(command)
     t_start = time.perf_counter()
     setup_objs = {s: _make_setup(s, seed, max_scans) for s in setups}
     infos = {s: _setup_info(s, o) for s, o in setup_objs.items()}
-    result = ExperimentResult(seed=seed, max_scans=max_scans, setups=infos)
+    result = ExperimentResult(seed=seed, max_scans=max_scans, setups=infos, provenance=provenance)
     tasks = [(s, m) for s in setups for m in methods]
     tasks.sort(key=lambda t: -infos[t[0]].scans * _COST.get(t[1], 1.0))
     total = sum(infos[s].scans for s, _ in tasks)
@@ -169,6 +180,7 @@ def run_experiment(
                 bar.set_postfix(runs=f"{len(result.runs)}/{len(tasks)}")
     bar.close()
     result.wall_seconds = time.perf_counter() - t_start
+    result.provenance = provenance.ended()
     if out_dir is not None:
         write_outputs(result, Path(out_dir), setup_objs if plots else None)
     return result

@@ -8,7 +8,7 @@ Modules: :mod:`.params` (pydantic parameters), :mod:`.layout` (corridors, rooms,
 walls), :mod:`.details` (pilasters, niches, attached columns), :mod:`.furniture` (obstacle
 catalogue and placement), :mod:`.schematic` (schematic map), :mod:`.tours` (robot tour and
 people's paths), :mod:`.grid` (raster helpers), :mod:`.building` (``generate_building``).
-See docs/worlds.md.
+See docs/simulator.md, "Generated buildings".
 """
 
 from sim_publisher.generator.building import Building, generate_building, resolve_params

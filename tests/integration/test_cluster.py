@@ -1,4 +1,4 @@
-"""Three service instances behind a Zenoh router, robots spread by rendezvous hash (issue 15).
+"""Three service instances behind a Zenoh router, robots spread by rendezvous hash.
 
 Real processes on loopback: a router (a Python session in router mode, as in
 test_faults.py), three ``python -m service --mode client --shard hash`` instances connected to

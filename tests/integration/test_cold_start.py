@@ -8,7 +8,7 @@
   searching robot's scan, a tracked robot's first scans (and later, a burst of them) replace
   each other unprocessed in its latest-wins slot; every pose it gets is within 0.1 m of the
   truth. Before, the robot's first processed scan was localised from its initial pose with
-  no odometry increment at all (the cold-start fleet of the issue: 7.7-8.4 % of the answered
+  no odometry increment at all (a cold start of 20 robots: 7.7-8.4 % of the answered
   poses more than 0.1 m off).
 
 The office of the paper (``sim_publisher.office``), scans of setup 1 along its tour, exact
@@ -144,7 +144,9 @@ def test_scans_skipped_on_purpose_keep_every_pose_within_0_1_m(
         got = dict(poses.got)
     h = decode_health(s)
     assert h.errors is not None and h.errors.get("scan.Skipped", 0) >= 5, h.errors
-    assert 0 not in got  # its first scan was replaced: the case the chain must survive
+    # most of the first burst was replaced (its first scan too, unless the worker took it in
+    # the same batch as the searcher's scan): the odometry chain must survive the gaps
+    assert sum(k not in got for k in range(12)) >= 5, sorted(got)
     errs = {k: float(np.hypot(*(p.pose[:2] - truth[k][:2]))) for k, p in got.items()}
     assert all(e < 0.1 for e in errs.values()), errs
     assert all(p.status == "tracking" for p in got.values())

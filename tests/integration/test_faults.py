@@ -1,4 +1,4 @@
-"""Faults with real processes (issue 14): a restarted Zenoh router, a SIGKILLed service, a
+"""Faults with real processes: a restarted Zenoh router, a SIGKILLed service, a
 truncated or corrupted state file.
 
 * Router restart: simulator (``python -m sim_publisher``) and service (``--mode client``) both

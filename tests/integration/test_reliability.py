@@ -1,11 +1,10 @@
-"""Reliability under abuse, real processes only (issue 14).
+"""Reliability under abuse, real processes only.
 
 * Flood on a robot's own key: the simulator (four robots, ICP, 10 Hz, one worker, so each
   scan waits a few ms in its slot) and a garbage publisher (``bench/soak.py --garbage-only``,
   ~280 malformed payloads/s on sim-3's scan key plus unknown robots, bad maps and configs)
   against one service. Validation happens before latest-wins, so sim-3 keeps >= 95 % of its
-  scans answered (the code before issue 14 measured 43 % in this test; the issue saw 28 of
-  60).
+  scans answered (a service that validated after latest-wins answered 43 % in this test).
 * The 60-second soak (``bench/soak.py --minutes 1``, 10 robots, shape method, 100 garbage
   msg/s): no crash, every robot served in every interval, every garbage kind counted, memory
   flat.
@@ -127,12 +126,12 @@ def test_flood_on_own_key_costs_the_robot_no_valid_scan(
     assert svc.proc.poll() is None
 
 
-def test_soak_60_s(tmp_path: Path) -> None:
-    """``bench/soak.py`` for one minute with 10 robots (the 10-minute, 50-robot run and its
-    figures are in docs/reliability.md)."""
+def test_soak_30_s(tmp_path: Path) -> None:
+    """``bench/soak.py`` for half a minute with 10 robots (the 10-minute, 50-robot run writes its
+    figures to docs/results/soak.md)."""
     out = tmp_path / "soak.json"
     run = subprocess.run(
-        [sys.executable, str(SOAK), "--minutes", "1", "--robots", "10", "--interval", "10",
+        [sys.executable, str(SOAK), "--minutes", "0.5", "--robots", "10", "--interval", "5",
          "--json", str(out)],
         cwd=REPO, env=_env(), capture_output=True, text=True, timeout=200,
     )  # fmt: skip
@@ -143,7 +142,7 @@ def test_soak_60_s(tmp_path: Path) -> None:
     assert len(rows) == 6 and all(r["service_alive"] for r in rows)
     assert summ["crashes"] == 0 and rep["service_exit_code"] == 0
     assert summ["intervals_with_a_starved_robot"] == []
-    assert all(r["robots_served"] == 10 for r in rows)  # every robot, every 10 s
+    assert all(r["robots_served"] == 10 for r in rows)  # every robot, every 5 s
     assert summ["poses_total"] >= 0.25 * summ["sent_total"]
     for kind in ("scan.InvalidMessage", "scan.UnknownRobot", "map.InvalidMessage"):
         assert summ["errors_total"].get(kind, 0) > 0, summ["errors_total"]

@@ -1,4 +1,4 @@
-"""Security on the wire with real processes on loopback (issue 14, part 4).
+"""Security on the wire with real processes on loopback.
 
 The service runs with ``--zenoh-config FILE`` (JSON5) holding Zenoh's own TLS, mutual TLS,
 user/password and access-control settings; its ``--listen`` flag replaces the file's endpoints.

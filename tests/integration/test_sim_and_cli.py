@@ -154,6 +154,9 @@ def test_cli_against_the_real_service(spawn_service, tmp_path: Path, capsys) -> 
     r = _run_cli("--connect", ep, "health")
     assert r.returncode == 0, r.stderr
     assert r.stdout.startswith("ok: shapeloc ") and "0 maps" in r.stdout
+    # a peer-mode client is answered too: its open waits for the link before the query
+    r = _run_cli("--mode", "peer", "--connect", ep, "health")
+    assert r.returncode == 0, r.stderr
 
     world = REPO / "sim_publisher" / "worlds" / "office.geojson"
     assert cli(["--connect", ep, "map", "put", str(world), "--id", "hq", "--kind", "metric"]) == 0

@@ -88,9 +88,8 @@ def test_statistics_and_table_layout_from_known_errors() -> None:
 
 def test_short_schematic_run_shape_beats_both_baselines(tmp_path: Path) -> None:
     """Setup 2, first 80 scans, all three methods, figures into tmp_path (~10-20 s)."""
-    res = run_experiment(
-        setups=(2,), max_scans=80, out_dir=tmp_path, progress=False, jobs=1, plots=True
-    )
+    out = tmp_path / "experiment"
+    res = run_experiment(setups=(2,), max_scans=80, out_dir=out, progress=False, jobs=1, plots=True)
     blocks = _parse_blocks(res.table_text())
     assert list(blocks) == [BLOCK_TITLES[2]]
     rows = blocks[BLOCK_TITLES[2]]
@@ -112,14 +111,19 @@ def test_short_schematic_run_shape_beats_both_baselines(tmp_path: Path) -> None:
     assert shape.proximity_pct > lines.proximity_pct
     assert shape.mean_position_mm < icp.mean_position_mm
     assert shape.mean_position_mm < lines.mean_position_mm
-    # Outputs: CSV with one row per method, table.md with the table, a PNG.
-    with (tmp_path / "results.csv").open(encoding="utf-8") as fh:
+    # Outputs: CSV with one row per method, the page beside the directory with the table,
+    # how it was produced and the figure, a PNG.
+    with (out / "results.csv").open(encoding="utf-8") as fh:
         table = list(csv.DictReader(fh))
     assert [r["method"] for r in table] == ["icp", "lines", "shape"]
     assert float(table[2]["proximity_pct"]) == pytest.approx(shape.proximity_pct, abs=0.01)
     assert float(table[0]["paper_proximity_pct"]) == PAPER_TABLE[2]["icp"][2]
-    assert res.table_text() in (tmp_path / "table.md").read_text(encoding="utf-8")
-    png = (tmp_path / "setup2.png").read_bytes()
+    page = (tmp_path / "experiment.md").read_text(encoding="utf-8")
+    assert res.table_text() in page
+    assert "- Command: `sim_publisher.experiment.run_experiment(" in page
+    assert "- Machine: " in page and " cores; Python " in page
+    assert "![setup 2](experiment/setup2.png)" in page
+    png = (out / "setup2.png").read_bytes()
     assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 10_000
 
 
@@ -196,6 +200,9 @@ def test_shapeloc_sim_experiment_delegates_its_arguments(monkeypatch) -> None:
         "progress": True,
         "jobs": 2,
         "plots": False,
+        # the command the results page names repeats the run
+        "command": "shapeloc-sim experiment --setup 2 --method icp --max-scans 7 --out x/y "
+        "--no-plots",
     }
     with pytest.raises(SystemExit):
         sim_cli(["experiment", "--setup", "3"])

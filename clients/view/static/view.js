@@ -255,6 +255,20 @@
     ctx.setLineDash([]);
   }
 
+  // The ranges of a scan message (m, NaN = no return): base64 of little-endian uint16 counts
+  // of sc.u metres, 0xFFFF = no return. Unpacked once per scan.
+  function ranges(sc) {
+    if (sc.ranges) return sc.ranges;
+    const bin = atob(sc.d);
+    const out = new Float64Array(bin.length >> 1);
+    for (let i = 0; i < out.length; i++) {
+      const v = bin.charCodeAt(2 * i) | (bin.charCodeAt(2 * i + 1) << 8);
+      out[i] = v === 0xffff ? NaN : v * sc.u;
+    }
+    sc.ranges = out;
+    return out;
+  }
+
   // Adds the robot's scan points to the current path (the caller fills all robots' at once:
   // one fill is far cheaper than a fillRect per point).
   function addScan(r) {
@@ -264,9 +278,10 @@
     const { w, h } = size();
     const c0 = Math.cos(r.th), s0 = Math.sin(r.th);
     const dot = v.scale > 25 ? 3 : 2;
-    for (let i = 0; i < sc.r.length; i++) {
-      const d = sc.r[i];
-      if (d === null) continue;
+    const rs = ranges(sc);
+    for (let i = 0; i < rs.length; i++) {
+      const d = rs[i];
+      if (Number.isNaN(d)) continue;
       const a = sc.a0 + i * sc.da;
       const lx = d * Math.cos(a), ly = d * Math.sin(a);
       const x = r.x + c0 * lx - s0 * ly, y = r.y + s0 * lx + c0 * ly;
@@ -393,7 +408,7 @@
       drawn[r.id] = {
         x: r.x, y: r.y, th: r.th, seq: r.seq, status: r.status, map: r.map,
         colour, px, py, radius: rad, scanPoints: r.scan && r.scan.seq === r.seq
-          ? r.scan.r.filter((d) => d !== null).length : 0,
+          ? ranges(r.scan).filter((d) => !Number.isNaN(d)).length : 0,
         candidates: r.cand ? r.cand.length : 0,
       };
     }

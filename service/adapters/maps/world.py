@@ -1,6 +1,6 @@
 """Simulation worlds: solid obstacle polygons in the map frame (metres).
 
-File formats (see docs/world.md):
+File formats (see docs/simulator.md):
 
 * GeoJSON ``FeatureCollection`` whose features carry ``Polygon`` or ``MultiPolygon`` geometries
   (coordinates in metres, map frame). Optional properties ``id``/``name`` (used in error

@@ -140,14 +140,20 @@ class GlobalShapeLocalizer:
         self.work_ms = 0.0
 
     def update(
-        self, ranges: np.ndarray, angles: np.ndarray, odom: np.ndarray | None = None
+        self,
+        ranges: np.ndarray,
+        angles: np.ndarray,
+        odom: np.ndarray | None = None,
+        odom_spread: np.ndarray | None = None,
     ) -> Estimate:
         """Localise one scan. ``ranges`` metres (NaN = no return), ``angles`` radians robot
         frame, ``odom`` optional odometry pose (own frame; corrected by the scans first,
-        ``ShapeConfig.motion.scan_odometry``)."""
+        ``ShapeConfig.motion.scan_odometry``); ``odom_spread`` its increment's translation
+        variance beyond the odometry model's (the tracker's prior,
+        :meth:`service.core.tracking.motion.MotionModel.predict`)."""
         r, a = check_scan(ranges, angles)
         o = None if odom is None else check_pose3(odom, "odom")
-        step = self.odometry.step(r, a, o)
+        step = self.odometry.step(r, a, o, odom_spread)
         scan = st.Scan(r, a, step, step.reading is not None and self.config.motion.use_odometry)
         self.work_ms = 0.0
         self.state, est = st.step(self, self.state, scan)

@@ -237,7 +237,7 @@ def global_search(
 #: 2.5-3x and underestimated the casts on the real metric maps. Since the casts were compiled
 #: (service/core/kernels/raycast.py) the cast terms (beam, cast_segment) overstate
 #: them ~2.5x; left as they are, since lowering them made the search faster and fixed a tuning
-#: alias wrong (docs/global.md, "Measured: global localisation while driving"). The
+#: alias wrong (the drive bench, bench/global_drive.py). The
 #: shortlist's march on the distance field (field_beam) measured 0.00012-0.00016 ms
 #: per pose and beam on the floor plans (the only maps that run it; 2026-11-27), set at the
 #: office's and intel's: up to 1.35x below building 3's, a few per cent of a search's work,

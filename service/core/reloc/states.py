@@ -233,7 +233,7 @@ def _tracking(ctx: Context, s: Tracking, scan: Scan) -> tuple[State, Estimate]:
         # a turn the shape tracker cannot bridge without its odometry prior (a look-around
         # spin after the fix): the odometry's heading change moves its pose first
         ctx.tracker.predict(o.delta)
-    est = ctx.tracker.update(scan.ranges, scan.angles, o.reading, o.matched_from)
+    est = ctx.tracker.update(scan.ranges, scan.angles, o.reading, o.matched_from, o.spread)
     if est.ambiguity is not None:
         # the tracker's own ambiguity compares step-2 hypotheses that often converge to one
         # pose: no integrity signal; the published ambiguity is the search's
@@ -317,7 +317,7 @@ def _relock(
     o = scan.odom
     assert o.delta is not None
     ctx.tracker.reset(pose, o.previous)
-    est = ctx.tracker.update(scan.ranges, scan.angles, o.reading, o.matched_from)
+    est = ctx.tracker.update(scan.ranges, scan.angles, o.reading, o.matched_from, o.spread)
     est.ambiguity = None
     # (the tracker keeps this fit: if it relocks, tracking goes on from it)
     pose, cov = propagate(pose, cov, o.delta, odometry_noise(o.delta, ctx.config))
@@ -570,7 +570,7 @@ def _confirm(ctx: Context, drv: dr.Drive, lead: dr.Track, scan: Scan) -> Estimat
     ctx.tracker.reset(lead.pose, o.reading)
     if drv.speed is not None:
         ctx.tracker.set_speed(drv.speed)
-    est = ctx.tracker.update(scan.ranges, scan.angles, o.reading, o.matched_from)
+    est = ctx.tracker.update(scan.ranges, scan.angles, o.reading, o.matched_from, o.spread)
     close = (
         np.hypot(*(est.pose[:2] - lead.pose[:2])) <= g.confirm_distance
         and abs(float(wrap_angle(est.pose[2] - lead.pose[2]))) <= g.confirm_angle
@@ -596,7 +596,7 @@ def _probation_estimate(p: Probation, est: Estimate) -> Estimate:
 def _probation(ctx: Context, p: Probation, scan: Scan) -> tuple[State, Estimate]:
     g = ctx.gconfig
     o = scan.odom
-    est = ctx.tracker.update(scan.ranges, scan.angles, o.reading, o.matched_from)
+    est = ctx.tracker.update(scan.ranges, scan.angles, o.reading, o.matched_from, o.spread)
     est.ambiguity = None
     drv = p.drive
     rejected = "rejected" in est.extras

@@ -6,7 +6,7 @@ is its surface oriented like the scan's?" exactly -- the association step of eve
 point-to-line fit (:func:`service.core.sensor.refine.refine_pose`) -- and "which segments lie
 near these points?" (:meth:`MapModel.nearby_segments`, the global search's fit). It also
 rasterises the map into its distance field and casts rays (:attr:`MapModel.caster`). Built
-once per map content (:func:`map_model`); immutable; shared by the robots of a worker (like the
+once per map (:meth:`MapModel.shared`); immutable; shared by the robots of a worker (like the
 beluga / nav2 sensor-model-owns-the-map split: methods ask the model, they do not grow their
 own copy of the map). :class:`service.core.sensor.scoring.SensorModel` scores poses on it.
 
@@ -15,8 +15,8 @@ Units: metres, map frame. Segments ``[x0, y0, x1, y1]``.
 
 from __future__ import annotations
 
-import hashlib
-from collections import OrderedDict
+import threading
+import weakref
 from dataclasses import dataclass, field
 from functools import cached_property
 
@@ -66,6 +66,22 @@ class Nearest:
     normal: np.ndarray
 
 
+#: ``id(MapData) -> its shared model`` while something uses the model: see
+#: :meth:`MapModel.shared`.
+_SHARED: weakref.WeakValueDictionary[int, MapModel] = weakref.WeakValueDictionary()
+_SHARED_LOCK = threading.Lock()
+
+
+def _same_map(a: MapData, b: MapData) -> bool:
+    """Whether two maps are equal (id, kind and every polyline's points)."""
+    return (
+        a.map_id == b.map_id
+        and a.kind == b.kind
+        and len(a.polylines) == len(b.polylines)
+        and all(np.array_equal(p, q) for p, q in zip(a.polylines, b.polylines, strict=True))
+    )
+
+
 @dataclass(eq=False)
 class MapModel:
     """Segments, normals and the association grid of one map.
@@ -110,6 +126,31 @@ class MapModel:
             self.start, self.items = _segment_grid_numpy(
                 self.segments, lo, self.nx, self.ny, self.cell, self.reach
             )
+
+    @classmethod
+    def shared(cls, map_data: MapData) -> MapModel:
+        """The default-parameter model of ``map_data``, built once per ``MapData`` object and
+        shared by every localiser given that object while any of them (or whoever keeps the
+        model) lives: a worker holds one ``MapData`` per map, so its robots share one model (a
+        160-polyline building's model costs ~12 ms and its grid's memory once per map, not
+        once per robot). A copy of a map that has a model (a localiser unpickled in another
+        process) gets that model too. Thread-safe."""
+        key = id(map_data)
+        with _SHARED_LOCK:
+            model = _SHARED.get(key)
+            if model is not None and model.map_data is map_data:
+                return model
+            equal = [m for m in _SHARED.values() if _same_map(m.map_data, map_data)]
+            if equal:
+                _SHARED[key] = equal[0]
+                return equal[0]
+        model = cls(map_data)  # outside the lock: another map's model may be built meanwhile
+        with _SHARED_LOCK:
+            hit = _SHARED.get(key)
+            if hit is not None and hit.map_data is map_data:
+                return hit
+            _SHARED[key] = model
+        return model
 
     def __reduce__(self) -> tuple[object, tuple[MapData, float, float]]:
         # pickled as its map (a robot moved to another worker): the process that loads it
@@ -260,35 +301,10 @@ def nearby_segments_brute(segments: np.ndarray, points: np.ndarray, radius: floa
     return segments[near] if np.any(near) else segments
 
 
-#: The map models of this process, by map content (:func:`map_model`), newest last.
-_MODELS: OrderedDict[str, MapModel] = OrderedDict()
-#: Map models kept at most (a worker serves a few maps; each model is a few MB).
-_MODELS_KEPT = 8
-
-
-def map_model(map_data: MapData) -> MapModel:
-    """The :class:`MapModel` of ``map_data`` with the default cell and reach, one per map
-    content in this process: the robots on a map share it (and its distance field, ray
-    caster and score tables)."""
-    h = hashlib.sha1(map_data.kind.encode())
-    for p in map_data.polylines:
-        h.update(np.ascontiguousarray(p, dtype=np.float64).tobytes())
-        h.update(b"|")
-    key = h.hexdigest()
-    got = _MODELS.get(key)
-    if got is None or got.map_data.map_id != map_data.map_id:
-        got = MapModel(map_data)
-        _MODELS[key] = got
-        while len(_MODELS) > _MODELS_KEPT:
-            _MODELS.popitem(last=False)
-    _MODELS.move_to_end(key)
-    return got
-
-
 def _restore(map_data: MapData, cell: float, reach: float) -> MapModel:
     """An unpickled :class:`MapModel`: the shared one when it has the default cell and reach."""
     if cell == MapModel.cell and reach == MapModel.reach:
-        return map_model(map_data)
+        return MapModel.shared(map_data)
     return MapModel(map_data, cell, reach)
 
 

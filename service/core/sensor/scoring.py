@@ -38,7 +38,7 @@ import numpy as np
 from service.core import kernels, numeric
 from service.core.kernels import search as search_kernels
 from service.core.pose import transform_points
-from service.core.sensor.mapmodel import DistanceField, MapModel, map_model
+from service.core.sensor.mapmodel import DistanceField, MapModel
 from service.core.sensor.raycast import RayCaster
 from service.core.types import MapData, wrap_angle
 
@@ -432,16 +432,18 @@ class SensorModel:
         return good / total if total > 0 else 0.0
 
 
-#: The sensor model of each map model of this process (:func:`sensor_model`).
-_SENSORS: weakref.WeakKeyDictionary[MapModel, SensorModel] = weakref.WeakKeyDictionary()
+#: ``id(MapModel) -> its sensor model`` while something uses the sensor model
+#: (:func:`sensor_model`). Keyed by id, not weakly by the model: the sensor model holds its map
+#: model, so a weak key would never be released.
+_SENSORS: weakref.WeakValueDictionary[int, SensorModel] = weakref.WeakValueDictionary()
 
 
 def sensor_model(map_data: MapData) -> SensorModel:
-    """The :class:`SensorModel` of ``map_data``, one per map content in this process (on the
-    shared :func:`~service.core.sensor.mapmodel.map_model`)."""
-    model = map_model(map_data)
-    got = _SENSORS.get(model)
-    if got is None:
+    """The :class:`SensorModel` of ``map_data``, one per map content in this process while it
+    is used (on :meth:`~service.core.sensor.mapmodel.MapModel.shared`)."""
+    model = MapModel.shared(map_data)
+    got = _SENSORS.get(id(model))
+    if got is None or got.model is not model:
         got = SensorModel(model)
-        _SENSORS[model] = got
+        _SENSORS[id(model)] = got
     return got

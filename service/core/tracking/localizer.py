@@ -1,7 +1,8 @@
 """Shape-based localisation (SBL, paper §4-§6): :class:`ShapeLocalizer` (its configuration,
 :class:`~service.core.tracking.shape_config.ShapeConfig`, is re-exported here).
 
-What runs where, per scan (:meth:`ShapeLocalizer.update`; ``docs/core.md`` has the table):
+What runs where, per scan (:meth:`ShapeLocalizer.update`; docs/architecture.md follows a
+scan through the core):
 
 1. **Motion prior** -- :class:`service.core.tracking.motion.Motion`: the odometry increment since
    the last scan when the scan carries ``odom`` (and ``motion.use_odometry``), else the robot's own
@@ -55,7 +56,7 @@ class ShapeLocalizer:
     :meth:`ShapeConfig.for_kind` of the map); ``model`` a shared
     :class:`~service.core.sensor.mapmodel.MapModel` of ``map_data`` (built if not given).
 
-    Per scan (see ``docs/core.md`` for what runs where):
+    Per scan (docs/architecture.md follows a scan through the core):
 
     1. the motion model (:class:`~service.core.tracking.motion.Motion`) predicts the pose -- the
        odometry increment when the scan carries ``odom``, else the robot's own velocity;
@@ -274,11 +275,13 @@ class ShapeLocalizer:
         angles: np.ndarray,
         odom: np.ndarray | None = None,
         matched_from: np.ndarray | None = None,
+        odom_spread: np.ndarray | None = None,
     ) -> Estimate:
         """Localise one scan. ``ranges`` metres (NaN = no return), ``angles`` radians in the
         robot frame (same length), ``odom`` optional odometry pose (own frame);
         ``matched_from`` the reading ``odom``'s increment was measured from by a scan-to-scan
-        fit, if it was (:meth:`service.core.tracking.motion.MotionModel.predict`).
+        fit, if it was; ``odom_spread`` the increment's translation variance beyond the
+        odometry model's, if any (both: :meth:`service.core.tracking.motion.MotionModel.predict`).
 
         Raises :class:`LocalizationError` on empty, mismatched, non-finite-angle or negative
         range input.
@@ -290,7 +293,7 @@ class ShapeLocalizer:
                 check_pose3(odom, "odom")
             return Estimate(pose=np.zeros(3), status="initializing", score=0.0)
         cfg = self.config
-        pred = self.motion.predict(self._pose, odom, matched_from)
+        pred = self.motion.predict(self._pose, odom, matched_from, odom_spread)
         P = scan_configuration(r, a, self._params)
         pts, nrm, own = self._fit_points(P)
         if len(pts) < 3:

@@ -126,8 +126,7 @@ class ScanOdometryConfig(BaseModel):
         "fed every 3rd scan it corrects 11 of the 14 increments left > 0.2 m off. Off by "
         "default because on intel fed every scan it breaks a self-cancelling odometry "
         "glitch (scans 12710-12712: 0.7 m back, 0.8 m forward; only the second is "
-        "replaced), and the drive bench then has 9 tracking poses off after a fix "
-        "(docs/global.md, 'Stop 38').",
+        "replaced), and the drive bench then has 9 tracking poses off after a fix.",
     )
     fallback_gain: float = Field(
         0.2,
@@ -167,7 +166,7 @@ class MotionConfig(BaseModel):
         "odometry's grows with the turn (fr079 1.7 -> 3.3 deg, intel 5.4 -> 9.5; "
         "bench/bench_odometry.py). With the turn terms, the floor-plan tracker of tuning "
         "building 16, whose scans come 0.1 m apart with turns of up to 150 deg between them, "
-        "slid 0.8 m / 17 deg onto furniture within 10 scans (docs/global.md, 'Stop 40').",
+        "slid 0.8 m / 17 deg onto furniture within 10 scans.",
     )
     sigma_xy_floor: float = Field(
         0.03, gt=0, description="Smallest odometry position sigma per scan (m)."
@@ -229,13 +228,19 @@ class MotionModel(Protocol):
         ...
 
     def predict(
-        self, pose: np.ndarray, odom: np.ndarray | None, matched_from: np.ndarray | None = None
+        self,
+        pose: np.ndarray,
+        odom: np.ndarray | None,
+        matched_from: np.ndarray | None = None,
+        spread: np.ndarray | None = None,
     ) -> Prediction:
         """Prior for the scan that carries ``odom`` (or ``None``), from the last ``pose``.
         ``matched_from``: the odometry reading ``odom``'s increment was measured from by a
         kept scan-to-scan fit
         (:attr:`service.core.tracking.scan_odometry.ScanOdometry.matched_from`), ``None`` if it
-        was not."""
+        was not. ``spread``: translation variance (2x2, m^2, robot frame of the previous
+        reading) the increment carries beyond the odometry model's
+        (:attr:`service.core.tracking.laser_odometry.LaserStep.spread`), ``None``: none."""
         ...
 
     def accepted(self, previous: np.ndarray, pose: np.ndarray) -> None:
@@ -279,6 +284,18 @@ def _information(theta: float, sx: float, sy: float, st: float) -> np.ndarray:
     info[:2, :2] = numeric.matmul(numeric.matmul(R, np.diag([1.0 / sx**2, 1.0 / sy**2])), R.T)
     info[2, 2] = 1.0 / st**2
     return info
+
+
+def _spread_information(theta: float, s_trans: float, spread: np.ndarray) -> np.ndarray:
+    """Position information (2x2, map frame) of an increment with isotropic sigma ``s_trans``
+    plus the variance ``spread`` (2x2, robot frame at heading ``theta``)."""
+    sp = np.asarray(spread, dtype=np.float64).reshape(2, 2)
+    if not np.all(np.isfinite(sp)):
+        raise LocalizationError("odometry spread must be finite")
+    c, s = np.cos(theta), np.sin(theta)
+    R = np.array([[c, -s], [s, c]])
+    cov = s_trans**2 * np.eye(2) + numeric.matmul(numeric.matmul(R, 0.5 * (sp + sp.T)), R.T)
+    return numeric.inv(cov)
 
 
 class OdometryMotion:
@@ -357,7 +374,11 @@ class OdometryMotion:
         return delta
 
     def predict(
-        self, pose: np.ndarray, odom: np.ndarray | None, matched_from: np.ndarray | None = None
+        self,
+        pose: np.ndarray,
+        odom: np.ndarray | None,
+        matched_from: np.ndarray | None = None,
+        spread: np.ndarray | None = None,
     ) -> Prediction:
         if odom is None:
             raise LocalizationError("OdometryMotion.predict needs odometry")
@@ -379,6 +400,8 @@ class OdometryMotion:
         s_trans, s_rot = odometry_sigmas(delta, c, matched)
         prior = compose(base, delta)
         info = _information(float(prior[2]), s_trans, s_trans, s_rot)
+        if spread is not None:
+            info[:2, :2] = _spread_information(float(base[2]), s_trans, spread)
         return Prediction(pose=prior, information=info, source="odometry", delta=delta)
 
     def accepted(self, previous: np.ndarray, pose: np.ndarray) -> None:
@@ -452,12 +475,16 @@ class Motion:
         self.velocity.reset()
 
     def predict(
-        self, pose: np.ndarray, odom: np.ndarray | None, matched_from: np.ndarray | None = None
+        self,
+        pose: np.ndarray,
+        odom: np.ndarray | None,
+        matched_from: np.ndarray | None = None,
+        spread: np.ndarray | None = None,
     ) -> Prediction:
         if odom is not None and self.config.use_odometry:
             if self.odometry.stale(odom):
                 return self.odometry.hold(pose)
-            return self.odometry.predict(pose, odom, matched_from)
+            return self.odometry.predict(pose, odom, matched_from, spread)
         if odom is not None:
             check_pose3(odom, "odom")  # same validation whether it is used or not
         self.odometry.reset()  # a gap in the odometry: the next increment starts afresh

@@ -372,8 +372,11 @@ class OdometryStep:
     (``None``: the scan came without odometry), ``previous`` the last scan's (``None``: none),
     ``delta`` the robot-frame increment between them (``None`` without both), ``step`` its
     length (m), ``matched_from`` the reading the increment was scan-matched from (``None``:
-    not matched) and ``broken`` whether the scan-to-scan fit failed to match this scan to
-    the previous one (a break in what the laser sees: a kidnap, a jump)."""
+    not matched), ``broken`` whether the scan-to-scan fit failed to match this scan to
+    the previous one (a break in what the laser sees: a kidnap, a jump) and ``spread`` the
+    increment's translation variance beyond the odometry model's (2x2, m^2, robot frame of
+    the previous reading; ``None``: none; a laser odometry's unobserved corridor axis,
+    :attr:`service.core.tracking.laser_odometry.LaserStep.spread`)."""
 
     reading: np.ndarray | None
     previous: np.ndarray | None = None
@@ -381,6 +384,7 @@ class OdometryStep:
     step: float = 0.0
     matched_from: np.ndarray | None = None
     broken: bool = False
+    spread: np.ndarray | None = None
 
 
 class Odometry:
@@ -402,8 +406,15 @@ class Odometry:
         self.check.reset(o)
         self.last = o
 
-    def step(self, ranges: np.ndarray, angles: np.ndarray, odom: np.ndarray | None) -> OdometryStep:
-        """This scan's :class:`OdometryStep` (``odom`` the raw reading, checked finite)."""
+    def step(
+        self,
+        ranges: np.ndarray,
+        angles: np.ndarray,
+        odom: np.ndarray | None,
+        spread: np.ndarray | None = None,
+    ) -> OdometryStep:
+        """This scan's :class:`OdometryStep` (``odom`` the raw reading, checked finite;
+        ``spread`` its increment's extra translation variance, if any)."""
         if odom is None:
             self.check.reset(None)
             self.last = None
@@ -422,4 +433,5 @@ class Odometry:
         step = 0.0 if delta is None else float(np.hypot(delta[0], delta[1]))
         self.travel += step
         self.last = reading.copy()
-        return OdometryStep(reading, previous, delta, step, matched, broken)
+        sp = None if spread is None or delta is None else np.asarray(spread, dtype=np.float64)
+        return OdometryStep(reading, previous, delta, step, matched, broken, sp)

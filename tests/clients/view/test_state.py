@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from clients.view.state import ViewState, scan_beams
+from clients.view.state import ViewState, scan_beams, unpack_ranges
 from schemas.codec import encode
 from schemas.messages import Map, PoseMsg, Scan
 
@@ -106,7 +106,8 @@ def test_the_scan_drawn_is_the_one_the_pose_answers_decoded_once_on_demand() -> 
     assert st.decoded_scans == 0  # arriving scans are kept raw
     feed(st, "robots/r1/pose", pose("r1", 2, 1.0))
     beams = st.frame(1000.0)["robots"][0]["scan"]
-    assert beams["seq"] == 2 and beams["r"][0] == 3.0 and beams["r"][3] is None
+    r = unpack_ranges(beams)
+    assert beams["seq"] == 2 and r[0] == 3.0 and np.isnan(r[3]) and r.size == 181
     assert st.decoded_scans == 2  # seq 3 (newer than the pose), then seq 2
     st.frame(1000.0)
     assert st.decoded_scans == 2  # cached
@@ -130,8 +131,23 @@ def test_scan_beams_are_thinned_and_rounded() -> None:
     from schemas.codec import decode
 
     b = scan_beams(decode(Scan, scan(0, n=721, value=1.23456)), max_beams=360)
-    assert len(b["r"]) == 241 and b["r"][0] == 1.235  # every 3rd beam: 241 <= 360
-    assert b["da"] == pytest.approx(3 * math.pi / 720)
+    r = unpack_ranges(b)
+    assert r.size == 241 and r[0] == pytest.approx(1.235)  # every 3rd beam: 241 <= 360
+    assert np.isnan(r[1])  # beam 3 of the scan, a NaN
+    assert b["da"] == pytest.approx(3 * math.pi / 720) and b["u"] == 0.001
+    # a long-range laser is sent in centimetres; what is beyond range_max is no return
+    far = Scan(
+        seq=0,
+        stamp=0.0,
+        angle_min=0.0,
+        angle_increment=0.01,
+        range_min=0.1,
+        range_max=120.0,
+        ranges=[110.004, 130.0, 0.05, 3.0],
+    )
+    b = scan_beams(far)
+    assert b["u"] == 0.01
+    np.testing.assert_allclose(unpack_ranges(b), [110.0, np.nan, np.nan, 3.0])
 
 
 def test_maps_are_stored_versioned_and_deleted() -> None:

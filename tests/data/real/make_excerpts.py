@@ -22,7 +22,7 @@ Writes, for the first ``--scans`` scans of each log (see README.md beside this f
   each at its reference (laser) pose; its fidelity (median / p90 distance of those scans' points to
   the map's polylines) is printed.
 - ``intel.300.map.json``, ``mit-csail.300.map.json``: the whole-log metric maps the real-data
-  benchmark uses (``docs/real/maps/{log}.geojson``, written by ``bench/bench_maps.py``) clipped
+  benchmark uses (``bench/data/maps/{log}.geojson``, written by ``bench/bench_maps.py``) clipped
   to the box around the excerpt's returns at its reference poses (plus :data:`CROP_MARGIN`);
   pieces shorter than :data:`CROP_MIN_LENGTH` are dropped. Not built from the excerpt's own
   flag-1 scans: intel's first 300 scans have only 12 of them and that map is too thin (fidelity
@@ -240,7 +240,7 @@ def build_maps(n: int) -> None:
         clip_full_map(
             HERE / pattern.format(n=n),
             HERE / f"{name}.{n}.gfs_reference_per_scan.txt",
-            REPO / "docs" / "real" / "maps" / f"{name}.geojson",
+            REPO / "bench" / "data" / "maps" / f"{name}.geojson",
             HERE / f"{name}.{n}.map.json",
             map_id=f"{name}-{n}",
         )
@@ -345,7 +345,7 @@ def write_windows(src: Path) -> None:
     :data:`WINDOWS`, for the drive tests."""
     for name in ("fr079", "intel"):
         shutil.copyfile(
-            REPO / "docs" / "real" / "maps" / f"{name}_schematic.geojson",
+            REPO / "bench" / "data" / "maps" / f"{name}_schematic.geojson",
             HERE / f"{name}.schematic.geojson",
         )
     for name, first, count, stride in WINDOWS:

@@ -7,6 +7,7 @@ version is prepared, and a deleted map leaves it. The warm-up and map preparatio
 from __future__ import annotations
 
 import logging
+import pickle
 import threading
 from concurrent.futures import Future
 from typing import Any
@@ -16,6 +17,7 @@ import pytest
 from service.core.types import MapData
 from service.node.prepare import free_pose, prepare_map, warm_up_worker
 from service.node.readiness import Readiness
+from service.node.workers import WorkerCore
 from tests.service.node.harness import ROOM, Harness, wait_for
 
 
@@ -99,3 +101,31 @@ def test_warm_up_and_map_preparation_run_the_methods(caplog: pytest.LogCaptureFi
         assert prepare_map(md) >= 0.0
     assert not caplog.records
     assert free_pose(MapData.from_lists("line", "metric", [[[0.0, 0.0], [1.0, 0.0]]])) is None
+
+
+def test_a_workers_robots_share_their_maps_model() -> None:
+    """Every robot on a map uses the model the worker built when the map was put (built once
+    per map, not once per robot); a changed map put again gets a new one."""
+    core = WorkerCore()
+    core.handle(("map", MapData.from_lists("room", "metric", ROOM)))
+    for rid in ("a", "b"):
+        assert core.handle(("config", rid, "shape", "room", [1.0, 1.5, 0.2], None, None))[0] == "ok"
+    models = {id(core.robots[r].localizer.tracker.model) for r in ("a", "b")}  # type: ignore[union-attr]
+    assert models == {id(core.models["room"])}
+    changed = [*ROOM, [[4.0, 3.0], [5.0, 3.0]]]
+    core.handle(("map", MapData.from_lists("room", "metric", changed)))
+    assert id(core.models["room"]) not in models
+
+
+def test_a_moved_robot_travels_without_the_model_and_shares_its_new_workers() -> None:
+    """A robot exported by one worker (the pickled bytes the service passes on) carries no
+    map model; the importing worker's copy of the map gives it that worker's model."""
+    a, b = WorkerCore(), WorkerCore()
+    a.handle(("map", MapData.from_lists("room", "metric", ROOM)))
+    b.handle(("map", MapData.from_lists("room", "metric", ROOM)))  # an equal copy
+    assert a.handle(("config", "r", "shape", "room", [1.0, 1.5, 0.2], None, None))[0] == "ok"
+    st, blob = a.handle(("export", "r"))
+    assert st == "ok" and isinstance(blob, bytes)
+    assert len(blob) < len(pickle.dumps(a.models["room"]))  # the model stayed home
+    assert b.handle(("import", "r", blob))[0] == "ok"
+    assert b.robots["r"].localizer.tracker.model is b.models["room"]  # type: ignore[union-attr]

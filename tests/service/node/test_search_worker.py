@@ -14,7 +14,9 @@ import numpy as np
 
 from service.core.reloc.global_localization import GlobalShapeLocalizer
 from service.core.sensor.raycast import RayCaster
-from service.node.workers import Assignment, WorkerCore
+from service.core.tracking.laser_odometry import LaserOdometryLocalizer
+from service.node.assignment import Assignment
+from service.node.workers import WorkerCore
 from sim_publisher.scenario import make_setup
 from tests.service.node.harness import ANGLES, START, Harness
 
@@ -74,7 +76,9 @@ def test_export_import_carries_the_localiser_state() -> None:
         r, ang = su.scan(i)
         if i == 2003:
             st, robot = c.handle(("export", "s"))
-            assert isinstance(robot.localizer, GlobalShapeLocalizer)
+            carried = pickle.loads(robot).localizer  # pickled
+            assert isinstance(carried, LaserOdometryLocalizer)
+            assert isinstance(carried.inner, GlobalShapeLocalizer)
             assert d.handle(("import", "s", pickle.loads(pickle.dumps(robot))))[0] == "ok"
         core = c if i < 2003 else d
         out = core.handle(("scan", "s", r, ang, su.odom[i]))[1]
@@ -95,7 +99,8 @@ def test_a_searching_robot_gets_the_whole_budget_only_alone_on_its_worker() -> N
     r, ang = su.scan(2000)
     assert core.handle(("scan", "s", r, ang, su.odom[2000]))[0] == "ok"
     loc = core.robots["s"].localizer
-    assert isinstance(loc, GlobalShapeLocalizer)
+    assert isinstance(loc, LaserOdometryLocalizer)  # the factory default
+    assert isinstance(loc.inner, GlobalShapeLocalizer)
     assert loc.gconfig.search_budget_ms == 50.0
     assert loc.work_ms <= 50.0 + 15.0
     # a second robot on the same worker: each search scan gets half

@@ -4,9 +4,9 @@ scheduler.py, workers.py), without a network.
 A scan replaced unprocessed in its robot's latest-wins slot (the worker was busy) must not
 break the odometry chain: the next processed scan's increment is measured from the last
 processed scan, and for a robot that has processed no scan since its configuration, from the
-first scan it sent (its initial pose is where that scan was taken). Before this, a cold
-start that replaced a robot's first scans made the localiser start from the initial pose with
-no increment at all, and poses came out wrong (issue: 7.7-8.4 % of the answered poses more
+first scan it sent (its initial pose is where that scan was taken). Without that, a robot
+whose first scans are replaced is localised from its initial pose with no increment at all,
+and poses come out wrong (a cold start of 20 robots: 7.7-8.4 % of the answered poses more
 than 0.1 m off in two of four runs, although every scan carried odometry). The shape method
 on a small room; the path turns 0.3 rad per scan: from the initial pose without the
 increment the tracker lands 0.17-0.34 m off and still reports ``tracking``."""

@@ -9,7 +9,8 @@ import signal
 import pytest
 
 from service.errors import ServiceTimeout
-from service.node.workers import Assignment, ProcessWorker, shard_of
+from service.node.assignment import Assignment, shard_of
+from service.node.workers import ProcessWorker
 
 
 def test_a_starting_worker_is_not_killed_by_the_request_timeout() -> None:

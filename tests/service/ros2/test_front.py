@@ -24,7 +24,6 @@ def _conf(mode: str, endpoint: str) -> zenoh.Config:
     c = zenoh.Config()
     c.insert_json5("mode", json.dumps(mode))
     c.insert_json5("scouting/multicast/enabled", "false")
-    c.insert_json5("scouting/delay", "0")
     c.insert_json5(
         "listen/endpoints" if mode == "peer" else "connect/endpoints", json.dumps([endpoint])
     )
