@@ -14,6 +14,7 @@ from service.core.factory import create_localizer
 from service.core.reloc import states as st
 from service.core.reloc.global_localization import GlobalShapeLocalizer
 from service.core.sensor.raycast import RayCaster
+from service.core.tracking.laser_odometry import LaserOdometryLocalizer
 from service.core.types import MapData
 
 
@@ -46,7 +47,8 @@ def test_unexplained_scans_dead_reckon_with_a_growing_covariance_and_relock() ->
     the map explains its scans, it tracks again after relock_scans of them, at the truth."""
     poses = [np.array([1.0 + 0.05 * k, 2.4, 0.0]) for k in range(60)]
     loc = create_localizer("shape", _room(), poses[0])
-    assert isinstance(loc, GlobalShapeLocalizer)
+    assert isinstance(loc, LaserOdometryLocalizer)  # the factory default
+    assert isinstance(loc.inner, GlobalShapeLocalizer)
     loc.gconfig = loc.gconfig.model_copy(update={"track_sigma": 0.06})
     seen = [k < 10 or k >= 40 for k in range(60)]
     out = [

@@ -16,14 +16,16 @@ from service.core.factory import create_localizer
 from service.core.pose import compose, relative
 from service.core.reloc.global_localization import GlobalShapeLocalizer
 from service.core.reloc.states import Tracking
+from service.core.tracking.laser_odometry import LaserOdometryLocalizer
 
 DATA = Path(__file__).resolve().parents[3] / "data" / "real"
 
 
-def _localizer(tmp_path: Path, pose: np.ndarray) -> GlobalShapeLocalizer:
+def _localizer(tmp_path: Path, pose: np.ndarray) -> LaserOdometryLocalizer:
     md = load_map_file(DATA / "fr079.schematic.geojson", kind="schematic")
     loc = create_localizer("shape", md, pose.copy(), cache_dir=tmp_path)
-    assert isinstance(loc, GlobalShapeLocalizer)
+    assert isinstance(loc, LaserOdometryLocalizer)  # the factory default
+    assert isinstance(loc.inner, GlobalShapeLocalizer)
     return loc
 
 
