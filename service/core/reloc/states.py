@@ -42,6 +42,7 @@ from service.core.reloc.global_search import search_steps, self_similar_steps
 from service.core.reloc.view_index import ViewIndex
 from service.core.shapes.configuration import Configuration, scan_configuration
 from service.core.tracking.localizer import ShapeConfig, ShapeLocalizer
+from service.core.tracking.motion import odometry_sigmas
 from service.core.tracking.scan_odometry import OdometryStep
 from service.core.types import Estimate, Status, wrap_angle
 
@@ -156,16 +157,29 @@ def sigma_xy(cov: np.ndarray) -> float:
     return float(math.sqrt(max(0.0, float(numeric.eigh_sym2(cov[:2, :2])[0][-1]))))
 
 
-def odometry_noise(delta: np.ndarray, config: ShapeConfig) -> np.ndarray:
-    """Process noise (robot frame) of one odometry increment for dead reckoning: the classic
-    odometry model's ``alpha`` terms (translation and turn), without the per-scan floors of
-    the tracker's prior (a robot standing still does not drift)."""
+def odometry_noise(o: OdometryStep, config: ShapeConfig) -> np.ndarray:
+    """Process noise (robot frame) of the increment ``o.delta`` for dead reckoning: the
+    tracker's odometry model (:func:`~service.core.tracking.motion.odometry_sigmas`) without
+    its per-scan floors (a robot standing still does not drift). An increment a kept
+    scan-to-scan fit measured from the previous reading has the turn terms scaled by
+    ``matched_turn_noise``, as in the tracker's prior (two scans tell a turn as well as a
+    straight step); its extra variance ``o.spread`` (a laser odometry's unobserved corridor
+    axis) adds to the position block."""
+    assert o.delta is not None
     c = config.motion
-    d = float(np.hypot(delta[0], delta[1]))
-    t = abs(float(delta[2]))
-    s_t = c.alpha_trans_trans * d + c.alpha_trans_rot * t
-    s_r = c.alpha_rot_rot * t + c.alpha_rot_trans * d
-    return np.diag([s_t**2, s_t**2, s_r**2])
+    matched = (
+        o.matched_from is not None
+        and o.previous is not None
+        and bool(np.array_equal(o.matched_from, o.previous))
+    )
+    s_t, s_r = odometry_sigmas(o.delta, c, matched)
+    s_t -= c.sigma_xy_floor
+    s_r -= c.sigma_theta_floor
+    noise = np.diag([s_t**2, s_t**2, s_r**2])
+    if o.spread is not None:
+        sp = np.asarray(o.spread, dtype=np.float64).reshape(2, 2)
+        noise[:2, :2] += 0.5 * (sp + sp.T)
+    return noise
 
 
 def mahalanobis2(pose: np.ndarray, mean: np.ndarray, cov: np.ndarray) -> float:
@@ -252,7 +266,7 @@ def _tracking(ctx: Context, s: Tracking, scan: Scan) -> tuple[State, Estimate]:
     if o.delta is None or s.ref is None or s.cov is None:
         s.ref, s.cov = est.pose.copy(), fit_cov(est)  # the reference starts here
         return s, est
-    s.ref, s.cov = propagate(s.ref, s.cov, o.delta, odometry_noise(o.delta, ctx.config))
+    s.ref, s.cov = propagate(s.ref, s.cov, o.delta, odometry_noise(o, ctx.config))
     if not rejected and (est.explained or 0.0) >= g.good_support:
         s.ref, s.cov, s.strikes, s.broken = est.pose.copy(), fit_cov(est), 0, False
         return s, est
@@ -320,7 +334,7 @@ def _relock(
     est = ctx.tracker.update(scan.ranges, scan.angles, o.reading, o.matched_from, o.spread)
     est.ambiguity = None
     # (the tracker keeps this fit: if it relocks, tracking goes on from it)
-    pose, cov = propagate(pose, cov, o.delta, odometry_noise(o.delta, ctx.config))
+    pose, cov = propagate(pose, cov, o.delta, odometry_noise(o, ctx.config))
     good = (
         "rejected" not in est.extras
         and est.status == "tracking"
@@ -480,7 +494,7 @@ def _searching(ctx: Context, s: Searching, scan: Scan) -> tuple[State, Estimate]
                 est.extras["relocked"] = 1.0
                 return Tracking(est.pose.copy(), fit_cov(est)), est
         else:
-            s.prior = s.prior.moved(o.delta, odometry_noise(o.delta, ctx.config))
+            s.prior = s.prior.moved(o.delta, odometry_noise(o, ctx.config))
     elif s.prior.mean is not None and s.prior.cov is not None:
         speed = 0.0 if drv.speed is None else float(np.hypot(*drv.speed))
         grow = (HELD_GROWTH * max(0.05, speed)) ** 2
@@ -604,7 +618,7 @@ def _probation(ctx: Context, p: Probation, scan: Scan) -> tuple[State, Estimate]
     ctx.work_ms = 0.0
     if o.delta is not None and o.reading is not None:
         drv.move(o.delta, o.step)
-        p.prior = p.prior.moved(o.delta, odometry_noise(o.delta, ctx.config))
+        p.prior = p.prior.moved(o.delta, odometry_noise(o, ctx.config))
         p.winner.pose = est.pose.copy()
         p.left -= o.step
         if dr.frame_due(drv.frames, o.reading, drv.travel, g):
