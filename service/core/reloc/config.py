@@ -215,7 +215,10 @@ class GlobalConfig(BaseModel):
         description="A hypothesis is fixed once its log-likelihood over the window, with its "
         "prior, exceeds every distinct alternative's and the unseen place's together by this "
         "many nats (service.core.reloc.decision); set from the false-fix rate on the tuning "
-        "split (docs/decisions).",
+        "split (bench/calibrate_llr.py: the smallest threshold without a false fix, times "
+        "1.25). Schematic: 25 (60 tuning drives, buildings 0-19 and 20 each of intel and "
+        "fr079, budget 50: 1 false fix at 15, none from 20 on, 57 of 60 fixed within "
+        "15 m at 20 and at 25).",
     )
     null_cost: float = Field(
         0.8,
@@ -360,6 +363,7 @@ class GlobalConfig(BaseModel):
                 good_support=0.5,
                 min_found=2,
                 null_cost=0.7,
+                fix_llr=25.0,
                 collapse_score=0.45,
             )
         raise LocalizationError(f"unknown map kind {kind!r}; expected metric or schematic")
