@@ -101,10 +101,11 @@ class PageWatch(threading.Thread):
             await page.navigate(self.url, 1400, 900)
             await page.wait_for("window.shapelocView && window.shapelocView.frames > 5", 60)
             self.ready.set()
+            # fresh: robots whose pose at the page is younger than 1 s (frames are deltas:
+            # the page's own model knows every robot's age, the last frame only the changed)
             js = (
-                "(S => [S.frames, S.rate, Object.keys(S.drawn).length, S.lastFrame ? "
-                "S.lastFrame.robots.filter(r => r.age !== undefined && r.age < 1.0).length "
-                ": 0])(window.shapelocView)"
+                "(S => [S.frames, S.rate, Object.keys(S.drawn).length, S.fresh(1.0)])"
+                "(window.shapelocView)"
             )
             while not self.stop.is_set():
                 frames, rate, drawn, fresh = await page.evaluate(js)
