@@ -303,7 +303,8 @@ class ViewServer:
         if not _same_origin(request):
             # another site's page in the user's browser may not read the fleet
             raise web.HTTPForbidden(text="cross-origin WebSocket refused")
-        ws = web.WebSocketResponse(heartbeat=20.0, max_msg_size=MAX_CLIENT_MSG)
+        # no per-message deflate: on a local link it only costs CPU at both ends
+        ws = web.WebSocketResponse(heartbeat=20.0, max_msg_size=MAX_CLIENT_MSG, compress=False)
         await ws.prepare(request)
         page = _Page(ws)
         # Built and registered without an await in between: the snapshot holds every path

@@ -341,27 +341,58 @@
     return out;
   }
 
-  // Adds the robot's scan points (at most MAX_SCAN_POINTS) to the current path (the caller
-  // fills all robots' at once: one fill is far cheaper than a fillRect per point).
-  function addScan(r) {
-    const sc = r.scan;
-    if (!sc || sc.seq !== r.seq) return;
-    const v = S.view;
-    const { w, h } = size();
-    const c0 = Math.cos(r.th), s0 = Math.sin(r.th);
-    const dot = v.scale > 25 ? 3 : 2;
-    const rs = ranges(sc);
-    const step = Math.max(1, Math.ceil(rs.length / MAX_SCAN_POINTS));
-    for (let i = 0; i < rs.length; i += step) {
-      const d = rs[i];
-      if (Number.isNaN(d)) continue;
-      const a = sc.a0 + i * sc.da;
-      const lx = d * Math.cos(a), ly = d * Math.sin(a);
-      const x = r.x + c0 * lx - s0 * ly, y = r.y + s0 * lx + c0 * ly;
-      const px = (x - v.cx) * v.scale + w / 2, py = h / 2 - (y - v.cy) * v.scale;
-      if (px < -dot || py < -dot || px > w + dot || py > h + dot) continue;
-      ctx.rect(px - dot / 2, py - dot / 2, dot, dot);
+  // Every shown robot's scan points (at most MAX_SCAN_POINTS each) written as square dots
+  // straight into the pixels of a transparent layer, then copied over the canvas in one blit
+  // of the rectangle they cover: thousands of points for the price of a few copies (a path of
+  // as many rectangles costs the rasteriser several times more).
+  const scanLayer = { canvas: document.createElement("canvas"), img: null, px: null, colour: "", rgba: 0 };
+  function drawScans(robots, w, h, dpr) {
+    const W = Math.round(w * dpr), H = Math.round(h * dpr);
+    const L = scanLayer;
+    if (!L.img || L.img.width !== W || L.img.height !== H) {
+      L.canvas.width = W;
+      L.canvas.height = H;
+      L.img = new ImageData(W, H);
+      L.px = new Uint32Array(L.img.data.buffer);
     }
+    if (L.colour !== S.palette.scan) {
+      const c = S.palette.scan;
+      L.colour = c;
+      L.rgba = (0xff000000 | (parseInt(c.slice(5, 7), 16) << 16) |
+        (parseInt(c.slice(3, 5), 16) << 8) | parseInt(c.slice(1, 3), 16)) >>> 0;
+    }
+    const px = L.px, rgba = L.rgba;
+    px.fill(0);
+    const v = S.view;
+    const dot = Math.max(1, Math.round((v.scale > 25 ? 3 : 2) * dpr));
+    const k = v.scale * dpr, ox = (w / 2) * dpr - v.cx * k, oy = (h / 2) * dpr + v.cy * k;
+    let x0 = W, y0 = H, x1 = -1, y1 = -1;
+    for (const r of robots) {
+      const sc = r.scan;
+      if (!sc || sc.seq !== r.seq) continue;
+      const c0 = Math.cos(r.th), s0 = Math.sin(r.th);
+      const rs = ranges(sc);
+      const step = Math.max(1, Math.ceil(rs.length / MAX_SCAN_POINTS));
+      for (let i = 0; i < rs.length; i += step) {
+        const d = rs[i];
+        if (Number.isNaN(d)) continue;
+        const a = sc.a0 + i * sc.da;
+        const lx = d * Math.cos(a), ly = d * Math.sin(a);
+        const x = r.x + c0 * lx - s0 * ly, y = r.y + s0 * lx + c0 * ly;
+        const ix = Math.round(ox + x * k - dot / 2), iy = Math.round(oy - y * k - dot / 2);
+        if (ix < 0 || iy < 0 || ix + dot > W || iy + dot > H) continue;
+        for (let yy = iy; yy < iy + dot; yy++) px.fill(rgba, yy * W + ix, yy * W + ix + dot);
+        if (ix < x0) x0 = ix;
+        if (iy < y0) y0 = iy;
+        if (ix + dot > x1) x1 = ix + dot;
+        if (iy + dot > y1) y1 = iy + dot;
+      }
+    }
+    if (x1 < 0) return;
+    L.canvas.getContext("2d").putImageData(L.img, 0, 0, x0, y0, x1 - x0, y1 - y0);
+    ctx.setTransform(1, 0, 0, 1, 0, 0);
+    ctx.drawImage(L.canvas, x0, y0, x1 - x0, y1 - y0, x0, y0, x1 - x0, y1 - y0);
+    ctx.setTransform(dpr, 0, 0, dpr, 0, 0);
   }
 
   function drawCandidates(r) {
@@ -463,7 +494,6 @@
       return;
     }
     if (!S.view) fit();
-    const p = S.palette;
     blitMaps(w, h, dpr);
     const robots = visibleRobots();
     for (const r of robots) {
@@ -472,10 +502,7 @@
     }
     ctx.globalAlpha = 1;
     for (const r of robots) drawCandidates(r);
-    ctx.beginPath();
-    for (const r of robots) addScan(r);
-    ctx.fillStyle = p.scan;
-    ctx.fill();
+    drawScans(robots, w, h, dpr);
     const drawn = {};
     for (const r of robots) {
       const colour = statusColour(r.status);
