@@ -10,12 +10,17 @@ with a scan, publish every robot's scans from a separate process on schedule, re
 poses, summarise; ``scale_walks`` / ``scale_load`` for the walks, sessions and CPU): the
 service's latency p50 / p99 (pose receipt minus the scan's send time) is that benchmark's.
 
+The view and the browser run as a user would run them: ``shapeloc view`` with its default
+priority (nice 10, :data:`clients.view.DEFAULT_NICE`) and chromium through
+:mod:`clients.view.headless` (nice 10, unable to raise its threads' priority); the service
+and the robots' load generator at normal priority.
+
 While the view is open, a thread polls the page every 0.5 s: its frame counter (updates
-drawn per second = frames over time, only while the page shows all N robots with fresh
-poses), its own last-2-s rate (the minimum is reported) and the CPU of the view process and
-of the browser (all its processes), in % of one core. The acceptance lines: the page updates
->= 5 times a second; the service's p99 with the view open is at most 5 ms above the mean of
-the two rows without it.
+drawn per second = draws with new data over time, only while the page holds all N robots
+with poses younger than 1 s), its own last-2-s rate (the minimum is reported) and the CPU of
+the view process and of the browser (all its processes), in % of one core. The acceptance
+lines: the page updates >= 5 times a second; the service's p99 with the view open is at most
+5 ms above the mean of the two rows without it.
 
 Usage: ``python -m bench.bench_view [--robots 50] [--rate 5,10] [--duration 20]
 [--world office] [--map metric] [--out docs/results/view.md]``. Needs chromium (skips with
