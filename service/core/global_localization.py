@@ -313,7 +313,7 @@ class GlobalShapeLocalizer(Confirmation, DriveSearch):
                 # in the laser's view even an accepted scan must fit (the tracker accepts a
                 # kidnapped scan that a floor plan's outline happens to half explain)
                 unfit = low and (self._broken or (rejected and self._contradicted(r, a, est)))
-                if from_scans and not unfit:
+                if from_scans and not unfit and self.gconfig.scan_odometry_violation < 1.0:
                     # An odometry measured from the scans moves a pose that slid along a
                     # corridor (where neither the scans nor a floor plan pin it) as precisely
                     # as a right one: the map alone can tell, and beams through its walls do.
