@@ -315,8 +315,9 @@ class GlobalShapeLocalizer(Confirmation, DriveSearch):
                 unfit = low and (self._broken or (rejected and self._contradicted(r, a, est)))
                 if from_scans and not unfit and self.gconfig.scan_odometry_violation < 1.0:
                     # An odometry measured from the scans moves a pose that slid along a
-                    # corridor (where neither the scans nor a floor plan pin it) as precisely
-                    # as a right one: the map alone can tell, and beams through its walls do.
+                    # corridor (where neither the scans nor a floor plan pin it), or turned
+                    # wrong, as precisely as a right one: the map alone can tell, and beams
+                    # through its walls do.
                     share = self.tracker.violations(r, a, [est.pose])[0]
                     est.extras["pose_violation"] = share
                     unfit = share > self.gconfig.scan_odometry_violation

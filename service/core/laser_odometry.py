@@ -34,7 +34,10 @@ without odometry gets the laser odometry's pose, in one continuous odometry fram
 
 * a matched increment is composed onto the previous reading: the localiser sees an ordinary
   odometry stream (and checks it against the scans again, ``ShapeConfig.motion.scan_odometry``,
-  which then marks it scan-matched: the turn terms leave its noise model);
+  which then marks it scan-matched: the turn terms leave its noise model), told that the
+  reading was measured from the scans (``from_scans``: on a floor plan a pose the scan
+  contradicts then counts towards ``lost`` though accepted, ``GlobalConfig.
+  scan_odometry_violation``);
 * a scan whose increment is unknown goes to the localiser without odometry, as the paper's
   mode sends every scan: the velocity prior, the scan decides (with the shape tracker's turn
   recovery), and a rejected scan counts towards ``lost`` at once, as a scan that does not
