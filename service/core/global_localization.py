@@ -269,13 +269,16 @@ class GlobalShapeLocalizer(Confirmation, DriveSearch):
         angles: np.ndarray,
         odom: np.ndarray | None = None,
         odom_spread: np.ndarray | None = None,
+        from_scans: bool = False,
     ) -> Estimate:
         """Localise one scan (see the class docstring). ``ranges`` metres (NaN = no return),
         ``angles`` radians robot frame, ``odom`` optional odometry pose (own frame; only used
         to move the kept hypotheses between scans; corrected by the scans first,
         ``ShapeConfig.motion.scan_odometry``); ``odom_spread`` its increment's translation
         variance beyond the odometry model's (the tracker's prior,
-        :meth:`service.core.motion.MotionModel.predict`)."""
+        :meth:`service.core.motion.MotionModel.predict`); ``from_scans``: ``odom`` was measured
+        from the scans themselves (:mod:`service.core.laser_odometry`), so it cannot vouch
+        for a pose the scan contradicts, accepted or not."""
         r, a = check_scan(ranges, angles)
         odom = self._corrected_odom(r, a, odom)
         if not self._searching:
@@ -310,6 +313,14 @@ class GlobalShapeLocalizer(Confirmation, DriveSearch):
                 # in the laser's view even an accepted scan must fit (the tracker accepts a
                 # kidnapped scan that a floor plan's outline happens to half explain)
                 unfit = low and (self._broken or (rejected and self._contradicted(r, a, est)))
+                if from_scans and not unfit and self.gconfig.scan_odometry_violation < 1.0:
+                    # An odometry measured from the scans moves a pose that slid along a
+                    # corridor (where neither the scans nor a floor plan pin it), or turned
+                    # wrong, as precisely as a right one: the map alone can tell, and beams
+                    # through its walls do.
+                    share = self.tracker.violations(r, a, [est.pose])[0]
+                    est.extras["pose_violation"] = share
+                    unfit = share > self.gconfig.scan_odometry_violation
             if not low:
                 self._broken = False  # the map explains the scan again
             self._unfit = self._unfit + 1 if unfit else 0
