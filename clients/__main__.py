@@ -45,7 +45,7 @@ from clients.client import (
     open_session,
     zenoh_config,
 )
-from clients.view import DEFAULT_HOST, DEFAULT_PORT, DEFAULT_RATE_HZ
+from clients.view import DEFAULT_HOST, DEFAULT_NICE, DEFAULT_PORT, DEFAULT_RATE_HZ
 from schemas.cli import (
     GlobalOptions,
     HelpFormatter,
@@ -389,6 +389,14 @@ def _add_view(p: argparse.ArgumentParser) -> None:
         metavar="HZ",
         help="frames pushed to the page per second",
     )
+    p.add_argument(
+        "--nice",
+        type=int,
+        default=DEFAULT_NICE,
+        metavar="N",
+        help="niceness added to this process, 0-19 (default %(default)s: the view yields the "
+        "CPU to the localiser; 0 keeps the priority it was started with)",
+    )
 
 
 def _run_view(args: argparse.Namespace, out: TextIO) -> int:
@@ -396,6 +404,8 @@ def _run_view(args: argparse.Namespace, out: TextIO) -> int:
 
     if not args.frame_rate >= 1:
         raise ShapelocError(f"--frame-rate must be >= 1, got {args.frame_rate}")
+    if not 0 <= args.nice <= 19:
+        raise ShapelocError(f"--nice must be in 0..19, got {args.nice}")
     conf = _session_config(args)
 
     def ready(url: str) -> None:
@@ -411,6 +421,7 @@ def _run_view(args: argparse.Namespace, out: TextIO) -> int:
                 rate_hz=args.frame_rate,
                 ready=ready,
                 stop=stop,
+                nice=args.nice,
             )
         except OSError as exc:
             raise ShapelocError(f"cannot serve the view on {args.host}:{args.port}: {exc}") from exc

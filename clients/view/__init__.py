@@ -16,3 +16,6 @@ DEFAULT_HOST: Final = "127.0.0.1"
 DEFAULT_PORT: Final = 8765
 #: Frames pushed to each page per second.
 DEFAULT_RATE_HZ: Final = 10.0
+#: Niceness ``shapeloc view`` adds to itself: a best-effort client, it yields the CPU to the
+#: localiser on a shared machine (``--nice 0`` keeps the priority it was started with).
+DEFAULT_NICE: Final = 10

@@ -8,6 +8,13 @@ and takes PNG screenshots. Only the handful of protocol commands that needs is u
 (``Target.createTarget`` / ``attachToTarget`` with flat sessions, ``Page.navigate``,
 ``Runtime.evaluate``, ``Emulation.setDeviceMetricsOverride``, ``Page.captureScreenshot``).
 
+The browser is best-effort, like the view itself: it runs at :data:`DEFAULT_NICE` (added to
+its niceness before it starts, so every process and thread it forks inherits it, and, as
+root, without the capability chromium would use to put its drawing threads back at -8) and
+with flags that cut its work (:data:`CHROMIUM_FLAGS`: no GPU, one raster thread, one renderer, no
+background services). A page that draws only when new data arrives (the live view does)
+then costs only its draws.
+
 Command line: ``python -m clients.view.headless URL OUT.png [--wait-js EXPR]`` saves a
 screenshot of a page (e.g. a running view) once ``EXPR`` is true.
 
@@ -39,11 +46,15 @@ from typing import Any
 
 import aiohttp
 
-#: Flags that work headless as root on a machine with no display, GPU or network.
+#: Flags that work headless as root on a machine with no display, GPU or network, and keep
+#: the browser's own work small (one raster thread, one renderer, no background features).
 CHROMIUM_FLAGS = (
     "--headless",
     "--no-sandbox",
     "--disable-gpu",
+    "--num-raster-threads=1",
+    "--renderer-process-limit=1",
+    "--disable-features=Translate,MediaRouter,OptimizationHints,AutofillServerCommunication",
     "--disable-quic",
     "--no-first-run",
     "--no-default-browser-check",
@@ -55,6 +66,8 @@ CHROMIUM_FLAGS = (
     "--hide-scrollbars",
     "--mute-audio",
 )
+#: Niceness added to the browser: it yields the CPU to the localiser on a shared machine.
+DEFAULT_NICE = 10
 _DEVTOOLS_RE = re.compile(r"DevTools listening on (ws://\S+)")
 
 
@@ -133,7 +146,8 @@ class Chromium:
     """A headless Chromium process and its DevTools connection (``async with`` it).
 
     ``executable``: default :func:`find_chromium`. ``extra_flags`` are added to
-    :data:`CHROMIUM_FLAGS`. The profile is a fresh temporary directory, removed on close.
+    :data:`CHROMIUM_FLAGS`. ``nice`` (0-19) is added to the browser's niceness (0: as this
+    process). The profile is a fresh temporary directory, removed on close.
     """
 
     def __init__(
@@ -141,7 +155,11 @@ class Chromium:
         executable: str | None = None,
         extra_flags: tuple[str, ...] = (),
         start_timeout: float = 60.0,
+        nice: int = DEFAULT_NICE,
     ) -> None:
+        if not 0 <= nice <= 19:
+            raise ValueError(f"nice must be in 0..19, got {nice}")
+        self.nice = nice
         self.executable = executable or find_chromium()
         if self.executable is None:
             raise BrowserError("no chromium found (apt-get install chromium)")
@@ -174,12 +192,38 @@ class Chromium:
             "about:blank",
         ]
         self.proc = subprocess.Popen(
-            cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True
+            [*self._lowered(), *cmd],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
+            start_new_session=True,
         )
         url = await asyncio.get_running_loop().run_in_executor(None, self._devtools_url)
         self._http = aiohttp.ClientSession()
         self._ws = await self._http.ws_connect(url, max_msg_size=0)
         self._reader = asyncio.create_task(self._read())
+
+    def _lowered(self) -> list[str]:
+        """The command prefix that starts the browser ``nice``-d and unable to undo it.
+
+        Chromium sets the niceness of its threads itself (0, and -8 for the ones that draw:
+        browser UI, compositors, IO), which as root it may: the nice it was started with is
+        then lost. So, as root, ``setpriv`` first drops the capability to raise a priority
+        (CAP_SYS_NICE) from what the browser may ever hold; its own calls then fail and every
+        thread keeps the niceness it inherited. ``nice`` and ``setpriv`` exec the next
+        command: the process started is the browser itself."""
+        if not self.nice:
+            return []
+        nice, setpriv = shutil.which("nice"), shutil.which("setpriv")
+        if nice is None:
+            self.log_lines.append("headless: no nice(1): the browser runs at normal priority")
+            return []
+        out = [nice, "-n", str(self.nice)]
+        if os.geteuid() == 0:
+            if setpriv is None:
+                self.log_lines.append("headless: no setpriv(1): chromium may raise its priority")
+            else:
+                out += [setpriv, "--inh-caps=-sys_nice", "--bounding-set=-sys_nice"]
+        return out
 
     def _devtools_url(self) -> str:
         assert self.proc is not None and self.proc.stderr is not None

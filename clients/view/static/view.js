@@ -1,7 +1,12 @@
 // The shapeloc live view: draws what the server pushes over /ws on a 2D canvas.
-// Messages: "hello" (colours, rates), "maps" (every map's polylines), "frame" (every robot's
-// latest state; "path" in the first frame, "trail" = positions added since the previous one).
-// Map frame: x right, y up (REP 103); the canvas is y down, so y is flipped when drawn.
+// Messages: "hello" (colours, rates), "maps" (every map's polylines), "frame" (the robots that
+// changed, or every robot when "key" is true; "path" in a snapshot, "trail" = positions added
+// since the previous frame). Map frame: x right, y up (REP 103); the canvas is y down, so y is
+// flipped when drawn.
+// Cheap by design (the browser may share the robot server's cores): the maps are drawn once
+// into an offscreen canvas and copied; the canvas is redrawn only when new data arrived, at
+// most MAX_DRAW_HZ times a second, on an animation frame; at most MAX_SCAN_POINTS points per
+// scan; the side panel is refreshed at most PANEL_HZ times a second.
 // window.shapelocView exposes the state (frames, update rate, what was drawn where) so that a
 // test driving a headless browser can check the picture against the published poses.
 "use strict";
@@ -9,6 +14,9 @@
   const $ = (id) => document.getElementById(id);
   const canvas = $("canvas");
   const ctx = canvas.getContext("2d");
+  const MAX_DRAW_HZ = 10;
+  const PANEL_HZ = 2;
+  const MAX_SCAN_POINTS = 180;
 
   const S = {
     palette: null,
@@ -20,7 +28,10 @@
     hidden: new Set(),
     view: null,
     pathLen: 300,
+    staleS: 3,
+    time: 0,
     frames: 0,
+    draws: 0,
     frameTimes: [],
     rate: 0,
     lastFrame: null,
@@ -71,10 +82,12 @@
   function onHello(m) {
     S.palette = m.palette;
     S.pathLen = m.path_len || 300;
+    S.staleS = m.stale_s || 3;
     buildLegend();
   }
 
   function onMaps(m) {
+    S.mapsVersion = (S.mapsVersion || 0) + 1;
     S.maps = {};
     for (const mp of m.maps) S.maps[mp.id] = mp;
     if (S.mapId && !S.maps[S.mapId]) { S.mapId = null; S.userPickedMap = false; }
@@ -84,13 +97,21 @@
     requestDraw();
   }
 
+  // Robots with a pose younger than maxAge seconds at the last frame's time.
+  S.fresh = (maxAge) => {
+    let n = 0;
+    for (const r of S.robots.values()) if (r.seenAt !== undefined && S.time - r.seenAt < maxAge) n += 1;
+    return n;
+  };
+
+  let newData = false;
   function onFrame(m) {
     const seen = new Set();
     for (const e of m.robots) {
       seen.add(e.id);
       let r = S.robots.get(e.id);
       if (!r) {
-        r = { id: e.id, path: [] };
+        r = { id: e.id, path: [], scan: null };
         S.robots.set(e.id, r);
         if (wantRobots && !wantRobots.has(e.id)) S.hidden.add(e.id);
       }
@@ -104,20 +125,17 @@
         "age", "stale", "explained", "ambiguity", "hyp", "cand", "cov", "hz"]) {
         r[k] = e[k];
       }
-      r.scan = e.scan || null;
+      if (e.age !== undefined) r.seenAt = m.time - e.age;
+      // a frame without the scan keeps the one held if it is still the pose's
+      if (e.scan) r.scan = e.scan;
+      else if (r.scan && r.scan.seq !== r.seq) r.scan = null;
     }
-    for (const id of [...S.robots.keys()]) if (!seen.has(id)) S.robots.delete(id);
+    if (m.key) for (const id of [...S.robots.keys()]) if (!seen.has(id)) S.robots.delete(id);
+    S.time = m.time;
     S.lastFrame = m;
     chooseMap();
-    draw();
-    S.frames += 1;
-    const now = performance.now();
-    S.frameTimes.push(now);
-    while (S.frameTimes.length && now - S.frameTimes[0] > 2000) S.frameTimes.shift();
-    const n = S.frameTimes.length;
-    S.rate = n > 1 ? (1000 * (n - 1)) / (S.frameTimes[n - 1] - S.frameTimes[0]) : 0;
-    updatePanel(m);
-    sendSelection();
+    newData = true;
+    requestDraw();
   }
 
   // ------------------------------------------------------------------ map choice
@@ -194,11 +212,36 @@
   S.toScreen = toScreen;
 
   // ------------------------------------------------------------------ drawing
+  // One draw per animation frame at most; one carrying new data at most MAX_DRAW_HZ a second
+  // (pan and zoom redraw at once: the user is waiting for them).
   let drawPending = false;
+  let lastDataDraw = -1e9;
+  let lastPanel = -1e9;
   function requestDraw() {
     if (drawPending) return;
     drawPending = true;
-    requestAnimationFrame(() => { drawPending = false; draw(); });
+    const wait = newData ? lastDataDraw + 1000 / MAX_DRAW_HZ - performance.now() : 0;
+    const go = () => requestAnimationFrame(onAnimationFrame);
+    if (wait > 1) setTimeout(go, wait); else go();
+  }
+  function onAnimationFrame() {
+    drawPending = false;
+    const now = performance.now();
+    const hadData = newData;
+    newData = false;
+    draw();
+    if (!hadData) return;
+    lastDataDraw = now;
+    S.frames += 1;
+    S.frameTimes.push(now);
+    while (S.frameTimes.length && now - S.frameTimes[0] > 2000) S.frameTimes.shift();
+    const n = S.frameTimes.length;
+    S.rate = n > 1 ? (1000 * (n - 1)) / (S.frameTimes[n - 1] - S.frameTimes[0]) : 0;
+    if (now - lastPanel >= 1000 / PANEL_HZ && S.lastFrame) {
+      lastPanel = now;
+      updatePanel(S.lastFrame);
+    }
+    sendSelection();
   }
 
   function visibleRobots() {
@@ -212,18 +255,43 @@
     return out;
   }
 
-  function drawMap(m, colour, width) {
-    ctx.strokeStyle = colour;
-    ctx.lineWidth = width;
-    ctx.lineJoin = "round";
-    ctx.beginPath();
+  function drawMap(g, m, colour, width) {
+    g.strokeStyle = colour;
+    g.lineWidth = width;
+    g.lineJoin = "round";
+    g.beginPath();
     for (const line of m.polylines) {
       for (let i = 0; i < line.length; i++) {
         const [sx, sy] = toScreen(line[i][0], line[i][1]);
-        if (i === 0) ctx.moveTo(sx, sy); else ctx.lineTo(sx, sy);
+        if (i === 0) g.moveTo(sx, sy); else g.lineTo(sx, sy);
       }
     }
-    ctx.stroke();
+    g.stroke();
+  }
+
+  // The maps as drawn at the current view, kept in an offscreen canvas: redrawn only when the
+  // maps, the map choice, the view or the canvas size change; otherwise copied in one blit.
+  const mapCache = { canvas: document.createElement("canvas"), key: "" };
+  function blitMaps(w, h, dpr) {
+    const v = S.view;
+    const key = [S.mapId, S.overlayId, S.mapsVersion, v.cx, v.cy, v.scale, w, h, dpr].join("|");
+    const off = mapCache.canvas;
+    if (key !== mapCache.key) {
+      mapCache.key = key;
+      off.width = Math.round(w * dpr);
+      off.height = Math.round(h * dpr);
+      const g = off.getContext("2d");
+      g.setTransform(dpr, 0, 0, dpr, 0, 0);
+      g.fillStyle = "#fcfcfa";
+      g.fillRect(0, 0, w, h);
+      const p = S.palette;
+      if (S.overlayId && S.maps[S.overlayId]) drawMap(g, S.maps[S.overlayId], p.overlay, 1.5);
+      const m = S.maps[S.mapId];
+      if (m) drawMap(g, m, p.map[m.kind] || "#303030", 1.5);
+    }
+    ctx.setTransform(1, 0, 0, 1, 0, 0);
+    ctx.drawImage(off, 0, 0);
+    ctx.setTransform(dpr, 0, 0, dpr, 0, 0);
   }
 
   function arrow(x, y, th, len, head) {
@@ -261,34 +329,70 @@
     if (sc.ranges) return sc.ranges;
     const bin = atob(sc.d);
     const out = new Float64Array(bin.length >> 1);
+    const step = Math.max(1, Math.ceil(out.length / MAX_SCAN_POINTS));
+    let points = 0;
     for (let i = 0; i < out.length; i++) {
       const v = bin.charCodeAt(2 * i) | (bin.charCodeAt(2 * i + 1) << 8);
       out[i] = v === 0xffff ? NaN : v * sc.u;
+      if (i % step === 0 && v !== 0xffff) points += 1;
     }
     sc.ranges = out;
+    sc.points = points; // the points addScan draws (before clipping to the canvas)
     return out;
   }
 
-  // Adds the robot's scan points to the current path (the caller fills all robots' at once:
-  // one fill is far cheaper than a fillRect per point).
-  function addScan(r) {
-    const sc = r.scan;
-    if (!sc || sc.seq !== r.seq) return;
-    const v = S.view;
-    const { w, h } = size();
-    const c0 = Math.cos(r.th), s0 = Math.sin(r.th);
-    const dot = v.scale > 25 ? 3 : 2;
-    const rs = ranges(sc);
-    for (let i = 0; i < rs.length; i++) {
-      const d = rs[i];
-      if (Number.isNaN(d)) continue;
-      const a = sc.a0 + i * sc.da;
-      const lx = d * Math.cos(a), ly = d * Math.sin(a);
-      const x = r.x + c0 * lx - s0 * ly, y = r.y + s0 * lx + c0 * ly;
-      const px = (x - v.cx) * v.scale + w / 2, py = h / 2 - (y - v.cy) * v.scale;
-      if (px < -dot || py < -dot || px > w + dot || py > h + dot) continue;
-      ctx.rect(px - dot / 2, py - dot / 2, dot, dot);
+  // Every shown robot's scan points (at most MAX_SCAN_POINTS each) written as square dots
+  // straight into the pixels of a transparent layer, then copied over the canvas in one blit
+  // of the rectangle they cover: thousands of points for the price of a few copies (a path of
+  // as many rectangles costs the rasteriser several times more).
+  const scanLayer = { canvas: document.createElement("canvas"), img: null, px: null, colour: "", rgba: 0 };
+  function drawScans(robots, w, h, dpr) {
+    const W = Math.round(w * dpr), H = Math.round(h * dpr);
+    const L = scanLayer;
+    if (!L.img || L.img.width !== W || L.img.height !== H) {
+      L.canvas.width = W;
+      L.canvas.height = H;
+      L.img = new ImageData(W, H);
+      L.px = new Uint32Array(L.img.data.buffer);
     }
+    if (L.colour !== S.palette.scan) {
+      const c = S.palette.scan;
+      L.colour = c;
+      L.rgba = (0xff000000 | (parseInt(c.slice(5, 7), 16) << 16) |
+        (parseInt(c.slice(3, 5), 16) << 8) | parseInt(c.slice(1, 3), 16)) >>> 0;
+    }
+    const px = L.px, rgba = L.rgba;
+    px.fill(0);
+    const v = S.view;
+    const dot = Math.max(1, Math.round((v.scale > 25 ? 3 : 2) * dpr));
+    const k = v.scale * dpr, ox = (w / 2) * dpr - v.cx * k, oy = (h / 2) * dpr + v.cy * k;
+    let x0 = W, y0 = H, x1 = -1, y1 = -1;
+    for (const r of robots) {
+      const sc = r.scan;
+      if (!sc || sc.seq !== r.seq) continue;
+      const c0 = Math.cos(r.th), s0 = Math.sin(r.th);
+      const rs = ranges(sc);
+      const step = Math.max(1, Math.ceil(rs.length / MAX_SCAN_POINTS));
+      for (let i = 0; i < rs.length; i += step) {
+        const d = rs[i];
+        if (Number.isNaN(d)) continue;
+        const a = sc.a0 + i * sc.da;
+        const lx = d * Math.cos(a), ly = d * Math.sin(a);
+        const x = r.x + c0 * lx - s0 * ly, y = r.y + s0 * lx + c0 * ly;
+        const ix = Math.round(ox + x * k - dot / 2), iy = Math.round(oy - y * k - dot / 2);
+        if (ix < 0 || iy < 0 || ix + dot > W || iy + dot > H) continue;
+        for (let yy = iy; yy < iy + dot; yy++) px.fill(rgba, yy * W + ix, yy * W + ix + dot);
+        if (ix < x0) x0 = ix;
+        if (iy < y0) y0 = iy;
+        if (ix + dot > x1) x1 = ix + dot;
+        if (iy + dot > y1) y1 = iy + dot;
+      }
+    }
+    if (x1 < 0) return;
+    L.canvas.getContext("2d").putImageData(L.img, 0, 0, x0, y0, x1 - x0, y1 - y0);
+    ctx.setTransform(1, 0, 0, 1, 0, 0);
+    ctx.drawImage(L.canvas, x0, y0, x1 - x0, y1 - y0, x0, y0, x1 - x0, y1 - y0);
+    ctx.setTransform(dpr, 0, 0, dpr, 0, 0);
   }
 
   function drawCandidates(r) {
@@ -318,15 +422,19 @@
     ctx.globalAlpha *= 0.45;
     ctx.lineWidth = 2;
     ctx.beginPath();
+    const v = S.view;
+    const { w, h } = size();
+    const n = r.path.length;
     let lx = 0, ly = 0;
-    r.path.forEach((p, i) => {
-      const [sx, sy] = toScreen(p[0], p[1]);
-      if (i === 0) { ctx.moveTo(sx, sy); lx = sx; ly = sy; return; }
+    for (let i = 0; i < n; i++) {
+      const p = r.path[i];
+      const sx = (p[0] - v.cx) * v.scale + w / 2, sy = h / 2 - (p[1] - v.cy) * v.scale;
+      if (i === 0) { ctx.moveTo(sx, sy); lx = sx; ly = sy; continue; }
       // a vertex less than 2 px from the last one drawn adds nothing visible
-      if (Math.abs(sx - lx) + Math.abs(sy - ly) < 2 && i < r.path.length - 1) return;
+      if (Math.abs(sx - lx) + Math.abs(sy - ly) < 2 && i < n - 1) continue;
       ctx.lineTo(sx, sy);
       lx = sx; ly = sy;
-    });
+    }
     ctx.stroke();
   }
 
@@ -380,14 +488,13 @@
       canvas.height = Math.round(h * dpr);
     }
     ctx.setTransform(dpr, 0, 0, dpr, 0, 0);
-    ctx.fillStyle = "#fcfcfa";
-    ctx.fillRect(0, 0, w, h);
-    if (!S.palette) return;
+    if (!S.palette) {
+      ctx.fillStyle = "#fcfcfa";
+      ctx.fillRect(0, 0, w, h);
+      return;
+    }
     if (!S.view) fit();
-    const p = S.palette;
-    if (S.overlayId && S.maps[S.overlayId]) drawMap(S.maps[S.overlayId], p.overlay, 1.5);
-    const m = S.maps[S.mapId];
-    if (m) drawMap(m, p.map[m.kind] || "#303030", 1.5);
+    blitMaps(w, h, dpr);
     const robots = visibleRobots();
     for (const r of robots) {
       ctx.globalAlpha = r.stale ? 0.35 : 1;
@@ -395,10 +502,7 @@
     }
     ctx.globalAlpha = 1;
     for (const r of robots) drawCandidates(r);
-    ctx.beginPath();
-    for (const r of robots) addScan(r);
-    ctx.fillStyle = p.scan;
-    ctx.fill();
+    drawScans(robots, w, h, dpr);
     const drawn = {};
     for (const r of robots) {
       const colour = statusColour(r.status);
@@ -408,7 +512,7 @@
       drawn[r.id] = {
         x: r.x, y: r.y, th: r.th, seq: r.seq, status: r.status, map: r.map,
         colour, px, py, radius: rad, scanPoints: r.scan && r.scan.seq === r.seq
-          ? ranges(r.scan).filter((d) => !Number.isNaN(d)).length : 0,
+          ? r.scan.points : 0,
         candidates: r.cand ? r.cand.length : 0,
       };
     }

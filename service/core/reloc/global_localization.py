@@ -145,16 +145,20 @@ class GlobalShapeLocalizer:
         angles: np.ndarray,
         odom: np.ndarray | None = None,
         odom_spread: np.ndarray | None = None,
+        from_scans: bool = False,
     ) -> Estimate:
         """Localise one scan. ``ranges`` metres (NaN = no return), ``angles`` radians robot
         frame, ``odom`` optional odometry pose (own frame; corrected by the scans first,
         ``ShapeConfig.motion.scan_odometry``); ``odom_spread`` its increment's translation
         variance beyond the odometry model's (the tracker's prior,
-        :meth:`service.core.tracking.motion.MotionModel.predict`)."""
+        :meth:`service.core.tracking.motion.MotionModel.predict`); ``from_scans``: ``odom`` was
+        measured from the scans themselves (:mod:`service.core.tracking.laser_odometry`), so it
+        cannot vouch for a pose the scan contradicts (``GlobalConfig.scan_odometry_violation``)."""
         r, a = check_scan(ranges, angles)
         o = None if odom is None else check_pose3(odom, "odom")
         step = self.odometry.step(r, a, o, odom_spread)
-        scan = st.Scan(r, a, step, step.reading is not None and self.config.motion.use_odometry)
+        use = step.reading is not None and self.config.motion.use_odometry
+        scan = st.Scan(r, a, step, use, from_scans and step.reading is not None)
         self.work_ms = 0.0
         self.state, est = st.step(self, self.state, scan)
         return est

@@ -73,6 +73,9 @@ class Scan:
     angles: np.ndarray
     odom: OdometryStep
     odometry: bool
+    #: the odometry was measured from the scans themselves (laser odometry): it cannot vouch
+    #: for a pose the scan contradicts, accepted or not
+    from_scans: bool = False
 
 
 class Context(Protocol):
@@ -267,7 +270,15 @@ def _tracking(ctx: Context, s: Tracking, scan: Scan) -> tuple[State, Estimate]:
         s.ref, s.cov = est.pose.copy(), fit_cov(est)  # the reference starts here
         return s, est
     s.ref, s.cov = propagate(s.ref, s.cov, o.delta, odometry_noise(o, ctx.config))
-    if not rejected and (est.explained or 0.0) >= g.good_support:
+    slid = False
+    if scan.from_scans and g.scan_odometry_violation < 1.0:
+        # an odometry measured from the scans moves a pose that slid along a corridor (where
+        # neither the scans nor a floor plan pin it), or turned wrong, as precisely as a right
+        # one: the map alone can tell, and beams through its walls do
+        share = ctx.tracker.violations(scan.ranges, scan.angles, [est.pose])[0]
+        est.extras["pose_violation"] = share
+        slid = share > g.scan_odometry_violation
+    if not slid and not rejected and (est.explained or 0.0) >= g.good_support:
         s.ref, s.cov, s.strikes, s.broken = est.pose.copy(), fit_cov(est), 0, False
         return s, est
     # a poorly explained scan: does it contradict the pose (a kidnap)? After a break of the
@@ -278,7 +289,7 @@ def _tracking(ctx: Context, s: Tracking, scan: Scan) -> tuple[State, Estimate]:
     # on a scan the tracker still fits (a map from another day)
     low = est.score < g.collapse_score
     s.broken = (s.broken or o.broken) and low
-    contradicted = s.broken or (rejected and low and _contradicts(ctx, scan, est.pose))
+    contradicted = slid or s.broken or (rejected and low and _contradicts(ctx, scan, est.pose))
     s.strikes = s.strikes + 1 if contradicted else 0
     if s.strikes >= ctx.config.lost_after:
         est.extras["contradicted"] = 1.0

@@ -74,6 +74,10 @@ class Feature:
     angular_size: float
     segments: np.ndarray | None = None
     cache: dict = field(default_factory=dict, repr=False)
+    #: row of its first point among the grouped points of the reading, all groups stacked in
+    #: angular order (:attr:`ScanGroups.points`); pieces cut from one group share their cut
+    #: vertex, so a piece starts on the row where the previous one ends
+    first_point: int = 0
 
     @cached_property
     def length(self) -> float:
@@ -174,12 +178,10 @@ def _split_pieces_numpy(
     return out
 
 
-def _features_from_ranges(
+def _groups(
     ranges: np.ndarray, angles: np.ndarray, params: ExtractionParams, wrap: bool
-) -> list[tuple[Polyline, np.ndarray]]:
-    """Grouping (§4.1), first-stage DCE (eq. 2) and cutting into pieces, in the sensor frame.
-
-    Returns ``(raw polyline piece, simplified vertices)`` per feature, in angular order."""
+) -> list[Polyline]:
+    """Grouping (§4.1) with the ``min_length`` filter, in the sensor frame, angular order."""
     groups = group_polylines(
         ranges,
         angles,
@@ -189,25 +191,34 @@ def _features_from_ranges(
         wrap=wrap,
     )
     lengths = _lengths([g.points for g in groups])
-    groups = [g for g, length in zip(groups, lengths, strict=True) if length >= params.min_length]
-    out: list[tuple[Polyline, np.ndarray]] = []
+    return [g for g, length in zip(groups, lengths, strict=True) if length >= params.min_length]
+
+
+def _features_from_groups(
+    groups: list[Polyline], params: ExtractionParams
+) -> list[tuple[Polyline, np.ndarray, int]]:
+    """First-stage DCE (eq. 2) and cutting into pieces of grouped polylines.
+
+    Returns ``(raw polyline piece, simplified vertices, row of its first point among the
+    groups' stacked points)`` per feature, in angular order."""
+    out: list[tuple[Polyline, np.ndarray, int]] = []
     if not groups:
         return out
+    off = np.cumsum([0, *(len(g.points) for g in groups)])
     if not kernels.HAVE_NUMBA or min(len(g.points) for g in groups) < 2:
-        for g in groups:
+        for gi, g in enumerate(groups):
             keep = dce(g.points, params.dce_threshold)
             pieces = split_pieces(keep, g.points, params.piece_length)
             if len(pieces) == 1:
-                out.append((g, g.points[keep]))
+                out.append((g, g.points[keep], int(off[gi])))
                 continue
             for pk in pieces:
-                out.append((_piece(g, int(pk[0]), int(pk[-1])), g.points[pk]))
+                out.append((_piece(g, int(pk[0]), int(pk[-1])), g.points[pk], int(off[gi] + pk[0])))
         return out
     # The same DCE and cuts for all groups in one compiled call.
     pts = np.vstack([g.points for g in groups])
     if not np.all(np.isfinite(pts)):
         raise LocalizationError("DCE input has non-finite coordinates")
-    off = np.cumsum([0, *(len(g.points) for g in groups)])
     verts, voff, pieces = extract_kernels.simplify_groups(
         pts, off.astype(np.intp), float(params.dce_threshold), float(params.piece_length)
     )
@@ -219,16 +230,26 @@ def _features_from_ranges(
     ends = np.array([(verts[vo[g] + a], verts[vo[g] + b]) for g, a, b in cut], dtype=np.intp)
     ends = ends.reshape(-1, 2) + off[[g for g, _, _ in cut]].reshape(-1, 1)
     bear = numeric.atan2(pts[ends, 1], pts[ends, 0]).tolist()
+    first = off.tolist()
     k = 0
     for (g, a, b), w in zip(rows, whole, strict=True):
         grp = groups[g]
         pk = verts[vo[g] + a : vo[g] + b + 1]
         if w:
-            out.append((grp, grp.points[pk]))
+            out.append((grp, grp.points[pk], first[g]))
             continue
-        out.append((_piece(grp, int(pk[0]), int(pk[-1]), *bear[k]), grp.points[pk]))
+        k0 = int(pk[0])
+        out.append((_piece(grp, k0, int(pk[-1]), *bear[k]), grp.points[pk], first[g] + k0))
         k += 1
     return out
+
+
+def _features_from_ranges(
+    ranges: np.ndarray, angles: np.ndarray, params: ExtractionParams, wrap: bool
+) -> list[tuple[Polyline, np.ndarray, int]]:
+    """Grouping (§4.1), first-stage DCE (eq. 2) and cutting into pieces, in the sensor frame
+    (:func:`_groups`, :func:`_features_from_groups`)."""
+    return _features_from_groups(_groups(ranges, angles, params, wrap), params)
 
 
 def _lengths(parts: list[np.ndarray]) -> list[float]:
@@ -273,6 +294,84 @@ def _piece(
     )
 
 
+@dataclass(frozen=True)
+class ScanGroups:
+    """A scan's polylines after grouping (§4.1) and the ``min_length`` filter, robot frame,
+    angular order: the first half of :func:`scan_configuration`, all a precise fit of the
+    scan's points needs; :meth:`configuration` adds the first-stage DCE (eq. 2) and the
+    pieces. A tracked scan whose odometry prior fits needs no more, so the DCE waits until a
+    shape matching asks for it."""
+
+    groups: list[Polyline]
+    cyclic: bool
+    fov: tuple[float, float]
+    params: ExtractionParams
+
+    @cached_property
+    def points(self) -> np.ndarray:
+        """All groups' points stacked ``(n, 2)`` (angular order)."""
+        if not self.groups:
+            return np.zeros((0, 2))
+        return np.vstack([g.points for g in self.groups])
+
+    @cached_property
+    def starts(self) -> np.ndarray:
+        """Row in :attr:`points` where each group after the first begins."""
+        return np.cumsum([len(g.points) for g in self.groups])[:-1]
+
+    @cached_property
+    def configuration(self) -> Configuration:
+        """The scan's configuration (§4.2) from these groups."""
+        raw = _features_from_groups(self.groups, self.params)
+        sizes = _angular_sizes([g.points for g, _v, _f in raw])
+        feats = [
+            Feature(
+                vertices=v,
+                points=g.points,
+                bearing_start=g.bearing_start,
+                bearing_end=g.bearing_end,
+                angular_size=size,
+                first_point=first,
+            )
+            for (g, v, first), size in zip(raw, sizes, strict=True)
+        ]
+        return Configuration(
+            features=feats,
+            frame="robot",
+            viewpoint=np.zeros(3),
+            cyclic=self.cyclic,
+            fov=self.fov,
+        )
+
+    @cached_property
+    def feature_of_point(self) -> np.ndarray:
+        """Per row of :attr:`points`, the index of the :attr:`configuration`'s feature it
+        belongs to (a cut vertex shared by two pieces: the later piece)."""
+        own = np.zeros(len(self.points), dtype=np.intp)
+        for i, f in enumerate(self.configuration.features):
+            own[f.first_point : f.first_point + len(f.points)] = i
+        return own
+
+
+def scan_groups(
+    ranges: np.ndarray, angles: np.ndarray, params: ExtractionParams | None = None
+) -> ScanGroups:
+    """The scan's grouped polylines (:class:`ScanGroups`), robot frame (metres).
+
+    ``ranges`` metres with NaN for no return, ``angles`` radians in the robot frame. Raises
+    :class:`LocalizationError` on mismatched or malformed arrays.
+    """
+    params = params or ExtractionParams()
+    r, a = scan_arrays(ranges, angles)
+    span = float(np.max(a) - np.min(a)) if a.size > 1 else 0.0
+    return ScanGroups(
+        groups=_groups(r, a, params, wrap=False),
+        cyclic=span >= 2.0 * np.pi - 1e-6,
+        fov=(float(np.min(a)), float(np.max(a))),
+        params=params,
+    )
+
+
 def scan_configuration(
     ranges: np.ndarray, angles: np.ndarray, params: ExtractionParams | None = None
 ) -> Configuration:
@@ -281,27 +380,7 @@ def scan_configuration(
     ``ranges`` metres with NaN for no return, ``angles`` radians in the robot frame. Raises
     :class:`LocalizationError` on mismatched or malformed arrays.
     """
-    params = params or ExtractionParams()
-    r, a = scan_arrays(ranges, angles)
-    span = float(np.max(a) - np.min(a)) if a.size > 1 else 0.0
-    raw = _features_from_ranges(r, a, params, wrap=False)
-    feats = [
-        Feature(
-            vertices=v,
-            points=g.points,
-            bearing_start=g.bearing_start,
-            bearing_end=g.bearing_end,
-            angular_size=size,
-        )
-        for (g, v), size in zip(raw, _angular_sizes([g.points for g, _ in raw]), strict=True)
-    ]
-    return Configuration(
-        features=feats,
-        frame="robot",
-        viewpoint=np.zeros(3),
-        cyclic=span >= 2.0 * np.pi - 1e-6,
-        fov=(float(np.min(a)), float(np.max(a))),
-    )
+    return scan_groups(ranges, angles, params).configuration
 
 
 def _hit_segments(points: np.ndarray, segments: np.ndarray, chunk: int = 256) -> np.ndarray:
@@ -367,12 +446,12 @@ def map_view(
         # All features' points and vertices transformed at once (elementwise, so the same
         # numbers as per feature), one nearest-segment pass over all points, and per feature
         # the sorted hit segments (one np.unique over (feature, segment) codes).
-        n_pts = [len(g.points) for g, _ in raw]
+        n_pts = [len(g.points) for g, _v, _f in raw]
         p_off = np.cumsum([0, *n_pts]).tolist()
-        v_off = np.cumsum([0, *(len(v) for _, v in raw)]).tolist()
-        pts = transform_points(pose, np.vstack([g.points for g, _ in raw]))
-        verts = transform_points(pose, np.vstack([v for _, v in raw]))
-        sizes = _angular_sizes([g.points for g, _ in raw])
+        v_off = np.cumsum([0, *(len(v) for _g, v, _f in raw)]).tolist()
+        pts = transform_points(pose, np.vstack([g.points for g, _v, _f in raw]))
+        verts = transform_points(pose, np.vstack([v for _g, v, _f in raw]))
+        sizes = _angular_sizes([g.points for g, _v, _f in raw])
         S = len(segs_all)
         ids = np.zeros(0, dtype=np.intp)
         bounds = [0] * (len(raw) + 1)
@@ -387,7 +466,7 @@ def map_view(
             code = np.unique(np.repeat(np.arange(len(raw)), n_pts) * S + hit)
             ids = code % S
             bounds = np.searchsorted(code, np.arange(len(raw) + 1) * S).tolist()
-        for f, (g, _v) in enumerate(raw):
+        for f, (g, _v, first) in enumerate(raw):
             feats.append(
                 Feature(
                     vertices=verts[v_off[f] : v_off[f + 1]],
@@ -396,6 +475,7 @@ def map_view(
                     bearing_end=g.bearing_end,
                     angular_size=sizes[f],
                     segments=segs_all[ids[bounds[f] : bounds[f + 1]]],
+                    first_point=first,
                 )
             )
     lo, hi = (-np.pi, np.pi) if full else (float(angles[0]), float(angles[-1]))

@@ -7,9 +7,9 @@ scan through the core):
 1. **Motion prior** -- :class:`service.core.tracking.motion.Motion`: the odometry increment since
    the last scan when the scan carries ``odom`` (and ``motion.use_odometry``), else the robot's own
    smoothed velocity (the paper's no-odometry mode, §5.2);
-2. **Scan configuration** (§4.1-4.2: grouping, first-stage DCE, angular order) --
-   :func:`service.core.shapes.configuration.scan_configuration`; its polylines' points are the
-   points of the precise fit;
+2. **Scan polylines** (§4.1: grouping, angular order) --
+   :func:`service.core.shapes.configuration.scan_groups`; their points are the points of the
+   precise fit (the configuration's first-stage DCE, §4.2, waits for step 4);
 3. **Precise fit** from the prior -- :func:`service.core.sensor.refine.refine_pose`: robust
    point-to-line against the whole map (:class:`service.core.sensor.mapmodel.MapModel`), the motion
    prior as a Gaussian term; its scan log-likelihood is the evidence;
@@ -37,7 +37,12 @@ from service.core.pose import compose
 from service.core.sensor.mapmodel import MapModel
 from service.core.sensor.refine import Refined, refine_pose, scan_normals
 from service.core.sensor.scoring import SensorModel, sensor_model
-from service.core.shapes.configuration import Configuration, MapViewCache, scan_configuration
+from service.core.shapes.configuration import (
+    Configuration,
+    MapViewCache,
+    ScanGroups,
+    scan_groups,
+)
 from service.core.shapes.two_step import TwoStepResult, two_step_match
 from service.core.tracking.motion import Motion, Prediction, check_pose3
 from service.core.tracking.shape_config import ShapeConfig
@@ -168,23 +173,19 @@ class ShapeLocalizer:
             self._pose = compose(self._pose, d)
 
     # ------------------------------------------------------------------ internals
-    def _fit_points(self, P: Configuration) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Robot-frame points of the scan's polylines (angular order), their normals and the
-        index of the feature each belongs to, for the precise fit (returns beyond
+    def _fit_points(self, sg: ScanGroups) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Robot-frame points of the scan's grouped polylines (angular order), their normals
+        and their rows in ``sg.points``, for the precise fit (returns beyond
         ``fit_max_range`` dropped, evenly thinned to ``fit_points``)."""
         cfg = self.config
-        if not P.features:
+        pts = sg.points
+        if not len(pts):
             return np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0, dtype=np.intp)
-        pts = np.vstack([f.points for f in P.features])
-        counts = [len(f.points) for f in P.features]
-        nrm = scan_normals(pts, starts=np.cumsum(counts)[:-1])
-        own = np.repeat(np.arange(len(P.features)), counts)
-        keep = np.hypot(pts[:, 0], pts[:, 1]) <= cfg.fit_max_range
-        pts, nrm, own = pts[keep], nrm[keep], own[keep]
-        if len(pts) > cfg.fit_points:
-            k = np.linspace(0, len(pts) - 1, cfg.fit_points).round().astype(int)
-            pts, nrm, own = pts[k], nrm[k], own[k]
-        return pts, nrm, own
+        nrm = scan_normals(pts, starts=sg.starts)
+        rows = np.flatnonzero(np.hypot(pts[:, 0], pts[:, 1]) <= cfg.fit_max_range)
+        if len(rows) > cfg.fit_points:
+            rows = rows[np.linspace(0, len(rows) - 1, cfg.fit_points).round().astype(int)]
+        return pts[rows], nrm[rows], rows
 
     def _refine(
         self,
@@ -204,6 +205,26 @@ class ShapeLocalizer:
             prior=pred.pose,
             prior_information=pred.information,
         )
+
+    def _heading_starts(
+        self, pts: np.ndarray, nrm: np.ndarray, pred: Prediction, weights: np.ndarray | None
+    ) -> list[Refined]:
+        """Fits from the odometry prior's position at its heading plus and minus half and
+        one heading sigma, when that sigma exceeds ``heading_starts_sigma``: a fit from a
+        heading a few degrees off can settle in a neighbouring basin (generated building 1000
+        after a 119-degree turn between two processed scans, the odometry 3.2 degrees off: the
+        fit from it 0.15 m off along a corridor, the one from 3.7 degrees the other side of the
+        truth exact)."""
+        lim = self.config.heading_starts_sigma
+        sig = float(pred.sigma[2])
+        if lim <= 0 or pred.source != "odometry" or sig <= lim:
+            return []
+        out = []
+        for k in (-1.0, -0.5, 0.5, 1.0):
+            start = pred.pose.copy()
+            start[2] = wrap_angle(float(start[2]) + k * sig)
+            out.append(self._refine(pts, nrm, start, pred, weights))
+        return out
 
     def _score(
         self, f: Refined, pred: Prediction, weights: np.ndarray | None, violation: float = 0.0
@@ -294,8 +315,8 @@ class ShapeLocalizer:
             return Estimate(pose=np.zeros(3), status="initializing", score=0.0)
         cfg = self.config
         pred = self.motion.predict(self._pose, odom, matched_from, odom_spread)
-        P = scan_configuration(r, a, self._params)
-        pts, nrm, own = self._fit_points(P)
+        sg = scan_groups(r, a, self._params)
+        pts, nrm, rows = self._fit_points(sg)
         if len(pts) < 3:
             return self._reject(pred, 0.0, (), 0.0, None, reason=1.0)
         # The prior's fit decides whether the shape matching runs; when it runs anyway and
@@ -312,6 +333,7 @@ class ShapeLocalizer:
             self.shape_runs += 1
             Q = self._views.view(pred.pose)
             if len(Q):
+                P, own = sg.configuration, sg.feature_of_point[rows]
                 two, matches, explained, weights = self._shape_match(P, Q, own, pred, cfg)
                 ambiguity = two.ambiguity
                 extras["step1_hypotheses"] = float(two.hypotheses)
@@ -323,10 +345,11 @@ class ShapeLocalizer:
         if prior_fit is None:
             prior_fit = self._refine(pts, nrm, pred.pose, pred)
         cands: list[tuple[str, Refined]] = [("prior", prior_fit)]
+        cands += [("heading", f) for f in self._heading_starts(pts, nrm, pred, weights)]
         if shape_fit is not None:
             cands.append(("shape", shape_fit))
         shape_ok = (
-            len(cands) > 1
+            shape_fit is not None
             and len(matches) >= cfg.min_matches
             and (explained or 0.0) >= cfg.min_explained
         )
@@ -371,7 +394,8 @@ class ShapeLocalizer:
         if sup < cfg.min_support or step > self._max_step(pred) or turn > cfg.max_turn:
             rec = None
             if cfg.turn_recovery and pred.source != "odometry":
-                rec = self._recover(P, pts, nrm, own, pred, sup)
+                own = sg.feature_of_point[rows]
+                rec = self._recover(sg.configuration, pts, nrm, own, pred, sup)
             if rec is None:
                 return self._reject(pred, score, matches, sup, ambiguity, 3.0, extras)
             best, matches, explained, weights = rec

@@ -210,6 +210,15 @@ class ShapeConfig(BaseModel):
         description="... or when it moved farther from the prior than this squared Mahalanobis "
         "distance under the motion model.",
     )
+    heading_starts_sigma: float = Field(
+        0.1,
+        ge=0,
+        description="When the odometry prior's heading sigma exceeds this (rad; a turn of "
+        "some 40 degrees or more between two processed scans), the precise fit also starts "
+        "from the prior's heading plus and minus half and one sigma, and the candidates are "
+        "weighed as the others (0: off). A point-to-line fit's heading basin is a few degrees "
+        "wide; after a turn the odometry's heading can be farther off than that.",
+    )
     arbiter: Literal["likelihood", "shape"] = Field(
         "likelihood",
         description="How the candidate poses are chosen: by the scan's likelihood against the "

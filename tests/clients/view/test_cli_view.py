@@ -5,12 +5,21 @@ service: tests/clients/view/test_view_browser.py and tests/integration/test_reco
 
 from __future__ import annotations
 
+import contextlib
+import os
 import socket
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import pytest
+import zenoh
 
 from clients.__main__ import build_parser, cli
+from clients.view import DEFAULT_NICE
+
+REPO = Path(__file__).resolve().parents[3]
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -62,3 +71,49 @@ def test_a_busy_port_is_one_line(capsys) -> None:
         port = s.getsockname()[1]
         assert cli(["view", "--port", str(port)]) == 1
     assert f"cannot serve the view on 127.0.0.1:{port}" in capsys.readouterr().err
+
+
+def test_a_nice_outside_0_to_19_is_refused(capsys) -> None:
+    assert build_parser().parse_args(["view"]).nice == DEFAULT_NICE
+    assert cli(["view", "--nice", "-1"]) == 1
+    assert "--nice must be in 0..19" in capsys.readouterr().err
+
+
+def _nice_of_threads(pid: int) -> dict[int, int]:
+    out = {}
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        with contextlib.suppress(OSError):
+            # field 19 of stat is the niceness; the command name (field 2) may hold spaces
+            stat = (task / "stat").read_text()
+            out[int(task.name)] = int(stat.rsplit(")", 1)[1].split()[16])
+    return out
+
+
+@pytest.mark.skipif(not Path("/proc/self/task").exists(), reason="needs Linux /proc")
+@pytest.mark.parametrize("nice", [None, 7, 0])
+def test_the_view_process_lowers_its_priority_on_every_thread(tmp_path: Path, nice) -> None:
+    from clients.session import zenoh_config
+
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    args = ["--connect", ep, "--port", "0"] + ([] if nice is None else ["--nice", str(nice)])
+    base = os.getpriority(os.PRIO_PROCESS, 0)
+    want = min(19, base + (DEFAULT_NICE if nice is None else nice))
+    log = tmp_path / "view.log"
+    with zenoh.open(zenoh_config("router", listen=[ep])), open(log, "wb") as f:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "clients.view", *args],
+            cwd=REPO,
+            stdout=f,
+            stderr=subprocess.STDOUT,
+        )
+        try:
+            end = time.monotonic() + 30
+            while "shapeloc view: http://" not in log.read_text(errors="replace"):
+                assert proc.poll() is None and time.monotonic() < end, log.read_text()
+                time.sleep(0.1)
+            threads = _nice_of_threads(proc.pid)
+        finally:
+            proc.terminate()
+            proc.wait(15)
+    # Zenoh's runtime threads and the asyncio executor's included
+    assert len(threads) > 3 and set(threads.values()) == {want}, threads

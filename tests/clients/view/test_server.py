@@ -216,3 +216,40 @@ def test_another_sites_page_cannot_open_the_websocket(view) -> None:
 
     status, ok = asyncio.run(run())
     assert status == 403 and ok
+
+
+class _Socket:
+    """What :meth:`ViewServer.tick` touches of a page's WebSocket: nothing (never sent)."""
+
+
+def test_frames_are_deltas_with_a_key_frame_a_second_and_a_lagging_page_resyncs() -> None:
+    from clients.view.server import KEYFRAME_S, MAX_BEHIND, ViewServer, _Page
+
+    server = ViewServer(session=None, rate_hz=RATE)  # tick() needs no session
+    st = server.state
+    for rid in ("r1", "r2"):
+        st.ingest(f"{P}/robots/{rid}/pose", False, _pose(rid, 0), None, 1000.0)
+    page = _Page(_Socket())
+    server.pages.add(page)
+    first = json.loads(server.tick(1000.0))
+    assert first["key"] and len(first["robots"]) == 2
+    st.ingest(f"{P}/robots/r1/pose", False, _pose("r1", 1), None, 1000.1)
+    delta = json.loads(server.tick(1000.1))
+    assert not delta["key"] and [r["id"] for r in delta["robots"]] == ["r1"]
+    assert json.loads(server.tick(1000.0 + KEYFRAME_S))["key"]
+    assert len(page.frames) == 3  # nothing was sent: every delta waits, in order
+    t = 1000.0 + KEYFRAME_S
+    while len(page.frames) < MAX_BEHIND:
+        t += 0.1
+        server.tick(t)
+    server.tick(t + 0.1)  # one too many: the backlog is replaced by one snapshot
+    (snap,) = (json.loads(f) for f in page.frames)
+    assert page.resyncs == 1 and snap["key"]
+    assert [len(r["path"]) for r in snap["robots"]] == [2, 1]
+
+
+def _pose(rid: str, k: int) -> bytes:
+    return encode(
+        PoseMsg(robot_id=rid, seq=k, stamp=float(k), pose=[1.0 + k, 2.0, 0.3],
+                status="tracking", score=0.9, method="shape", map_id="office", latency_ms=2.0)
+    )  # fmt: skip

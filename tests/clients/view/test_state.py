@@ -9,7 +9,15 @@ import math
 import numpy as np
 import pytest
 
-from clients.view.state import ViewState, scan_beams, unpack_ranges
+from clients.view.state import (
+    MAX_BEAMS,
+    STALE_S,
+    ViewState,
+    read_pose,
+    read_scan_beams,
+    scan_beams,
+    unpack_ranges,
+)
 from schemas.codec import encode
 from schemas.messages import Map, PoseMsg, Scan
 
@@ -76,7 +84,7 @@ def test_trails_carry_only_what_arrived_since_the_last_tick() -> None:
     feed(st, "robots/r1/pose", pose("r1", 1, 2.0))
     assert st.frame(1000.0)["robots"][0]["trail"] == [[1.0, 1.0], [2.0, 1.0]]
     st.end_tick(1000.0)
-    assert st.frame(1000.0)["robots"][0]["trail"] == []
+    assert "trail" not in st.frame(1000.0)["robots"][0]  # nothing new: no trail sent
     feed(st, "robots/r1/pose", pose("r1", 2, 3.0))
     assert st.frame(1000.0)["robots"][0]["trail"] == [[3.0, 1.0]]
     # a page connecting now gets the whole path
@@ -100,7 +108,7 @@ def test_a_search_shows_candidates_but_its_jumping_pose_is_not_a_path() -> None:
 
 
 def test_the_scan_drawn_is_the_one_the_pose_answers_decoded_once_on_demand() -> None:
-    st = ViewState(P)
+    st = ViewState(P, max_beams=360)
     for k in range(4):
         feed(st, "robots/r1/scan", scan(k, value=1.0 + k))
     assert st.decoded_scans == 0  # arriving scans are kept raw
@@ -231,3 +239,99 @@ def test_the_pose_rate_is_measured_over_the_last_two_seconds() -> None:
         feed(st, "robots/r1/pose", pose("r1", k, 1.0), t=1000.0 + 0.1 * k)
     assert st.frame(1002.9)["robots"][0]["hz"] == 10.0
     assert st.frame(1010.0)["robots"][0]["hz"] == 0.0
+
+
+def test_delta_frames_carry_only_the_robots_that_changed() -> None:
+    st = ViewState(P)
+    for rid in ("r1", "r2"):
+        feed(st, f"robots/{rid}/pose", pose(rid, 0, 1.0), t=1000.0)
+    f = st.frame(1000.1, delta=True)
+    assert [r["id"] for r in f["robots"]] == ["r1", "r2"] and f["key"] is False
+    st.end_tick(1000.1)
+    feed(st, "robots/r2/pose", pose("r2", 1, 2.0), t=1000.2)
+    assert [r["id"] for r in st.frame(1000.2, delta=True)["robots"]] == ["r2"]
+    st.end_tick(1000.2)
+    assert st.frame(1000.3, delta=True)["robots"] == []  # nothing new
+    key = st.frame(1000.3)
+    assert key["key"] is True and [r["id"] for r in key["robots"]] == ["r1", "r2"]
+    # turning stale is a change too: the page learns it without waiting for a key frame
+    st.end_tick(1000.3)
+    f = st.frame(1000.0 + STALE_S + 0.1, delta=True)
+    assert [(r["id"], r["stale"]) for r in f["robots"]] == [("r1", True)]
+
+
+def test_positions_are_sent_to_a_tenth_of_a_millimetre() -> None:
+    st = ViewState(P)
+    feed(st, "robots/r1/pose", pose("r1", 0, 1.23456789, y=-2.00004999, th=0.123456))
+    r = st.frame(1000.0)["robots"][0]
+    assert (r["x"], r["y"], r["th"]) == (1.2346, -2.0, 0.1235)
+
+
+def test_the_lean_readers_agree_with_the_full_decode() -> None:
+    from schemas.codec import decode
+
+    cov = [0.04, 0.0, 0.0, 0.0, 0.01, 0.0, 0.0, 0.0, 0.002]
+    cand = [[1.0, 2.0, 4.0, 0.3]]  # theta beyond pi: wrapped as the wire model does
+    raw = pose("r1", 5, 1.5, covariance=cov, hypotheses=3, candidates=cand, explained=0.5)
+    p = read_pose(raw, None)
+    m = decode(PoseMsg, raw)
+    assert (p.robot_id, p.seq, p.status, p.map_id, p.method) == ("r1", 5, "tracking", "office",
+                                                                 "shape")  # fmt: skip
+    assert p.pose == tuple(m.pose) and p.cov_xy == (0.04, 0.0, 0.01)
+    assert p.candidates == np.round(m.candidates, 4).tolist() and p.hypotheses == 3
+    assert read_pose(encode(m, json=True), "application/json") == p  # JSON: the full decode
+    for n in (181, 720):
+        payload = scan(7, n=n, value=3.21)
+        lean = read_scan_beams(payload, None)
+        assert lean == scan_beams(decode(Scan, payload))
+        assert unpack_ranges(lean).size <= MAX_BEAMS
+
+
+@pytest.mark.parametrize(
+    ("field", "value", "reason"),
+    [
+        ("pose", [1.0, math.nan, 0.0], "pose: must be finite"),
+        ("pose", [1.0, 2.0], "pose: must be 3 numbers"),
+        ("pose", [1.0, "2", 0.0], "pose: must be 3 numbers"),
+        ("seq", -1, "seq: must be an integer"),
+        ("seq", True, "seq: must be an integer"),
+        ("status", "", "status: must be a string"),
+        ("status", 5, "status: must be a string"),
+        ("map_id", "no such/id", "map_id:"),
+        ("latency_ms", math.inf, "latency_ms: must be a finite number"),
+        ("explained", 1.5, "explained: must be in [0, 1]"),
+        ("covariance", [1.0] * 8, "covariance: must be 9 numbers"),
+        ("candidates", [[1.0, 2.0, 3.0]] * 2, "candidates: must be 4 numbers"),
+        ("candidates", [[1.0, 2.0, 3.0, 4.0]] * 99, "candidates: must be at most"),
+    ],
+)
+def test_the_lean_pose_reader_refuses_what_it_cannot_draw(field, value, reason) -> None:
+    import msgpack
+
+    obj = msgpack.unpackb(pose("r1", 0, 1.0))
+    obj[field] = value
+    st = ViewState(P)
+    feed(st, "robots/r1/pose", msgpack.packb(obj))
+    assert st.robots == {} and any(reason in r for r in st.rejected), st.rejected
+
+
+def test_a_status_the_view_does_not_know_is_kept() -> None:
+    import msgpack
+
+    obj = msgpack.unpackb(pose("r1", 0, 1.0))
+    obj["status"] = "docking"  # a newer service: drawn grey, not refused
+    st = ViewState(P)
+    feed(st, "robots/r1/pose", msgpack.packb(obj))
+    assert st.frame(1000.0)["robots"][0]["status"] == "docking"
+
+
+def test_a_scan_with_bad_fields_is_counted() -> None:
+    import msgpack
+
+    obj = msgpack.unpackb(scan(0))
+    obj["ranges"] = obj["ranges"][:-1]  # not a whole number of float32
+    st = ViewState(P)
+    feed(st, "robots/r1/scan", msgpack.packb(obj))
+    feed(st, "robots/r1/pose", pose("r1", 0, 1.0))
+    assert "scan" not in st.frame(1000.0)["robots"][0]
+    assert any("ranges" in r for r in st.rejected), st.rejected

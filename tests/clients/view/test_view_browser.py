@@ -18,6 +18,7 @@ from pathlib import Path
 import pytest
 
 from clients.client import ShapelocClient
+from clients.view.headless import DEFAULT_NICE as HEADLESS_NICE
 from clients.view.headless import Chromium, find_chromium
 from clients.view.palette import STATUS_COLOURS, status_colour
 
@@ -74,6 +75,20 @@ def _start_view(endpoint: str, log: Path) -> tuple[subprocess.Popen[bytes], str]
     raise AssertionError(f"the view did not start:\n{log.read_text(errors='replace')}")
 
 
+def _nice_of_tree(pid: int) -> dict[int, int]:
+    """Niceness of every thread of ``pid`` and of its descendants (Linux /proc)."""
+    out: dict[int, int] = {}
+    todo = [pid]
+    while todo:
+        p = todo.pop()
+        with contextlib.suppress(OSError):
+            for task in Path(f"/proc/{p}/task").iterdir():
+                stat = (task / "stat").read_text()
+                out[int(task.name)] = int(stat.rsplit(")", 1)[1].split()[16])
+                todo += [int(c) for c in (task / "children").read_text().split()]
+    return out
+
+
 def _rgb(colour: str) -> list[int]:
     return [int(colour[i : i + 2], 16) for i in (1, 3, 5)]
 
@@ -125,6 +140,7 @@ async def _check_page(url: str, poses, tmp_path: Path) -> Path:
 
     tracked = ("sim-0", "sim-1", "sim-2")
     async with Chromium() as browser:
+        assert browser.pid is not None
         page = await browser.new_page()
         await page.navigate(f"{url}?map=office-schematic&overlay=office", 1400, 900)
         # past the service's cold start (its first answers come after the scans they answer
@@ -148,7 +164,7 @@ async def _check_page(url: str, poses, tmp_path: Path) -> Path:
                     await asyncio.sleep(0.05)
                     take()
                 p = published[(rid, d["seq"])]
-                assert (d["x"], d["y"], d["th"]) == pytest.approx(tuple(p.pose), abs=1e-9)
+                assert (d["x"], d["y"], d["th"]) == pytest.approx(tuple(p.pose), abs=1e-4)
                 assert d["status"] == p.status and d["map"] == p.map_id
                 assert d["pixel"][:3] == pytest.approx(_rgb(status_colour(p.status)), abs=6)
                 assert d["scanPoints"] > 50, (rid, got)  # its scan is drawn at that pose
@@ -157,6 +173,11 @@ async def _check_page(url: str, poses, tmp_path: Path) -> Path:
         assert checked == 6 * len(tracked)
         rate = await page.evaluate("window.shapelocView.rate")
         assert rate >= 5.0, rate
+        # the browser is best-effort: every thread of every process of it (the renderer's
+        # compositor included, which chromium would otherwise set to -8) runs lowered
+        want = min(19, os.getpriority(os.PRIO_PROCESS, 0) + HEADLESS_NICE)
+        nices = _nice_of_tree(browser.pid)
+        assert len(nices) > 20 and set(nices.values()) == {want}, nices
         rows = {r.split()[0]: r for r in got["rows"]}
         for rid in tracked:  # the side panel lists it with its status and latency
             p = published[(rid, got["drawn"][rid]["seq"])]

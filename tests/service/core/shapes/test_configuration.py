@@ -23,6 +23,7 @@ from service.core.shapes.configuration import (
     MapViewCache,
     map_view,
     scan_configuration,
+    scan_groups,
     split_pieces,
 )
 from service.core.shapes.dce import dce
@@ -224,14 +225,17 @@ def test_batched_extraction_and_map_view_equal_the_per_feature_results(
         got = conf_mod._features_from_ranges(r, a, params, wrap)
         ref = _per_group_reference(r, a, params, wrap)
         assert len(got) == len(ref) >= 5
+        stacked = np.vstack([g.points for g in _groups(r, a, params, wrap)])
         cuts += len(ref) - len(_groups(r, a, params, wrap))
-        for (g, v), (h, w) in zip(got, ref, strict=True):
+        for (g, v, first), (h, w) in zip(got, ref, strict=True):
             assert np.array_equal(v, w) and np.array_equal(g.points, h.points)
+            # each piece's rows among the groups' stacked points
+            assert np.array_equal(stacked[first : first + len(g.points)], g.points)
             assert np.array_equal(g.idx, h.idx)
             assert (g.bearing_start, g.bearing_end) == (h.bearing_start, h.bearing_end)
-        sizes = conf_mod._angular_sizes([g.points for g, _ in got])
+        sizes = conf_mod._angular_sizes([g.points for g, _v, _f in got])
         assert sizes == [g.angular_size for g, _ in ref]
-        assert conf_mod._lengths([g.points for g, _ in got]) == [g.length for g, _ in ref]
+        assert conf_mod._lengths([g.points for g, _v, _f in got]) == [g.length for g, _ in ref]
     assert cuts > 0
     model = MapModel(sc.map_data)
     Q = map_view(caster, pose, beams=n, params=params, model=model)
@@ -247,3 +251,23 @@ def test_batched_extraction_and_map_view_equal_the_per_feature_results(
     P = scan_configuration(sc.ranges, sc.angles, params)
     ref = _per_group_reference(sc.ranges, sc.angles, params, False)
     assert [f.angular_size for f in P.features] == [g.angular_size for g, _ in ref]
+
+
+def test_scan_groups_give_the_configuration_and_each_points_feature(real_scene: Callable) -> None:
+    """The grouped polylines a tracked scan's precise fit uses are the configuration's points
+    (every row of every feature, pieces sharing their cut vertex), and ``feature_of_point``
+    names, for each row, a feature that holds that very point."""
+    sc = real_scene(1, 60)
+    params = sc.config.extraction()
+    sg = scan_groups(sc.ranges, sc.angles, params)
+    P = scan_configuration(sc.ranges, sc.angles, params)
+    assert len(sg.configuration.features) == len(P.features) > len(sg.groups)  # some cut
+    for f, g in zip(sg.configuration.features, P.features, strict=True):
+        assert np.array_equal(f.vertices, g.vertices) and np.array_equal(f.points, g.points)
+    assert len(sg.points) == sum(len(g.points) for g in sg.groups)
+    assert sum(len(f.points) for f in P.features) > len(sg.points)  # shared cut vertices
+    own = sg.feature_of_point
+    for row in range(len(sg.points)):
+        f = sg.configuration.features[own[row]]
+        assert f.first_point <= row < f.first_point + len(f.points)
+        assert np.array_equal(f.points[row - f.first_point], sg.points[row])

@@ -370,3 +370,82 @@ def test_the_wrappers_reads_and_writes_reach_the_inner_localiser() -> None:
     assert inner.gconfig.settle_scans == 7 and "gconfig" not in loc.__dict__
     loc.last_step = None  # the wrapper's own attributes stay its own
     assert "last_step" in loc.__dict__
+
+
+def test_a_pose_the_scan_contradicts_is_not_tracked_on_an_odometry_from_the_scans() -> None:
+    """A floor plan's dead-end corridor; the robot stands 5 m from the end wall, facing it,
+    the localiser believes it 1.5 m closer (slid along the axis, where neither the scans nor
+    the plan's side walls pin it). The side walls explain most of the scan and the fit is
+    accepted; its beams to the end wall return from beyond the mapped wall. With the wheel
+    odometry's reading the track stays (as before: only a rejected scan is checked); with a
+    reading measured from the scans the pose is given up after ``lost_after`` such scans."""
+    plan = MapData.from_lists(
+        "dead-end",
+        "schematic",
+        [[[-20.0, -1.0], [5.0, -1.0], [5.0, 1.0], [-20.0, 1.0]]],
+    )
+    walls = np.array([[-20.0, -1.0, 5.0, -1.0], [5.0, -1.0, 5.0, 1.0], [5.0, 1.0, -20.0, 1.0]])
+    ((r, a),) = _scans(walls, [np.zeros(3)])
+    for from_scans in (False, True):
+        loc = create_localizer("shape", plan, np.array([1.5, 0.0, 0.0]), laser_odometry=False)
+        assert isinstance(loc, GlobalShapeLocalizer)
+        statuses = []
+        for _ in range(4):
+            est = loc.update(r, a, np.zeros(3), from_scans=from_scans)
+            statuses.append(est.status)
+            assert est.extras.get("rejected") is None or from_scans
+        if from_scans:
+            assert statuses[-1] != "tracking", statuses
+            assert statuses[: loc.tracker.config.lost_after - 1] == ["tracking"] * (
+                loc.tracker.config.lost_after - 1
+            )
+        else:
+            assert statuses == ["tracking"] * 4, statuses
+            assert float(loc.pose[0]) > 0.5  # tracking, and still more than 0.5 m off
+
+
+def test_only_a_reading_measured_from_the_scans_is_marked_so() -> None:
+    """The wrapper tells the localiser which readings it measured from the scans: a scan
+    without odometry's, not a wheel odometry's."""
+    seen: list[bool] = []
+
+    class Marked(_Recorder):
+        def update(
+            self, ranges: np.ndarray, angles: np.ndarray, odom: Any = None, from_scans: bool = False
+        ) -> Estimate:
+            seen.append(from_scans)
+            return super().update(ranges, angles, odom)
+
+    (s0, a0), (s1, a1), (s2, a2) = _scans(
+        _ROOM, [np.array([-1.0, -0.5, 0.0]), np.array([-0.9, -0.5, 0.0]), np.zeros(3)]
+    )
+    loc = LaserOdometryLocalizer(Marked())  # type: ignore[arg-type]
+    loc.update(s0, a0, None)
+    loc.update(s1, a1, None)
+    loc.update(s2, a2, np.array([0.2, 0.0, 0.0]))
+    assert seen == [True, True, False]
+
+
+def test_a_wall_far_ahead_measures_the_motion_along_a_corridor() -> None:
+    """A corridor 2 m wide closed by a wall 12 m ahead, a 1-degree laser (returns on that
+    wall 0.21 m apart): the wall's points get surface normals and measure the 0.1 m the robot
+    moved along the axis. With a 0.2 m neighbourhood (a wheel odometry check's) they got
+    none, and the increment along the axis was the constant-velocity guess, here none."""
+    walls = np.array([[-30.0, -1.0, 12.0, -1.0], [12.0, -1.0, 12.0, 1.0], [12.0, 1.0, -30.0, 1.0]])
+    truth = np.array([0.1, 0.0, 0.0])
+    angles = np.linspace(-math.pi / 2.0, math.pi / 2.0, 181)
+    caster = RayCaster(walls)
+    scans = [(caster.cast(p, angles, 30.0), angles) for p in (np.zeros(3), truth)]
+    default = config_for_kind("schematic")
+    narrow = default.model_copy(
+        update={"fit": default.fit.model_copy(update={"normal_radius": 0.2})}
+    )
+    errors = []
+    for cfg in (default, narrow):
+        lo = LaserOdometry(cfg)
+        lo.step(*scans[0])
+        step = lo.step(*scans[1])
+        assert step is not None and step.matched
+        errors.append(abs(float(step.delta[0] - truth[0])))
+    assert errors[0] < 0.02, errors
+    assert errors[1] > 0.08, errors
