@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 from typing import Any, Literal, Protocol
 
 import numpy as np
+from pydantic import BaseModel
 
 from service.errors import LocalizationError
 
@@ -208,3 +209,15 @@ class LocalizerWrapper:
         if inner is None or name.startswith("__"):
             raise AttributeError(name)
         return getattr(inner, name)
+
+
+class Settings(BaseModel):
+    """A settings model whose state pickled by an earlier version loads: a field added since
+    takes its default (a robot's localiser is pickled when the service moves it between
+    worker processes, and may have been pickled before an upgrade)."""
+
+    def __setstate__(self, state: dict[Any, Any]) -> None:
+        super().__setstate__(state)
+        for name, f in type(self).model_fields.items():
+            if name not in self.__dict__:
+                self.__dict__[name] = f.get_default(call_default_factory=True)

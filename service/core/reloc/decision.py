@@ -11,9 +11,13 @@ search has not found, which explains every frame at ``null_cost``. The leader (t
     LLR = E_leader - log(sum over the rest of exp(E_a))  >=  fix_llr,
 
 i.e. when the posterior odds of the leader against everything else reach ``exp(fix_llr)``.
-Where an alternative has not been scored on a frame yet it counts as explaining that frame
-as well as the leader does (it can only lower the LLR): a place just found is judged on the
-whole window before it can be ruled out.
+Where an alternative has not been scored on a keyframe yet it counts as explaining it as
+well as the leader does (it can only lower the LLR): a place just found is judged on the
+whole window, back-scored, before it can be ruled out. A plain scan (no odometry) before a
+place was found can never be scored for it (nothing carries the place back there): there the
+place counts at its own mean log-likelihood per frame. Counted as the leader's, every search
+that found a new middling place reset the LLR to one scan's margin over it, and without
+odometry no LLR grew beyond ~9 nats.
 
 The prior (:class:`Prior`): uniform over the map while nothing is known (it cancels); after a
 loss, the dead-reckoned pose's Gaussian with ``kidnap_weight`` of the mass spread evenly over
@@ -132,9 +136,9 @@ def decide(
     the frames ``keys`` (key -> weight; the drive's, :meth:`~service.core.reloc.drive.Drive.
     evidence_keys`). The leader must be scored on the frames of the window ``frames`` that
     :func:`~service.core.reloc.drive.judged` names; no leader before the window holds
-    ``min_frames`` frames. A frame a track was not scored on
-    counts, for a candidate leader, as the unseen place explains it, and for an alternative as
-    the leader does (it can only lower the LLR)."""
+    ``min_frames`` frames. A frame a track was not scored on counts, for a candidate leader,
+    as the unseen place explains it; for an alternative, a keyframe as the leader explains it
+    (it can only lower the LLR), a plain scan at the alternative's own mean."""
     if len(frames) < g.min_frames:
         return Verdict(None, -math.inf)
     need = judged(frames)
@@ -143,12 +147,17 @@ def decide(
         return Verdict(None, -math.inf)
     cell = cell_volume(g)
     unseen = -EFFECTIVE_BEAMS * (g.null_cost - g.cost_floor)
+    plain = {f.key for f in frames if f.odom is None}
 
     def evidence(t: Track, fill: Track | None = None) -> float:
         total = 0.0
+        own = [t.ll[k] / w for k, w in keys.items() if k in t.ll]
+        rate = sum(own) / len(own) if own else unseen  # per unit weight
         for k, w in keys.items():
             if k in t.ll:
                 total += t.ll[k]
+            elif fill is not None and k in plain:
+                total += w * rate
             elif fill is not None and k in fill.ll:
                 total += fill.ll[k]
             else:

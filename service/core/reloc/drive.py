@@ -64,6 +64,9 @@ from service.core.shapes.configuration import Configuration
 from service.core.tracking.shape_config import ShapeConfig
 from service.core.types import wrap_angle
 
+#: Heading change (rad) a robot may make between two scans without odometry (the tracker's
+#: max_turn): a place found again within ``near``'s distance of a track is that track.
+TURN_BETWEEN_SCANS = 1.3
 #: Polish stages (step m, step rad) of a track's first keyframe: +-0.43 m / +-10 degrees.
 WIDE_POLISH = ((0.15, 0.06), (0.05, 0.02), (0.015, 0.006))
 
@@ -403,11 +406,24 @@ def merge(
     counted: list[Track] = []
     for h in hyps[:keep]:
         pose = compose(h.pose, move) if move is not None else np.asarray(h.pose, dtype=float)
-        held = [t for t in out if near(t.pose, pose)]
+        # without odometry a robot may have turned between two scans and a track's fit from
+        # its last pose may have slid off: a place found again within the same place's
+        # distance of a track is that track, and where the search fitted this scan better
+        # the track follows it (its scores on the frames before are kept)
+        if move is None and scored is not None:
+            dist, turn = scored[1].distinct_distance, TURN_BETWEEN_SCANS
+        else:
+            dist, turn = 0.3, 0.15
+        held = [t for t in out if near(t.pose, pose, dist, turn)]
         for t in held:
             if t not in counted:
                 t.found += 1
                 counted.append(t)
+            if scored is not None and h.cost < t.hyp.cost:
+                frame, g = scored
+                t.pose, t.hyp = pose.copy(), h
+                t.ll[frame.key] = frame.weight * loglik(h.cost, g)
+                t.at[frame.key] = pose.copy()
         if held:
             continue
         hyp = Hypothesis(

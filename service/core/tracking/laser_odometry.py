@@ -66,7 +66,7 @@ import math
 from typing import Any
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import ConfigDict, Field
 from scipy.spatial import cKDTree
 
 from service.core import numeric
@@ -74,7 +74,14 @@ from service.core.baselines import scan_points
 from service.core.pose import compose, invert
 from service.core.tracking.motion import ScanOdometryConfig, check_pose3
 from service.core.tracking.scan_odometry import match_increment, surface_normals
-from service.core.types import Estimate, Localizer, LocalizerWrapper, check_scan, wrap_angle
+from service.core.types import (
+    Estimate,
+    Localizer,
+    LocalizerWrapper,
+    Settings,
+    check_scan,
+    wrap_angle,
+)
 
 __all__ = [
     "LaserOdometry",
@@ -88,7 +95,7 @@ __all__ = [
 ]
 
 
-class LaserOdometryConfig(BaseModel):
+class LaserOdometryConfig(Settings):
     """Parameters of :class:`LaserOdometry` (metres, radians)."""
 
     model_config = ConfigDict(frozen=True, extra="forbid")

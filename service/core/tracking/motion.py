@@ -34,17 +34,17 @@ from dataclasses import dataclass
 from typing import Literal, Protocol
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import ConfigDict, Field
 
 from service.core import numeric
 from service.core.pose import compose, invert
-from service.core.types import wrap_angle
+from service.core.types import Settings, wrap_angle
 from service.errors import LocalizationError
 
 Source = Literal["odometry", "velocity", "held"]
 
 
-class ScanOdometryConfig(BaseModel):
+class ScanOdometryConfig(Settings):
     """Parameters of :class:`service.core.tracking.scan_odometry.ScanOdometry`: the odometry
     increments corrected by matching each scan to the previous one (metres, radians)."""
 
@@ -140,7 +140,7 @@ class ScanOdometryConfig(BaseModel):
     )
 
 
-class MotionConfig(BaseModel):
+class MotionConfig(Settings):
     """Parameters of the motion models (metres, radians). Tuned on the intel and fr079 logs."""
 
     model_config = ConfigDict(frozen=True, extra="forbid")

@@ -9,16 +9,17 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import ConfigDict, Field
 
 from service.core.sensor.refine import RefineParams
 from service.core.shapes.configuration import ExtractionParams
 from service.core.shapes.dce import DCE_NOISE_THRESHOLD
 from service.core.tracking.motion import MotionConfig
+from service.core.types import Settings
 from service.errors import LocalizationError
 
 
-class ShapeConfig(BaseModel):
+class ShapeConfig(Settings):
     """Every weight and threshold of the shape-based method, in one model.
 
     Defaults are the values for an exact **metric** map; :meth:`for_kind` returns the
