@@ -166,7 +166,12 @@ def decide(
 
     scored = [(evidence(t), t) for t in full]
     best_e, leader = max(scored, key=lambda x: x[0])
-    null_ll = sum(w * unseen for w in keys.values())
+    # the unseen place explains each keyframe as the true place would in the leader's region
+    nulls = leader.null
+    null_ll = sum(
+        w * (unseen if k not in nulls else -EFFECTIVE_BEAMS * (nulls[k] - g.cost_floor))
+        for k, w in keys.items()
+    )
     if prior.mean is None:
         null = null_ll + prior.log(leader.pose, cell)  # uniform: the same prior as any place
     else:

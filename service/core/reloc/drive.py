@@ -101,6 +101,12 @@ class Track:
     found: int = 1
     checked: bool = False
     age: int = 0
+    #: the unseen place's cost per keyframe key in the region of the track's pose there
+    #: (:func:`null_cost`)
+    null: dict[int, float] = field(default_factory=dict)
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update({"null": {}, **state})  # pickled before it had ``null``
 
 
 @dataclass(eq=False)
@@ -265,15 +271,28 @@ def loglik(cost: float, g: GlobalConfig) -> float:
 
 def frame_cost(
     index: ViewIndex, pose: np.ndarray, f: Frame, config: ShapeConfig, g: GlobalConfig
-) -> float:
+) -> tuple[float, float]:
     """The beam cost of ``pose`` on frame ``f``'s beams (short returns graded by
-    ``evidence_short_scale``)."""
+    ``evidence_short_scale``) and the unseen place's cost there (:func:`null_cost`)."""
     if f.ranges.size == 0:
-        return g.evidence_clip
+        return g.evidence_clip, g.null_cost
     assert index.sensor is not None
     m = beam_model(config, g, short_scale=g.evidence_short_scale)
     pred, landed = index.sensor.predict(pose, f.ranges, f.angles, m)
-    return beam_fractions(f.ranges, pred, m, landed).cost(m)
+    cost = beam_fractions(f.ranges, pred, m, landed).cost(m)
+    return cost, null_cost(np.where(np.isfinite(pred), pred, m.max_range), g)
+
+
+def null_cost(predicted: np.ndarray, g: GlobalConfig) -> float:
+    """The unseen place's cost on a frame in a region whose walls the frame's beams would
+    meet at ``predicted`` ranges (m): ``null_cost``, plus ``null_slope`` per metre of their
+    mean beyond ``null_reach`` (at most ``evidence_clip``). Where the map's walls stand far
+    off, furniture the map does not hold stands between (a hall a floor plan draws as its
+    outline), and the true place explains a frame worse."""
+    if g.null_slope <= 0.0 or predicted.size == 0:
+        return g.null_cost
+    reach = float(np.mean(predicted))
+    return min(g.evidence_clip, g.null_cost + g.null_slope * max(0.0, reach - g.null_reach))
 
 
 def pair_ms(index: ViewIndex, g: GlobalConfig) -> float:
@@ -369,7 +388,8 @@ def backfill(
             narrow, _ = index.sensor.polish(
                 start[None, :], f.points, g.fine_scale, prior=g.rescore_prior
             )
-            pose, cost = narrow[0], frame_cost(index, narrow[0], f, config, g)
+            pose = narrow[0]
+            cost, null = frame_cost(index, pose, f, config, g)
             if not t.ll:
                 # a track's first keyframe: also a wider polish without a prior, and the pose
                 # as given; the one the beams explain best is kept (a hypothesis some degrees
@@ -378,12 +398,13 @@ def backfill(
                 # mirrored alias)
                 wide, _ = index.sensor.polish(start[None, :], f.points, g.fine_scale, WIDE_POLISH)
                 for alt in (wide[0], start):
-                    c = frame_cost(index, alt, f, config, g)
+                    c, n = frame_cost(index, alt, f, config, g)
                     if c < cost:
-                        pose, cost = alt, c
+                        pose, cost, null = alt, c, n
                 spent += 0.5 * polish_ms(len(f.points)) + 2 * each
             t.ll[f.key] = f.weight * loglik(cost, g)
             t.at[f.key] = pose.copy()
+            t.null[f.key] = null
             spent += each
     return spent
 

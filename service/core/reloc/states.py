@@ -140,7 +140,7 @@ class Searching:
 @dataclass
 class Probation:
     """A winner tracked before it is published: ``winner`` its track among the ``drive``'s,
-    ``left`` the travel (m) still to go, ``rejected`` scans in a row the tracker rejected."""
+    ``left`` the travel (m) still to go, ``rejected`` scans in a row that contradicted it."""
 
     drive: dr.Drive
     prior: Prior
@@ -625,7 +625,10 @@ def _probation(ctx: Context, p: Probation, scan: Scan) -> tuple[State, Estimate]
     est.ambiguity = None
     drv = p.drive
     rejected = "rejected" in est.extras
-    p.rejected = p.rejected + 1 if rejected else 0
+    # as in Tracking, the odometry bridges a rejected scan unless it contradicts the pose (a
+    # hall a floor plan draws as its outline: the tracker rejects scan after scan there)
+    low = est.score < g.collapse_score
+    p.rejected = p.rejected + 1 if rejected and low and _contradicts(ctx, scan, est.pose) else 0
     ctx.work_ms = 0.0
     if o.delta is not None and o.reading is not None:
         drv.move(o.delta, o.step)
