@@ -36,9 +36,7 @@ def test_the_odometry_bridges_a_hall_the_floor_plan_draws_as_its_outline(
     rejects scan after scan: the robot dead-reckons and says so (status ``lost``, state
     ``dead_reckoning``, a covariance that grows), and the odometry holds the pose within
     0.3 m of the reference on every scan; it is never published as ``tracking`` off the
-    reference. Where the scans contradict the dead-reckoned pose (returns beyond the
-    outline's walls) a search starts with that pose as its prior, and publishes it, lost,
-    until a place is more probable."""
+    reference."""
     z = np.load(DATA / "fr079.4100-4199.npz")
     loc = _localizer(tmp_path, z["reference"][0])
     states, errors, sigmas = [], [], []
@@ -53,8 +51,7 @@ def test_the_odometry_bridges_a_hall_the_floor_plan_draws_as_its_outline(
             errors.append(err)
             assert est.status != "tracking" or err < 0.3, (i, err)
     assert states[0] == "tracking"
-    assert states.count("dead_reckoning") >= 10, states
-    assert sum(s in ("dead_reckoning", "searching") for s in states) >= 20, states
+    assert states.count("dead_reckoning") >= 20, states
     assert sigmas[-1] > 1.5 * sigmas[0], (sigmas[0], sigmas[-1])  # it grows as the robot drives
     assert max(errors) < 0.3, max(errors)
 
