@@ -8,7 +8,7 @@ every searching scan with a reference, the travel (m), the decision's LLR (nats,
 :mod:`service.core.reloc.decision`), the leader's position and heading error and whether its
 self-similarity check ran and how many searches found it. In those runs nothing is ever fixed,
 so each table shows what every threshold ``T`` would have done: the first scan whose leader
-has been checked, found often enough (``min_found``) and reaches ``T`` is the fix; it is a
+has been checked and reaches ``T`` is the fix; it is a
 false fix when the leader is more than 0.5 m or 10 degrees off. (Counting every such leader
 as a false fix is conservative: the tracker's confirmation and a floor plan's probation
 catch some of them.)
@@ -33,7 +33,6 @@ SAFETY = 1.25
 #: Travel limits (m) as the drive bench's: metric maps of the simulated buildings and office
 #: 5 m, floor plans and the real logs 15 m.
 GRID = (1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 8.0, 10.0, 12.0, 15.0, 20.0, 25.0, 30.0, 40.0, 60.0)
-MIN_FOUND = {"metric": 1, "schematic": 2}
 
 
 def load(dirs: list[Path]) -> dict[str, list[tuple[str, np.ndarray]]]:
@@ -49,10 +48,10 @@ def load(dirs: list[Path]) -> dict[str, list[tuple[str, np.ndarray]]]:
     return out
 
 
-def outcome(rows: np.ndarray, t: float, min_found: int) -> tuple[str, float]:
+def outcome(rows: np.ndarray, t: float) -> tuple[str, float]:
     """``("right" | "wrong" | "none", travel)`` of one trial at threshold ``t``."""
-    for travel, llr, err, dth, checked, found in rows:
-        if llr >= t and checked >= 1.0 and found >= min_found:
+    for travel, llr, err, dth, checked, _found in rows:
+        if llr >= t and checked >= 1.0:
             ok = err <= 0.5 and dth <= np.deg2rad(10.0)
             return ("right" if ok else "wrong"), float(travel)
     return "none", float("inf")
@@ -80,7 +79,7 @@ def main(argv: list[str] | None = None) -> int:
         ]
         best = None
         for t in GRID:
-            res = [(outcome(r, t, MIN_FOUND[kind]), n) for n, r in trials]
+            res = [(outcome(r, t), n) for n, r in trials]
             wrong = sum(o == "wrong" for (o, _), _ in res)
             within = sum(o == "right" and tr <= limit_of(n, kind) for (o, tr), n in res)
             travel = [tr for (o, tr), _ in res if o == "right"]

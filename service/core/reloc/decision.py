@@ -3,10 +3,13 @@ the rest, over the drive's frames, with a prior.
 
 Every kept hypothesis ``h`` has a log-likelihood ``L_h`` (nats) on each frame of the window
 (:mod:`service.core.reloc.drive`). With a prior ``pi`` over poses, the evidence of ``h`` is
-``E_h = sum_k L_h,k + log pi(h)``. The *rest* are the distinct alternatives (farther than
-``distinct_distance`` / ``distinct_angle``) and the *unseen place*, a stand-in for what the
-search has not found, which explains every frame at ``null_cost``. The leader (the largest
-``E`` among the tracks scored on every frame) wins when
+``E_h = sum_k w_k L_h,k + log pi(h)``, ``w_k`` the frame's weight: 1, and with odometry the
+discounted scans that repeated a keyframe (:meth:`~service.core.reloc.drive.Drive.repeat`:
+a robot standing still or creeping gains evidence scan by scan, boundedly). The *rest* are
+the distinct alternatives (farther than ``distinct_distance`` / ``distinct_angle``) and the
+*unseen place*, a stand-in for what the search has not found, which explains every frame at
+``null_cost``. The leader (the largest ``E`` among the tracks scored on every frame) wins
+when
 
     LLR = E_leader - log(sum over the rest of exp(E_a))  >=  fix_llr,
 
@@ -135,15 +138,13 @@ def decide(
     """The leader of ``tracks`` and its LLR against the rest (module docstring), summed over
     the frames ``keys`` (key -> weight; the drive's, :meth:`~service.core.reloc.drive.Drive.
     evidence_keys`). The leader must be scored on the frames of the window ``frames`` that
-    :func:`~service.core.reloc.drive.judged` names; no leader before the window holds
-    ``min_frames`` frames. A frame a track was not scored on counts, for a candidate leader,
-    as the unseen place explains it; for an alternative, a keyframe as the leader explains it
-    (it can only lower the LLR), a plain scan at the alternative's own mean."""
-    if len(frames) < g.min_frames:
-        return Verdict(None, -math.inf)
+    :func:`~service.core.reloc.drive.judged` names (no leader on an empty window). A frame a
+    track was not scored on counts, for a candidate leader, as the unseen place explains it;
+    for an alternative, a keyframe as the leader explains it (it can only lower the LLR), a
+    plain scan at the alternative's own mean."""
     need = judged(frames)
     full = [t for t in tracks if all(k in t.ll for k in need)]
-    if not full:
+    if not frames or not full:
         return Verdict(None, -math.inf)
     cell = cell_volume(g)
     unseen = -EFFECTIVE_BEAMS * (g.null_cost - g.cost_floor)
@@ -151,15 +152,15 @@ def decide(
 
     def evidence(t: Track, fill: Track | None = None) -> float:
         total = 0.0
-        own = [t.ll[k] / w for k, w in keys.items() if k in t.ll]
-        rate = sum(own) / len(own) if own else unseen  # per unit weight
+        own = [t.ll[k] for k in keys if k in t.ll]
+        rate = sum(own) / len(own) if own else unseen
         for k, w in keys.items():
             if k in t.ll:
-                total += t.ll[k]
+                total += w * t.ll[k]
             elif fill is not None and k in plain:
                 total += w * rate
             elif fill is not None and k in fill.ll:
-                total += fill.ll[k]
+                total += w * fill.ll[k]
             else:
                 total += w * unseen
         return total + prior.log(t.pose, cell)

@@ -417,6 +417,17 @@ def _composite(drive: dr.Drive, scan: Scan, g: GlobalConfig) -> tuple[np.ndarray
     return composite_scan(drive.history, bins)
 
 
+def _keyframe(drv: dr.Drive, scan: Scan, g: GlobalConfig) -> None:
+    """A scan with odometry: a keyframe when it is due, else a repeat of the newest one."""
+    o = scan.odom.reading
+    assert o is not None
+    if dr.frame_due(drv.frames, o, drv.travel, g):
+        drv.add(dr.make_frame(drv.next_key, scan.ranges, scan.angles, o, drv.travel, g), g)
+    else:
+        d = scan.odom.delta
+        drv.repeat(scan.odom.step, 0.0 if d is None else float(d[2]), g)
+
+
 def _search_work(
     ctx: Context, drv: dr.Drive, prior: Prior, scan: Scan
 ) -> tuple[float, int, tuple[np.ndarray, np.ndarray, Configuration]]:
@@ -431,10 +442,7 @@ def _search_work(
     P = scan_configuration(rs, as_, ctx.config.extraction())
     frame = None
     if o.reading is not None:
-        if dr.frame_due(drv.frames, o.reading, drv.travel, g):
-            drv.add(
-                dr.make_frame(drv.next_key, scan.ranges, scan.angles, o.reading, drv.travel, g), g
-            )
+        _keyframe(drv, scan, g)
     else:
         frame = dr.make_frame(drv.next_key, scan.ranges, scan.angles, None, drv.travel, g)
         drv.add(frame, g)
@@ -521,7 +529,6 @@ def _searching(ctx: Context, s: Searching, scan: Scan) -> tuple[State, Estimate]
         "work_ms": spent,
     }
     if found >= 0:
-        drv.candidates = found
         extras["search_done"] = 1.0
     if lead is not None:
         extras["lead_checked"] = float(lead.checked)
@@ -536,7 +543,7 @@ def _searching(ctx: Context, s: Searching, scan: Scan) -> tuple[State, Estimate]
         steps = self_similar_steps(ctx.index, lead.hyp, rs, as_, P, ctx.config, tg)
         drv.twin = dr.Job(steps, None if o.reading is None else o.reading.copy(), track=lead)
     ctx.work_ms = spent
-    if lead is not None and verdict.llr >= g.fix_llr and lead.checked and lead.found >= g.min_found:
+    if lead is not None and verdict.llr >= g.fix_llr and lead.checked:
         ctx.work_ms += CONFIRM_MS
         est = _confirm(ctx, drv, lead, scan)
         if est is not None:
@@ -635,10 +642,7 @@ def _probation(ctx: Context, p: Probation, scan: Scan) -> tuple[State, Estimate]
         p.prior = p.prior.moved(o.delta, odometry_noise(o, ctx.config))
         p.winner.pose = est.pose.copy()
         p.left -= o.step
-        if dr.frame_due(drv.frames, o.reading, drv.travel, g):
-            drv.add(
-                dr.make_frame(drv.next_key, scan.ranges, scan.angles, o.reading, drv.travel, g), g
-            )
+        _keyframe(drv, scan, g)
         budget = math.inf if g.search_budget_ms is None else float(g.search_budget_ms)
         frames = dr.window(drv.frames, g)
         ctx.work_ms = dr.backfill(

@@ -188,25 +188,39 @@ def _global_trials(
     return found, wrong, n
 
 
+#: Of these 20 starts, 3 creeping scans (6 cm) do not tell 4 apart from another place, and a
+#: fix there would be a guess: at 2 another room explains the scan within 0.012 of beam cost
+#: (the LLR stays below 2 nats), at 2 more the rivals explain 80 % of the beams (about 3 nats
+#: a scan, 10 after 3 scans; GlobalConfig.fix_llr is 12.5). 16 are fixed, as many with the
+#: laser odometry (a scan that creeps repeats the newest keyframe's evidence).
+CREEP_FOUND_BAR = 0.8
+
+
 def test_global_search_metric_office_random_poses() -> None:
     found, wrong, n = _global_trials(office_metric_map(), 1, 20, seed=2026)
     assert wrong == 0
-    assert found >= 0.95 * n, f"found {found}/{n}"
+    assert found >= CREEP_FOUND_BAR * n, f"found {found}/{n}"
 
 
 def test_global_search_with_laser_odometry_fixes_no_robot_wrongly() -> None:
     """The same starts with the scans' own motion as odometry: the search weighs places over
-    the drive as it does with wheel odometry, so a fix may take more than the 3 scans given
-    (18 of 20 within them when measured), and none is wrong."""
+    the drive as it does with wheel odometry; the creeping scans add no keyframe, each
+    repeats the newest one's evidence, discounted, so the LLR grows scan by scan as it does
+    without odometry, and none is wrong."""
     found, wrong, n = _global_trials(office_metric_map(), 1, 20, seed=2026, laser_odometry=True)
     assert wrong == 0
-    assert found >= 0.85 * n, f"found {found}/{n}"
+    assert found >= CREEP_FOUND_BAR * n, f"found {found}/{n}"
 
 
 def test_global_search_schematic_office_random_poses() -> None:
+    """On the floor plan 3 scans, creeping or turning in place, are weak evidence (the plan
+    holds no furniture, rooms W1 and W4 are congruent within 15 cm): at most 8 nats creeping
+    with a 180-degree laser, 17 looking around, against a fix_llr of 25 that the tuning
+    split set (a false fix at 15). A fix there would be a guess: none of these starts is
+    fixed, nor put on probation, at a wrong place; the robot must drive first
+    (test_look_around_start_fixes_within_five_metres_and_keeps_tracking)."""
     found, wrong, n = _global_trials(office_schematic_map(), 2, 12, seed=2027)
-    assert wrong == 0
-    assert found >= SCHEMATIC_FOUND_BAR * n, f"found {found}/{n}"
+    assert wrong == 0, f"{wrong} of {n} wrong ({found} right)"
 
 
 def test_look_around_metric_office_random_poses() -> None:
@@ -216,18 +230,10 @@ def test_look_around_metric_office_random_poses() -> None:
 
 
 def test_look_around_schematic_office_random_poses() -> None:
+    """Turning 90 degrees in place per scan on the floor plan: no wrong place is fixed (see
+    test_global_search_schematic_office_random_poses)."""
     found, wrong, n = _global_trials(office_schematic_map(), 2, 16, seed=2028, motion="look-around")
-    assert wrong == 0
-    assert found >= LOOK_AROUND_FOUND_BAR * n, f"found {found}/{n}"
-
-
-#: What the schematic map reaches on these seeded subsets (why this floor plan falls short
-#: of the 0.9 asked of floor plans: its rooms
-#: W1 and W4 are congruent within 15 cm). Creeping 3 cm per scan with a 180-degree laser:
-SCHEMATIC_FOUND_BAR = 0.15
-#: Turning 90 degrees in place per scan (the 3 scans fused into one 360-degree view); 7 of
-#: these 16 poses are found:
-LOOK_AROUND_FOUND_BAR = 0.35
+    assert wrong == 0, f"{wrong} of {n} wrong ({found} right)"
 
 
 def test_global_search_ranks_the_true_pose_first_on_a_distinctive_view() -> None:
@@ -329,7 +335,7 @@ def test_kidnapped_robot_goes_lost_and_relocalises(setup: int, stride: int, lase
     3 scans, never ``tracking`` at a wrong pose, then fixed again. In the paper's mode the
     search publishes a fix within 10 scans; with the laser odometry the search weighs the
     places over the drive, and a floor plan's winner is published after its probation's
-    travel (1 m, about 10 scans of setup 2), so the run is longer."""
+    travel (GlobalConfig.probation_travel, 2 m: 20 scans of setup 2), so the run is longer."""
     su = make_setup(setup)
     n = len(su)
     a0, b0 = round(0.1 * (n - 1)), round(0.6 * (n - 1))
@@ -340,7 +346,7 @@ def test_kidnapped_robot_goes_lost_and_relocalises(setup: int, stride: int, lase
         # (a scan the tracker rejects keeps its prior, which may lag a sharp turn)
         assert "rejected" in est.extras or _found(est.pose, su.truth[i])
     statuses = []
-    scans = 30 if laser else 14
+    scans = 35 if laser else 14
     for k, i in enumerate(range(b0, b0 + scans * stride, stride)):
         est = loc.update(*su.scan(i))
         statuses.append(est.status)
@@ -348,7 +354,7 @@ def test_kidnapped_robot_goes_lost_and_relocalises(setup: int, stride: int, lase
             assert _found(est.pose, su.truth[i]), f"scan {k} after the jump: tracking wrongly"
     assert "lost" in statuses[:3], statuses
     first_lost = statuses.index("lost")
-    assert "tracking" in statuses[first_lost : 10 if not laser else 25], statuses
+    assert "tracking" in statuses[first_lost : 10 if not laser else 30], statuses
     assert statuses[-1] == "tracking"
 
 
@@ -394,20 +400,22 @@ def _sim_run(start: float, scans: int) -> list[tuple[str, bool, bool]]:
     return out
 
 
+#: Scans a look-around start may take to a decision on the office's floor plan: the 3-scan
+#: look-around and 5 m of driving. Views in place are weak evidence there (the plan holds no
+#: furniture; rooms W1 and W4 are congruent): 9-15 nats after the look-around, against a
+#: fix_llr of 25 that the tuning split set (a false fix at 15). Measured: the decision at
+#: scan 8 from 0.35, 44 from 0.45; published after the probation's 2 m.
+LOOK_AROUND_START_SCANS = 53
+
+
 @pytest.mark.parametrize("start", [0.35, 0.45])
-def test_look_around_start_fixes_within_four_scans_and_keeps_tracking(start: float) -> None:
-    # 0.45: the fix comes on the 2nd scan and the robot still turns 90 degrees after it, which
-    # the tracker alone cannot follow: the odometry's heading change bridges it. On this
-    # floor plan the winner is tracked on probation until the robot has driven 1 m
-    # (GlobalConfig.probation_travel), then published.
-    # The composite holds all three look-around scans from the third scan on; the decision
-    # may wait one scan more (a winner must be best on two scans): at 0.35 the true place and
-    # a wrong one are within 0.03 on the second scan, and which of them leads there differs
-    # between machines (the last bits of numpy's vector kernels: on x86-64 v3 the fix comes
-    # on the fourth scan, on others on the third).
-    run = _sim_run(start, 40)
+def test_look_around_start_fixes_within_five_metres_and_keeps_tracking(start: float) -> None:
+    # On this floor plan the winner is tracked on probation until the robot has driven 2 m
+    # (GlobalConfig.probation_travel), then published; from the decision on every estimate
+    # names the true place, and once published it stays tracking.
+    run = _sim_run(start, LOOK_AROUND_START_SCANS + 30)
     decided = [s == "tracking" or p for s, _ok, p in run]
-    assert True in decided[:4], run
+    assert True in decided[:LOOK_AROUND_START_SCANS], run
     first = decided.index(True)
     assert all(d and ok for d, (_s, ok, _p) in zip(decided[first:], run[first:], strict=True)), run
     statuses = [s for s, _ok, _p in run]
@@ -484,7 +492,8 @@ def test_dead_reckoning_relocks_near_its_pose_and_a_kidnap_never_does() -> None:
     """A robot dead-reckoning (the map did not explain its scans) publishes the dead-reckoned
     pose with status lost; once the map explains relock_scans scans in a row near it, it
     tracks again. Scans from elsewhere (a kidnap) never relock: they contradict the pose, and
-    the robot searches with the dead-reckoned pose as its prior."""
+    the robot searches with the dead-reckoned pose as its prior; it tracks again only where
+    the scans were taken (the search's fix, at 25 nats on the fifth scan when measured)."""
     from service.core.pose import compose
 
     poses = [np.array([2.0 + 0.08 * k, 2.4, 0.2]) for k in range(8)]
@@ -510,8 +519,12 @@ def test_dead_reckoning_relocks_near_its_pose_and_a_kidnap_never_does() -> None:
     loc2.update(scans[0], ang, odom[0])
     loc2.state = st.DeadReckoning(poses[0].copy(), np.diag([0.05**2, 0.05**2, 0.02**2]))
     out2 = [loc2.update(kid[k], ang, odom[k + 1]) for k in range(6)]
-    assert all(e.status == "lost" for e in out2), [e.status for e in out2]
-    assert out2[-1].state == "searching"
+    states = [e.state for e in out2]
+    assert "searching" in states, states
+    first = states.index("searching")
+    assert all(e.status == "lost" for e in out2[: first + 1]), states
+    for e in out2[first:]:  # lost, or fixed where the scans come from, never near the DR pose
+        assert e.status == "lost" or _found(e.pose, far[0]), (states, e.pose)
 
 
 def test_speed_known_before_a_loss_is_carried_to_the_fix() -> None:
