@@ -57,7 +57,10 @@ class GlobalConfig(Settings):
         0.9,
         gt=0,
         le=1,
-        description="Share of enclosure beams that must hit: a viewpoint is inside the building.",
+        description="Share of enclosure beams that must hit: a viewpoint is inside the building. "
+        "Schematic: 0.6 (a plan draws doors open and leaves out walls: at 0.9 a third of the "
+        "tuning logs' reference paths lay over 0.52 m from a viewpoint, fr079 34 %, intel 38 "
+        "%, where the search induces no pose; at 0.6 1.4 % and 2.6 %).",
     )
     small_ring_area: float = Field(
         6.0,
@@ -396,6 +399,7 @@ class GlobalConfig(Settings):
                 violation_margin=0.5,
                 evidence_short_scale=1.0,
                 probation_travel=2.0,
+                min_enclosed=0.6,
                 good_support=0.5,
                 min_found=2,
                 null_cost=0.7,
