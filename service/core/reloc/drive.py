@@ -478,8 +478,8 @@ def prune(
     leader: Track | None,
     g: GlobalConfig,
 ) -> list[Track]:
-    """The tracks to keep: a track trailing the ``leader`` by ``evidence_drop`` nats per
-    frame, or the unseen place as much, on at least 3 common frames of ``keys`` goes; of the
+    """The tracks to keep: a track trailing the ``leader`` by ``evidence_drop`` nats in all,
+    or the unseen place as much, on at least 3 common frames of ``keys`` goes; of the
     rest the best ``keep`` judged on every frame of the window ``frames`` and ``keep`` still
     being judged, one per place."""
     null = -EFFECTIVE_BEAMS * (g.null_cost - g.cost_floor)
@@ -488,12 +488,12 @@ def prune(
         mine = [t.ll[k] / w for k, w in keys.items() if k in t.ll]
         if len(mine) < 3:
             return False
-        if sum(mine) / len(mine) < null - g.evidence_drop:
+        if sum(mine) < len(mine) * null - g.evidence_drop:
             return True
         if leader is None or t is leader:
             return False
         a, b, m = common(leader, t, keys)
-        return m >= 3 and (a - b) / m > g.evidence_drop
+        return m >= 3 and a - b > g.evidence_drop
 
     live = [t for t in tracks if not dropped(t)]
     win = judged(frames)
