@@ -58,9 +58,8 @@ class GlobalConfig(Settings):
         gt=0,
         le=1,
         description="Share of enclosure beams that must hit: a viewpoint is inside the building. "
-        "Schematic: 0.6 (a plan draws doors open and leaves out walls: at 0.9 a third of the "
-        "tuning logs' reference paths lay over 0.52 m from a viewpoint, fr079 34 %, intel 38 "
-        "%, where the search induces no pose; at 0.6 1.4 % and 2.6 %).",
+        "Schematic: 0.6 (plans draw doors open: at 0.9 fr079 / intel paths lay 34 / 38 % over "
+        "0.52 m from a viewpoint, where the search induces no pose; at 0.6 1.4 / 2.6 %).",
     )
     small_ring_area: float = Field(
         6.0,
