@@ -478,6 +478,13 @@ def merge(
     return out
 
 
+def common(a: Track, b: Track, keys: dict[int, float]) -> tuple[float, float, int]:
+    """The summed log-likelihoods of ``a`` and of ``b`` over the frames of ``keys`` both were
+    scored on, and how many those are."""
+    both = [k for k in keys if k in a.ll and k in b.ll]
+    return sum(a.ll[k] for k in both), sum(b.ll[k] for k in both), len(both)
+
+
 def prune(
     tracks: list[Track],
     frames: list[Frame],
@@ -485,8 +492,8 @@ def prune(
     leader: Track | None,
     g: GlobalConfig,
 ) -> list[Track]:
-    """The tracks to keep: a track trailing the ``leader`` by ``evidence_drop`` nats per
-    frame, or the unseen place as much, on at least 3 common frames of ``keys`` goes; of the
+    """The tracks to keep: a track trailing the ``leader`` by ``evidence_drop`` nats in all,
+    or the unseen place as much, on at least 3 common frames of ``keys`` goes; of the
     rest the best ``keep`` judged on every frame of the window ``frames`` and ``keep`` still
     being judged, one per place."""
     null = -EFFECTIVE_BEAMS * (g.null_cost - g.cost_floor)
@@ -495,13 +502,12 @@ def prune(
         mine = [t.ll[k] for k in keys if k in t.ll]
         if len(mine) < 3:
             return False
-        if sum(mine) / len(mine) < null - g.evidence_drop:
+        if sum(mine) < len(mine) * null - g.evidence_drop:
             return True
         if leader is None or t is leader:
             return False
-        both = [k for k in keys if k in leader.ll and k in t.ll]
-        gap = sum(leader.ll[k] - t.ll[k] for k in both)
-        return len(both) >= 3 and gap / len(both) > g.evidence_drop
+        a, b, m = common(leader, t, keys)
+        return m >= 3 and a - b > g.evidence_drop
 
     live = [t for t in tracks if not dropped(t)]
     win = judged(frames)

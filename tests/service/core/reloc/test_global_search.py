@@ -45,10 +45,11 @@ def test_ranking_the_shortlist_by_violations_finds_the_true_pose_in_a_furnished_
     """fr079 scans 4361-4510 (every 5th with a reference), the east end of the floor plan,
     where the plan shows less than half of what the laser sees. Ranked by point support
     alone, places whose walls the furniture happens to fit fill the shortlist and one search
-    finds the true pose (0.5 m / 10 deg) among its hypotheses on 3 of 29 scans; those places
+    finds the true pose (0.5 m / 10 deg) among its hypotheses on 5 of 29 scans; those places
     let a third or more of their beams through drawn walls, the true pose hardly any, and
     ranked by support less that share (``shortlist_violation_beams``, the floor-plan default)
-    it is found on 11 (measured)."""
+    it is found on 15 (measured; 3 and 11 with viewpoints only where 90 % of the enclosure
+    rays hit)."""
     md = load_map_file(DATA / "fr079.schematic.geojson", kind="schematic")
     z = np.load(DATA / "fr079.4361-4510.npz")
     cfg = ShapeConfig.for_kind("schematic")
@@ -70,5 +71,5 @@ def test_ranking_the_shortlist_by_violations_finds_the_true_pose_in_a_furnished_
             )
         found[beams] = hits
     assert len(scans) == 29
-    assert found[0] <= 4, found
-    assert found[default.shortlist_violation_beams] >= 9, found
+    assert found[0] <= 6, found
+    assert found[default.shortlist_violation_beams] >= 12, found
