@@ -4,7 +4,9 @@ N simulated robots (default 50) on one service, at each rate (default 5 and 10 s
 per robot) three rows back to back: without the view, with it open, without it again. "Open"
 is a real ``shapeloc view`` process subscribed to the service and Debian's ``chromium``
 (headless, :mod:`clients.view.headless`) showing its page, which draws every robot with its
-scan. Each row is one row of the service
+scan. ``--modes`` sets the rows (``without``, ``with``, and ``server``: the view process with
+no browser, as when the page is looked at from another machine); ``--frame-rate`` the view's
+frames per second. Each row is one row of the service
 scale benchmark, with its harness (``scale_row.run_row``: configure the robots, prime each
 with a scan, publish every robot's scans from a separate process on schedule, receive the
 poses, summarise; ``scale_walks`` / ``scale_load`` for the walks, sessions and CPU): the
@@ -146,11 +148,17 @@ class PageWatch(threading.Thread):
         }
 
 
-def start_view(endpoint: str, log: Path) -> tuple[subprocess.Popen[bytes], str]:
-    """``python -m clients.view`` on a free port; returns the process and the page's URL."""
+def start_view(
+    endpoint: str, log: Path, frame_rate: float | None = None
+) -> tuple[subprocess.Popen[bytes], str]:
+    """``python -m clients.view`` on a free port (``frame_rate``: its ``--frame-rate``);
+    returns the process and the page's URL."""
+    cmd = [sys.executable, "-m", "clients.view", "--connect", endpoint, "--port", "0"]
+    if frame_rate is not None:
+        cmd += ["--frame-rate", f"{frame_rate:g}"]
     with open(log, "wb") as f:
         proc = subprocess.Popen(
-            [sys.executable, "-m", "clients.view", "--connect", endpoint, "--port", "0"],
+            cmd,
             cwd=REPO,
             stdout=f,
             stderr=subprocess.STDOUT,
@@ -199,7 +207,8 @@ def run_rows(args: argparse.Namespace, tmp: Path) -> list[dict[str, Any]]:
         session = zenoh.open(client_config(endpoint))
         with session:
             session.put(f"{P}/maps/{pool.map_id}", encode(pool.map_msg), encoding=MSGPACK)
-            while (h := health(session)) is None or h.maps < 1:
+            # the map's acknowledgement: its first-use work is over before the first row
+            while (h := health(session)) is None or pool.map_id not in (h.maps_ready or []):
                 time.sleep(0.2)
             rec = Receiver(session)
             ctx = Context(session=session, endpoint=endpoint, rec=rec, svc_pid=svc.pid,
@@ -209,12 +218,14 @@ def run_rows(args: argparse.Namespace, tmp: Path) -> list[dict[str, Any]]:
             plan = [
                 (RowSpec(args.world, args.map, args.robots, rate), mode)
                 for rate in args.rate
-                for mode in ("without", "with", "without")
+                for mode in args.modes
             ]
             for i, (spec, mode) in enumerate(plan):
                 view = watch = None
+                if mode in ("with", "server"):
+                    view, url = start_view(endpoint, tmp / f"view-{i}.log", args.frame_rate)
                 if mode == "with":
-                    view, url = start_view(endpoint, tmp / f"view-{i}.log")
+                    assert view is not None
                     watch = PageWatch(url, view.pid, args.robots)
                     watch.start()
                     watch.ready.wait(90)
@@ -357,8 +368,18 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--duration", type=float, default=20.0, help="seconds per row")
     ap.add_argument("--warmup", type=float, default=2.0)
     ap.add_argument("--stride", type=int, default=5)
+    ap.add_argument(
+        "--modes",
+        type=lambda t: [v.strip() for v in t.split(",") if v.strip()],
+        default=["without", "with", "without"],
+        help="the rows at each rate: without, with (the view and a browser on its page), "
+        "server (the view alone)",
+    )
+    ap.add_argument("--frame-rate", type=float, default=None, help="the view's frames per second")
     ap.add_argument("--out", type=Path, default=None, help="write the markdown report here")
     args = ap.parse_args(argv)
+    if not set(args.modes) <= {"without", "with", "server"}:
+        ap.error(f"--modes: unknown mode in {args.modes}")
     if find_chromium() is None:
         print("bench_view: skipped, no chromium (Debian: apt-get install chromium)")
         return 0
