@@ -17,7 +17,9 @@ priority (nice 10, :data:`clients.view.DEFAULT_NICE`) and chromium through
 :mod:`clients.view.headless` (nice 10, unable to raise its threads' priority); the service
 and the robots' load generator at normal priority.
 
-While the view is open, a thread polls the page every 0.5 s: its frame counter (updates
+A row with the browser starts once the page has drawn for ``BROWSER_SETTLE_S`` (the browser's
+own start-up is not the view's cost). While the view is open, a thread polls the page every
+0.5 s: its frame counter (updates
 drawn per second = draws with new data over time, only while the page holds all N robots
 with poses younger than 1 s), its own last-2-s rate (the minimum is reported) and the CPU of
 the view process and of the browser (all its processes), in % of one core. The acceptance
@@ -66,6 +68,10 @@ from schemas.codec import encode
 
 ACCEPT_RATE = 5.0
 ACCEPT_P99_ADDS_MS = 5.0
+#: Seconds the page draws before a row with it starts. A freshly launched chromium works
+#: for seconds beyond its first frames; measured from its first frames, the first row with
+#: the view of a run answered 84 % of the scans at p99 366 ms, the next one 100 % at 23 ms.
+BROWSER_SETTLE_S = 8.0
 HEAD = (
     "view",
     "N",
@@ -107,6 +113,9 @@ class PageWatch(threading.Thread):
             page = await browser.new_page()
             await page.navigate(self.url, 1400, 900)
             await page.wait_for("window.shapelocView && window.shapelocView.frames > 5", 60)
+            # the browser's own start-up (profile, fonts, its helper processes) is not the
+            # view's cost: the row starts once the page has been drawing for a while
+            await asyncio.sleep(BROWSER_SETTLE_S)
             self.ready.set()
             # fresh: robots whose pose at the page is younger than 1 s (frames are deltas:
             # the page's own model knows every robot's age, the last frame only the changed)
