@@ -33,8 +33,9 @@ replaced unprocessed); *off* = answered poses more than 0.1 m from the scan's tr
 the map's frame, a floor plan's scale error included); *wrong* = beyond 0.5 m or 10 deg;
 *not tracking* = poses whose status is not ``tracking``; *CPU per scan* = the service's own
 accounting (``Health.scan_cpu_ms``: its threads plus the worker, p50/p99 over the run's last
-4096 scans) and the whole service (process, workers, Zenoh's threads, the search worker
-building the view index in the background) from /proc divided by the poses answered. The
+4096 scans) and the whole service (process, workers, Zenoh's threads, the search worker;
+the map's view index is built before the map is ready, so before the run) from /proc divided
+by the poses answered. The
 load generator (publisher and receiver processes) shares the machine's cores with the
 service; the 1-minute load average is given per run.
 
@@ -271,8 +272,8 @@ def report(meta: dict[str, Any], cold: list, line: list, curve: list) -> str:
         "service process's threads for the scan -- decoding, validation, scheduling, the "
         "pose -- plus its worker's localisation; p50 / p99 over the run's last 4096 scans); "
         "*whole* is the CPU of the service process and all its workers (Zenoh's threads and "
-        "the search worker building the map's view index in the background included) from "
-        "/proc over the run, per answered pose.",
+        "the search worker included; the map's view index is built before the map is ready) "
+        "from /proc over the run, per answered pose.",
         "",
     ]
     return "\n".join(out)
