@@ -86,9 +86,8 @@ def machine_probe_ms(repeats: int = 3) -> float:
     """Wall milliseconds of a fixed CPU workload (a Python loop and a numpy sort, one thread;
     the fastest of ``repeats``): how much CPU this machine gives right now. On the project's
     2-vCPU machine it is ~12 ms when quiet (27 ms beside two busy processes); a timing
-    benchmark reports it beside each run,
-    because the same commit's latencies there move with it (another tenant of the host, or
-    other work on the machine)."""
+    benchmark reports it beside each run, because the same commit's latencies there move
+    with it (another tenant of the host, or other work on the machine)."""
     import numpy as np
 
     data = np.random.default_rng(0).random(200_000)
