@@ -39,7 +39,7 @@ class Readiness:
         self.indexing = indexing
         self._lock = threading.Lock()
         self._version: dict[str, int] = {}
-        self._ready: set[str] = set()
+        self._prepared: set[str] = set()
         self._indexed: set[str] = set()
         #: maps whose index build is over, built or failed (their readiness no longer waits)
         self._index_done: set[str] = set()
@@ -51,7 +51,7 @@ class Readiness:
         with self._lock:
             self._next += 1
             self._version[map_id] = self._next
-            self._ready.discard(map_id)
+            self._prepared.discard(map_id)
             self._indexed.discard(map_id)
             self._index_done.discard(map_id)
             return self._next
@@ -60,7 +60,7 @@ class Readiness:
         """``map_id`` was deleted."""
         with self._lock:
             self._version.pop(map_id, None)
-            self._ready.discard(map_id)
+            self._prepared.discard(map_id)
             self._indexed.discard(map_id)
             self._index_done.discard(map_id)
 
@@ -68,7 +68,7 @@ class Readiness:
         """Every tracking worker holds version ``version`` of ``map_id`` prepared."""
         with self._lock:
             if self._version.get(map_id) == version:
-                self._ready.add(map_id)
+                self._prepared.add(map_id)
 
     def indexed(self, map_id: str, version: int, built: bool = True) -> None:
         """The index build of version ``version`` of ``map_id`` is over: built, or failed
@@ -88,7 +88,7 @@ class Readiness:
         """``(service ready, ready map ids, indexed map ids or None)``, ids sorted."""
         with self._lock:
             warm = all(f.done() for f in self._warm)
-            done = self._ready & self._index_done if self.indexing else self._ready
+            done = self._prepared & self._index_done if self.indexing else self._prepared
             ready = sorted(done)
             indexed = sorted(self._indexed) if self.indexing else None
             every = set(self._version) <= done
