@@ -60,7 +60,7 @@ from pathlib import Path
 from typing import Any
 
 from bench.fleet_run import FleetSpec, run_fleet
-from bench.harness import machine_probe_ms
+from bench.harness import exit_on_sigterm, machine_probe_ms
 from bench.scale_report import git_commit
 from bench.scale_walks import Pool, make_pool, world_name
 
@@ -311,6 +311,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     """Run the parts; 0, or 2 if an acceptance line fails."""
     args = build_parser().parse_args(argv)
+    exit_on_sigterm()
     pools = Pools(args.stride)
     workers = args.workers if args.workers is not None else (os.cpu_count() or 1)
     cold: list[dict[str, Any]] = []

@@ -52,7 +52,14 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from bench.harness import REPO, client_config, free_endpoint, start_service, wait_ready
+from bench.harness import (
+    REPO,
+    client_config,
+    exit_on_sigterm,
+    free_endpoint,
+    start_service,
+    wait_ready,
+)
 from bench.scale_load import (
     MSGPACK,
     P,
@@ -387,6 +394,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--frame-rate", type=float, default=None, help="the view's frames per second")
     ap.add_argument("--out", type=Path, default=None, help="write the markdown report here")
     args = ap.parse_args(argv)
+    exit_on_sigterm()
     if not set(args.modes) <= {"without", "with", "server"}:
         ap.error(f"--modes: unknown mode in {args.modes}")
     if find_chromium() is None:

@@ -82,6 +82,17 @@ def get_health(
     return None
 
 
+def exit_on_sigterm() -> None:
+    """Make SIGTERM end this process the way Ctrl-C does (``SystemExit`` in the main thread),
+    so that the ``finally`` blocks which stop the services a benchmark started still run; by
+    default a SIGTERM ends the process at once and leaves them running."""
+
+    def stop(signum: int, _frame: object) -> None:
+        raise SystemExit(128 + signum)
+
+    signal.signal(signal.SIGTERM, stop)
+
+
 def machine_probe_ms(repeats: int = 3) -> float:
     """Wall milliseconds of a fixed CPU workload (a Python loop and a numpy sort, one thread;
     the fastest of ``repeats``): how much CPU this machine gives right now. On the project's
