@@ -33,10 +33,13 @@ replaced unprocessed); *off* = answered poses more than 0.1 m from the scan's tr
 the map's frame, a floor plan's scale error included); *wrong* = beyond 0.5 m or 10 deg;
 *not tracking* = poses whose status is not ``tracking``; *CPU per scan* = the service's own
 accounting (``Health.scan_cpu_ms``: its threads plus the worker, p50/p99 over the run's last
-4096 scans) and the whole service (process, workers, Zenoh's threads, the search worker
-building the view index in the background) from /proc divided by the poses answered. The
+4096 scans) and the whole service (process, workers, Zenoh's threads, the search worker;
+the map's view index is built before the map is ready, so before the run) from /proc divided
+by the poses answered. The
 load generator (publisher and receiver processes) shares the machine's cores with the
-service; the 1-minute load average is given per run.
+service; the 1-minute load average is given per run, and *probe*: the wall time of a fixed
+CPU workload just before the run (:func:`bench.harness.machine_probe_ms`), which tells how
+much CPU the machine gave then (on a virtual machine the host's other tenants change it).
 
 Usage: ``python -m bench.bench_fleet --acceptance --out docs/results/fleet.md``, or e.g.
 ``python -m bench.bench_fleet --cold --robots 20 --reps 3`` or ``python -m bench.bench_fleet
@@ -57,6 +60,7 @@ from pathlib import Path
 from typing import Any
 
 from bench.fleet_run import FleetSpec, run_fleet
+from bench.harness import exit_on_sigterm, machine_probe_ms
 from bench.scale_report import git_commit
 from bench.scale_walks import Pool, make_pool, world_name
 
@@ -135,8 +139,10 @@ def line_ok(r: dict[str, Any]) -> bool:
 
 
 def _run(spec: FleetSpec, pools: Pools, rep: int) -> dict[str, Any]:
-    r = run_fleet(spec, pools.get(spec.world, spec.map_kind), rep)
-    r.update(world=spec.world, map=spec.map_kind, rate=spec.rate)
+    pool = pools.get(spec.world, spec.map_kind)
+    probe = machine_probe_ms()
+    r = run_fleet(spec, pool, rep)
+    r.update(world=spec.world, map=spec.map_kind, rate=spec.rate, probe_ms=probe)
     cpu = r.get("scan_cpu_ms") or {}
     print(
         f"{world_name(spec.world)} {spec.map_kind} N={spec.n} run {rep}: answered "
@@ -145,7 +151,7 @@ def _run(spec: FleetSpec, pools: Pools, rep: int) -> dict[str, Any]:
         f"{r['off']} (max {_f(r['err_max'], '.3f')} m), not tracking {r['not_tracking']}, CPU/scan "
         f"p50 {_f(cpu.get('p50', math.nan), '.2f')} p99 {_f(cpu.get('p99', math.nan), '.2f')} "
         f"ms, whole {_f(r['cpu_ms_per_pose'], '.2f')} ms, ready {r['ready_s']:.1f} s, load "
-        f"{r['load_after']:.2f}",
+        f"{r['load_after']:.2f}, probe {probe:.1f} ms",
         flush=True,
     )
     return r
@@ -153,11 +159,11 @@ def _run(spec: FleetSpec, pools: Pools, rep: int) -> dict[str, Any]:
 
 COLD_HEAD = (
     "run", "world", "answered mean / worst", "first scan max / p50 ms", "p50 ms", "p99 ms",
-    "max ms", "off > 0.1 m", "not tracking", "skipped", "ready s", "load", "ok",
+    "max ms", "off > 0.1 m", "not tracking", "skipped", "ready s", "load", "probe ms", "ok",
 )  # fmt: skip
 CURVE_HEAD = (
     "world", "map", "N", "answered mean / worst", "p50 ms", "p99 ms", "off > 0.1 m", "wrong",
-    "CPU/scan p50 / p99 ms", "whole CPU/scan ms", "svc CPU %", "load", "line",
+    "CPU/scan p50 / p99 ms", "whole CPU/scan ms", "svc CPU %", "load", "probe ms", "line",
 )  # fmt: skip
 
 
@@ -175,6 +181,7 @@ def cold_cells(r: dict[str, Any]) -> list[str]:
         str(r["skipped"]),
         f"{r['ready_s']:.1f}",
         f"{r['load_after']:.2f}",
+        _f(r.get("probe_ms", math.nan)),
         "yes" if cold_ok(r) else "**no**",
     ]
 
@@ -194,6 +201,7 @@ def curve_cells(r: dict[str, Any]) -> list[str]:
         _f(r["cpu_ms_per_pose"], ".2f"),
         _f(r["svc_cpu_pct"], ".0f"),
         f"{r['load_after']:.2f}",
+        _f(r.get("probe_ms", math.nan)),
         "yes" if line_ok(r) else "no",
     ]
 
@@ -224,7 +232,10 @@ def report(meta: dict[str, Any], cold: list, line: list, curve: list) -> str:
         f"Service: method `shape`, {meta['workers']} tracking workers (+ the search worker), "
         f"odometry on every scan, {meta['rate']:g} Hz per robot, all robots in the same "
         f"instant, {meta['duration']:g} s per run; every run on a fresh service and a fresh "
-        "map (cold start, nothing primed or left out). The load generator shares the cores.",
+        "map (cold start, nothing primed or left out). The load generator shares the cores. "
+        "*probe ms*: the wall time of a fixed CPU workload just before each run "
+        "(`bench.harness.machine_probe_ms`), how much CPU the machine gave then; the same "
+        "commit's latencies move with it.",
         "",
     ]
     if meta.get("note"):
@@ -271,8 +282,8 @@ def report(meta: dict[str, Any], cold: list, line: list, curve: list) -> str:
         "service process's threads for the scan -- decoding, validation, scheduling, the "
         "pose -- plus its worker's localisation; p50 / p99 over the run's last 4096 scans); "
         "*whole* is the CPU of the service process and all its workers (Zenoh's threads and "
-        "the search worker building the map's view index in the background included) from "
-        "/proc over the run, per answered pose.",
+        "the search worker included; the map's view index is built before the map is ready) "
+        "from /proc over the run, per answered pose.",
         "",
     ]
     return "\n".join(out)
@@ -300,6 +311,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     """Run the parts; 0, or 2 if an acceptance line fails."""
     args = build_parser().parse_args(argv)
+    exit_on_sigterm()
     pools = Pools(args.stride)
     workers = args.workers if args.workers is not None else (os.cpu_count() or 1)
     cold: list[dict[str, Any]] = []

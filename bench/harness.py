@@ -82,6 +82,37 @@ def get_health(
     return None
 
 
+def exit_on_sigterm() -> None:
+    """Make SIGTERM end this process the way Ctrl-C does (``SystemExit`` in the main thread),
+    so that the ``finally`` blocks which stop the services a benchmark started still run; by
+    default a SIGTERM ends the process at once and leaves them running."""
+
+    def stop(signum: int, _frame: object) -> None:
+        raise SystemExit(128 + signum)
+
+    signal.signal(signal.SIGTERM, stop)
+
+
+def machine_probe_ms(repeats: int = 3) -> float:
+    """Wall milliseconds of a fixed CPU workload (a Python loop and a numpy sort, one thread;
+    the fastest of ``repeats``): how much CPU this machine gives right now. On the project's
+    2-vCPU machine it is ~12 ms when quiet (27 ms beside two busy processes); a timing
+    benchmark reports it beside each run, because the same commit's latencies there move
+    with it (another tenant of the host, or other work on the machine)."""
+    import numpy as np
+
+    data = np.random.default_rng(0).random(200_000)
+    best = float("inf")
+    for _ in range(max(1, repeats)):
+        t0 = time.perf_counter()
+        acc = 0.0
+        for k in range(100_000):
+            acc += (k % 7) * 0.5
+        np.sort(data)
+        best = min(best, time.perf_counter() - t0)
+    return 1000.0 * best
+
+
 def project_env() -> dict[str, str]:
     """This process's environment with the repository first on ``PYTHONPATH`` and without
     ``RUST_LOG`` (Zenoh's log level), for child processes of the project."""

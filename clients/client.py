@@ -256,11 +256,10 @@ class ShapelocClient:
 
     def wait_map_ready(self, map_id: str, within: float, indexed: bool = False) -> Health:
         """Poll :meth:`health` until the service lists ``map_id`` in ``Health.maps_ready``
-        (every worker holds the map prepared: robots with an initial pose are localised at
-        full speed from their first scan) or, with ``indexed``, in ``Health.maps_indexed``
-        too (the view index of global localisation is built: robots without an initial pose
-        start searching at once). A service that does not report readiness (no
-        ``maps_ready``) counts as ready once it holds the map. Raises
+        (the map's first-use work is done: robots are localised at full speed from their
+        first scan) or, with ``indexed``, in ``Health.maps_indexed`` too (its view index of
+        global localisation was built, not only attempted). A service that does not report
+        readiness (no ``maps_ready``) counts as ready once it holds the map. Raises
         :class:`ServiceTimeout` after ``within`` seconds. Returns the last health."""
         end = time.monotonic() + within
         while True:

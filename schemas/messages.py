@@ -497,11 +497,11 @@ class Health(WireModel):
     ``maps_indexed`` and ``scan_cpu_ms`` are project additions.
 
     What to wait for before robots start: a map put is acknowledged by its id in
-    ``maps_ready`` (the client library: ``put_map(..., ready=True)``). Robots configured on a
-    ready map with an initial pose are localised at full speed from their first scan; before
-    that their first scans may wait (the service prepares the map on every worker first) and,
-    under latest-wins, be replaced unprocessed. Robots without an initial pose (global
-    localisation) also find the map's view index built once the map is in ``maps_indexed``.
+    ``maps_ready`` (the client library: ``put_map(..., ready=True)``), once all of the map's
+    first-use work is done (prepared on every worker, view index of global localisation
+    built). Robots configured on a ready map are localised at full speed from their first
+    scan, with or without an initial pose; before that they are served, but their first
+    scans may wait and share the cores with the map's preparation.
     """
 
     schema_name: ClassVar[str] = "health"
@@ -545,21 +545,23 @@ class Health(WireModel):
     maps_ready: _IDENT_LIST = Field(
         default=None,
         description=(
-            "Project addition: ids of the stored maps every tracking worker holds prepared "
-            "(map model, ray caster, a synthetic scan localised on it). The acknowledgement of "
-            "a map put: robots with an initial pose on such a map are localised at full "
-            "speed from their first scan. A map put again leaves this list until the new "
-            "version is prepared (tens of milliseconds per worker once warm)."
+            "Project addition: ids of the stored maps whose first-use work is done: every "
+            "tracking worker holds the map prepared (map model, ray caster, a synthetic scan "
+            "localised on it) and, with a search worker, its view index is built (or its "
+            "build failed). The acknowledgement of a map put: robots on such a map are "
+            "localised at full speed from their first scan. A map put again leaves this "
+            "list until the new version is ready (a second for an office, ~10 s of CPU for "
+            "a large building the first time it is stored; a stored map's index is cached)."
         ),
     )
     maps_indexed: _IDENT_LIST = Field(
         default=None,
         description=(
             "Project addition: ids of the stored maps whose view index of global "
-            "localisation is built (by the search worker, after the map is ready; seconds "
-            "to tens of seconds for a large map): robots without an initial pose start their "
-            "search without waiting for it. Absent when the service has no search worker "
-            "(the first search then builds the index)."
+            "localisation is built (by the search worker, right after the map is stored): "
+            "robots without an initial pose start their search without waiting for it. A "
+            "map whose index build failed is ready but not listed here. Absent when the "
+            "service has no search worker (the first search then builds the index)."
         ),
     )
     scan_cpu_ms: _MS_STATS = Field(

@@ -236,14 +236,15 @@ class ControlPlane:
         t0 = time.monotonic()
         self._broadcast(("map", md))  # every worker stores it, the tracking ones prepare it
         self.readiness.prepared(map_id, version)
-        log.info("map %s ready (prepared in %.2f s)", map_id, time.monotonic() - t0)
+        log.info("map %s prepared on every worker (%.2f s)", map_id, time.monotonic() - t0)
         self.build_index(map_id, version)
 
     def build_index(self, map_id: str, version: int) -> None:
         """Have the search worker build version ``version`` of the map's view index of global
         localisation into the on-disk cache (asynchronously: the control thread goes on);
-        ``maps_indexed`` lists the map once it is built. Without a search worker the first
-        search builds it."""
+        ``maps_indexed`` lists the map once it is built, and ``maps_ready`` once it is also
+        prepared (:mod:`service.node.readiness`). Without a search worker the first search
+        builds it."""
         link = self.search_link
         if link is None:
             return
@@ -257,6 +258,8 @@ class ControlPlane:
                 self.readiness.indexed(map_id, version)
                 log.info("map %s: view index of global localisation ready (%.1f s)", map_id, out)
             else:
+                # ready without it: a map that cannot be indexed still tracks robots
+                self.readiness.indexed(map_id, version, built=False)
                 log.warning(
                     "map %s: view index not built ahead (%s); built by the first search",
                     map_id,

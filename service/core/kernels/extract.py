@@ -9,7 +9,10 @@ conventions of :mod:`service.core.kernels`).
   caller, :func:`service.core.shapes.configuration._features_from_ranges`, keeps the per-group loop
   as the reference (and for numpy without numba);
 - :func:`nearest_segment`: the map segment each point of a map view hit, for
-  :func:`service.core.shapes.configuration._hit_segments`.
+  :func:`service.core.shapes.configuration._hit_segments`;
+- :func:`group_spans`: the grouping of a scan (§4.1) with its size filters, as index spans,
+  for :func:`service.core.shapes.polylines.group_spans` (whose reference is
+  :func:`service.core.shapes.polylines.group_polylines`).
 """
 
 from __future__ import annotations
@@ -172,6 +175,47 @@ def nearest_segment(points: np.ndarray, segments: np.ndarray) -> np.ndarray:
     return out
 
 
+@njit(cache=True, nogil=True)
+def group_spans(
+    r: np.ndarray,
+    a: np.ndarray,
+    pts: np.ndarray,
+    min_object_distance: float,
+    range_factor: float,
+    min_points: int,
+    min_length: float,
+) -> np.ndarray:
+    """Kernel of :func:`service.core.polylines.group_spans`: ``(k, 2)`` first and last beam
+    (inclusive) of each group of at least ``min_points`` points and ``min_length`` metres, in
+    beam order. Beams ``i`` and ``i + 1`` join as in
+    :func:`service.core.polylines.group_polylines` (same expressions; the length is summed
+    edge by edge, where the reference's numpy sum adds pairwise: they differ in the last bits)."""
+    n = r.shape[0]
+    out = np.empty((n, 2), dtype=np.intp)
+    k = 0
+    i = 0
+    while i < n:
+        if np.isnan(r[i]):
+            i += 1
+            continue
+        s = i
+        length = 0.0
+        while i + 1 < n and not np.isnan(r[i + 1]):
+            dth = abs((a[i + 1] - a[i] + np.pi) % (2.0 * np.pi) - np.pi)
+            thr = max(min_object_distance, range_factor * min(r[i], r[i + 1]) * dth)
+            d = np.hypot(pts[i + 1, 0] - pts[i, 0], pts[i + 1, 1] - pts[i, 1])
+            if not d < thr:
+                break
+            length += d
+            i += 1
+        if i - s + 1 >= min_points and length >= min_length:
+            out[k, 0] = s
+            out[k, 1] = i
+            k += 1
+        i += 1
+    return out[:k].copy()
+
+
 def warm_up() -> None:
     """Compile (or load) this module's kernels on tiny inputs."""
     p = np.array([[0.0, 0.0], [1.0, 0.1], [2.0, 0.0], [2.0, 1.0]])
@@ -179,3 +223,5 @@ def warm_up() -> None:
     split_cuts(np.array([0, 3], dtype=np.intp), p, 1.5)
     simplify_groups(p, np.array([0, 4], dtype=np.intp), 0.04, 1.5)
     nearest_segment(p, segs)
+    r = np.hypot(p[:, 0], p[:, 1])
+    group_spans(r, np.arctan2(p[:, 1], p[:, 0]), p, 0.1, 4.0, 2, 0.0)

@@ -314,3 +314,38 @@ def refine_iterations(
     H[2, 0] = H[0, 2]
     H[2, 1] = H[1, 2]
     return pose, H, res, it
+
+
+@njit(cache=True, nogil=True)
+def scan_normals(
+    points: np.ndarray, max_gap: float, gap_factor: float, cut: np.ndarray
+) -> np.ndarray:
+    """Kernel of :func:`service.core.refine.scan_normals` (same expressions): ``cut[i]``
+    true where a new polyline begins at row ``i``."""
+    n = points.shape[0]
+    out = np.full((n, 2), np.nan)
+    if n < 2:
+        return out
+    for i in range(n):
+        lim = max_gap + gap_factor * np.hypot(points[i, 0], points[i, 1])
+        prev_ok = (
+            i > 0
+            and not cut[i]
+            and np.hypot(points[i, 0] - points[i - 1, 0], points[i, 1] - points[i - 1, 1]) <= lim
+        )
+        next_ok = (
+            i < n - 1
+            and not cut[i + 1]
+            and np.hypot(points[i + 1, 0] - points[i, 0], points[i + 1, 1] - points[i, 1]) <= lim
+        )
+        if not (prev_ok or next_ok):
+            continue
+        j0 = i - 1 if prev_ok else i
+        j1 = i + 1 if next_ok else i
+        tx = points[j1, 0] - points[j0, 0]
+        ty = points[j1, 1] - points[j0, 1]
+        tn = np.hypot(tx, ty)
+        if tn > 1e-9:
+            out[i, 0] = -ty / tn
+            out[i, 1] = tx / tn
+    return out

@@ -34,23 +34,45 @@ def _nearest(
     my: float,
     cos_gate: float,
 ) -> int:
-    """Index of the previous point nearest to ``(x, y)`` within ``gate`` (<= ``cell``) whose
-    normal lies within the normal gate of ``(mx, my)`` (either sign), -1 for none."""
+    """Index of the previous point nearest to ``(x, y)`` within ``gate`` whose normal lies
+    within the normal gate of ``(mx, my)`` (either sign), -1 for none. The cells of
+    :func:`service.core.kernels.grid.grid_build` are visited ring by ring from the point's
+    own, skipping those farther than the nearest point found so far: on a scan's surfaces the
+    nearest point is usually in the point's own cell, and the rings beyond it are skipped."""
     cx = math.floor((x - ox) / cell)
-    cy = math.floor((y - oy) / cell)  # cells of :func:`service.core.kernels.grid.grid_build`
+    cy = math.floor((y - oy) / cell)
     best = -1
     bd = gate * gate
-    for gy in range(max(cy - 1, 0), min(cy + 2, ny)):
-        for gx in range(max(cx - 1, 0), min(cx + 2, nx)):
-            k = gx * ny + gy
-            for m in range(start[k], start[k + 1]):
-                j = items[m]
-                dx = prev[j, 0] - x
-                dy = prev[j, 1] - y
-                d = dx * dx + dy * dy
-                if d <= bd and abs(normals[j, 0] * mx + normals[j, 1] * my) >= cos_gate:
-                    bd = d
-                    best = j
+    rings = math.ceil(gate / cell)
+    for ring in range(rings + 1):
+        lower = (ring - 1) * cell  # no cell of this ring is nearer to the point than this
+        if ring >= 2 and lower * lower > bd:
+            break
+        for gx in range(cx - ring, cx + ring + 1):
+            if gx < 0 or gx >= nx:
+                continue
+            side = gx == cx - ring or gx == cx + ring
+            step = 1 if (side or ring == 0) else 2 * ring  # the ring's border cells only
+            gy = cy - ring
+            while gy <= cy + ring:
+                if 0 <= gy < ny:
+                    bx = ox + gx * cell
+                    by = oy + gy * cell
+                    dx = max(bx - x, 0.0, x - (bx + cell))
+                    dy = max(by - y, 0.0, y - (by + cell))
+                    if dx * dx + dy * dy <= bd:
+                        k = gx * ny + gy
+                        for m in range(start[k], start[k + 1]):
+                            j = items[m]
+                            ex = prev[j, 0] - x
+                            ey = prev[j, 1] - y
+                            d = ex * ex + ey * ey
+                            agree = abs(normals[j, 0] * mx + normals[j, 1] * my) >= cos_gate
+                            # of equal distances the higher index, whatever the visiting order
+                            if agree and (d < bd or (d == bd and j > best)):
+                                bd = d
+                                best = j
+                gy += step
     return best
 
 

@@ -119,6 +119,12 @@ def scan_normals(
     """
     p = np.asarray(points, dtype=np.float64).reshape(-1, 2)
     n = len(p)
+    if kernels.HAVE_NUMBA and n >= 2:
+        cut = np.zeros(n, dtype=np.bool_)
+        if starts is not None:
+            c = np.asarray(starts, dtype=np.intp)
+            cut[c[(c > 0) & (c < n)]] = True
+        return map_kernels.scan_normals(np.ascontiguousarray(p), max_gap, gap_factor, cut)
     out = np.full((n, 2), np.nan)
     if n < 2:
         return out

@@ -31,7 +31,7 @@ from service.core.pose import transform_points
 from service.core.sensor.mapmodel import MapModel
 from service.core.sensor.raycast import RayCaster
 from service.core.shapes.dce import dce
-from service.core.shapes.polylines import Polyline, group_polylines
+from service.core.shapes.polylines import Polyline, group_polylines, group_spans, polylines_of_spans
 from service.core.types import MapData, scan_arrays, wrap_angle
 from service.errors import LocalizationError
 
@@ -302,22 +302,30 @@ class ScanGroups:
     pieces. A tracked scan whose odometry prior fits needs no more, so the DCE waits until a
     shape matching asks for it."""
 
-    groups: list[Polyline]
+    beams: np.ndarray  # every beam's point (n, 2), NaN rows for no return
+    spans: np.ndarray  # first and last beam (inclusive) of each group, (k, 2)
     cyclic: bool
     fov: tuple[float, float]
     params: ExtractionParams
 
     @cached_property
+    def groups(self) -> list[Polyline]:
+        """The groups as polylines (angular order); made when asked for: a precise fit
+        needs only :attr:`points` and :attr:`starts`."""
+        return polylines_of_spans(self.beams, self.spans)
+
+    @cached_property
     def points(self) -> np.ndarray:
         """All groups' points stacked ``(n, 2)`` (angular order)."""
-        if not self.groups:
-            return np.zeros((0, 2))
-        return np.vstack([g.points for g in self.groups])
+        sizes = self.spans[:, 1] - self.spans[:, 0] + 1
+        first = np.cumsum(sizes) - sizes
+        rows = np.arange(int(sizes.sum())) + np.repeat(self.spans[:, 0] - first, sizes)
+        return self.beams[rows]
 
     @cached_property
     def starts(self) -> np.ndarray:
         """Row in :attr:`points` where each group after the first begins."""
-        return np.cumsum([len(g.points) for g in self.groups])[:-1]
+        return np.cumsum(self.spans[:-1, 1] - self.spans[:-1, 0] + 1)
 
     @cached_property
     def configuration(self) -> Configuration:
@@ -364,8 +372,17 @@ def scan_groups(
     params = params or ExtractionParams()
     r, a = scan_arrays(ranges, angles)
     span = float(np.max(a) - np.min(a)) if a.size > 1 else 0.0
+    beams, spans = group_spans(
+        r,
+        a,
+        min_object_distance=params.min_object_distance,
+        range_factor=params.range_factor,
+        min_points=params.min_points,
+        min_length=params.min_length,
+    )
     return ScanGroups(
-        groups=_groups(r, a, params, wrap=False),
+        beams=beams,
+        spans=spans,
         cyclic=span >= 2.0 * np.pi - 1e-6,
         fov=(float(np.min(a)), float(np.max(a))),
         params=params,

@@ -19,7 +19,8 @@ from functools import cached_property
 
 import numpy as np
 
-from service.core import numeric
+from service.core import kernels, numeric
+from service.core.kernels import extract as extract_kernels
 from service.errors import LocalizationError
 
 #: Minimum object distance assumed by the paper (§4.1): 10 cm.
@@ -104,9 +105,9 @@ def _check_scan(ranges: np.ndarray, angles: np.ndarray) -> tuple[np.ndarray, np.
         raise LocalizationError(
             f"ranges and angles must be 1-D of equal length, got {r.shape} and {a.shape}"
         )
-    if not np.all(np.isfinite(a)):
+    if not np.isfinite(a).all():
         raise LocalizationError("beam angles must be finite")
-    if np.any(r[~np.isnan(r)] < 0.0) or np.any(np.isinf(r)):
+    if (r < 0.0).any() or np.isinf(r).any():  # NaN < 0 is false
         raise LocalizationError("ranges must be >= 0 or NaN (no return); got negative or inf")
     return r, a
 
@@ -207,3 +208,49 @@ def group_polylines(
     if wrapped is not None and wrapped[1].shape[0] >= min_points:
         out.append(_make(*wrapped))
     return out
+
+
+def group_spans(
+    ranges: np.ndarray,
+    angles: np.ndarray,
+    min_object_distance: float = MIN_OBJECT_DISTANCE,
+    range_factor: float = RANGE_FACTOR,
+    min_points: int = 2,
+    min_length: float = 0.0,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The grouping of :func:`group_polylines` (no wrap-around) as index spans, for a scan
+    that may never need its polylines as objects (a tracked scan whose prior fits).
+
+    Returns ``(points, spans)``: ``points`` ``(n, 2)`` of every beam (sensor frame, NaN rows
+    for no return), ``spans`` ``(k, 2)`` the first and last beam (inclusive) of each group of
+    at least ``min_points`` points and ``min_length`` metres, in beam order
+    (:func:`polylines_of_spans` makes them polylines). One compiled pass when numba is there;
+    :func:`group_polylines` is the reference. Raises :class:`LocalizationError` on malformed
+    input.
+    """
+    r, a = _check_scan(ranges, angles)
+    if min_points < 1:
+        raise LocalizationError(f"min_points must be >= 1, got {min_points}")
+    pts = np.column_stack((r * np.cos(a), r * np.sin(a)))
+    if kernels.HAVE_NUMBA:
+        spans = extract_kernels.group_spans(
+            r,
+            a,
+            pts,
+            float(min_object_distance),
+            float(range_factor),
+            int(min_points),
+            float(min_length),
+        )
+    else:
+        groups = group_polylines(r, a, min_object_distance, range_factor, min_points)
+        spans = np.array(
+            [(g.first_beam, g.last_beam) for g in groups if g.length >= min_length],
+            dtype=np.intp,
+        ).reshape(-1, 2)
+    return pts, spans
+
+
+def polylines_of_spans(points: np.ndarray, spans: np.ndarray) -> list[Polyline]:
+    """The polylines of :func:`group_spans`' ``(points, spans)``, in beam order."""
+    return [_make(points[s : e + 1], np.arange(s, e + 1)) for s, e in spans.tolist()]

@@ -270,9 +270,12 @@ def odometry_sigmas(
 def check_pose3(p: object, what: str) -> np.ndarray:
     """``[x, y, theta]`` as float64 with theta wrapped; :class:`LocalizationError` otherwise."""
     a = np.asarray(p, dtype=np.float64)
-    if a.shape != (3,) or not np.all(np.isfinite(a)):
+    if a.shape != (3,):
         raise LocalizationError(f"{what}: expected 3 finite values [x, y, theta], got {a.shape}")
-    return np.array([a[0], a[1], wrap_angle(float(a[2]))])
+    x, y, t = a.tolist()  # Python floats: a scan checks its poses several times
+    if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(t)):
+        raise LocalizationError(f"{what}: expected 3 finite values [x, y, theta], got {a.shape}")
+    return np.array([x, y, wrap_angle(t)])
 
 
 def _information(theta: float, sx: float, sy: float, st: float) -> np.ndarray:

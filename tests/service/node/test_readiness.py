@@ -87,6 +87,29 @@ def test_readiness_ignores_a_preparation_of_an_older_version() -> None:
     assert r.snapshot()[0] is True
 
 
+def test_with_a_search_worker_a_map_is_ready_only_once_its_index_build_is_over() -> None:
+    """The index build is first-use work: a prepared map waits for it; a failed build makes
+    the map ready without listing it indexed (its first search builds the index)."""
+    r = Readiness(indexing=True)
+    va, vb = r.stored("a"), r.stored("b")
+    r.prepared("a", va)
+    r.prepared("b", vb)
+    assert r.snapshot() == (False, [], [])
+    r.indexed("a", va)
+    assert r.snapshot() == (False, ["a"], ["a"])
+    r.indexed("b", vb, built=False)
+    assert r.snapshot() == (True, ["a", "b"], ["a"])
+    vb2 = r.stored("b")  # put again: neither prepared nor indexed
+    r.indexed("b", vb2)
+    assert r.snapshot() == (False, ["a"], ["a", "b"])
+    r.prepared("b", vb2)
+    assert r.snapshot() == (True, ["a", "b"], ["a", "b"])
+    # without a search worker preparation alone makes a map ready
+    plain = Readiness(indexing=False)
+    plain.prepared("m", plain.stored("m"))
+    assert plain.snapshot() == (True, ["m"], None)
+
+
 def test_warm_up_and_map_preparation_run_the_methods(caplog: pytest.LogCaptureFixture) -> None:
     """The warm-up localises synthetic scans with every method without failing (a failure is
     logged, never raised); a map's preparation finds a free pose inside it and localises

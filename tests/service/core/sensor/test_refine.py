@@ -54,6 +54,21 @@ def test_nearest_kernel_agrees_with_the_numpy_reference(monkeypatch: pytest.Monk
     np.testing.assert_allclose(a.distance, b.distance, atol=1e-12)
 
 
+@pytest.mark.skipif(not kernels.HAVE_NUMBA, reason="numba kernels not installed")
+def test_scan_normals_kernel_agrees_with_the_numpy_reference(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    rng = np.random.default_rng(5)
+    pts = np.cumsum(rng.normal(0.0, 0.08, (400, 2)), axis=0) + np.array([3.0, 0.0])
+    pts[rng.random(400) < 0.05] += 2.0  # isolated points: no neighbour within the gap
+    starts = np.array([0, 17, 18, 150, 399, 400])  # the ends and a one-point polyline too
+    a = scan_normals(pts, starts=starts)
+    monkeypatch.setattr(kernels, "HAVE_NUMBA", False)
+    b = scan_normals(pts, starts=starts)
+    np.testing.assert_array_equal(a, b)
+    assert 0 < np.isnan(b[:, 0]).sum() < 100
+
+
 def test_refine_recovers_a_displaced_pose_to_millimetres() -> None:
     rng = np.random.default_rng(7)
     truth = np.array([2.5, 2.8, 0.4])

@@ -7,7 +7,14 @@ import math
 import numpy as np
 import pytest
 
-from service.core.shapes.polylines import Polyline, group_polylines, scan_to_points
+from service.core import kernels
+from service.core.shapes.polylines import (
+    Polyline,
+    group_polylines,
+    group_spans,
+    polylines_of_spans,
+    scan_to_points,
+)
 from service.errors import LocalizationError
 
 ANGLES = np.linspace(-math.pi / 2, math.pi / 2, 361)  # 0.5 deg beams over 180 deg
@@ -150,3 +157,39 @@ def test_polylines_are_hashable_by_identity() -> None:
     assert len({pls[0], pls[0]}) == 1
     assert pls[0] == pls[0]
     assert pls[0] != group_polylines(np.full(361, 2.0), ANGLES)[0]
+
+
+def _rough_scans(seed: int, count: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Smoothed random ranges with holes over random fields of view: walls, corners, depth
+    jumps of every size and grazing stretches."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for k in range(count):
+        n = int(rng.integers(20, 400))
+        a = np.linspace(-2.0, 2.0, n) if k % 2 else np.sort(rng.uniform(-3.1, 3.1, n))
+        r = np.convolve(rng.uniform(0.1, 8.0, n), np.ones(15) / 15, "same")
+        r[rng.random(n) < 0.1] = np.nan
+        out.append((r, a))
+    return out
+
+
+@pytest.mark.parametrize("numba", [True, False])
+def test_group_spans_are_the_groups_of_group_polylines(
+    numba: bool, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    if numba and not kernels.HAVE_NUMBA:
+        pytest.skip("numba kernels not installed")
+    monkeypatch.setattr(kernels, "HAVE_NUMBA", numba)
+    groups = 0
+    for r, a in _rough_scans(1, 150):
+        ref = [g for g in group_polylines(r, a, 0.1, 4.0, 3) if g.length >= 0.2]
+        pts, spans = group_spans(r, a, 0.1, 4.0, 3, 0.2)
+        assert [(g.first_beam, g.last_beam) for g in ref] == [tuple(s) for s in spans.tolist()]
+        for g, h in zip(ref, polylines_of_spans(pts, spans), strict=True):
+            np.testing.assert_array_equal(g.points, h.points)
+            np.testing.assert_array_equal(g.idx, h.idx)
+            assert (g.bearing_start, g.bearing_end) == (h.bearing_start, h.bearing_end)
+        groups += len(ref)
+    assert groups > 1000  # the scans hold many groups, dropped ones among them
+    with pytest.raises(LocalizationError):
+        group_spans(np.array([1.0, -1.0]), np.array([0.0, 0.1]))
