@@ -36,7 +36,10 @@ def test_the_odometry_bridges_a_hall_the_floor_plan_draws_as_its_outline(
     rejects scan after scan: the robot dead-reckons and says so (status ``lost``, state
     ``dead_reckoning``, a covariance that grows), and the odometry holds the pose within
     0.3 m of the reference on every scan; it is never published as ``tracking`` off the
-    reference."""
+    reference. Where the scan-to-scan fit breaks (scan 4176 matches 47 % of its points to
+    the one before) the odometry is no longer checked by the laser: a search starts with the
+    dead-reckoned pose as its prior and publishes that pose, lost, until a place is more
+    probable."""
     z = np.load(DATA / "fr079.4100-4199.npz")
     loc = _localizer(tmp_path, z["reference"][0])
     states, errors, sigmas = [], [], []
@@ -51,8 +54,9 @@ def test_the_odometry_bridges_a_hall_the_floor_plan_draws_as_its_outline(
             errors.append(err)
             assert est.status != "tracking" or err < 0.3, (i, err)
     assert states[0] == "tracking"
-    assert states.count("dead_reckoning") >= 20, states
-    assert sigmas[-1] > 1.5 * sigmas[0], (sigmas[0], sigmas[-1])  # it grows as the robot drives
+    assert states.count("dead_reckoning") >= 15, states
+    assert states[-1] in ("dead_reckoning", "searching") and "probation" not in states, states
+    assert min(sigmas) == sigmas[0] < sigmas[-1], sigmas  # it grows as the robot drives
     assert max(errors) < 0.3, max(errors)
 
 
