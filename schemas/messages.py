@@ -384,7 +384,9 @@ class PoseMsg(WireModel):
     )
     ambiguity: UnitFloat = Field(
         default=None,
-        description="Project addition: best vs second-best hypothesis cost ratio, [0, 1].",
+        description="Project addition, during a search: the probability that the best "
+        "hypothesis is not the place, 1 / (1 + e^LLR) of the relocalisation's decision, "
+        "[0, 1] (1: no place leads yet).",
     )
     hypotheses: Annotated[
         int | None,

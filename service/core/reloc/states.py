@@ -238,6 +238,8 @@ def step(ctx: Context, state: State, scan: Scan) -> tuple[State, Estimate]:
     else:
         new, est = _searching(ctx, state, scan)
     est.state = "searching" if isinstance(new, Searching) else new.name  # type: ignore[assignment]
+    if isinstance(new, Searching) and est.ambiguity is None:
+        est.ambiguity = 1.0  # a search that has only begun: no place leads yet
     if not isinstance(new, Tracking) and est.status == "tracking":
         est.status = "lost"
     return new, est
