@@ -140,7 +140,8 @@ class Searching:
 @dataclass
 class Probation:
     """A winner tracked before it is published: ``winner`` its track among the ``drive``'s,
-    ``left`` the travel (m) still to go, ``rejected`` scans in a row that contradicted it."""
+    ``left`` the travel (m) still to go, ``rejected`` scans in a row that contradicted it,
+    ``ambiguity`` the decision's when it named the winner (published until the verdict)."""
 
     drive: dr.Drive
     prior: Prior
@@ -148,6 +149,7 @@ class Probation:
     left: float
     status: Status = "initializing"
     rejected: int = 0
+    ambiguity: float = 1.0
     name: str = "probation"
 
 
@@ -552,7 +554,9 @@ def _searching(ctx: Context, s: Searching, scan: Scan) -> tuple[State, Estimate]
             est.ambiguity = verdict.ambiguity
             est.extras.update(extras)
             if o.reading is not None and g.probation_travel > 0.0:
-                p = Probation(drv, s.prior, lead, g.probation_travel, s.status)
+                p = Probation(
+                    drv, s.prior, lead, g.probation_travel, s.status, ambiguity=verdict.ambiguity
+                )
                 return p, _probation_estimate(p, est)
             est.extras["global_fix"] = 1.0
             return Tracking(
@@ -620,6 +624,7 @@ def _confirm(ctx: Context, drv: dr.Drive, lead: dr.Track, scan: Scan) -> Estimat
 # ------------------------------------------------------------------------------- probation
 def _probation_estimate(p: Probation, est: Estimate) -> Estimate:
     est.status = p.status
+    est.ambiguity = p.ambiguity
     est.extras["probation"] = max(0.0, p.left)
     est.hypotheses = len(p.drive.tracks)
     order = [p.winner, *(t for t in p.drive.tracks if t is not p.winner)]
