@@ -47,6 +47,8 @@ import numpy as np
 from bench import bench_global as bg
 from service.core.reloc import drive as ev
 from service.core.reloc.global_search import (
+    FINE_SCALE,
+    SUPPORT_POINTS,
     WORK_MS,
     beam_costs,
     cast_ms,
@@ -103,7 +105,7 @@ def measure(m: bg.DriveMap, data: Path, scans: int, seed: int) -> tuple[dict[str
             P = scan_configuration(r, a, cfg.extraction())
             if not P.features:
                 continue
-            sp = subsample(np.vstack([f.points for f in P.features]), g.support_points)
+            sp = subsample(np.vstack([f.points for f in P.features]), SUPPORT_POINTS)
             truth = src.truth[i]
             poses = truth + rng.normal(0.0, [0.2, 0.2, 0.05], size=(12, 3))
             many = truth + rng.normal(0.0, [2.0, 2.0, 1.0], size=(800, 3))
@@ -111,10 +113,10 @@ def measure(m: bg.DriveMap, data: Path, scans: int, seed: int) -> tuple[dict[str
             one = poses[:1]
             laps: list[tuple[str, int, float]] = []
             t0 = clock()
-            idx.sensor.polish(poses, sp, g.fine_scale)
+            idx.sensor.polish(poses, sp, FINE_SCALE)
             laps.append(("polish", len(poses), clock() - t0))
             t0 = clock()
-            idx.sensor.polish(one, sp, g.fine_scale, prior=g.rescore_prior)
+            idx.sensor.polish(one, sp, FINE_SCALE, prior=ev.RESCORE_PRIOR)
             laps.append(("polish1", 1, clock() - t0))
             t0 = clock()
             idx.sensor.support(many, sp, cfg.support_tolerance)
@@ -128,14 +130,14 @@ def measure(m: bg.DriveMap, data: Path, scans: int, seed: int) -> tuple[dict[str
             beam_costs(idx.sensor, poses, r, a, 90, cfg, g)
             laps.append(("beams90", len(poses), clock() - t0))
             t0 = clock()
-            refine(idx, poses, sp, cfg, g)
+            refine(idx, poses, sp, cfg)
             laps.append(("refine", len(poses), clock() - t0))
             t0 = clock()
             for p in poses:
                 verify(idx, p, r, a, P, cfg, g)
             laps.append(("verify", len(poses), clock() - t0))
             t0 = clock()
-            idx.sensor.polish(one, kf.points, g.fine_scale, prior=g.rescore_prior)
+            idx.sensor.polish(one, kf.points, FINE_SCALE, prior=ev.RESCORE_PRIOR)
             ev.frame_cost(idx, one[0], kf, cfg, g)
             laps.append(("frame", 1, clock() - t0))
             if rep:
@@ -156,7 +158,7 @@ def main(scans: int, data: Path, seed: int) -> int:
             continue
         m = bg.DriveMap(group, world, kind)
         got, loc = measure(m, data, scans, seed)
-        ref = model(loc, loc.gconfig.support_points)
+        ref = model(loc, SUPPORT_POINTS)
         segs = len(loc.index.sensor.segments)
         for item, ms in got.items():
             rows.append((m.label(), segs, item, ms, ref[item]))

@@ -215,11 +215,15 @@ class LocalizerWrapper:
 
 class Settings(BaseModel):
     """A settings model whose state pickled by an earlier version loads: a field added since
-    takes its default (a robot's localiser is pickled when the service moves it between
-    worker processes, and may have been pickled before an upgrade)."""
+    takes its default, a field removed since is dropped (a robot's localiser is pickled when
+    the service moves it between worker processes, and may have been pickled before an
+    upgrade)."""
 
     def __setstate__(self, state: dict[Any, Any]) -> None:
         super().__setstate__(state)
-        for name, f in type(self).model_fields.items():
+        fields = type(self).model_fields
+        for name in [n for n in self.__dict__ if n not in fields]:
+            del self.__dict__[name]
+        for name, f in fields.items():
             if name not in self.__dict__:
                 self.__dict__[name] = f.get_default(call_default_factory=True)

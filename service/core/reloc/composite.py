@@ -20,7 +20,7 @@ Choices (named here, used by the global search):
   scan's beams straddle bins of about their own width, and a hole would split a polyline.
 - Older points are projected from where they were seen: after a translation the virtual
   scan is only an approximation of what the newest pose would see (occlusions are not
-  recomputed), so callers limit the travel (see ``GlobalConfig.composite_travel``).
+  recomputed), so callers limit the travel (:data:`service.core.reloc.states.COMPOSITE_TRAVEL`).
 
 Pure numpy; units metres and radians.
 """
@@ -41,9 +41,7 @@ def composite_scan(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Fuse ``scans`` — ``(ranges, angles, pose)`` each, oldest first, ``pose`` ``[x, y,
     theta]`` in any common frame (odometry) — into one virtual scan ``(ranges, angles)`` of
-    ``bins`` beams over (-pi, pi] in the frame of the LAST scan's pose (see the module
-    docstring for the rules). Ranges metres, NaN = no return; angles radians, increasing.
-
+    ``bins`` beams over (-pi, pi] in the frame of the LAST scan's pose (module docstring).
     Raises :class:`LocalizationError` on an empty list, ``bins < 8`` or malformed arrays."""
     if not scans:
         raise LocalizationError("composite_scan needs at least one scan")
@@ -80,10 +78,8 @@ def composite_scan(
 
 
 def _fill_single_gaps(r: np.ndarray) -> np.ndarray:
-    """Bins about as wide as the beams leave a one-bin hole wherever a turned scan's beams
-    straddle a bin; a hole would split a polyline (a missing return always does). A lone empty
-    bin between two returns that lie within 5 % + 5 cm of each other gets their mean
-    (cyclically: the first and last bins are neighbours)."""
+    """A lone empty bin between two returns within 5 % + 5 cm of each other gets their mean
+    (module docstring; cyclically: the first and last bins are neighbours)."""
     left = np.roll(r, 1)
     right = np.roll(r, -1)
     near = np.abs(left - right) <= 0.05 + 0.05 * np.minimum(left, right)

@@ -4,10 +4,11 @@ hypotheses over a drive, the decision rule and the integrity of tracking.
 Two presets (:meth:`GlobalConfig.for_kind`): ``metric`` (a map drawn from the robot's own
 scans: furniture included) and ``schematic`` (a floor plan: walls only, so furniture returns
 are never explained and the bars on how much of a scan the map explains are lower). The user
-knobs among these fields are listed in :mod:`service.core.config`; the rest are internal,
-each described with the reason for its value. Metres, radians; costs are beam costs
-(:meth:`service.core.sensor.scoring.BeamFractions.cost`, 0.05 = explained whole, 1.05 =
-nothing), log-likelihoods in nats (:meth:`service.core.sensor.scoring.SensorModel.score`).
+knobs among these fields are listed in :mod:`service.core.config`; the settings no preset or
+user changes are constants of the modules that use them, each with its reason. Metres,
+radians; costs are beam costs (:meth:`service.core.sensor.scoring.BeamFractions.cost`, 0.05 =
+explained whole, 1.05 = nothing), log-likelihoods in nats
+(:meth:`service.core.sensor.scoring.SensorModel.score`).
 """
 
 from __future__ import annotations
@@ -30,29 +31,11 @@ class GlobalConfig(Settings):
     search_budget_ms: float | None = Field(
         None,
         ge=0,
-        description="Work (reference ms, service.core.reloc.search.WORK_MS) a search may do per "
-        "scan; the rest waits for the next scans. None: no budget, every scan searches as far "
-        "as the search goes (the paper's experiment). The service sets it (50 by default).",
+        description="Work (reference ms, service.core.reloc.global_search.WORK_MS) a search may "
+        "do per scan; the rest waits for the next scans. None: no budget, every scan searches as "
+        "far as the search goes (the paper's experiment). The service sets it (50 by default).",
     )
-    rescore_share: float = Field(
-        0.3,
-        gt=0,
-        le=1,
-        description="With a budget, at most this share re-scores the kept hypotheses on the "
-        "scan, evidence_share scores them on the keyframes they lack, the search gets the rest "
-        "(0.3 / 0.2 against 0.5 / 0.3 on tuning worlds 0-19: 96 against 93 % fixed in 15 m).",
-    )
-    evidence_share: float = Field(
-        0.2, gt=0, le=1, description="See rescore_share (at least one keyframe is scored)."
-    )
-    # --- viewpoints and index ----------------------------------------------------------------
-    spacing: float = Field(
-        0.6, gt=0, description="Viewpoint grid spacing (m): finer than a room, coarser than a door."
-    )
-    min_clearance: float = Field(
-        0.3, ge=0, description="Viewpoint distance to any polyline (m): where a robot fits."
-    )
-    enclosure_beams: int = Field(90, ge=8, description="Beams of the enclosure test (4 degrees).")
+    # --- viewpoints, search ------------------------------------------------------------------
     min_enclosed: float = Field(
         0.9,
         gt=0,
@@ -61,32 +44,6 @@ class GlobalConfig(Settings):
         "Schematic: 0.6 (plans draw doors open: at 0.9 fr079 / intel paths lay 34 / 38 % over "
         "0.52 m from a viewpoint, where the search induces no pose; at 0.6 1.4 / 2.6 %).",
     )
-    small_ring_area: float = Field(
-        6.0,
-        ge=0,
-        description="Closed rings smaller than this (m²) are furniture, not rooms: no viewpoint.",
-    )
-    # --- search ------------------------------------------------------------------------------
-    scan_units: int = Field(
-        5, ge=1, description="Most complex scan units compared by S* (the rest repeat them)."
-    )
-    min_unit_complexity: float = Field(
-        0.05, ge=0, description="Smallest unit complexity (m·rad): a straight wall tells nothing."
-    )
-    range_slack: float = Field(
-        0.4, ge=0, description="|range difference| allowed beyond the grid half-diagonal (m)."
-    )
-    view_complexity_ratio: float = Field(
-        0.25, ge=0, description="View units less complex than this x the scan unit's are skipped."
-    )
-    max_shape_distance: float = Field(0.6, gt=0, description="S* gate for a pair (m).")
-    max_turn_difference: float = Field(
-        0.35, gt=0, description="Corresponding anchor corners turn alike within this (rad)."
-    )
-    pairs_budget: int = Field(
-        360, ge=1, description="Induced poses per scan, shared by the chosen scan units."
-    )
-    support_points: int = Field(80, ge=10, description="Scan points of the support test.")
     shortlist: int = Field(
         0,
         ge=0,
@@ -94,23 +51,16 @@ class GlobalConfig(Settings):
         "check before refine_top are refined; 0 = rank the raw poses by point support. "
         "Schematic: 150 (furniture hides the walls point support needs).",
     )
-    shortlist_cell: float = Field(0.4, gt=0, description="Coarse pose cell size (m).")
-    shortlist_angle: float = Field(0.2, gt=0, description="Coarse pose cell heading width (rad).")
-    shortlist_beams: int = Field(90, ge=8, description="Beams of the shortlist's quick check.")
     shortlist_violation_beams: int = Field(
         0,
         ge=0,
         description="Beams marched on the distance field to rank the coarse cells by support "
-        "less violation_weight x the share through drawn walls; 0 = by support alone. "
+        "less VIOLATION_WEIGHT x the share through drawn walls; 0 = by support alone. "
         "Schematic: 40 (wrong places whose walls furniture fits let a third to two thirds of "
         "their beams through walls, the true pose 0-15 %: fr079's east hall).",
     )
     refine_top: int = Field(
         16, ge=1, description="Hypotheses refined and verified. Schematic: 32 (twin rooms)."
-    )
-    refine_iterations: int = Field(6, ge=1, description="Point-to-line fit steps per stage.")
-    fine_scale: float = Field(
-        0.05, gt=0, description="Cauchy scale (m) of the tight fit stage and of the polish."
     )
     verify_beams: int = Field(
         240,
@@ -118,36 +68,7 @@ class GlobalConfig(Settings):
         description="Beams of a verification. Schematic: 720 (a door tells rooms apart).",
     )
     keep: int = Field(8, ge=1, description="Judged hypotheses kept (and as many being judged).")
-    distinct_distance: float = Field(
-        0.8, gt=0, description="Hypotheses farther apart than this (m) are distinct places."
-    )
-    distinct_angle: float = Field(
-        0.5, gt=0, description="... or whose headings differ more than this (rad)."
-    )
-    twin_shortlist: int = Field(
-        60, ge=0, description="shortlist of a self-similarity check (it searches the map's view)."
-    )
-    twin_refine_top: int = Field(12, ge=1, description="refine_top of a self-similarity check.")
-    composite_scans: int = Field(
-        3,
-        ge=1,
-        description="With odometry the search matches the last this many scans fused into one "
-        "360-degree scan (service.core.reloc.composite): a look-around sees the door that "
-        "tells twin rooms apart; 1 = every scan alone.",
-    )
-    composite_bins: int = Field(
-        720, ge=8, description="Beams of the composite (never finer than the laser's)."
-    )
-    composite_travel: float = Field(
-        0.5, gt=0, description="Scans farther than this (m) from the newest stay out of it."
-    )
     # --- the beam model of the search and the evidence ---------------------------------------
-    violation_weight: float = Field(
-        2.0,
-        ge=0,
-        description="Cost of a beam through a drawn wall, in units of an unexplained beam: a "
-        "wall in the way contradicts a pose, a missing one only fails to confirm it.",
-    )
     violation_margin: float = Field(
         0.0,
         ge=0,
@@ -167,29 +88,12 @@ class GlobalConfig(Settings):
         description="Credit for a return short of the predicted wall (something unmapped in "
         "front). Schematic: 0.5 (a floor plan has no furniture).",
     )
-    cost_floor: float = Field(0.05, gt=0, description="Added to every beam cost.")
     # --- the evidence over a drive ------------------------------------------------------------
-    evidence_spacing: float = Field(
-        0.3,
-        gt=0,
-        description="With odometry, a scan becomes a keyframe when the robot has driven this "
-        "far (m) since the last one: closer scans repeat each other's evidence.",
-    )
-    evidence_turn: float = Field(
-        0.3, gt=0, description="... or turned this much (rad): a turn shows new walls."
-    )
     evidence_span: float = Field(
         6.0,
         gt=0,
         description="The window holds the keyframes of the last this many metres: longer and "
         "the odometry's drift bends a hypothesis' older poses off the map.",
-    )
-    evidence_frames: int = Field(20, ge=1, description="At most this many keyframes.")
-    evidence_clip: float = Field(
-        1.0,
-        gt=0,
-        description="A keyframe's cost is clipped here: one keyframe with a person in front "
-        "of the laser must not outweigh the drive.",
     )
     evidence_short_scale: float = Field(
         0.0,
@@ -197,19 +101,6 @@ class GlobalConfig(Settings):
         description="On keyframes a short return counts exp(-(pred - r) / this) of one (0: "
         "as one). Schematic: 1.0 (furniture stands just in front of its room's walls; a wrong "
         "place puts them far behind the returns).",
-    )
-    evidence_drop: float = Field(
-        60.0,
-        gt=0,
-        description="A hypothesis this many nats below the leader, on keyframes both were "
-        "scored on (3 at least), is let go (a mean cost 0.3 worse over 10 keyframes).",
-    )
-    rescore_prior: float = Field(
-        0.02,
-        ge=0,
-        description="With odometry, the re-scoring's polish keeps the odometry-moved pose as a "
-        "prior of this weight: without it a hypothesis slid ~0.1 m per scan along corridors "
-        "(tuning building 12).",
     )
     # --- the decision ------------------------------------------------------------------------
     fix_llr: float = Field(
@@ -241,27 +132,21 @@ class GlobalConfig(Settings):
         ge=0,
         description="The unseen place's cost on a keyframe rises by this per metre that the "
         "map's walls, seen from the leader's pose there along the keyframe's beams, stand "
-        "beyond null_reach on average (at most evidence_clip): where they stand far off, "
-        "furniture the map does not hold stands between, and the true place explains a "
-        "keyframe worse. Schematic: 0.05, the true pose's keyframe cost at the 90th "
+        "beyond drive.NULL_REACH on average (at most drive.EVIDENCE_CLIP): where they stand "
+        "far off, furniture the map does not hold stands between, and the true place explains "
+        "a keyframe worse. Schematic: 0.05, the true pose's keyframe cost at the 90th "
         "percentile by that mean range on the tuning logs' floor plans (fr079 and intel, 849 "
         "frames): up to 5 m 0.57-0.66, 5-6 m 0.66-0.74, 6-8 m 0.76-0.78, beyond 8 m 0.89-0.92 "
         "(fr079's east hall, drawn as its outline: the true place at 0.71-0.74 lost to a "
         "constant 0.7). Metric: 0 (a map drawn from scans holds the furniture).",
-    )
-    null_reach: float = Field(
-        5.0, ge=0, description="See null_slope (m): the mean range where the rise begins."
-    )
-    scan_window: int = Field(
-        6, ge=1, description="Without odometry the window holds the last this many scans."
     )
     repeat_window: int = Field(
         6,
         ge=1,
         description="With odometry a robot standing or creeping gains at most this many "
         "keyframes' evidence from one (service.core.reloc.drive.Drive.repeat; 1: none). Metric: "
-        "6, as scan_window (tuning split: false fixes unchanged, travel to the fix p50 0.33 -> "
-        "0.20 m at 12 nats). Schematic: 1 (a false fix at 37 nats on intel's plan with 6).",
+        "6, as drive.SCAN_WINDOW (tuning split: false fixes unchanged, travel to the fix p50 "
+        "0.33 -> 0.20 m at 12 nats). Schematic: 1 (a false fix at 37 nats on intel's plan with 6).",
     )
     kidnap_weight: float = Field(
         0.01,
@@ -278,17 +163,6 @@ class GlobalConfig(Settings):
         "while the evidence goes on; it is fixed if it still wins then. Schematic: 2.0 (a plan "
         "that lacks walls can let a wrong place explain a metre or two best).",
     )
-    confirm_distance: float = Field(
-        0.3, gt=0, description="The tracker's first fit must lie this close to the winner (m) ..."
-    )
-    confirm_angle: float = Field(0.1, gt=0, description="... and turned less than this (rad) ...")
-    confirm_sigma: float = Field(
-        0.05,
-        gt=0,
-        description="... with a position sigma of at most this (m): a corridor's parallel walls "
-        "verify equally well 0.8 m further along (intel floor plan: a fix 0.8 m off, sigma "
-        "0.19 m; correct fixes 0.004-0.01 m).",
-    )
     # --- tracking's integrity (honest status) ------------------------------------------------
     good_support: float = Field(
         0.7,
@@ -296,13 +170,8 @@ class GlobalConfig(Settings):
         le=1,
         description="A tracked scan whose fit explains at least this share of its points "
         "anchors the dead-reckoned reference; below it the fit is only believed within "
-        "gate_sigmas of the pose the odometry carried from the last such scan. Schematic: 0.5.",
-    )
-    gate_sigmas: float = Field(
-        3.0,
-        gt=0,
-        description="How many standard deviations of the dead-reckoned reference a poorly "
-        "explained fit may stray from it before the localiser dead-reckons.",
+        "states.GATE_SIGMAS of the pose the odometry carried from the last such scan. "
+        "Schematic: 0.5.",
     )
     track_sigma: float = Field(
         0.15,
@@ -331,14 +200,6 @@ class GlobalConfig(Settings):
         description="Dead reckoning gives way to a global search (with the dead-reckoned "
         "pose as the prior) once its position sigma exceeds this (m).",
     )
-    contradiction: float = Field(
-        0.05,
-        ge=0,
-        le=1,
-        description="A scan contradicts a pose when more than this share of its beams returns "
-        "from beyond a drawn wall (unexplained scans at the true pose on fr079: 0.011 / 0.033 "
-        "p50 / p90; kidnapped: 0.06 / 0.24 p10 / p50).",
-    )
     scan_odometry_violation: float = Field(
         1.0,
         ge=0,
@@ -354,12 +215,6 @@ class GlobalConfig(Settings):
         "0.3 m, p99 0.078. Schematic: 0.15. Metric: 1 (off): there the laser odometry gives "
         "no increment along an unobserved axis and the map's furniture pins the pose (tuning "
         "log intel's metric map: lost 1.0 -> 1.8 % with it on).",
-    )
-    odom_turn_assist: float = Field(
-        1.0,
-        gt=0,
-        description="With the odometry prior off, an odometry turn larger than this (rad) still "
-        "moves the tracker's pose first (the tracker follows turns up to 1.3 rad).",
     )
     settle_scans: int = Field(
         20,

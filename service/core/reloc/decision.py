@@ -41,7 +41,7 @@ from service.core import numeric
 from service.core.pose import compose
 from service.core.reloc.config import GlobalConfig
 from service.core.reloc.drive import Frame, Track, judged
-from service.core.reloc.global_search import distinct
+from service.core.reloc.global_search import COST_FLOOR, DISTINCT_ANGLE, DISTINCT_DISTANCE, distinct
 from service.core.sensor.scoring import EFFECTIVE_BEAMS
 from service.core.types import wrap_angle
 
@@ -58,8 +58,8 @@ class Prior:
     kidnap: float
     cells: float
 
-    def log(self, pose: np.ndarray, cell: float) -> float:
-        """Log prior mass (nats) of the place ``pose`` (a cell of volume ``cell`` m² rad)."""
+    def log(self, pose: np.ndarray) -> float:
+        """Log prior mass (nats) of the place ``pose`` (a cell of :data:`CELL_VOLUME`)."""
         uniform = math.log(max(self.kidnap, 1e-300)) - math.log(max(self.cells, 1.0))
         if self.mean is None or self.cov is None:
             return uniform
@@ -69,7 +69,7 @@ class Prior:
         m2 = numeric.quadratic(e, info)
         det = max(_det3(self.cov), 1e-300)
         density = math.exp(-0.5 * m2) / math.sqrt((2.0 * math.pi) ** 3 * det)
-        mass = min(1.0, density * cell)
+        mass = min(1.0, density * CELL_VOLUME)
         return math.log((1.0 - self.kidnap) * mass + math.exp(uniform) + 1e-300)
 
     def moved(self, delta: np.ndarray, noise: np.ndarray) -> Prior:
@@ -126,10 +126,8 @@ class Verdict:
         return 1.0 / (1.0 + math.exp(min(max(self.llr, -700.0), 700.0)))
 
 
-def cell_volume(g: GlobalConfig) -> float:
-    """Volume (m² rad) of one distinct place: a disc of ``distinct_distance`` by twice
-    ``distinct_angle``."""
-    return math.pi * g.distinct_distance**2 * 2.0 * g.distinct_angle
+#: Volume (m² rad) of one distinct place: a disc of DISTINCT_DISTANCE by twice DISTINCT_ANGLE.
+CELL_VOLUME = math.pi * DISTINCT_DISTANCE**2 * 2.0 * DISTINCT_ANGLE
 
 
 def decide(
@@ -146,8 +144,7 @@ def decide(
     full = [t for t in tracks if all(k in t.ll for k in need)]
     if not frames or not full:
         return Verdict(None, -math.inf)
-    cell = cell_volume(g)
-    unseen = -EFFECTIVE_BEAMS * (g.null_cost - g.cost_floor)
+    unseen = -EFFECTIVE_BEAMS * (g.null_cost - COST_FLOOR)
     plain = {f.key for f in frames if f.odom is None}
 
     def evidence(t: Track, fill: Track | None = None) -> float:
@@ -163,23 +160,23 @@ def decide(
                 total += w * fill.ll[k]
             else:
                 total += w * unseen
-        return total + prior.log(t.pose, cell)
+        return total + prior.log(t.pose)
 
     scored = [(evidence(t), t) for t in full]
     best_e, leader = max(scored, key=lambda x: x[0])
     # the unseen place explains each keyframe as the true place would in the leader's region
     nulls = leader.null
     null_ll = sum(
-        w * (unseen if k not in nulls else -EFFECTIVE_BEAMS * (nulls[k] - g.cost_floor))
+        w * (unseen if k not in nulls else -EFFECTIVE_BEAMS * (nulls[k] - COST_FLOOR))
         for k, w in keys.items()
     )
     if prior.mean is None:
-        null = null_ll + prior.log(leader.pose, cell)  # uniform: the same prior as any place
+        null = null_ll + prior.log(leader.pose)  # uniform: the same prior as any place
     else:
         null = null_ll + math.log(max(prior.kidnap, 1e-300)) - math.log(max(prior.cells, 1.0))
     rest = [null]
     for t in tracks:
-        if t is leader or not distinct(t.pose, leader.pose, g):
+        if t is leader or not distinct(t.pose, leader.pose):
             continue
         rest.append(evidence(t, fill=leader))
     top = max(rest)

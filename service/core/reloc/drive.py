@@ -10,34 +10,18 @@ every hypothesis is judged on the same keyframes, the ones before a search found
 beam cost of 0.39 and an alias 4.4 m along the corridor 0.55, where the last scans ranked the
 alias first).
 
-What.
-
-* :class:`Frame` -- a scan of the evidence: with odometry a *keyframe*, taken when the robot
-  has driven ``evidence_spacing`` or turned ``evidence_turn`` since the last one (its beams,
-  a subsample of its points and its odometry pose); without odometry every scan. The window
-  holds the frames of the last ``evidence_span`` metres (at most ``evidence_frames``), or
-  ``scan_window`` scans. A scan with odometry that adds no keyframe is evidence too: it
-  counts as a repeat of the newest keyframe, discounted (:meth:`Drive.repeat`).
-* :class:`Track` -- a hypothesis: its pose now, its latest verification, its log-likelihood
-  on each frame of the window (:meth:`service.core.sensor.scoring.SensorModel.score`, the
-  beam cost clipped at ``evidence_clip``) and its pose there.
-* :func:`rescore` -- every kept track, moved by the odometry, is fitted to the scan (with
-  odometry a polish on the distance field that keeps the moved pose as a prior; without, the
-  point-to-line refinement) and verified, best first, within a share of the budget.
-* :func:`backfill` -- each track is scored on the keyframes it lacks, newest first: its pose
-  there is the pose at the next newer keyframe moved back by the odometry in between,
-  polished with that as the prior (a track's first keyframe also tries a wider polish).
-* :func:`merge`, :func:`prune` -- a finished search's places join the tracks; the tracks
-  clearly worse than the leader or than the unseen place are let go.
-* :class:`Job`, :func:`advance` -- a search (or a self-similarity check) spread over scans.
-
-Work is counted in reference ms (:data:`service.core.reloc.global_search.WORK_MS`), so the
-same scans give the same poses on any machine and under any load. Units: metres, radians;
-poses ``[x, y, theta]`` in the map frame, odometry poses in the odometry frame.
+What. The frames of the evidence (:class:`Frame`, :func:`window`), the hypotheses followed
+over them (:class:`Track`), re-fitted on each scan (:func:`rescore`) and scored on the
+keyframes they lack (:func:`backfill`); a finished search's places join them (:func:`merge`),
+the clearly worse are let go (:func:`prune`). Work is counted in reference ms
+(:data:`service.core.reloc.global_search.WORK_MS`), so the same scans give the same poses on
+any machine and under any load. Units: metres, radians; poses ``[x, y, theta]`` in the map
+frame, odometry poses in the odometry frame.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Generator
 from dataclasses import dataclass, field
 from typing import Any
@@ -47,15 +31,19 @@ import numpy as np
 from service.core.pose import compose, invert
 from service.core.reloc.config import GlobalConfig
 from service.core.reloc.global_search import (
+    COST_FLOOR,
+    DISTINCT_DISTANCE,
+    FINE_SCALE,
+    SUPPORT_POINTS,
     WORK_MS,
     Hypothesis,
     beam_model,
     beams_ms,
-    distinct,
     near,
     polish_ms,
     refine,
     refine_ms,
+    support_sample,
     verify,
     verify_ms,
 )
@@ -73,6 +61,27 @@ TURN_BETWEEN_SCANS = 1.3
 CREEP = 0.25
 #: Polish stages (step m, step rad) of a track's first keyframe: +-0.43 m / +-10 degrees.
 WIDE_POLISH = ((0.15, 0.06), (0.05, 0.02), (0.015, 0.006))
+#: With odometry a scan becomes a keyframe when the robot has driven this far (m) since the
+#: last one: closer scans repeat each other's evidence ...
+EVIDENCE_SPACING = 0.3
+#: ... or turned this much (rad): a turn shows new walls.
+EVIDENCE_TURN = 0.3
+#: At most this many keyframes in the window (``GlobalConfig.evidence_span``).
+EVIDENCE_FRAMES = 20
+#: Without odometry the window holds the last this many scans.
+SCAN_WINDOW = 6
+#: A frame's cost is clipped here: one keyframe with a person in front of the laser must not
+#: outweigh the drive.
+EVIDENCE_CLIP = 1.0
+#: A track this many nats below the leader, or below the unseen place, on 3 frames at least is
+#: let go (a mean cost 0.3 worse over 10 keyframes).
+EVIDENCE_DROP = 60.0
+#: Weight of the odometry-moved pose as a prior of the re-scoring's polish: without it a
+#: hypothesis slid ~0.1 m per scan along corridors (tuning building 12).
+RESCORE_PRIOR = 0.02
+#: The mean predicted range (m) beyond which the unseen place's cost rises
+#: (``GlobalConfig.null_slope``).
+NULL_REACH = 5.0
 
 
 @dataclass(eq=False)
@@ -122,19 +131,6 @@ class Job:
     odom: np.ndarray | None
     track: Track | None = None
     frame: Frame | None = None
-
-
-def advance(job: Job, spent: float, budget: float) -> tuple[float, bool, Any]:
-    """Run ``job`` until the scan's work ``spent`` reaches ``budget`` (at least one step, so a
-    search always progresses). Returns ``(spent, done, result)``."""
-    while True:
-        try:
-            w = next(job.steps)
-        except StopIteration as stop:
-            return spent, True, stop.value
-        spent += w
-        if spent >= budget:
-            return spent, False, None
 
 
 def odometry_move(since: np.ndarray | None, now: np.ndarray | None) -> np.ndarray | None:
@@ -189,13 +185,13 @@ class Drive:
 
     def repeat(self, step: float, turn: float, g: GlobalConfig) -> None:
         """A scan with odometry that added no keyframe, ``step`` (m) and ``turn`` (rad) from
-        the last one. Standing or creeping (under :data:`CREEP` of ``evidence_spacing`` and
-        ``evidence_turn``) it repeats the newest keyframe: its noise, a person who moved, a
+        the last one. Standing or creeping (under :data:`CREEP` of :data:`EVIDENCE_SPACING` and
+        :data:`EVIDENCE_TURN`) it repeats the newest keyframe: its noise, a person who moved, a
         slightly different heading are new evidence, its walls are not. The n-th repeat adds
         ``d ** n`` of a keyframe (``w <- 1 + d w``, ``d = 1 - 1 / repeat_window``). A driving
         robot's scans raise wrong places' LLR as much as the true one's: every scan counted
         (d = 0.5), the tuning split's metric maps had false fixes up to 16 nats (against 10)."""
-        creep = step < CREEP * g.evidence_spacing and abs(turn) < CREEP * g.evidence_turn
+        creep = step < CREEP * EVIDENCE_SPACING and abs(turn) < CREEP * EVIDENCE_TURN
         if creep and self.frames and self.frames[-1].odom is not None:
             key = self.frames[-1].key
             d = 1.0 - 1.0 / g.repeat_window
@@ -236,33 +232,34 @@ def make_frame(
         key=key,
         ranges=rr,
         angles=aa,
-        points=subsample(pts, g.support_points).copy(),
+        points=subsample(pts, SUPPORT_POINTS).copy(),
         odom=None if odom is None else np.asarray(odom, dtype=np.float64).copy(),
         travel=float(travel),
     )
 
 
-def frame_due(frames: list[Frame], odom: np.ndarray, travel: float, g: GlobalConfig) -> bool:
+def frame_due(frames: list[Frame], odom: np.ndarray, travel: float) -> bool:
     """Whether a scan at odometry pose ``odom`` and drive travel ``travel`` becomes a keyframe:
-    the first, or ``evidence_spacing`` driven or ``evidence_turn`` turned since the last."""
+    the first, or :data:`EVIDENCE_SPACING` driven or :data:`EVIDENCE_TURN` turned since the
+    last."""
     if not frames or frames[-1].odom is None:
         return True
     last = frames[-1]
-    if travel - last.travel >= g.evidence_spacing:
+    if travel - last.travel >= EVIDENCE_SPACING:
         return True
-    return abs(float(wrap_angle(float(odom[2]) - float(last.odom[2])))) >= g.evidence_turn
+    return abs(float(wrap_angle(float(odom[2]) - float(last.odom[2])))) >= EVIDENCE_TURN
 
 
 def window(frames: list[Frame], g: GlobalConfig) -> list[Frame]:
     """The frames of the window: keyframes within ``evidence_span`` metres of the newest (at
-    most ``evidence_frames``), plain scans the last ``scan_window``."""
+    most :data:`EVIDENCE_FRAMES`), plain scans the last :data:`SCAN_WINDOW`."""
     if not frames:
         return []
     if frames[-1].odom is None:
-        return [f for f in frames if f.odom is None][-g.scan_window :]
+        return [f for f in frames if f.odom is None][-SCAN_WINDOW:]
     newest = frames[-1].travel
     out = [f for f in frames if f.odom is not None and newest - f.travel <= g.evidence_span]
-    return out[-g.evidence_frames :]
+    return out[-EVIDENCE_FRAMES:]
 
 
 def judged(frames: list[Frame]) -> list[int]:
@@ -277,11 +274,9 @@ def judged(frames: list[Frame]) -> list[int]:
     return [f.key for f in frames]
 
 
-def loglik(cost: float, g: GlobalConfig) -> float:
-    """A frame's log-likelihood (nats) from its beam cost: ``-EFFECTIVE_BEAMS x (cost -
-    floor)``, the cost clipped at ``evidence_clip`` (one frame with a person in front of the
-    laser must not outweigh the drive)."""
-    return -EFFECTIVE_BEAMS * (min(cost, g.evidence_clip) - g.cost_floor)
+def loglik(cost: float) -> float:
+    """A frame's log-likelihood (nats) from its beam cost, clipped at :data:`EVIDENCE_CLIP`."""
+    return -EFFECTIVE_BEAMS * (min(cost, EVIDENCE_CLIP) - COST_FLOOR)
 
 
 def frame_cost(
@@ -290,7 +285,7 @@ def frame_cost(
     """The beam cost of ``pose`` on frame ``f``'s beams (short returns graded by
     ``evidence_short_scale``) and the unseen place's cost there (:func:`null_cost`)."""
     if f.ranges.size == 0:
-        return g.evidence_clip, g.null_cost
+        return EVIDENCE_CLIP, g.null_cost
     assert index.sensor is not None
     m = beam_model(config, g, short_scale=g.evidence_short_scale)
     pred, landed = index.sensor.predict(pose, f.ranges, f.angles, m)
@@ -299,21 +294,18 @@ def frame_cost(
 
 
 def null_cost(predicted: np.ndarray, g: GlobalConfig) -> float:
-    """The unseen place's cost on a frame in a region whose walls the frame's beams would
-    meet at ``predicted`` ranges (m): ``null_cost``, plus ``null_slope`` per metre of their
-    mean beyond ``null_reach`` (at most ``evidence_clip``). Where the map's walls stand far
-    off, furniture the map does not hold stands between (a hall a floor plan draws as its
-    outline), and the true place explains a frame worse."""
+    """The unseen place's cost on a frame whose beams would meet the map's walls at
+    ``predicted`` ranges (m) (``GlobalConfig.null_slope``)."""
     if g.null_slope <= 0.0 or predicted.size == 0:
         return g.null_cost
     reach = float(np.mean(predicted))
-    return min(g.evidence_clip, g.null_cost + g.null_slope * max(0.0, reach - g.null_reach))
+    return min(EVIDENCE_CLIP, g.null_cost + g.null_slope * max(0.0, reach - NULL_REACH))
 
 
 def pair_ms(index: ViewIndex, g: GlobalConfig) -> float:
     """Work (reference ms) of scoring one track on one keyframe: a one-pose polish and the
     beams."""
-    return WORK_MS["polish_call"] + polish_ms(g.support_points) + beams_ms(index, g, g.verify_beams)
+    return WORK_MS["polish_call"] + polish_ms(SUPPORT_POINTS) + beams_ms(index, g, g.verify_beams)
 
 
 # ------------------------------------------------------------------------------- re-scoring
@@ -335,8 +327,7 @@ def rescore(
     is the track's evidence on the plain-scan frame ``scan``. Returns the work spent."""
     if not tracks:
         return 0.0
-    pts = np.vstack([f.points for f in P.features]) if P.features else np.zeros((0, 2))
-    sp = subsample(pts, g.support_points)
+    sp = support_sample(P)
     odometry = scan is None
     fit_ms = polish_ms(len(sp)) if odometry else refine_ms(index)
     each = fit_ms + verify_ms(index, g)
@@ -347,15 +338,15 @@ def rescore(
     poses = np.vstack([t.pose for t in chosen])
     if odometry:
         assert index.sensor is not None
-        fitted, _ = index.sensor.polish(poses, sp, g.fine_scale, prior=g.rescore_prior)
+        fitted, _ = index.sensor.polish(poses, sp, FINE_SCALE, prior=RESCORE_PRIOR)
     else:
-        fitted = refine(index, poses, sp, config, g)
+        fitted = refine(index, poses, sp, config)
     for t, p in zip(chosen, fitted, strict=True):
         h = verify(index, p, ranges, angles, P, config, g)
         t.pose = h.pose.copy()
         t.hyp = h
         if scan is not None:
-            t.ll[scan.key] = loglik(h.cost, g)
+            t.ll[scan.key] = loglik(h.cost)
             t.at[scan.key] = h.pose.copy()
     return n * each
 
@@ -399,10 +390,9 @@ def backfill(
                 start = compose(t.at[k], compose(invert(odom_of[k]), f.odom))
             else:
                 start = compose(t.pose, compose(invert(odom_now), f.odom))
-            narrow, _ = index.sensor.polish(
-                start[None, :], f.points, g.fine_scale, prior=g.rescore_prior
-            )
-            pose = narrow[0]
+            pose = index.sensor.polish(start[None, :], f.points, FINE_SCALE, prior=RESCORE_PRIOR)[
+                0
+            ][0]
             cost, null = frame_cost(index, pose, f, config, g)
             if not t.ll:
                 # a track's first keyframe: also a wider polish without a prior, and the pose
@@ -410,13 +400,13 @@ def backfill(
                 # off converges before it is judged; tuning building 16: a twin 0.2 m / 10
                 # degrees off the true pose, judged with the narrow polish only, lost to a
                 # mirrored alias)
-                wide, _ = index.sensor.polish(start[None, :], f.points, g.fine_scale, WIDE_POLISH)
+                wide, _ = index.sensor.polish(start[None, :], f.points, FINE_SCALE, WIDE_POLISH)
                 for alt in (wide[0], start):
                     c, n = frame_cost(index, alt, f, config, g)
                     if c < cost:
                         pose, cost, null = alt, c, n
                 spent += 0.5 * polish_ms(len(f.points)) + 2 * each
-            t.ll[f.key] = loglik(cost, g)
+            t.ll[f.key] = loglik(cost)
             t.at[f.key] = pose.copy()
             t.null[f.key] = null
             spent += each
@@ -429,7 +419,7 @@ def merge(
     hyps: list[Hypothesis],
     move: np.ndarray | None,
     keep: int,
-    scored: tuple[Frame, GlobalConfig] | None = None,
+    scored: Frame | None = None,
 ) -> list[Track]:
     """Add the best ``keep`` of a finished search's hypotheses (found on an earlier scan;
     ``move`` the robot-frame odometry motion since, or ``None``) to ``tracks`` unless one
@@ -446,7 +436,7 @@ def merge(
         # distance of a track is that track, and where the search fitted this scan better
         # the track follows it (its scores on the frames before are kept)
         if move is None and scored is not None:
-            dist, turn = scored[1].distinct_distance, TURN_BETWEEN_SCANS
+            dist, turn = DISTINCT_DISTANCE, TURN_BETWEEN_SCANS
         else:
             dist, turn = 0.3, 0.15
         held = [t for t in out if near(t.pose, pose, dist, turn)]
@@ -455,34 +445,17 @@ def merge(
                 t.found += 1
                 counted.append(t)
             if scored is not None and h.cost < t.hyp.cost:
-                frame, g = scored
                 t.pose, t.hyp = pose.copy(), h
-                t.ll[frame.key] = loglik(h.cost, g)
-                t.at[frame.key] = pose.copy()
+                t.ll[scored.key] = loglik(h.cost)
+                t.at[scored.key] = pose.copy()
         if held:
             continue
-        hyp = Hypothesis(
-            pose=pose.copy(),
-            cost=h.cost,
-            hit=h.hit,
-            violation=h.violation,
-            explained=h.explained,
-            short=h.short,
-        )
-        track = Track(pose.copy(), hyp)
+        track = Track(pose.copy(), dataclasses.replace(h, pose=pose.copy()))
         if scored is not None:
-            frame, g = scored
-            track.ll[frame.key] = loglik(h.cost, g)
-            track.at[frame.key] = pose.copy()
+            track.ll[scored.key] = loglik(h.cost)
+            track.at[scored.key] = pose.copy()
         out.append(track)
     return out
-
-
-def common(a: Track, b: Track, keys: dict[int, float]) -> tuple[float, float, int]:
-    """The summed log-likelihoods of ``a`` and of ``b`` over the frames of ``keys`` both were
-    scored on, and how many those are."""
-    both = [k for k in keys if k in a.ll and k in b.ll]
-    return sum(a.ll[k] for k in both), sum(b.ll[k] for k in both), len(both)
 
 
 def prune(
@@ -492,22 +465,23 @@ def prune(
     leader: Track | None,
     g: GlobalConfig,
 ) -> list[Track]:
-    """The tracks to keep: a track trailing the ``leader`` by ``evidence_drop`` nats in all,
+    """The tracks to keep: a track trailing the ``leader`` by :data:`EVIDENCE_DROP` nats in all,
     or the unseen place as much, on at least 3 common frames of ``keys`` goes; of the
     rest the best ``keep`` judged on every frame of the window ``frames`` and ``keep`` still
     being judged, one per place."""
-    null = -EFFECTIVE_BEAMS * (g.null_cost - g.cost_floor)
+    null = -EFFECTIVE_BEAMS * (g.null_cost - COST_FLOOR)
 
     def dropped(t: Track) -> bool:
         mine = [t.ll[k] for k in keys if k in t.ll]
         if len(mine) < 3:
             return False
-        if sum(mine) < len(mine) * null - g.evidence_drop:
+        if sum(mine) < len(mine) * null - EVIDENCE_DROP:
             return True
         if leader is None or t is leader:
             return False
-        a, b, m = common(leader, t, keys)
-        return m >= 3 and a - b > g.evidence_drop
+        both = [k for k in keys if k in leader.ll and k in t.ll]
+        lead, own = sum(leader.ll[k] for k in both), sum(t.ll[k] for k in both)
+        return len(both) >= 3 and lead - own > EVIDENCE_DROP
 
     live = [t for t in tracks if not dropped(t)]
     win = judged(frames)
@@ -549,10 +523,8 @@ __all__ = [
     "Frame",
     "Job",
     "Track",
-    "advance",
     "backfill",
     "candidates",
-    "distinct",
     "frame_due",
     "held",
     "judged",

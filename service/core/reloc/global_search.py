@@ -1,12 +1,10 @@
-"""The global search of shape-based localisation: :func:`global_search` ranks pose hypotheses for
-one scan over the whole map (S*-similar unit pairs induce poses, support ranks them, a
-point-to-line fit refines and :func:`verify` checks them beam by beam) and :func:`self_similar`
-looks for a twin place; both also as steps spread over scans (:func:`search_steps`,
-:func:`self_similar_steps`, their work counted by :data:`WORK_MS`). See
-:mod:`service.core.reloc.global_localization` for the whole method."""
+"""The global search: :func:`search_steps` ranks pose hypotheses for one scan over the whole map
+and :func:`self_similar_steps` looks for a twin place, both as steps spread over scans (their
+work counted by :data:`WORK_MS`); :func:`run_steps` runs them to the end."""
 
 from __future__ import annotations
 
+import math
 from collections.abc import Generator
 from dataclasses import dataclass
 from typing import TypeVar
@@ -17,6 +15,7 @@ from service.core.pose import transform_points
 from service.core.reloc.config import GlobalConfig
 from service.core.reloc.view_index import ViewIndex
 from service.core.reloc.view_index.build import anchor, joined
+from service.core.reloc.view_index.viewpoints import SPACING
 from service.core.sensor.pose_batch import fit_pairs
 from service.core.sensor.scoring import BeamModel, SensorModel, subsample
 from service.core.shapes.configuration import (
@@ -30,9 +29,42 @@ from service.core.types import wrap_angle
 
 T = TypeVar("T")
 
-# --------------------------------------------------------------------------------------------
-# Global search
-# --------------------------------------------------------------------------------------------
+#: The search compares the scan's this many most complex units (the rest repeat them) ...
+SCAN_UNITS = 5
+#: ... of at least this shape complexity (m·rad): a straight wall tells nothing.
+MIN_UNIT_COMPLEXITY = 0.05
+#: |range difference| (m) allowed between a scan unit and a view unit beyond the grid's
+#: half-diagonal.
+RANGE_SLACK = 0.4
+#: View units less complex than this x the scan unit's are skipped.
+VIEW_COMPLEXITY_RATIO = 0.25
+#: S* gate of a pair (m) ...
+MAX_SHAPE_DISTANCE = 0.6
+#: ... and corresponding anchor corners turn alike within this (rad).
+MAX_TURN_DIFFERENCE = 0.35
+#: Induced poses per scan, shared by the chosen scan units.
+PAIRS_BUDGET = 360
+#: Scan points of the support ranking, the fits and every polish.
+SUPPORT_POINTS = 80
+#: Coarse pose cell (m) of the shortlist (GlobalConfig.shortlist) ...
+SHORTLIST_CELL = 0.4
+#: ... and its heading width (rad) ...
+SHORTLIST_ANGLE = 0.2
+#: ... and the beams of its quick check.
+SHORTLIST_BEAMS = 90
+#: Point-to-line fit steps per refinement stage.
+REFINE_ITERATIONS = 6
+#: Cauchy scale (m) of the tight fit stage and of the polish.
+FINE_SCALE = 0.05
+#: Hypotheses farther apart than this (m) are distinct places ...
+DISTINCT_DISTANCE = 0.8
+#: ... or whose headings differ more than this (rad).
+DISTINCT_ANGLE = 0.5
+#: Cost of a beam through a drawn wall, in unexplained beams: a wall in the way contradicts a
+#: pose, a missing one only fails to confirm it.
+VIOLATION_WEIGHT = 2.0
+#: Added to every beam cost.
+COST_FLOOR = 0.05
 
 
 @dataclass
@@ -47,7 +79,6 @@ class Hypothesis:
     hit: float = 0.0
     violation: float = 0.0
     explained: float = 0.0
-    short: float = 0.0
 
 
 def beam_model(config: ShapeConfig, gconfig: GlobalConfig, short_scale: float = 0.0) -> BeamModel:
@@ -61,8 +92,8 @@ def beam_model(config: ShapeConfig, gconfig: GlobalConfig, short_scale: float = 
         see_through=gconfig.see_through,
         short_scale=short_scale,
         short_credit=gconfig.short_credit,
-        violation_weight=gconfig.violation_weight,
-        floor=gconfig.cost_floor,
+        violation_weight=VIOLATION_WEIGHT,
+        floor=COST_FLOOR,
     )
 
 
@@ -104,7 +135,7 @@ def verify(
     assert sensor is not None
     idx = subsample(np.nonzero(np.isfinite(ranges))[0], gconfig.verify_beams)
     if idx.size == 0:
-        return Hypothesis(pose=pose.copy(), cost=1.0 + gconfig.cost_floor)
+        return Hypothesis(pose=pose.copy(), cost=1.0 + COST_FLOOR)
     m = beam_model(config, gconfig)
     f = sensor.beams(pose[None, :], ranges[idx], angles[idx], m)[0]
     explained = sensor.explained_length(pose, P.features, config.support_tolerance)
@@ -114,92 +145,72 @@ def verify(
         hit=f.hit,
         violation=f.through,
         explained=explained,
-        short=f.short,
     )
 
 
 @dataclass
 class SearchResult:
-    """Ranked distinct hypotheses (best first). ``candidates`` how many pose hypotheses the
-    shape pairs induced; ``information`` the summed shape complexity (m·rad) of the scan units
-    used — how much distinctive shape the scan holds at all."""
+    """Ranked distinct hypotheses (best first); ``candidates`` how many pose hypotheses the
+    shape pairs induced."""
 
     hypotheses: list[Hypothesis]
     candidates: int
-    information: float = 0.0
-
-
-def _scan_units(P: Configuration, threshold: float) -> list[np.ndarray]:
-    """Vertices of each scan feature and of each pair of consecutive ones (robot frame)."""
-    out = [f.vertices for f in P.features]
-    for a, b in zip(P.features[:-1], P.features[1:], strict=True):
-        out.append(joined(a.vertices, b.vertices, threshold))
-    return out
 
 
 def _ranked_units(
-    P: Configuration, config: ShapeConfig, gconfig: GlobalConfig
+    P: Configuration, threshold: float
 ) -> tuple[list[np.ndarray], list[tuple[float, int]]]:
-    """The scan's units and ``(shape complexity, unit index)`` most complex first."""
-    units = _scan_units(P, config.dce_threshold)
+    """The scan's units (each feature and each pair of consecutive ones, robot frame) and
+    ``(shape complexity, unit index)`` most complex first."""
+    units = [f.vertices for f in P.features]
+    for a, b in zip(P.features[:-1], P.features[1:], strict=True):
+        units.append(joined(a.vertices, b.vertices, threshold))
     comp = [(shape_complexity(u), k) for k, u in enumerate(units)]
     comp.sort(key=lambda t: (-t[0], t[1]))
     return units, comp
 
 
-def refine(
-    index: ViewIndex,
-    poses: np.ndarray,
-    sp: np.ndarray,
-    config: ShapeConfig,
-    gconfig: GlobalConfig,
-) -> np.ndarray:
+def support_sample(P: Configuration) -> np.ndarray:
+    """:data:`SUPPORT_POINTS` of the scan's feature points (robot frame) for the fits."""
+    pts = np.vstack([f.points for f in P.features]) if P.features else np.zeros((0, 2))
+    return subsample(pts, SUPPORT_POINTS)
+
+
+def refine(index: ViewIndex, poses: np.ndarray, sp: np.ndarray, config: ShapeConfig) -> np.ndarray:
     """Refine poses ``(k, 3)`` against the map with the robot-frame scan points ``sp``: a
     point-to-line fit (Cauchy scale of the tracker), a tight second stage on the segments
     right under the points, a polish on the distance field and a last continuous fit."""
-    poses = np.asarray(poses, dtype=np.float64)
-    n = len(poses)
     sensor = index.sensor
     assert sensor is not None
-    refined, _ = fit_pairs(
-        [sp] * n,
-        [sensor.model.nearby_segments(transform_points(p, sp), 0.5) for p in poses],
-        poses,
-        iterations=gconfig.refine_iterations,
-        robust_scale=config.align_robust_scale,
-        damping=config.align_damping,
-    )
 
-    def fine(start: np.ndarray) -> np.ndarray:
-        # only the segments right under the points and a small robust scale, so returns from
-        # unmapped objects (furniture on a floor plan) stop pulling
+    def fit(start: np.ndarray, reach: float, scale: float) -> np.ndarray:
         out, _ = fit_pairs(
-            [sp] * n,
-            [
-                sensor.model.nearby_segments(transform_points(p, sp), 2.0 * gconfig.fine_scale)
-                for p in start
-            ],
+            [sp] * len(start),
+            [sensor.model.nearby_segments(transform_points(p, sp), reach) for p in start],
             start,
-            iterations=gconfig.refine_iterations,
-            robust_scale=gconfig.fine_scale,
+            iterations=REFINE_ITERATIONS,
+            robust_scale=scale,
             damping=config.align_damping,
         )
         return out
 
-    refined = fine(refined)
-    refined, _ = sensor.polish(refined, sp, gconfig.fine_scale)
+    refined = fit(np.asarray(poses, dtype=np.float64), 0.5, config.align_robust_scale)
+    # then only the segments right under the points and a small robust scale, so returns from
+    # unmapped objects (furniture on a floor plan) stop pulling
+    refined = fit(refined, 2.0 * FINE_SCALE, FINE_SCALE)
+    refined, _ = sensor.polish(refined, sp, FINE_SCALE)
     # and a last continuous fit from there (the distance field is quantised to its cells)
-    return fine(refined)
+    return fit(refined, 2.0 * FINE_SCALE, FINE_SCALE)
 
 
 # distinct and near run for every pair of poses a search or a merge compares: scalar
 # element differences into the same np.hypot (no temporary arrays)
 
 
-def distinct(a: np.ndarray, b: np.ndarray, gconfig: GlobalConfig) -> bool:
+def distinct(a: np.ndarray, b: np.ndarray) -> bool:
     return bool(
-        np.hypot(a[0] - b[0], a[1] - b[1]) > gconfig.distinct_distance
-        or abs(wrap_angle(float(a[2] - b[2]))) > gconfig.distinct_angle
+        np.hypot(a[0] - b[0], a[1] - b[1]) > DISTINCT_DISTANCE
+        or abs(wrap_angle(float(a[2] - b[2]))) > DISTINCT_ANGLE
     )
 
 
@@ -207,20 +218,6 @@ def near(a: np.ndarray, b: np.ndarray, dist: float = 0.3, ang: float = 0.15) -> 
     return bool(
         np.hypot(a[0] - b[0], a[1] - b[1]) < dist and abs(wrap_angle(float(a[2] - b[2]))) < ang
     )
-
-
-def global_search(
-    index: ViewIndex,
-    ranges: np.ndarray,
-    angles: np.ndarray,
-    config: ShapeConfig,
-    gconfig: GlobalConfig | None = None,
-    seeds: list[np.ndarray] | tuple[np.ndarray, ...] = (),
-    P: Configuration | None = None,
-) -> SearchResult:
-    """Rank pose hypotheses for one scan over the whole map (no prior pose): runs
-    :func:`search_steps` to the end (see there)."""
-    return run_steps(search_steps(index, ranges, angles, config, gconfig, seeds, P))
 
 
 #: Work model of the search, in milliseconds of one core of the reference machine (the 2-core
@@ -313,14 +310,24 @@ def _first_rows(rows: np.ndarray) -> np.ndarray:
     return np.sort(np.unique(key, return_index=True)[1])
 
 
-def run_steps(steps: Generator[float, None, T]) -> T:
-    """Run a step generator (:func:`search_steps`, :func:`self_similar_steps`) to the end and
-    return its result."""
+def advance(
+    steps: Generator[float, None, T], spent: float, budget: float
+) -> tuple[float, bool, T | None]:
+    """Run a step generator until the scan's work ``spent`` reaches ``budget`` (at least one
+    step, so a search always progresses). Returns ``(spent, done, result)``."""
     while True:
         try:
-            next(steps)
+            w = next(steps)
         except StopIteration as stop:
-            return stop.value
+            return spent, True, stop.value
+        spent += w
+        if spent >= budget:
+            return spent, False, None
+
+
+def run_steps(steps: Generator[float, None, T]) -> T:
+    """Run a step generator to the end and return its result."""
+    return advance(steps, 0.0, math.inf)[2]  # type: ignore[return-value]
 
 
 def search_steps(
@@ -332,24 +339,19 @@ def search_steps(
     seeds: list[np.ndarray] | tuple[np.ndarray, ...] = (),
     P: Configuration | None = None,
 ) -> Generator[float, None, SearchResult]:
-    """The global search as steps: a generator that yields, after each bounded chunk of work,
-    that chunk's cost in reference milliseconds (:data:`WORK_MS`), and returns the
-    :class:`SearchResult`. A caller with a per-scan budget runs it across scans.
+    """The global search for one scan over the whole map, as a generator that yields, after
+    each bounded chunk of work, that chunk's cost in reference ms (:data:`WORK_MS`), and
+    returns the :class:`SearchResult`: distinct hypotheses, best (lowest cost) first.
 
     ``ranges`` metres (NaN = no return), ``angles`` radians (robot frame); ``config`` the
-    tracker's :class:`ShapeConfig` (extraction, S* weights, support tolerance); ``seeds``
-    extra poses to consider (the hypotheses kept from earlier scans, moved by odometry).
-    ``P`` the scan's configuration if already computed.
+    tracker's settings; ``seeds`` extra poses (the kept hypotheses, moved by odometry); ``P``
+    the scan's configuration if already computed.
 
-    Steps: the ``gconfig.scan_units`` most complex scan units (features and consecutive pairs)
-    are compared by S* (:func:`service.core.shapes.similarity.shape_distance`, the tracker's
-    weights) with every index unit whose range from its viewpoint is within the grid half-diagonal
-    plus ``gconfig.range_slack`` of the scan unit's range; the most (``gconfig.pairs_budget``
-    shared) similar pairs (S* <= ``gconfig.max_shape_distance``) each induce a pose
-    (:func:`service.core.shapes.matching.induced_alignment`). All poses and the seeds are ranked by
-    support (distance field); the best ``gconfig.refine_top`` distinct ones are refined by a
-    point-to-line fit against the map and verified (:func:`verify`). Returns distinct
-    hypotheses, best (lowest cost) first.
+    The :data:`SCAN_UNITS` most complex scan units are compared by S* with every index unit
+    whose range from its viewpoint is within the grid half-diagonal plus :data:`RANGE_SLACK`
+    of the scan unit's; the most similar pairs (:data:`PAIRS_BUDGET` shared) each induce a
+    pose. All poses and the seeds are ranked by support (distance field); the best
+    ``refine_top`` distinct ones are refined (:func:`refine`) and verified (:func:`verify`).
     """
     gconfig = gconfig or GlobalConfig.for_kind(config.kind)
     sensor = index.sensor
@@ -358,18 +360,13 @@ def search_steps(
     a = np.asarray(angles, dtype=np.float64)
     if P is None:
         P = scan_configuration(r, a, config.extraction())
-    pts_all = (
-        np.vstack([f.points for f in P.features]) if P.features else np.zeros((0, 2), dtype=float)
-    )
     poses: list[np.ndarray] = [np.asarray(s, dtype=np.float64) for s in seeds]
     anchor_poses: list[np.ndarray] = []
     n_induced = 0
-    information = 0.0
     if P.features and len(index):
-        units, comp = _ranked_units(P, config, gconfig)
-        chosen = [k for c, k in comp[: gconfig.scan_units] if c >= gconfig.min_unit_complexity]
-        information = float(sum(c for c, _k in comp[: gconfig.scan_units]))
-        gate = 0.5 * np.sqrt(2.0) * gconfig.spacing + gconfig.range_slack
+        units, comp = _ranked_units(P, config.dce_threshold)
+        chosen = [k for c, k in comp[:SCAN_UNITS] if c >= MIN_UNIT_COMPLEXITY]
+        gate = 0.5 * np.sqrt(2.0) * SPACING + RANGE_SLACK
         ew, sw = config.shape_end_weight, config.shape_skip_weight
         for k in chosen:
             pu = units[k]
@@ -380,12 +377,12 @@ def search_steps(
             cand = np.nonzero(
                 (index.unit_rmin <= dp.max() + gate)
                 & (index.unit_rmax >= dp.min() - gate)
-                & (index.unit_complexity >= gconfig.view_complexity_ratio * cp)
+                & (index.unit_complexity >= VIEW_COMPLEXITY_RATIO * cp)
             )[0]
             cornered = abs(p_turn) > 0.2
             if cornered:  # corresponding corners turn alike
                 dturn = np.mod(index.unit_anchor[cand, 3] - p_turn + np.pi, 2.0 * np.pi) - np.pi
-                cand = cand[np.abs(dturn) < gconfig.max_turn_difference]
+                cand = cand[np.abs(dturn) < MAX_TURN_DIFFERENCE]
             # The same physical corner is seen from many viewpoints (one group): S* is
             # computed for one view of each group (the first), and a similar group lends its
             # views' anchors to every view of it; the budget of S*-induced alignments thus
@@ -399,14 +396,14 @@ def search_steps(
                     index.arcs(u),
                     end_weight=ew,
                     skip_weight=sw,
-                    upper_bound=gconfig.max_shape_distance,
+                    upper_bound=MAX_SHAPE_DISTANCE,
                 )
-                if s < gconfig.max_shape_distance:
+                if s < MAX_SHAPE_DISTANCE:
                     scored.append((s, u))
                 if (j + 1) % _CHUNK_SSTAR == 0:
                     yield _CHUNK_SSTAR * WORK_MS["sstar"]
             scored.sort()
-            top = scored[: gconfig.pairs_budget // len(chosen)]
+            top = scored[: PAIRS_BUDGET // len(chosen)]
             for _s, u in top:
                 poses.append(induced_alignment(pa, index.arcs(u)))
                 n_induced += 1
@@ -423,11 +420,11 @@ def search_steps(
                 n_induced += len(qa)
             yield len(top) * WORK_MS["induced"] + (len(first) % _CHUNK_SSTAR) * WORK_MS["sstar"]
     if not poses and not anchor_poses:
-        return SearchResult(hypotheses=[], candidates=0, information=information)
+        return SearchResult(hypotheses=[], candidates=0)
     H = np.vstack([np.asarray(poses).reshape(-1, 3), *anchor_poses])
-    sp = subsample(pts_all, gconfig.support_points)
+    sp = support_sample(P)
     if len(sp) == 0:
-        return SearchResult(hypotheses=[], candidates=n_induced, information=information)
+        return SearchResult(hypotheses=[], candidates=n_induced)
     parts = []
     for i in range(0, len(H), _CHUNK_POSES):
         block = H[i : i + _CHUNK_POSES]
@@ -442,9 +439,9 @@ def search_steps(
         # rank by the polished score instead.
         cells = np.column_stack(
             [
-                np.floor(H[:, 0] / gconfig.shortlist_cell),
-                np.floor(H[:, 1] / gconfig.shortlist_cell),
-                np.floor((wrap_angle(H[:, 2]) + np.pi) / gconfig.shortlist_angle),
+                np.floor(H[:, 0] / SHORTLIST_CELL),
+                np.floor(H[:, 1] / SHORTLIST_CELL),
+                np.floor((wrap_angle(H[:, 2]) + np.pi) / SHORTLIST_ANGLE),
             ]
         )
         reps = order[_first_rows(cells[order])]
@@ -461,22 +458,18 @@ def search_steps(
                 block = H[reps[i : i + _CHUNK_POSES]]
                 vparts.append(sensor.crossings(block, r[beams], a[beams], margin))
                 yield len(block) * beams.size * WORK_MS["field_beam"]
-            score = sup[reps] - gconfig.violation_weight * np.concatenate(vparts)
+            score = sup[reps] - VIOLATION_WEIGHT * np.concatenate(vparts)
             reps = reps[np.argsort(-score, kind="stable")]
         short = reps[: gconfig.shortlist]
         polished_parts = []
         quick_parts = []
         for i in range(0, len(short), _CHUNK_POLISH):
             block = H[short[i : i + _CHUNK_POLISH]]
-            pol, _score = sensor.polish(
-                block, sp, gconfig.fine_scale, stages=((0.15, 0.06), (0.05, 0.02))
-            )
+            pol, _score = sensor.polish(block, sp, FINE_SCALE, stages=((0.15, 0.06), (0.05, 0.02)))
             polished_parts.append(pol)
-            quick_parts.append(
-                beam_costs(sensor, pol, r, a, gconfig.shortlist_beams, config, gconfig)
-            )
+            quick_parts.append(beam_costs(sensor, pol, r, a, SHORTLIST_BEAMS, config, gconfig))
             yield len(block) * (
-                polish_ms(len(sp)) + gconfig.shortlist_beams * WORK_MS["beam"] + cast_ms(index)
+                polish_ms(len(sp)) + SHORTLIST_BEAMS * WORK_MS["beam"] + cast_ms(index)
             )
         H = np.vstack(polished_parts)
         quick = np.concatenate(quick_parts)
@@ -491,7 +484,7 @@ def search_steps(
     hyps: list[Hypothesis] = []
     for i in range(0, len(picked), _CHUNK_REFINE):
         block = np.vstack(picked[i : i + _CHUNK_REFINE])
-        refined = refine(index, block, sp, config, gconfig)
+        refined = refine(index, block, sp, config)
         hyps.extend(verify(index, p, r, a, P, config, gconfig) for p in refined)
         yield len(block) * (refine_ms(index) + verify_ms(index, gconfig))
     hyps.sort(key=lambda h: h.cost)
@@ -499,24 +492,7 @@ def search_steps(
     for h in hyps:
         if all(not near(h.pose, o.pose) for o in out):
             out.append(h)
-    return SearchResult(
-        hypotheses=out,
-        candidates=n_induced,
-        information=information,
-    )
-
-
-def self_similar(
-    index: ViewIndex,
-    best: Hypothesis,
-    ranges: np.ndarray,
-    angles: np.ndarray,
-    P: Configuration,
-    config: ShapeConfig,
-    gconfig: GlobalConfig,
-) -> Hypothesis | None:
-    """The map's own twin of ``best`` (runs :func:`self_similar_steps` to the end)."""
-    return run_steps(self_similar_steps(index, best, ranges, angles, P, config, gconfig))
+    return SearchResult(hypotheses=out, candidates=n_induced)
 
 
 def self_similar_steps(
@@ -528,18 +504,18 @@ def self_similar_steps(
     config: ShapeConfig,
     gconfig: GlobalConfig,
 ) -> Generator[float, None, Hypothesis | None]:
-    """:func:`self_similar` as steps (yields work in reference ms, like :func:`search_steps`).
-
-    The map's own twin of ``best``, verified on the real scan, or ``None``.
+    """The map's own twin of ``best``, verified on the real scan, or ``None``, as steps (like
+    :func:`search_steps`).
 
     A search can miss the true place altogether (furniture hides its walls) and then crown a
     congruent room elsewhere with no close rival. So before a fix the map is asked where else
     it looks the same: the scan the MAP would give at ``best.pose`` (a ray cast over the real
-    scan's beams that have returns) runs through :func:`global_search` itself; every
+    scan's beams that have returns) runs through :func:`search_steps` itself; every
     resulting pose distinct from ``best`` is a place the map cannot tell from it, and is
     verified (:func:`verify`) on the real ``ranges`` / ``angles`` both as found and refined on
-    the real scan's points (:func:`refine`), whichever fits better. Returns the best verified
-    twin (lowest cost)."""
+    the real scan's points (:func:`refine`), whichever verifies better (the map-only search
+    aligned it to the map's own view; furniture can drag the fit off). Returns the best
+    verified twin (lowest cost)."""
     ok = np.isfinite(ranges)
     assert index.sensor is not None
     pred = index.sensor.caster.cast(best.pose, angles, config.view_max_range)
@@ -547,19 +523,16 @@ def self_similar_steps(
     if np.count_nonzero(np.isfinite(pred)) < 10:
         return None
     res = yield from search_steps(index, pred, angles, config, gconfig)
-    cands = [h.pose for h in res.hypotheses if distinct(h.pose, best.pose, gconfig)]
-    pts = np.vstack([f.points for f in P.features]) if P.features else np.zeros((0, 2))
-    sp = subsample(pts, gconfig.support_points)
+    cands = [h.pose for h in res.hypotheses if distinct(h.pose, best.pose)]
+    sp = support_sample(P)
     if not cands or len(sp) == 0:
         return None
-    # the map-only search aligned the twins to the map's own view; each is verified as found
-    # and fitted to the real scan, whichever verifies better (furniture can drag the fit off)
     out: Hypothesis | None = None
     for i in range(0, len(cands), _CHUNK_REFINE):
         block = np.vstack(cands[i : i + _CHUNK_REFINE])
-        refined = refine(index, block, sp, config, gconfig)
+        refined = refine(index, block, sp, config)
         for pose in [*block, *refined]:
-            if not distinct(pose, best.pose, gconfig):
+            if not distinct(pose, best.pose):
                 continue
             v = verify(index, pose, ranges, angles, P, config, gconfig)
             if out is None or v.cost < out.cost:

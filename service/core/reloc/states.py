@@ -1,28 +1,24 @@
-"""Relocalisation as a state machine: the states as objects and one transition function,
-:func:`step` (``(state, scan) -> (state, estimate)``).
+"""Relocalisation as a state machine (docs/decisions/0017-relocalisation-state-machine.md): the
+states as objects and one transition function, :func:`step` (``(state, scan) -> (state,
+estimate)``).
 
 * :class:`Tracking` -- the shape tracker follows the robot. With odometry a *dead-reckoned
   reference* rides along: the pose the odometry carried from the last scan the map explained
   well (``good_support``), with its growing covariance. A fit of a poorly explained scan is
-  believed only within ``gate_sigmas`` of it, and a rejected scan (the tracker keeps the
-  odometry's pose) only while the reference's sigma is below ``track_sigma``; beyond either,
-  the robot dead-reckons. A scan that contradicts the pose (beams through drawn walls, or the
-  scan-to-scan fit broken: a kidnap) ``lost_after`` times in a row starts a search. Without
-  odometry the tracker's own ``lost`` (or a scan that fits nothing) starts one.
-* :class:`DeadReckoning` -- the map does not explain the scans: the published pose is the
-  dead-reckoned one with its growing covariance (status ``lost``: not map-confirmed). Every
-  scan the tracker is run from it; ``relock_scans`` scans in a row that it explains well
-  within the gate fix the robot again. A dead-reckoned pose the scans contradict, or one
-  whose sigma passed ``max_dead_reckoning_sigma``, gives way to a search, with the
-  dead-reckoned pose as the prior.
-* :class:`Searching` -- the global search over a drive (:mod:`service.core.reloc.drive`),
-  within the per-scan budget (none: a whole search per scan); the decision
-  (:func:`service.core.reloc.decision.decide`) names a winner, the tracker confirms it.
+  believed only within :data:`GATE_SIGMAS` of it, and a rejected scan only while the
+  reference's sigma is below ``track_sigma``; beyond either, the robot dead-reckons. A scan
+  that contradicts the pose (beams through drawn walls, or the scan-to-scan fit broken: a
+  kidnap) ``lost_after`` times in a row starts a search; without odometry the tracker's own
+  ``lost`` (or a scan that fits nothing) does.
+* :class:`DeadReckoning` -- the published pose is the dead-reckoned one (status ``lost``).
+  ``relock_scans`` scans in a row the tracker, run from it, explains well within the gate fix
+  the robot again; scans that contradict it, or a sigma past ``max_dead_reckoning_sigma``,
+  start a search with it as the prior.
+* :class:`Searching` -- the global search over a drive (:mod:`service.core.reloc.drive`)
+  within the per-scan budget; the decision (:mod:`service.core.reloc.decision`) names a
+  winner, the tracker confirms it.
 * :class:`Probation` -- with odometry a winner is tracked ``probation_travel`` metres while
   the evidence goes on, and fixed if the decision still names it then.
-
-The localiser (:class:`service.core.reloc.global_localization.GlobalShapeLocalizer`) holds
-the state and the parts every state uses (tracker, map index, odometry): :class:`Context`.
 """
 
 from __future__ import annotations
@@ -37,9 +33,10 @@ from service.core import numeric
 from service.core.reloc import drive as dr
 from service.core.reloc.composite import composite_scan
 from service.core.reloc.config import GlobalConfig
-from service.core.reloc.decision import Prior, Verdict, cell_volume, decide, propagate
-from service.core.reloc.global_search import search_steps, self_similar_steps
+from service.core.reloc.decision import CELL_VOLUME, Prior, Verdict, decide, propagate
+from service.core.reloc.global_search import advance, search_steps, self_similar_steps
 from service.core.reloc.view_index import ViewIndex
+from service.core.reloc.view_index.viewpoints import SPACING
 from service.core.shapes.configuration import Configuration, scan_configuration
 from service.core.tracking.localizer import ShapeConfig, ShapeLocalizer
 from service.core.tracking.motion import odometry_sigmas
@@ -61,6 +58,39 @@ FIX_COV = np.diag([0.05**2, 0.05**2, 0.03**2])
 #: Without odometry the prior around the last tracked pose widens by this many metres per
 #: scan and per metre of the robot's known speed per scan (it may turn any amount).
 HELD_GROWTH = 2.0
+#: With a budget, at most this share re-scores the kept hypotheses on the scan and
+#: EVIDENCE_SHARE scores them on the keyframes they lack; the search gets the rest (0.3 / 0.2
+#: against 0.5 / 0.3 on tuning worlds 0-19: 96 against 93 % fixed in 15 m).
+RESCORE_SHARE = 0.3
+EVIDENCE_SHARE = 0.2
+#: At most this shortlist ...
+TWIN_SHORTLIST = 60
+#: ... and refine_top in a self-similarity check (it searches the map's own view).
+TWIN_REFINE_TOP = 12
+#: The tracker's first fit must lie this close to the winner (m) ...
+CONFIRM_DISTANCE = 0.3
+#: ... and turned less than this (rad) ...
+CONFIRM_ANGLE = 0.1
+#: ... with a position sigma of at most this (m): a corridor's parallel walls verify equally
+#: well 0.8 m further along (intel floor plan: a fix 0.8 m off, sigma 0.19 m; correct fixes
+#: 0.004-0.01 m).
+CONFIRM_SIGMA = 0.05
+#: Standard deviations of the dead-reckoned reference a poorly explained fit may stray from it
+#: before the robot dead-reckons.
+GATE_SIGMAS = 3.0
+#: A scan contradicts a pose when more than this share of its beams returns from beyond a drawn
+#: wall (unexplained scans at the true pose on fr079: 0.011 / 0.033 p50 / p90; kidnapped: 0.06
+#: / 0.24 p10 / p50).
+CONTRADICTION = 0.05
+#: With odometry the search matches the last this many scans fused (1: every scan alone) ...
+COMPOSITE_SCANS = 3
+#: ... into this many beams (never finer than the laser's) ...
+COMPOSITE_BINS = 720
+#: ... leaving out scans farther than this (m) from the newest.
+COMPOSITE_TRAVEL = 0.5
+#: With the odometry prior off, an odometry turn larger than this (rad) still moves the
+#: tracker's pose first (the tracker follows turns up to 1.3 rad).
+ODOM_TURN_ASSIST = 1.0
 
 
 @dataclass(frozen=True)
@@ -204,15 +234,15 @@ def fit_cov(est: Estimate) -> np.ndarray:
 
 
 def _contradicts(ctx: Context, scan: Scan, pose: np.ndarray, cov: np.ndarray | None = None) -> bool:
-    """Whether the scan contradicts ``pose``: more than ``contradiction`` of the tracker's
+    """Whether the scan contradicts ``pose``: more than :data:`CONTRADICTION` of the tracker's
     violation beams return from beyond a drawn wall, by more than the tracker's margin plus,
-    for a dead-reckoned pose of covariance ``cov``, ``gate_sigmas`` of its position sigma (a
+    for a dead-reckoned pose of covariance ``cov``, :data:`GATE_SIGMAS` of its position sigma (a
     wall the pose may be that far off from is no contradiction)."""
     margin = ctx.config.violation_margin
     if cov is not None:
-        margin += ctx.gconfig.gate_sigmas * sigma_xy(cov)
+        margin += GATE_SIGMAS * sigma_xy(cov)
     share = ctx.tracker.violations(scan.ranges, scan.angles, [pose], margin)[0]
-    return share > ctx.gconfig.contradiction
+    return share > CONTRADICTION
 
 
 def start_search(ctx: Context, status: Status, prior: Prior | None = None) -> Searching:
@@ -250,7 +280,7 @@ def step(ctx: Context, state: State, scan: Scan) -> tuple[State, Estimate]:
 def _tracking(ctx: Context, s: Tracking, scan: Scan) -> tuple[State, Estimate]:
     g = ctx.gconfig
     o = scan.odom
-    if o.delta is not None and not scan.odometry and abs(float(o.delta[2])) > g.odom_turn_assist:
+    if o.delta is not None and not scan.odometry and abs(float(o.delta[2])) > ODOM_TURN_ASSIST:
         # a turn the shape tracker cannot bridge without its odometry prior (a look-around
         # spin after the fix): the odometry's heading change moves its pose first
         ctx.tracker.predict(o.delta)
@@ -298,7 +328,7 @@ def _tracking(ctx: Context, s: Tracking, scan: Scan) -> tuple[State, Estimate]:
     if s.strikes >= ctx.config.lost_after:
         est.extras["contradicted"] = 1.0
         return _lost(ctx, s.ref, s.cov), est
-    stray = not rejected and mahalanobis2(est.pose, s.ref, s.cov) > g.gate_sigmas**2
+    stray = not rejected and mahalanobis2(est.pose, s.ref, s.cov) > GATE_SIGMAS**2
     if stray or est.status == "lost" or sigma_xy(s.cov) > g.track_sigma:
         est.extras["stray" if stray else "unexplained"] = 1.0
         ctx.tracker.reset(None)
@@ -340,7 +370,7 @@ def _relock(
     """The tracker run from the dead-reckoned ``pose`` (covariance ``cov``), this scan's
     odometry increment its prior. Returns the fit, the dead-reckoned pose and covariance
     after this scan (the fit's pose when it is good), and whether it is good: accepted,
-    explaining ``good_support`` of the scan, within ``gate_sigmas`` of the dead-reckoned
+    explaining ``good_support`` of the scan, within :data:`GATE_SIGMAS` of the dead-reckoned
     pose."""
     g = ctx.gconfig
     o = scan.odom
@@ -354,7 +384,7 @@ def _relock(
         "rejected" not in est.extras
         and est.status == "tracking"
         and (est.explained or 0.0) >= g.good_support
-        and mahalanobis2(est.pose, pose, cov) <= g.gate_sigmas**2
+        and mahalanobis2(est.pose, pose, cov) <= GATE_SIGMAS**2
     )
     if good:
         pose = est.pose.copy()  # follow the fit; the odometry carries it from here
@@ -401,21 +431,21 @@ def _seeds(drive: dr.Drive, prior: Prior, odometry: bool) -> list[np.ndarray]:
 
 def _composite(drive: dr.Drive, scan: Scan, g: GlobalConfig) -> tuple[np.ndarray, np.ndarray]:
     """The scan the search matches: this one, or with odometry the virtual 360-degree
-    composite of the last ``composite_scans`` within ``composite_travel``."""
+    composite of the last :data:`COMPOSITE_SCANS` within :data:`COMPOSITE_TRAVEL`."""
     r, a, here = scan.ranges, scan.angles, scan.odom.reading
-    if here is None or g.composite_scans <= 1:
+    if here is None or COMPOSITE_SCANS <= 1:
         drive.history = []
         return r, a
     drive.history = [
         h
-        for h in drive.history[-(g.composite_scans - 1) :]
-        if np.hypot(*(h[2][:2] - here[:2])) <= g.composite_travel
+        for h in drive.history[-(COMPOSITE_SCANS - 1) :]
+        if np.hypot(*(h[2][:2] - here[:2])) <= COMPOSITE_TRAVEL
     ]
     drive.history.append((r, a, here.copy()))
     if len(drive.history) == 1:
         return r, a
     inc = float(np.median(np.abs(np.diff(a)))) if a.size > 1 else 0.0
-    bins = g.composite_bins
+    bins = COMPOSITE_BINS
     if inc > 0.0:  # no finer than the laser's beams (holes would split every polyline)
         bins = int(min(bins, max(8, np.floor(2.0 * np.pi / inc + 1e-6))))
     return composite_scan(drive.history, bins)
@@ -425,7 +455,7 @@ def _keyframe(drv: dr.Drive, scan: Scan, g: GlobalConfig) -> None:
     """A scan with odometry: a keyframe when it is due, else a repeat of the newest one."""
     o = scan.odom.reading
     assert o is not None
-    if dr.frame_due(drv.frames, o, drv.travel, g):
+    if dr.frame_due(drv.frames, o, drv.travel):
         drv.add(dr.make_frame(drv.next_key, scan.ranges, scan.angles, o, drv.travel, g), g)
     else:
         d = scan.odom.delta
@@ -451,15 +481,15 @@ def _search_work(
         frame = dr.make_frame(drv.next_key, scan.ranges, scan.angles, None, drv.travel, g)
         drv.add(frame, g)
     spent = dr.rescore(
-        ctx.index, drv.tracks, rs, as_, P, ctx.config, g, budget * g.rescore_share, frame
+        ctx.index, drv.tracks, rs, as_, P, ctx.config, g, budget * RESCORE_SHARE, frame
     )
     # the evidence's share is scored after the search, so the places it found this scan are
     # judged on the window before the decision (unscored, each would count as the leader)
-    evidence = budget * g.evidence_share if o.reading is not None else 0.0
+    evidence = budget * EVIDENCE_SHARE if o.reading is not None else 0.0
     search_limit = budget - evidence if math.isfinite(budget) else budget
     found = -1
     if drv.twin is not None:
-        spent, done, twin = dr.advance(drv.twin, spent, search_limit)
+        spent, done, twin = advance(drv.twin.steps, spent, search_limit)
         if done:
             job, drv.twin = drv.twin, None
             if job.track is not None:
@@ -472,12 +502,12 @@ def _search_work(
             seeds = _seeds(drv, prior, o.reading is not None)
             steps = search_steps(ctx.index, rs, as_, ctx.config, g, seeds=seeds, P=P)
             drv.job = dr.Job(steps, None if o.reading is None else o.reading.copy(), frame=frame)
-        spent, done, res = dr.advance(drv.job, spent, search_limit)
+        spent, done, res = advance(drv.job.steps, spent, search_limit)
         if done:
             move = dr.odometry_move(drv.job.odom, o.reading)
             searched = drv.job.frame
             live = searched is not None and any(f is searched for f in dr.window(drv.frames, g))
-            scored = (searched, g) if live and searched is not None else None
+            scored = searched if live else None
             drv.tracks = dr.merge(drv.tracks, res.hypotheses, move, g.keep, scored)
             drv.job = None
             found = res.candidates
@@ -491,9 +521,7 @@ def _decide(ctx: Context, drv: dr.Drive, prior: Prior) -> Verdict:
     g = ctx.gconfig
     frames = dr.window(drv.frames, g)
     if prior.cells <= 0.0:
-        prior.cells = max(
-            1.0, len(ctx.index.viewpoints) * g.spacing**2 * 2.0 * math.pi / cell_volume(g)
-        )
+        prior.cells = max(1.0, len(ctx.index.viewpoints) * SPACING**2 * 2.0 * math.pi / CELL_VOLUME)
     keys = drv.evidence_keys(g)
     verdict = decide(drv.tracks, frames, keys, prior, g)
     drv.tracks = dr.prune(drv.tracks, frames, keys, verdict.leader, g)
@@ -540,8 +568,8 @@ def _searching(ctx: Context, s: Searching, scan: Scan) -> tuple[State, Estimate]
     if lead is not None and not lead.checked and drv.twin is None:
         tg = g.model_copy(
             update={
-                "shortlist": min(g.shortlist, g.twin_shortlist),
-                "refine_top": min(g.refine_top, g.twin_refine_top),
+                "shortlist": min(g.shortlist, TWIN_SHORTLIST),
+                "refine_top": min(g.refine_top, TWIN_REFINE_TOP),
             }
         )
         steps = self_similar_steps(ctx.index, lead.hyp, rs, as_, P, ctx.config, tg)
@@ -601,19 +629,18 @@ def _guess(
 
 def _confirm(ctx: Context, drv: dr.Drive, lead: dr.Track, scan: Scan) -> Estimate | None:
     """The tracker, reset to the winner with this scan's odometry, must accept the scan within
-    ``confirm_distance`` / ``confirm_angle`` of it with a position sigma of at most
-    ``confirm_sigma``; then tracking starts (the estimate); ``None`` otherwise."""
-    g = ctx.gconfig
+    :data:`CONFIRM_DISTANCE` / :data:`CONFIRM_ANGLE` of it with a position sigma of at most
+    :data:`CONFIRM_SIGMA`; then tracking starts (the estimate); ``None`` otherwise."""
     o = scan.odom
     ctx.tracker.reset(lead.pose, o.reading)
     if drv.speed is not None:
         ctx.tracker.set_speed(drv.speed)
     est = ctx.tracker.update(scan.ranges, scan.angles, o.reading, o.matched_from, o.spread)
     close = (
-        np.hypot(*(est.pose[:2] - lead.pose[:2])) <= g.confirm_distance
-        and abs(float(wrap_angle(est.pose[2] - lead.pose[2]))) <= g.confirm_angle
+        np.hypot(*(est.pose[:2] - lead.pose[:2])) <= CONFIRM_DISTANCE
+        and abs(float(wrap_angle(est.pose[2] - lead.pose[2]))) <= CONFIRM_ANGLE
         and est.covariance is not None
-        and sigma_xy(np.asarray(est.covariance).reshape(3, 3)) <= g.confirm_sigma
+        and sigma_xy(np.asarray(est.covariance).reshape(3, 3)) <= CONFIRM_SIGMA
     )
     if est.status == "tracking" and "rejected" not in est.extras and close:
         return est
@@ -659,7 +686,7 @@ def _probation(ctx: Context, p: Probation, scan: Scan) -> tuple[State, Estimate]
             o.reading,
             ctx.config,
             g,
-            budget * g.evidence_share,
+            budget * EVIDENCE_SHARE,
             first=p.winner,
         )
     else:

@@ -116,7 +116,7 @@ def _office_window(first: int, last: int):  # type: ignore[no-untyped-def]
         if i > first:
             d = compose(invert(su.odom[i - 1]), su.odom[i])
             travel += float(np.hypot(d[0], d[1]))
-        if dr.frame_due(frames, su.odom[i], travel, g):
+        if dr.frame_due(frames, su.odom[i], travel):
             frames.append(dr.make_frame(len(frames), *su.scan(i), su.odom[i], travel, g))
     return su, cfg, g, idx, dr.window(frames, g)
 

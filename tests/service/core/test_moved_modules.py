@@ -13,6 +13,7 @@ import pytest
 
 import service.core
 from service.core.reloc import states as st
+from service.core.reloc.config import GlobalConfig
 from service.core.reloc.global_localization import GlobalShapeLocalizer
 from sim_publisher.laser import LaserSimulator
 
@@ -57,3 +58,14 @@ def test_a_searching_localiser_pickled_by_an_earlier_version_searches_again() ->
     laser = LaserSimulator(loc.map_data.segments(), seed=3)
     est = loc.update(*laser.scan(np.array([3.65, 2.0, 0.36]), 99), None)
     assert est.status == "initializing" and est.state == "searching"
+
+
+def test_settings_pickled_with_a_field_removed_since_load_without_it() -> None:
+    g = GlobalConfig.for_kind("schematic")
+    state = g.__getstate__()
+    state["__dict__"] = {**state["__dict__"], "spacing": 0.6}  # a field of earlier versions
+    old = pickle.dumps(g)
+    loaded = pickle.loads(old)
+    loaded.__setstate__(state)
+    assert "spacing" not in loaded.__dict__
+    assert loaded == g and loaded.model_dump() == g.model_dump()

@@ -18,7 +18,13 @@ import numpy as np
 from service.core import numeric
 from service.core.reloc.config import GlobalConfig
 from service.core.reloc.view_index.index import FORMAT_VERSION, ViewIndex
-from service.core.reloc.view_index.viewpoints import candidate_viewpoints
+from service.core.reloc.view_index.viewpoints import (
+    ENCLOSURE_BEAMS,
+    MIN_CLEARANCE,
+    SMALL_RING_AREA,
+    SPACING,
+    candidate_viewpoints,
+)
 from service.core.sensor.raycast import RayCaster
 from service.core.sensor.scoring import sensor_model
 from service.core.shapes.configuration import (
@@ -44,16 +50,13 @@ def index_key(map_data: MapData, config: ShapeConfig, gconfig: GlobalConfig) -> 
         "extraction": config.extraction().__dict__,
         "view_beams": config.view_beams,
         "view_max_range": config.view_max_range,
-        "index": gconfig.model_dump(
-            include={
-                "spacing",
-                "min_clearance",
-                "enclosure_beams",
-                "min_enclosed",
-                "small_ring_area",
-                "grid_resolution",
-            }
-        ),
+        "index": {
+            "spacing": SPACING,
+            "min_clearance": MIN_CLEARANCE,
+            "enclosure_beams": ENCLOSURE_BEAMS,
+            "min_enclosed": gconfig.min_enclosed,
+            "small_ring_area": SMALL_RING_AREA,
+        },
     }
     h.update(json.dumps(params, sort_keys=True).encode())
     return h.hexdigest()
@@ -119,14 +122,7 @@ def build_index(
     caster = RayCaster(map_data.segments())
     params: ExtractionParams = config.extraction()
     vps = candidate_viewpoints(
-        map_data,
-        gconfig.spacing,
-        min_clearance=gconfig.min_clearance,
-        enclosure_beams=gconfig.enclosure_beams,
-        min_enclosed=gconfig.min_enclosed,
-        max_range=config.view_max_range,
-        small_ring_area=gconfig.small_ring_area,
-        caster=caster,
+        map_data, min_enclosed=gconfig.min_enclosed, max_range=config.view_max_range, caster=caster
     )
     uview: list[int] = []
     rmin: list[float] = []

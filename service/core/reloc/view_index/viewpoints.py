@@ -16,6 +16,15 @@ from service.core.sensor.raycast import RayCaster
 from service.core.types import MapData
 from service.errors import LocalizationError
 
+#: Viewpoint grid spacing (m): finer than a room, coarser than a door.
+SPACING = 0.6
+#: A viewpoint's distance to any polyline (m): where a robot fits.
+MIN_CLEARANCE = 0.3
+#: Beams of the enclosure test (4 degrees).
+ENCLOSURE_BEAMS = 90
+#: Closed rings smaller than this (m²) are furniture, not rooms: no viewpoint.
+SMALL_RING_AREA = 6.0
+
 
 def _closed_rings(map_data: MapData, max_area: float) -> list[Polygon]:
     out = []
@@ -29,13 +38,13 @@ def _closed_rings(map_data: MapData, max_area: float) -> list[Polygon]:
 
 def candidate_viewpoints(
     map_data: MapData,
-    spacing: float = 0.6,
+    spacing: float = SPACING,
     *,
-    min_clearance: float = 0.3,
-    enclosure_beams: int = 90,
+    min_clearance: float = MIN_CLEARANCE,
+    enclosure_beams: int = ENCLOSURE_BEAMS,
     min_enclosed: float = 0.9,
     max_range: float = 15.0,
-    small_ring_area: float = 6.0,
+    small_ring_area: float = SMALL_RING_AREA,
     caster: RayCaster | None = None,
 ) -> np.ndarray:
     """Grid points over the map's free space, ``(v, 2)`` map frame (metres).

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from service.core.reloc.config import GlobalConfig
-from service.core.reloc.decision import Prior, cell_volume, decide, propagate
+from service.core.reloc.decision import Prior, decide, propagate
 from service.core.reloc.drive import Frame, Track
-from service.core.reloc.global_search import Hypothesis
+from service.core.reloc.global_search import COST_FLOOR, Hypothesis
 
 G = GlobalConfig.for_kind("metric")
 
@@ -39,7 +39,7 @@ def test_the_llr_is_the_leaders_evidence_over_the_rest_and_the_unseen_place() ->
     alt = _track(5.0, [-5.0] * 4)
     v = decide([alt, best], frames, keys, UNIFORM, G)
     assert v.leader is best
-    unseen = 4 * -20.0 * (G.null_cost - G.cost_floor)
+    unseen = 4 * -20.0 * (G.null_cost - COST_FLOOR)
     want = -8.0 - math.log(math.exp(-20.0) + math.exp(unseen))
     assert v.llr == pytest.approx(want)
     assert v.ambiguity == pytest.approx(1.0 / (1.0 + math.exp(want)))
@@ -86,7 +86,7 @@ def test_a_dead_reckoned_prior_favours_the_place_near_it() -> None:
     # a far place explaining each frame clearly better still wins eventually (a kidnap)
     far.ll = {k: 2.0 for k in range(4)}
     assert decide([far, near], frames, keys, prior, G).leader is far
-    assert prior.log(near.pose, cell_volume(G)) > prior.log(far.pose, cell_volume(G))
+    assert prior.log(near.pose) > prior.log(far.pose)
 
 
 def test_dead_reckoning_grows_the_covariance_along_the_drive() -> None:

@@ -14,7 +14,7 @@ from service.core.factory import create_localizer
 from service.core.reloc import global_localization as gl
 from service.core.reloc import states as st
 from service.core.reloc import view_index as vi
-from service.core.reloc.global_search import global_search, self_similar, verify
+from service.core.reloc.global_search import run_steps, search_steps, self_similar_steps, verify
 from service.core.reloc.view_index import cache as view_index_cache
 from service.core.shapes.configuration import scan_configuration
 from service.core.tracking.scan_odometry import OdometryStep
@@ -242,7 +242,7 @@ def test_global_search_ranks_the_true_pose_first_on_a_distinctive_view() -> None
     truth = su.truth[1836]
     r, a = su.scan(1836)
     g = gl.GlobalConfig.for_kind("metric")
-    res = global_search(idx, r, a, gl.ShapeConfig.for_kind("metric"), g)
+    res = run_steps(search_steps(idx, r, a, gl.ShapeConfig.for_kind("metric"), g))
     assert res.candidates > 20
     best = res.hypotheses[0]
     assert _found(best.pose, truth)
@@ -250,7 +250,7 @@ def test_global_search_ranks_the_true_pose_first_on_a_distinctive_view() -> None
     # the best distinct alternative explains the scan clearly worse
     from service.core.reloc.global_search import distinct
 
-    other = next(h for h in res.hypotheses[1:] if distinct(h.pose, best.pose, g))
+    other = next(h for h in res.hypotheses[1:] if distinct(h.pose, best.pose))
     assert other.cost > best.cost + 0.05
 
 
@@ -301,7 +301,7 @@ def test_symmetric_room_stays_ambiguous_after_looking_around() -> None:
 
 def test_composite_needs_odometry_and_stays_within_the_travel_limit() -> None:
     g = gl.GlobalConfig.for_kind("metric")
-    assert g.composite_scans == 3 and g.composite_travel == 0.5
+    assert st.COMPOSITE_SCANS == 3 and st.COMPOSITE_TRAVEL == 0.5
     drive = st.dr.Drive()
     a = np.linspace(-np.pi / 2, np.pi / 2, 181)
     r = np.full(181, 2.0)
@@ -457,7 +457,7 @@ def test_self_similar_finds_the_congruent_room_from_the_map_alone() -> None:
     g = gl.GlobalConfig.for_kind("metric")
     P = scan_configuration(r, a, cfg.extraction())
     best = verify(idx, truth, r, a, P, cfg, g)
-    twin = self_similar(idx, best, r, a, P, cfg, g)
+    twin = run_steps(self_similar_steps(idx, best, r, a, P, cfg, g))
     assert twin is not None
     assert _found(twin.pose, truth + np.array([7.0, 0.0, 0.0]))
     assert abs(twin.cost - best.cost) < 0.05  # the scan cannot tell them apart

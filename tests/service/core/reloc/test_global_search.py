@@ -12,7 +12,7 @@ from service.core.factory import create_localizer
 from service.core.reloc import global_search as gs
 from service.core.reloc.config import GlobalConfig
 from service.core.reloc.global_localization import load_or_build_index
-from service.core.reloc.global_search import global_search
+from service.core.reloc.global_search import run_steps, search_steps
 from service.core.tracking.localizer import ShapeConfig
 from service.core.types import wrap_angle
 from sim_publisher.scenario import make_setup
@@ -34,7 +34,7 @@ def test_search_steps_bound_each_step_and_give_the_whole_search_result() -> None
             break
     assert len(work) > 5, "the search is not split into steps"
     assert max(work) <= 15.0, f"a step of {max(work):.1f} reference ms"
-    whole = gs.global_search(loc.index, r, a, loc.config, loc.gconfig)
+    whole = run_steps(gs.search_steps(loc.index, r, a, loc.config, loc.gconfig))
     assert len(res.hypotheses) == len(whole.hypotheses) > 0
     for h, w in zip(res.hypotheses, whole.hypotheses, strict=True):
         np.testing.assert_array_equal(h.pose, w.pose)
@@ -62,7 +62,7 @@ def test_ranking_the_shortlist_by_violations_finds_the_true_pose_in_a_furnished_
         hits = 0
         scans = [i for i in range(0, len(z["ranges"]), 5) if z["flag"][i]]
         for i in scans:
-            res = global_search(idx, z["ranges"][i], z["angles"][i], cfg, g)
+            res = run_steps(search_steps(idx, z["ranges"][i], z["angles"][i], cfg, g))
             ref = z["reference"][i]
             hits += any(
                 np.hypot(*(h.pose[:2] - ref[:2])) < 0.5

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from service.core.reloc.config import GlobalConfig
-from service.core.reloc.drive import Frame, Track, prune
+from service.core.reloc.drive import EVIDENCE_DROP, Frame, Track, prune
 from service.core.reloc.global_search import Hypothesis
 
 
@@ -27,6 +27,6 @@ def test_a_track_trailing_the_leader_by_evidence_drop_in_all_goes() -> None:
     # 4 nats a frame behind: 40 in all, within evidence_drop
     close = _track(10.0, -5.0, n)
     kept = prune([leader, behind, close], frames, keys, leader, g)
-    assert g.evidence_drop == 60.0
+    assert EVIDENCE_DROP == 60.0
     assert leader in kept and close in kept
     assert behind not in kept

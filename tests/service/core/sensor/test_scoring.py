@@ -7,6 +7,7 @@ import pytest
 
 from service.core.reloc import global_search as gs
 from service.core.reloc.config import GlobalConfig
+from service.core.reloc.drive import RESCORE_PRIOR
 from service.core.reloc.global_localization import load_or_build_index
 from service.core.sensor.raycast import RayCaster
 from service.core.sensor.scoring import BeamModel, beam_fractions
@@ -131,7 +132,7 @@ def test_the_polish_with_a_prior_holds_a_pose_to_it_along_a_corridor() -> None:
     )
     start = np.array([[10.0, 1.0, 0.0]])
     free, _ = sensor.polish(start, pts, 0.05)
-    held, _ = sensor.polish(start, pts, 0.05, prior=GlobalConfig().rescore_prior)
+    held, _ = sensor.polish(start, pts, 0.05, prior=RESCORE_PRIOR)
     assert abs(free[0, 0] - 10.0) > 0.1, "the corridor was expected to leave the axis free"
     np.testing.assert_allclose(held[0], start[0], atol=1e-9)
     for y in (1.12, 0.88):
