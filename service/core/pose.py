@@ -15,6 +15,7 @@ weighted least squares, re-pairing a few times (:func:`pose_from_matches`).
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -63,6 +64,29 @@ def invert(a: np.ndarray) -> np.ndarray:
 def relative(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """The increment ``d`` with ``a ∘ d = b``: pose ``b`` expressed in the frame of ``a``."""
     return compose(invert(a), b)
+
+
+def propagate(
+    pose: np.ndarray, cov: np.ndarray, delta: np.ndarray, noise: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Dead reckoning: ``pose (+) delta`` and its covariance ``J cov J' + R noise R'`` (``J``
+    the Jacobian of the composition in the pose, ``R`` the rotation of the robot frame,
+    ``noise`` the increment's, robot frame)."""
+    new = compose(pose, delta)
+    c, s = math.cos(float(pose[2])), math.sin(float(pose[2]))
+    dx = -s * float(delta[0]) - c * float(delta[1])
+    dy = c * float(delta[0]) - s * float(delta[1])
+    J = np.array([[1.0, 0.0, dx], [0.0, 1.0, dy], [0.0, 0.0, 1.0]])
+    R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    out = numeric.matmul(numeric.matmul(J, cov), J.T) + numeric.matmul(
+        numeric.matmul(R, noise), R.T
+    )
+    return new, 0.5 * (out + out.T)
+
+
+def sigma_xy(cov: np.ndarray) -> float:
+    """Largest position standard deviation (m) of a pose covariance."""
+    return float(math.sqrt(max(0.0, float(numeric.eigh_sym2(cov[:2, :2])[0][-1]))))
 
 
 def rigid_transform_2d(

@@ -38,7 +38,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from service.core import numeric
-from service.core.pose import compose
+from service.core.pose import propagate
 from service.core.reloc.config import GlobalConfig
 from service.core.reloc.drive import Frame, Track, judged
 from service.core.reloc.global_search import COST_FLOOR, DISTINCT_ANGLE, DISTINCT_DISTANCE, distinct
@@ -90,33 +90,13 @@ def _det3(m: np.ndarray) -> float:
     )
 
 
-def propagate(
-    pose: np.ndarray, cov: np.ndarray, delta: np.ndarray, noise: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """Dead reckoning: ``pose (+) delta`` and its covariance ``J cov J' + R noise R'`` (``J``
-    the Jacobian of the composition in the pose, ``R`` the rotation of the robot frame)."""
-    new = compose(pose, delta)
-    c, s = math.cos(float(pose[2])), math.sin(float(pose[2]))
-    dx = -s * float(delta[0]) - c * float(delta[1])
-    dy = c * float(delta[0]) - s * float(delta[1])
-    J = np.array([[1.0, 0.0, dx], [0.0, 1.0, dy], [0.0, 0.0, 1.0]])
-    R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-    out = numeric.matmul(numeric.matmul(J, cov), J.T) + numeric.matmul(
-        numeric.matmul(R, noise), R.T
-    )
-    return new, 0.5 * (out + out.T)
-
-
 @dataclass(frozen=True)
 class Verdict:
     """The decision on the tracks: the ``leader`` (``None`` when no track is scored on every
-    frame of a long enough window), its ``llr`` (nats; ``-inf`` without a leader) and its
-    ``evidence`` and the unseen place's."""
+    frame of a long enough window) and its ``llr`` (nats; ``-inf`` without a leader)."""
 
     leader: Track | None
     llr: float
-    evidence: float = -math.inf
-    null: float = -math.inf
 
     @property
     def ambiguity(self) -> float:
@@ -134,12 +114,10 @@ def decide(
     tracks: list[Track], frames: list[Frame], keys: dict[int, float], prior: Prior, g: GlobalConfig
 ) -> Verdict:
     """The leader of ``tracks`` and its LLR against the rest (module docstring), summed over
-    the frames ``keys`` (key -> weight; the drive's, :meth:`~service.core.reloc.drive.Drive.
-    evidence_keys`). The leader must be scored on the frames of the window ``frames`` that
-    :func:`~service.core.reloc.drive.judged` names (no leader on an empty window). A frame a
-    track was not scored on counts, for a candidate leader, as the unseen place explains it;
-    for an alternative, a keyframe as the leader explains it (it can only lower the LLR), a
-    plain scan at the alternative's own mean."""
+    the frames ``keys`` (key -> weight, :meth:`~service.core.reloc.drive.Drive.evidence_keys`).
+    The leader must be scored on the frames of the window ``frames`` that
+    :func:`~service.core.reloc.drive.judged` names; a frame it lacks otherwise counts as the
+    unseen place explains it."""
     need = judged(frames)
     full = [t for t in tracks if all(k in t.ll for k in need)]
     if not frames or not full:
@@ -181,4 +159,4 @@ def decide(
         rest.append(evidence(t, fill=leader))
     top = max(rest)
     log_rest = top + math.log(sum(math.exp(e - top) for e in rest))
-    return Verdict(leader, best_e - log_rest, best_e, null)
+    return Verdict(leader, best_e - log_rest)

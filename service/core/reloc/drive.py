@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from service.core.pose import compose, invert
+from service.core.pose import compose, relative
 from service.core.reloc.config import GlobalConfig
 from service.core.reloc.global_search import (
     COST_FLOOR,
@@ -135,9 +135,7 @@ class Job:
 
 def odometry_move(since: np.ndarray | None, now: np.ndarray | None) -> np.ndarray | None:
     """Robot-frame motion from odometry pose ``since`` to ``now`` (``None`` if either is)."""
-    if since is None or now is None:
-        return None
-    return compose(invert(since), now)
+    return None if since is None or now is None else relative(since, now)
 
 
 @dataclass(eq=False)
@@ -145,9 +143,9 @@ class Drive:
     """The hypotheses over a drive and their evidence: ``tracks``, the ``frames`` of the
     window (``next_key`` numbers the next), the odometry ``travel`` (m) since the drive
     began, the pending search ``job`` and self-similarity check ``twin``, the scans of the
-    composite (``history``) and the robot's
-    known speed before a loss (map frame, m per scan; ``None``: unknown). The pending jobs
-    are not pickled (generators): a search starts again on the next scan."""
+    composite (``history``) and the robot's known speed before a loss (map frame, m per scan;
+    ``None``: unknown). The pending jobs are not pickled (generators): a search starts again
+    on the next scan."""
 
     tracks: list[Track] = field(default_factory=list)
     frames: list[Frame] = field(default_factory=list)
@@ -164,10 +162,7 @@ class Drive:
     weights: dict[int, float] = field(default_factory=dict)
 
     def __getstate__(self) -> dict[str, Any]:
-        state = dict(self.__dict__)
-        state["job"] = None
-        state["twin"] = None
-        return state
+        return {**self.__dict__, "job": None, "twin": None}
 
     def move(self, delta: np.ndarray, step: float) -> None:
         """Move every track by the odometry increment ``delta`` (robot frame) of length
@@ -187,10 +182,9 @@ class Drive:
         """A scan with odometry that added no keyframe, ``step`` (m) and ``turn`` (rad) from
         the last one. Standing or creeping (under :data:`CREEP` of :data:`EVIDENCE_SPACING` and
         :data:`EVIDENCE_TURN`) it repeats the newest keyframe: its noise, a person who moved, a
-        slightly different heading are new evidence, its walls are not. The n-th repeat adds
-        ``d ** n`` of a keyframe (``w <- 1 + d w``, ``d = 1 - 1 / repeat_window``). A driving
-        robot's scans raise wrong places' LLR as much as the true one's: every scan counted
-        (d = 0.5), the tuning split's metric maps had false fixes up to 16 nats (against 10)."""
+        slightly different heading are new evidence, its walls are not (not so a driving
+        robot's: docs/decisions/0017). The n-th repeat adds ``d ** n`` of a keyframe
+        (``w <- 1 + d w``, ``d = 1 - 1 / repeat_window``)."""
         creep = step < CREEP * EVIDENCE_SPACING and abs(turn) < CREEP * EVIDENCE_TURN
         if creep and self.frames and self.frames[-1].odom is not None:
             key = self.frames[-1].key
@@ -387,9 +381,9 @@ def backfill(
             newer = [k for k in t.at if k > f.key]
             if newer:
                 k = min(newer)
-                start = compose(t.at[k], compose(invert(odom_of[k]), f.odom))
+                start = compose(t.at[k], relative(odom_of[k], f.odom))
             else:
-                start = compose(t.pose, compose(invert(odom_now), f.odom))
+                start = compose(t.pose, relative(odom_now, f.odom))
             pose = index.sensor.polish(start[None, :], f.points, FINE_SCALE, prior=RESCORE_PRIOR)[
                 0
             ][0]

@@ -1,17 +1,8 @@
-"""The ``shape`` method's localiser: the shape tracker, relocalisation when the pose is unknown
-or lost, and an honest status where the map does not hold (:class:`GlobalShapeLocalizer`).
-
-The localiser holds the parts every state uses -- the tracker
-(:class:`~service.core.tracking.localizer.ShapeLocalizer`), the map's view index (built on the
-first scan that searches), the odometry (:class:`~service.core.tracking.scan_odometry.
-Odometry`, its one memory) -- and the state (:mod:`service.core.reloc.states`); each scan is
-one call of :func:`service.core.reloc.states.step`. The method in four parts: the view index
-(:mod:`service.core.reloc.view_index`), the global search (:mod:`service.core.reloc.
-global_search`), the hypotheses over a drive (:mod:`service.core.reloc.drive`) and the
-decision (:mod:`service.core.reloc.decision`).
-
-Frames and units: REP 103, metres and radians; poses ``[x, y, theta]`` in the map frame; scan
-points in the robot frame (x forward, y left).
+"""The ``shape`` method's localiser (:class:`GlobalShapeLocalizer`): it holds the parts every
+state uses -- the tracker, the map's view index, the odometry (its one memory) -- and the
+state (:mod:`service.core.reloc.states`); each scan is one call of
+:func:`service.core.reloc.states.step`. Frames and units: REP 103, metres and radians; poses
+``[x, y, theta]`` in the map frame; scan points in the robot frame (x forward, y left).
 """
 
 from __future__ import annotations

@@ -222,23 +222,18 @@ def near(a: np.ndarray, b: np.ndarray, dist: float = 0.3, ang: float = 0.15) -> 
 
 #: Work model of the search, in milliseconds of one core of the reference machine (the 2-core
 #: build VM) per item: a deterministic stand-in for CPU time, so that a search spread over
-#: scans by a budget (:class:`service.core.reloc.global_localization.GlobalShapeLocalizer`) takes
-#: the same steps, and gives the same poses, on any machine and under any load. A ray cast
-#: (verification, beam check, keyframe score) and the refinement's nearby segments also cost
-#: per segment of the map: every cast measures each segment against the sensor before it
-#: intersects beams, so a real log's metric map (1 500-2 700 segments) casts 2-3x slower than
-#: a floor plan (50-200). Measured with ``bench/bench_work_model.py`` on the tuning maps
-#: (2026-11-25: office, building 3, intel and fr079, metric and floor plan); each item is set
-#: at or above the slowest map's measurement, so a budget does not buy more CPU than it names.
-#: The model of 2026-11-23 (no segment term) overestimated the CPU of a floor-plan search
-#: 2.5-3x and underestimated the casts on the real metric maps. Since the casts were compiled
-#: (service/core/kernels/raycast.py) the cast terms (beam, cast_segment) overstate
-#: them ~2.5x; left as they are, since lowering them made the search faster and fixed a tuning
-#: alias wrong (the drive bench, bench/global_drive.py). The
-#: shortlist's march on the distance field (field_beam) measured 0.00012-0.00016 ms
-#: per pose and beam on the floor plans (the only maps that run it; 2026-11-27), set at the
-#: office's and intel's: up to 1.35x below building 3's, a few per cent of a search's work,
-#: which the cast terms' overstatement more than covers.
+#: scans by a budget takes the same steps, and gives the same poses, on any machine and under
+#: any load (docs/decisions/0005-search-budget-and-work-model.md). A ray cast and the
+#: refinement's nearby segments also cost per segment of the map (every cast measures each
+#: segment before it intersects beams: a real log's metric map, 1 500-2 700 segments, casts
+#: 2-3x slower than a floor plan). Each item is set at or above the slowest tuning map's
+#: measurement (``bench/bench_work_model.py``), so a budget does not buy more CPU than it
+#: names. Since the casts were compiled (service/core/kernels/raycast.py) the cast terms (beam,
+#: cast_segment) overstate them ~2.5x; left as they are, since lowering them made the search
+#: faster and fixed a tuning alias wrong (the drive bench). The shortlist's march on the
+#: distance field (field_beam) is set at the office's and intel's floor plans: up to 1.35x
+#: below building 3's, a few per cent of a search's work, which the cast terms'
+#: overstatement more than covers.
 WORK_MS = {
     "sstar": 0.0105,  # one S* comparison (shape_distance with an upper bound)
     "induced": 0.045,  # one S*-induced alignment

@@ -30,16 +30,16 @@ from typing import Protocol
 import numpy as np
 
 from service.core import numeric
+from service.core.pose import propagate, sigma_xy
 from service.core.reloc import drive as dr
 from service.core.reloc.composite import composite_scan
 from service.core.reloc.config import GlobalConfig
-from service.core.reloc.decision import CELL_VOLUME, Prior, Verdict, decide, propagate
+from service.core.reloc.decision import CELL_VOLUME, Prior, Verdict, decide
 from service.core.reloc.global_search import advance, search_steps, self_similar_steps
 from service.core.reloc.view_index import ViewIndex
 from service.core.reloc.view_index.viewpoints import SPACING
 from service.core.shapes.configuration import Configuration, scan_configuration
 from service.core.tracking.localizer import ShapeConfig, ShapeLocalizer
-from service.core.tracking.motion import odometry_sigmas
 from service.core.tracking.scan_odometry import OdometryStep
 from service.core.types import Estimate, Status, wrap_angle
 
@@ -187,36 +187,6 @@ State = Tracking | DeadReckoning | Searching | Probation
 
 
 # ------------------------------------------------------------------------------- helpers
-def sigma_xy(cov: np.ndarray) -> float:
-    """Largest position standard deviation (m) of a pose covariance."""
-    return float(math.sqrt(max(0.0, float(numeric.eigh_sym2(cov[:2, :2])[0][-1]))))
-
-
-def odometry_noise(o: OdometryStep, config: ShapeConfig) -> np.ndarray:
-    """Process noise (robot frame) of the increment ``o.delta`` for dead reckoning: the
-    tracker's odometry model (:func:`~service.core.tracking.motion.odometry_sigmas`) without
-    its per-scan floors (a robot standing still does not drift). An increment a kept
-    scan-to-scan fit measured from the previous reading has the turn terms scaled by
-    ``matched_turn_noise``, as in the tracker's prior (two scans tell a turn as well as a
-    straight step); its extra variance ``o.spread`` (a laser odometry's unobserved corridor
-    axis) adds to the position block."""
-    assert o.delta is not None
-    c = config.motion
-    matched = (
-        o.matched_from is not None
-        and o.previous is not None
-        and bool(np.array_equal(o.matched_from, o.previous))
-    )
-    s_t, s_r = odometry_sigmas(o.delta, c, matched)
-    s_t -= c.sigma_xy_floor
-    s_r -= c.sigma_theta_floor
-    noise = np.diag([s_t**2, s_t**2, s_r**2])
-    if o.spread is not None:
-        sp = np.asarray(o.spread, dtype=np.float64).reshape(2, 2)
-        noise[:2, :2] += 0.5 * (sp + sp.T)
-    return noise
-
-
 def mahalanobis2(pose: np.ndarray, mean: np.ndarray, cov: np.ndarray) -> float:
     """Squared Mahalanobis distance of ``pose`` from ``mean`` under ``cov`` (plus the fit's
     own covariance, :data:`FIX_COV`)."""
@@ -248,14 +218,6 @@ def _contradicts(ctx: Context, scan: Scan, pose: np.ndarray, cov: np.ndarray | N
 def start_search(ctx: Context, status: Status, prior: Prior | None = None) -> Searching:
     """A new search (no hypotheses yet) with ``prior`` (default: uniform over the map)."""
     return Searching(dr.Drive(), prior or Prior(None, None, 1.0, 1.0), status)
-
-
-def lost_prior(ctx: Context, pose: np.ndarray, cov: np.ndarray) -> Prior:
-    """The prior of a search after a loss: the dead-reckoned Gaussian, ``kidnap_weight``
-    spread over the map's places."""
-    return Prior(
-        np.asarray(pose, dtype=np.float64).copy(), cov.copy(), ctx.gconfig.kidnap_weight, 0.0
-    )
 
 
 # ------------------------------------------------------------------------------- the step
@@ -303,7 +265,7 @@ def _tracking(ctx: Context, s: Tracking, scan: Scan) -> tuple[State, Estimate]:
     if o.delta is None or s.ref is None or s.cov is None:
         s.ref, s.cov = est.pose.copy(), fit_cov(est)  # the reference starts here
         return s, est
-    s.ref, s.cov = propagate(s.ref, s.cov, o.delta, odometry_noise(o, ctx.config))
+    s.ref, s.cov = propagate(s.ref, s.cov, o.delta, o.noise(ctx.config.motion))
     slid = False
     if scan.from_scans and g.scan_odometry_violation < 1.0:
         # an odometry measured from the scans moves a pose that slid along a corridor (where
@@ -339,16 +301,17 @@ def _tracking(ctx: Context, s: Tracking, scan: Scan) -> tuple[State, Estimate]:
 
 def _lost(ctx: Context, pose: np.ndarray, cov: np.ndarray | None) -> Searching:
     """A search after the track is lost at ``pose`` (with odometry: dead-reckoned, ``cov``;
-    without: the last tracked pose, widened scan by scan)."""
+    without: the last tracked pose, widened scan by scan); its prior the pose's Gaussian with
+    ``kidnap_weight`` spread over the map's places."""
     speed = ctx.tracker.known_speed()
     ctx.tracker.reset(None)
     if cov is None:
         step_m = 0.0 if speed is None else float(np.hypot(*speed))
         grow = (HELD_GROWTH * max(step_m, 0.05)) ** 2
         cov = np.diag([grow, grow, math.pi**2])
-    prior = lost_prior(ctx, pose, cov)
-    srch = start_search(ctx, "lost", prior)
-    srch.drive.tracks = [dr.Track(np.asarray(pose, dtype=np.float64).copy(), dr.held(pose))]
+    pose = np.asarray(pose, dtype=np.float64).copy()
+    srch = start_search(ctx, "lost", Prior(pose, cov.copy(), ctx.gconfig.kidnap_weight, 0.0))
+    srch.drive.tracks = [dr.Track(pose.copy(), dr.held(pose))]
     srch.drive.speed = speed
     return srch
 
@@ -379,7 +342,7 @@ def _relock(
     est = ctx.tracker.update(scan.ranges, scan.angles, o.reading, o.matched_from, o.spread)
     est.ambiguity = None
     # (the tracker keeps this fit: if it relocks, tracking goes on from it)
-    pose, cov = propagate(pose, cov, o.delta, odometry_noise(o, ctx.config))
+    pose, cov = propagate(pose, cov, o.delta, o.noise(ctx.config.motion))
     good = (
         "rejected" not in est.extras
         and est.status == "tracking"
@@ -545,7 +508,7 @@ def _searching(ctx: Context, s: Searching, scan: Scan) -> tuple[State, Estimate]
                 est.extras["relocked"] = 1.0
                 return Tracking(est.pose.copy(), fit_cov(est)), est
         else:
-            s.prior = s.prior.moved(o.delta, odometry_noise(o, ctx.config))
+            s.prior = s.prior.moved(o.delta, o.noise(ctx.config.motion))
     elif s.prior.mean is not None and s.prior.cov is not None:
         speed = 0.0 if drv.speed is None else float(np.hypot(*drv.speed))
         grow = (HELD_GROWTH * max(0.05, speed)) ** 2
@@ -566,12 +529,11 @@ def _searching(ctx: Context, s: Searching, scan: Scan) -> tuple[State, Estimate]
         extras["lead_checked"] = float(lead.checked)
         extras["lead_found"] = float(lead.found)
     if lead is not None and not lead.checked and drv.twin is None:
-        tg = g.model_copy(
-            update={
-                "shortlist": min(g.shortlist, TWIN_SHORTLIST),
-                "refine_top": min(g.refine_top, TWIN_REFINE_TOP),
-            }
-        )
+        twin = {
+            "shortlist": min(g.shortlist, TWIN_SHORTLIST),
+            "refine_top": min(g.refine_top, TWIN_REFINE_TOP),
+        }
+        tg = g.model_copy(update=twin)
         steps = self_similar_steps(ctx.index, lead.hyp, rs, as_, P, ctx.config, tg)
         drv.twin = dr.Job(steps, None if o.reading is None else o.reading.copy(), track=lead)
     ctx.work_ms = spent
@@ -673,27 +635,20 @@ def _probation(ctx: Context, p: Probation, scan: Scan) -> tuple[State, Estimate]
     ctx.work_ms = 0.0
     if o.delta is not None and o.reading is not None:
         drv.move(o.delta, o.step)
-        p.prior = p.prior.moved(o.delta, odometry_noise(o, ctx.config))
+        p.prior = p.prior.moved(o.delta, o.noise(ctx.config.motion))
         p.winner.pose = est.pose.copy()
         p.left -= o.step
         _keyframe(drv, scan, g)
-        budget = math.inf if g.search_budget_ms is None else float(g.search_budget_ms)
         frames = dr.window(drv.frames, g)
+        budget = math.inf if g.search_budget_ms is None else float(g.search_budget_ms)
+        evidence = budget * EVIDENCE_SHARE
         ctx.work_ms = dr.backfill(
-            ctx.index,
-            drv.tracks,
-            frames,
-            o.reading,
-            ctx.config,
-            g,
-            budget * EVIDENCE_SHARE,
-            first=p.winner,
+            ctx.index, drv.tracks, frames, o.reading, ctx.config, g, evidence, p.winner
         )
     else:
         p.left = math.inf  # no travel to count: the probation cannot end well
     if est.status == "lost" or p.rejected >= ctx.config.lost_after or p.left == math.inf:
         return _fail(ctx, p, {"probation_failed": 1.0})
-    frames = dr.window(drv.frames, g)
     complete = all(f.key in p.winner.ll for f in frames)
     if p.left > 0.0 or rejected or not complete:
         # a probation passes only on a scan the tracker accepted, once the winner is scored

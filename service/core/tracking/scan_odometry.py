@@ -386,6 +386,28 @@ class OdometryStep:
     broken: bool = False
     spread: np.ndarray | None = None
 
+    def noise(self, c: MotionConfig) -> np.ndarray:
+        """Process noise (robot frame) of ``delta`` for dead reckoning: the odometry model
+        (:func:`~service.core.tracking.motion.odometry_sigmas`) without its per-scan floors (a
+        robot standing still does not drift); an increment a kept scan-to-scan fit measured
+        from the previous reading has the turn terms scaled by ``matched_turn_noise``, as in
+        the tracker's prior (two scans tell a turn as well as a straight step); ``spread`` (a
+        laser odometry's unobserved corridor axis) adds to the position block."""
+        assert self.delta is not None
+        matched = (
+            self.matched_from is not None
+            and self.previous is not None
+            and bool(np.array_equal(self.matched_from, self.previous))
+        )
+        s_t, s_r = odometry_sigmas(self.delta, c, matched)
+        s_t -= c.sigma_xy_floor
+        s_r -= c.sigma_theta_floor
+        noise = np.diag([s_t**2, s_t**2, s_r**2])
+        if self.spread is not None:
+            sp = np.asarray(self.spread, dtype=np.float64).reshape(2, 2)
+            noise[:2, :2] += 0.5 * (sp + sp.T)
+        return noise
+
 
 class Odometry:
     """The localiser's one memory of the odometry: each scan's reading corrected by matching

@@ -1,11 +1,5 @@
-"""Candidate viewpoints and the per-map view index of global localisation.
-
-:func:`candidate_viewpoints` (a grid over the free space, :mod:`.viewpoints`),
-:class:`ViewIndex` (per viewpoint the map view reduced to its units, plus a distance field,
-:mod:`.index`), :func:`build_index` (:mod:`.build`) and the on-disk cache
-(:func:`load_or_build_index`, keyed by map content, extraction parameters and
-:data:`FORMAT_VERSION`, :mod:`.cache`). See :mod:`service.core.reloc.global_localization` for the
-whole method."""
+"""The per-map view index of global localisation: candidate viewpoints (:mod:`.viewpoints`),
+the index (:mod:`.index`), its build (:mod:`.build`) and its cache (:mod:`.cache`)."""
 
 from service.core.reloc.view_index.build import build_index, index_key
 from service.core.reloc.view_index.cache import (

@@ -69,8 +69,6 @@ def load_index(path: Path, key: str) -> ViewIndex:
     try:
         with np.load(path, allow_pickle=False) as z:
             arrays = {k: z[k] for k in z.files}
-    except LocalizationError:
-        raise
     except Exception as exc:
         raise LocalizationError(f"unreadable index {path}: {exc}") from exc
     return ViewIndex.from_arrays(arrays, key)

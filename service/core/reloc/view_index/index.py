@@ -25,6 +25,18 @@ from service.errors import LocalizationError
 #: bearings from service.core.numeric, the same bits on every CPU; 3: the segments and the
 #: distance field left to the sensor model).
 FORMAT_VERSION = 3
+#: The arrays of an index file and their types.
+_ARRAYS = {
+    "viewpoints": np.float64,
+    "unit_view": np.int64,
+    "unit_rmin": np.float64,
+    "unit_rmax": np.float64,
+    "unit_complexity": np.float64,
+    "unit_group": np.int64,
+    "unit_anchor": np.float64,
+    "unit_vert_off": np.int64,
+    "unit_verts": np.float64,
+}
 
 
 @dataclass(eq=False)
@@ -77,25 +89,9 @@ class ViewIndex:
 
     def to_arrays(self) -> dict[str, np.ndarray]:
         """Plain arrays for :func:`numpy.savez` (no pickled objects)."""
-        meta = {
-            "format": FORMAT_VERSION,
-            "key": self.key,
-            "map_id": self.map_id,
-            "kind": self.kind,
-            "build_seconds": self.build_seconds,
-        }
-        return {
-            "meta": np.array(json.dumps(meta)),
-            "viewpoints": self.viewpoints,
-            "unit_view": self.unit_view,
-            "unit_rmin": self.unit_rmin,
-            "unit_rmax": self.unit_rmax,
-            "unit_complexity": self.unit_complexity,
-            "unit_group": self.unit_group,
-            "unit_anchor": self.unit_anchor,
-            "unit_vert_off": self.unit_vert_off,
-            "unit_verts": self.unit_verts,
-        }
+        meta = {"format": FORMAT_VERSION, "key": self.key, "map_id": self.map_id}
+        meta.update(kind=self.kind, build_seconds=self.build_seconds)
+        return {"meta": np.array(json.dumps(meta)), **{k: getattr(self, k) for k in _ARRAYS}}
 
     @staticmethod
     def from_arrays(arrays: Any, expect_key: str) -> ViewIndex:
@@ -105,50 +101,28 @@ class ViewIndex:
             meta = json.loads(str(arrays["meta"][()]))
             if meta.get("format") != FORMAT_VERSION or meta.get("key") != expect_key:
                 raise LocalizationError("cache key or format version mismatch")
-            vp = np.asarray(arrays["viewpoints"], dtype=np.float64)
-            uv = np.asarray(arrays["unit_view"], dtype=np.int64)
-            rmin = np.asarray(arrays["unit_rmin"], dtype=np.float64)
-            rmax = np.asarray(arrays["unit_rmax"], dtype=np.float64)
-            uc = np.asarray(arrays["unit_complexity"], dtype=np.float64)
-            ug = np.asarray(arrays["unit_group"], dtype=np.int64)
-            ua = np.asarray(arrays["unit_anchor"], dtype=np.float64)
-            off = np.asarray(arrays["unit_vert_off"], dtype=np.int64)
-            verts = np.asarray(arrays["unit_verts"], dtype=np.float64)
+            got = {k: np.asarray(arrays[k], dtype=t) for k, t in _ARRAYS.items()}
         except LocalizationError:
             raise
         except Exception as exc:  # any malformed content: not trusted
             raise LocalizationError(f"malformed index: {exc}") from exc
-        u = uv.size
-        ok = (
-            vp.ndim == 2
-            and vp.shape[1] == 2
-            and rmin.shape == (u,)
-            and rmax.shape == (u,)
-            and uc.shape == (u,)
-            and ug.shape == (u,)
-            and ua.shape == (u, 4)
-            and off.shape == (u + 1,)
-            and verts.ndim == 2
-            and verts.shape[1] == 2
+        vp, uv, off, verts = (
+            got[k] for k in ("viewpoints", "unit_view", "unit_vert_off", "unit_verts")
         )
-        ok = ok and (u == 0 or (uv.min() >= 0 and uv.max() < len(vp)))
+        u = uv.size
+        per_unit = ("unit_rmin", "unit_rmax", "unit_complexity", "unit_group")
+        ok = all(got[k].shape == (u,) for k in per_unit) and got["unit_anchor"].shape == (u, 4)
+        ok = ok and vp.ndim == 2 and vp.shape[1] == 2 and verts.ndim == 2 and verts.shape[1] == 2
+        ok = ok and off.shape == (u + 1,) and (u == 0 or (uv.min() >= 0 and uv.max() < len(vp)))
         ok = ok and off[0] == 0 and off[-1] == len(verts) and bool(np.all(np.diff(off) >= 2))
-        finite = [vp, rmin, rmax, uc, ua, verts]
-        ok = ok and all(bool(np.all(np.isfinite(a))) for a in finite)
+        floats = [got[k] for k, t in _ARRAYS.items() if t is np.float64]
+        ok = ok and all(bool(np.all(np.isfinite(a))) for a in floats)
         if not ok:
             raise LocalizationError("index arrays are inconsistent")
         return ViewIndex(
             key=expect_key,
             map_id=str(meta["map_id"]),
             kind=str(meta["kind"]),
-            viewpoints=vp,
-            unit_view=uv,
-            unit_rmin=rmin,
-            unit_rmax=rmax,
-            unit_complexity=uc,
-            unit_group=ug,
-            unit_anchor=ua,
-            unit_vert_off=off,
-            unit_verts=verts,
             build_seconds=float(meta.get("build_seconds", 0.0)),
+            **got,
         )

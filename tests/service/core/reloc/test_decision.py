@@ -8,8 +8,9 @@ import math
 import numpy as np
 import pytest
 
+from service.core.pose import propagate
 from service.core.reloc.config import GlobalConfig
-from service.core.reloc.decision import Prior, decide, propagate
+from service.core.reloc.decision import Prior, decide
 from service.core.reloc.drive import Frame, Track
 from service.core.reloc.global_search import COST_FLOOR, Hypothesis
 
