@@ -11,10 +11,11 @@ The tree::
     └── reloc()       -> GlobalConfig  relocalisation: view index, search, evidence, decision,
                          the integrity of tracking (service.core.reloc.config)
 
-Every internal setting carries its reason in its ``description``; the presets are
-:meth:`ShapeConfig.for_kind` and :meth:`GlobalConfig.for_kind` (``floor_plan`` is the map kind
-``schematic``). A knob left ``None`` keeps the preset's value; a knob set overrides it in the
-section it belongs to.
+Every internal setting carries its reason in its ``description`` (relocalisation's that no
+preset changes are named constants of the modules that use them, each with its reason); the
+presets are :meth:`ShapeConfig.for_kind` and :meth:`GlobalConfig.for_kind` (``floor_plan`` is
+the map kind ``schematic``). A knob left ``None`` keeps the preset's value; a knob set
+overrides it in the section it belongs to.
 """
 
 from __future__ import annotations

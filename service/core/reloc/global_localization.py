@@ -72,9 +72,7 @@ class GlobalShapeLocalizer:
         """Picklable state (a robot moved to another worker process): the view index is left
         out (the new process loads it from its cache on first use); a search in progress
         starts again on the next scan (:class:`~service.core.reloc.drive.Drive`)."""
-        state = dict(self.__dict__)
-        state["_index"] = None
-        return state
+        return {**self.__dict__, "_index": None}
 
     def __setstate__(self, state: dict[str, Any]) -> None:
         if "state" not in state:

@@ -14,7 +14,7 @@ import numpy as np
 from service.core.pose import transform_points
 from service.core.reloc.config import GlobalConfig
 from service.core.reloc.view_index import ViewIndex
-from service.core.reloc.view_index.build import anchor, joined
+from service.core.reloc.view_index.build import anchor, shape_units
 from service.core.reloc.view_index.viewpoints import SPACING
 from service.core.sensor.pose_batch import fit_pairs
 from service.core.sensor.scoring import BeamModel, SensorModel, subsample
@@ -160,14 +160,12 @@ class SearchResult:
 def _ranked_units(
     P: Configuration, threshold: float
 ) -> tuple[list[np.ndarray], list[tuple[float, int]]]:
-    """The scan's units (each feature and each pair of consecutive ones, robot frame) and
-    ``(shape complexity, unit index)`` most complex first."""
-    units = [f.vertices for f in P.features]
-    for a, b in zip(P.features[:-1], P.features[1:], strict=True):
-        units.append(joined(a.vertices, b.vertices, threshold))
-    comp = [(shape_complexity(u), k) for k, u in enumerate(units)]
+    """The scan's units (robot frame) and ``(shape complexity, unit index)`` most complex
+    first."""
+    found = shape_units(P, threshold, cyclic=False)
+    comp = [(shape_complexity(u), k) for k, u in enumerate(found)]
     comp.sort(key=lambda t: (-t[0], t[1]))
-    return units, comp
+    return found, comp
 
 
 def support_sample(P: Configuration) -> np.ndarray:
@@ -432,13 +430,8 @@ def search_steps(
         # trails a wrong place's that happens to line up. Keep the best pose per coarse pose
         # cell, polish the best cells' poses on the distance field (coarse then fine grid) and
         # rank by the polished score instead.
-        cells = np.column_stack(
-            [
-                np.floor(H[:, 0] / SHORTLIST_CELL),
-                np.floor(H[:, 1] / SHORTLIST_CELL),
-                np.floor((wrap_angle(H[:, 2]) + np.pi) / SHORTLIST_ANGLE),
-            ]
-        )
+        heading = (wrap_angle(H[:, 2]) + np.pi) / SHORTLIST_ANGLE
+        cells = np.floor(np.column_stack([H[:, :2] / SHORTLIST_CELL, heading]))
         reps = order[_first_rows(cells[order])]
         nb = gconfig.shortlist_violation_beams
         beams = subsample(np.flatnonzero(np.isfinite(r)), nb) if nb > 0 else np.zeros(0, int)

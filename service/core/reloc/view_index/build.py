@@ -1,10 +1,5 @@
-"""Step 2 of global localisation: building a map's :class:`ViewIndex` (no disk access).
-
-:func:`build_index` extracts the map view from every :func:`candidate_viewpoints` point with
-the tracker's own parameters and stores its units (each feature and each pair of consecutive
-features) with their range, shape complexity and anchor (the most salient vertex, shared by
-the units that see the same corner), plus a distance field of the map. :func:`index_key` is
-the content hash an index is known (and cached) by.
+"""Building a map's :class:`ViewIndex` (:func:`build_index`, no disk access) and the content
+hash it is known and cached by (:func:`index_key`).
 """
 
 from __future__ import annotations
@@ -86,14 +81,13 @@ def joined(a: np.ndarray, b: np.ndarray, threshold: float) -> np.ndarray:
     return u[dce(u, threshold)]
 
 
-def _view_units(Q: Configuration, threshold: float) -> list[np.ndarray]:
-    """Vertices of each feature and of each pair of consecutive features (cyclic view)."""
-    n = len(Q.features)
-    out = [f.vertices for f in Q.features]
-    if n >= 2:
-        last = n if n > 2 else 1
-        for i in range(last):
-            out.append(joined(Q.features[i].vertices, Q.features[(i + 1) % n].vertices, threshold))
+def shape_units(C: Configuration, threshold: float, cyclic: bool) -> list[np.ndarray]:
+    """Vertices of each feature and of each pair of consecutive features (``cyclic``: the last
+    and the first too, as in a 360-degree view)."""
+    f, n = C.features, len(C.features)
+    out = [x.vertices for x in f]
+    for i in range(n if cyclic and n > 2 else max(n - 1, 0)):
+        out.append(joined(f[i].vertices, f[(i + 1) % n].vertices, threshold))
     return out
 
 
@@ -140,7 +134,7 @@ def build_index(
             config.view_max_range,
             params,
         )
-        for uv in _view_units(Q, params.dce_threshold):
+        for uv in shape_units(Q, params.dce_threshold, cyclic=True):
             if len(uv) < 2:
                 continue
             uview.append(v)

@@ -1,10 +1,5 @@
-"""Step 1 of global localisation: candidate viewpoints over a map's free space.
-
-:func:`candidate_viewpoints` keeps the points of a regular grid that are clear of every
-polyline, enclosed by the map (a 360-degree virtual scan hits in nearly every direction) and
-not inside a small closed ring (furniture). :func:`service.core.reloc.view_index.build.build_index`
-stores a map view from each of them.
-"""
+"""Candidate viewpoints over a map's free space (:func:`candidate_viewpoints`), from each of
+which the view index stores a map view."""
 
 from __future__ import annotations
 
