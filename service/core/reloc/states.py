@@ -648,7 +648,10 @@ def _probation(ctx: Context, p: Probation, scan: Scan) -> tuple[State, Estimate]
         drv.move(o.delta, o.step)
         p.prior = p.prior.moved(o.delta, odometry_noise(o, ctx.config))
         p.winner.pose = est.pose.copy()
-        p.left -= o.step
+        # the winner must be followed probation_travel metres on motion the scans confirm: an
+        # increment the scan-to-scan fit could not match is the raw odometry's, and the
+        # tracker follows it (a dropout's catch-up turns the pose with it)
+        p.left = g.probation_travel if o.broken else p.left - o.step
         _keyframe(drv, scan, g)
         budget = math.inf if g.search_budget_ms is None else float(g.search_budget_ms)
         frames = dr.window(drv.frames, g)
