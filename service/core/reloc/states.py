@@ -563,17 +563,25 @@ def _searching(ctx: Context, s: Searching, scan: Scan) -> tuple[State, Estimate]
                 est.pose.copy() if scan.odometry else None, fit_cov(est), since_fix=0
             ), est
         extras["confirm_rejected"] = 1.0
-    return s, _guess(drv, s, verdict, extras)
+    return s, _guess(drv, s, verdict, extras, g.fix_llr)
 
 
 def _guess(
-    drv: dr.Drive, s: Searching | Probation, verdict: Verdict, extras: dict[str, float]
+    drv: dr.Drive,
+    s: Searching | Probation,
+    verdict: Verdict,
+    extras: dict[str, float],
+    fix_llr: float,
 ) -> Estimate:
-    """The best guess while the search goes on: the leader, else the best track by cost,
-    else the prior's mean (or the origin)."""
+    """The pose published while the search goes on. After a loss, the prior's mean (the
+    dead-reckoned pose, or the last tracked one carried by the laser odometry) with its
+    covariance until a place is fixed: a leader short of ``fix_llr`` is a place the evidence
+    may still overturn (on fr079's floor plan one led 22 m from the robot for 60 scans), and
+    a robot's consumers should not see it jump there and back. Before any fix (nothing
+    known): the leader, else the best track by cost, else the origin."""
     lead = verdict.leader
-    if s.prior.mean is not None and verdict.llr < 0.0:
-        lead = None  # the dead-reckoned pose until a place is more probable than the rest
+    if s.prior.mean is not None and not verdict.llr >= fix_llr:
+        lead = None
     elif lead is None and drv.tracks:
         lead = min(drv.tracks, key=lambda t: t.hyp.cost)
     if lead is not None:
@@ -590,9 +598,7 @@ def _guess(
         score=score,
         explained=explained,
         ambiguity=verdict.ambiguity,
-        covariance=None
-        if s.prior.cov is None or verdict.leader is not None
-        else s.prior.cov.copy(),
+        covariance=None if s.prior.cov is None or lead is not None else s.prior.cov.copy(),
         extras=extras,
         hypotheses=len(drv.tracks),
         candidates=dr.candidates(order),
@@ -692,7 +698,7 @@ def _fail(ctx: Context, p: Probation, extras: dict[str, float]) -> tuple[State, 
     s = Searching(p.drive, p.prior, p.status)
     verdict = Verdict(None, -math.inf)
     extras["hypotheses"] = float(len(p.drive.tracks))
-    return s, _guess(p.drive, s, verdict, extras)
+    return s, _guess(p.drive, s, verdict, extras, ctx.gconfig.fix_llr)
 
 
 __all__ = [
