@@ -553,17 +553,25 @@ def _searching(ctx: Context, s: Searching, scan: Scan) -> tuple[State, Estimate]
                 est.pose.copy() if scan.odometry else None, fit_cov(est), since_fix=0
             ), est
         extras["confirm_rejected"] = 1.0
-    return s, _guess(drv, s, verdict, extras)
+    return s, _guess(drv, s, verdict, extras, g.fix_llr)
 
 
 def _guess(
-    drv: dr.Drive, s: Searching | Probation, verdict: Verdict, extras: dict[str, float]
+    drv: dr.Drive,
+    s: Searching | Probation,
+    verdict: Verdict,
+    extras: dict[str, float],
+    fix_llr: float,
 ) -> Estimate:
-    """The best guess while the search goes on: the leader, else the best track by cost,
-    else the prior's mean (or the origin)."""
+    """The pose published while the search goes on. After a loss, the prior's mean (the
+    dead-reckoned pose, or the last tracked one carried by the laser odometry) with its
+    covariance until a place is fixed: a leader short of ``fix_llr`` is a place the evidence
+    may still overturn (on fr079's floor plan one led 22 m from the robot for 60 scans), and
+    a robot's consumers should not see it jump there and back. Before any fix (nothing
+    known): the leader, else the best track by cost, else the origin."""
     lead = verdict.leader
-    if s.prior.mean is not None and verdict.llr < 0.0:
-        lead = None  # the dead-reckoned pose until a place is more probable than the rest
+    if s.prior.mean is not None and not verdict.llr >= fix_llr:
+        lead = None
     elif lead is None and drv.tracks:
         lead = min(drv.tracks, key=lambda t: t.hyp.cost)
     if lead is not None:
@@ -580,9 +588,7 @@ def _guess(
         score=score,
         explained=explained,
         ambiguity=verdict.ambiguity,
-        covariance=None
-        if s.prior.cov is None or verdict.leader is not None
-        else s.prior.cov.copy(),
+        covariance=None if s.prior.cov is None or lead is not None else s.prior.cov.copy(),
         extras=extras,
         hypotheses=len(drv.tracks),
         candidates=dr.candidates(order),
@@ -637,7 +643,10 @@ def _probation(ctx: Context, p: Probation, scan: Scan) -> tuple[State, Estimate]
         drv.move(o.delta, o.step)
         p.prior = p.prior.moved(o.delta, o.noise(ctx.config.motion))
         p.winner.pose = est.pose.copy()
-        p.left -= o.step
+        # the winner must be followed probation_travel metres on motion the scans confirm: an
+        # increment the scan-to-scan fit could not match is the raw odometry's, and the
+        # tracker follows it (a dropout's catch-up turns the pose with it)
+        p.left = g.probation_travel if o.broken else p.left - o.step
         _keyframe(drv, scan, g)
         frames = dr.window(drv.frames, g)
         budget = math.inf if g.search_budget_ms is None else float(g.search_budget_ms)
@@ -671,7 +680,7 @@ def _fail(ctx: Context, p: Probation, extras: dict[str, float]) -> tuple[State, 
     s = Searching(p.drive, p.prior, p.status)
     verdict = Verdict(None, -math.inf)
     extras["hypotheses"] = float(len(p.drive.tracks))
-    return s, _guess(p.drive, s, verdict, extras)
+    return s, _guess(p.drive, s, verdict, extras, ctx.gconfig.fix_llr)
 
 
 __all__ = [
