@@ -78,10 +78,6 @@ CONFIRM_SIGMA = 0.05
 #: Standard deviations of the dead-reckoned reference a poorly explained fit may stray from it
 #: before the robot dead-reckons.
 GATE_SIGMAS = 3.0
-#: A scan contradicts a pose when more than this share of its beams returns from beyond a drawn
-#: wall (unexplained scans at the true pose on fr079: 0.011 / 0.033 p50 / p90; kidnapped: 0.06
-#: / 0.24 p10 / p50).
-CONTRADICTION = 0.05
 #: With odometry the search matches the last this many scans fused (1: every scan alone) ...
 COMPOSITE_SCANS = 3
 #: ... into this many beams (never finer than the laser's) ...
@@ -204,7 +200,7 @@ def fit_cov(est: Estimate) -> np.ndarray:
 
 
 def _contradicts(ctx: Context, scan: Scan, pose: np.ndarray, cov: np.ndarray | None = None) -> bool:
-    """Whether the scan contradicts ``pose``: more than :data:`CONTRADICTION` of the tracker's
+    """Whether the scan contradicts ``pose``: more than ``contradiction`` of the tracker's
     violation beams return from beyond a drawn wall, by more than the tracker's margin plus,
     for a dead-reckoned pose of covariance ``cov``, :data:`GATE_SIGMAS` of its position sigma (a
     wall the pose may be that far off from is no contradiction)."""
@@ -212,7 +208,7 @@ def _contradicts(ctx: Context, scan: Scan, pose: np.ndarray, cov: np.ndarray | N
     if cov is not None:
         margin += GATE_SIGMAS * sigma_xy(cov)
     share = ctx.tracker.violations(scan.ranges, scan.angles, [pose], margin)[0]
-    return share > CONTRADICTION
+    return share > ctx.gconfig.contradiction
 
 
 def start_search(ctx: Context, status: Status, prior: Prior | None = None) -> Searching:
