@@ -549,10 +549,7 @@ def _searching(ctx: Context, s: Searching, scan: Scan) -> tuple[State, Estimate]
                 est.pose.copy() if scan.odometry else None, fit_cov(est), since_fix=0
             ), est
         extras["confirm_rejected"] = 1.0
-    # the robot's own odometry carries the prior until a fix; the scans' own motion (laser
-    # odometry) only until a place is more probable than the rest
-    held = g.fix_llr if scan.odometry and not scan.from_scans else 0.0
-    return s, _guess(drv, s, verdict, extras, held)
+    return s, _guess(drv, s, verdict, extras, g.fix_llr)
 
 
 def _guess(
@@ -560,21 +557,16 @@ def _guess(
     s: Searching | Probation,
     verdict: Verdict,
     extras: dict[str, float],
-    held: float,
+    fix_llr: float,
 ) -> Estimate:
-    """The pose published while the search goes on. After a loss, the prior's mean with its
-    covariance until the leader's LLR reaches ``held``: with the robot's own odometry (the
-    dead-reckoned pose) the fix threshold, since a leader short of it is a place the evidence
-    may still overturn (on fr079's floor plan with odometry one led 22 m from the robot for
-    60 scans: 31 scored poses more than 0.5 m off, 13 with the rule) and a robot's consumers
-    should not see the pose jump there and back; with only the laser odometry carrying the
-    last tracked pose, 0 (a place more probable than the rest), since that motion slides
-    where a floor plan leaves the scans little to match (held-out buildings on their plans
-    without odometry: the worst building 97.9 % within the setup's test leading from 0,
-    94.2 % held to the fix threshold). Before any fix (nothing known): the leader, else the
-    best track by cost, else the origin."""
+    """The pose published while the search goes on. After a loss, the prior's mean (the
+    dead-reckoned pose, or the last tracked one carried by the laser odometry) with its
+    covariance until a place is fixed: a leader short of ``fix_llr`` is a place the evidence
+    may still overturn (on fr079's floor plan one led 22 m from the robot for 60 scans), and
+    a robot's consumers should not see it jump there and back. Before any fix (nothing
+    known): the leader, else the best track by cost, else the origin."""
     lead = verdict.leader
-    if s.prior.mean is not None and not verdict.llr >= held:
+    if s.prior.mean is not None and not verdict.llr >= fix_llr:
         lead = None
     elif lead is None and drv.tracks:
         lead = min(drv.tracks, key=lambda t: t.hyp.cost)
