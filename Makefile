@@ -11,7 +11,7 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet -e '.[dev,plot]'
 	# compile the numba kernels once (~10 s) so services and tests start warm
-	$(PY) -c "from service.core._kernels import warm_up; print(f'numba kernels ready in {warm_up():.1f} s')"
+	$(PY) -c "from service.core.warmup import warm_up; print(f'numba kernels ready in {warm_up():.1f} s')"
 	touch $(STAMP)
 
 test: $(STAMP)

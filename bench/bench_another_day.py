@@ -12,7 +12,7 @@ the SCANS are taken in the same building furnished again at ``--clutter`` (defau
 furniture drawn again, fewer pieces; on building 3, 29 of 70 mapped outlines are still there,
 the walls) along that day's tour, from the true first pose, every ``--stride``-th scan of the
 11 mm sampling (default 10: ~0.11 m apart, setup 2's spacing). Methods: ``shape`` without
-odometry (its laser odometry, :mod:`service.core.laser_odometry`), ``shape-paper`` without
+odometry (its laser odometry, :mod:`service.core.tracking.laser_odometry`), ``shape-paper`` without
 odometry (the seed paper's mode, ``bench/methods.py``) and ``shape`` with the simulated
 odometry (each fed scan's own odometry pose).
 

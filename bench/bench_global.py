@@ -150,8 +150,8 @@ from bench.global_drive import (
 )
 from bench.global_drive_run import drive_main
 from bench.global_drive_tables import _pct_inf, share_table
-from service.core import global_localization as gl
 from service.core.factory import create_localizer
+from service.core.reloc import global_localization as gl
 from service.core.types import wrap_angle
 from sim_publisher.office import office_metric_map, office_schematic_map, office_world
 from sim_publisher.publisher import random_free_poses
@@ -338,6 +338,19 @@ def main(argv: list[str] | None = None) -> int:
         type=float,
         default=50.0,
         help="per-scan search budget, reference ms (the service's default 50; 0: whole search)",
+    )
+    drive.add_argument(
+        "--results",
+        type=Path,
+        default=None,
+        help="also write the results page drive.md there (docs/results)",
+    )
+    drive.add_argument(
+        "--calibrate",
+        default=None,
+        help="calibration: no fix is ever made; each searching scan's decision LLR, its "
+        "leader's error and whether its twin check ran are saved per trial into this dir "
+        "(bench/calibrate_llr.py reads them)",
     )
     drive.add_argument(
         "--cache",

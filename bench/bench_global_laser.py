@@ -5,7 +5,7 @@ docs/results/global_no_odometry.md.
 Why a separate command: the drive benchmark feeds each scan with the tour's odometry (the
 simulated one, or the real log's); a robot that sends none is localised by the same
 ``create_localizer("shape", map, None)``, whose laser odometry
-(:mod:`service.core.laser_odometry`) then measures the motion between scans from the scans
+(:mod:`service.core.tracking.laser_odometry`) then measures the motion between scans from the scans
 themselves. Everything else -- maps, start scans, travel (true steps in simulation, the log's
 odometry steps on real logs: a measure of the drive, never given to the localiser), scoring,
 tables -- is the drive benchmark's own (see the docstring of ``bench_global.py``): the trials

@@ -4,10 +4,11 @@ READS ../shared (the real logs, /work/shared/data/real, as ``bench_real.py``). E
 tracks a log from a random scan's reference pose for ``--pre`` scans, then carries the robot to
 a random stretch of the same log at least 3 m away: the scans come from there while the
 odometry runs on from the old place with that stretch's own increments (the wheels report the
-drive, not the jump). ``--post`` scans follow. Two collapse rules run on the same trials: the
-default (``GlobalConfig.collapse_violation``: an unexplained scan ends the track only if it
-contradicts the pose, or after a break in the scan-to-scan fit) and ``-1`` (every unexplained
-scan counts towards ``lost_after``), which shows what the default rule buys.
+drive, not the jump). ``--post`` scans follow. Two rules run on the same trials: the default
+(``GlobalConfig.contradiction``: a scan the tracker rejects ends the track, after
+``lost_after`` in a row, only if it contradicts the pose, i.e. more than that share of its
+beams return from beyond a drawn wall, or after a break in the scan-to-scan fit) and ``-1``
+(every rejected, low-scoring scan counts), which shows what the default rule buys.
 
 Columns, per log, map and rule:
 
@@ -82,7 +83,8 @@ def run_trial(
     md = load_map_file(br.map_path(name, kind), kind=kind)
     loc = create_localizer("shape", md, log.reference[k0].copy())
     if rule is not None:
-        loc.gconfig = loc.gconfig.model_copy(update={"collapse_violation": rule})  # type: ignore[attr-defined]
+        # -1 lies outside the field's range on purpose (every share exceeds it): unvalidated
+        loc.gconfig = loc.gconfig.model_copy(update={"contradiction": rule})  # type: ignore[attr-defined]
     for i in range(k0, k0 + pre):
         loc.update(log.ranges[i], log.angles[i], log.odom[i])
     base = np.asarray(log.odom[k0 + pre - 1], dtype=float)
@@ -132,9 +134,10 @@ PARAGRAPH = (
     " benchmark's intel and fr079, the tuning logs, and mit-csail, held out) from a random"
     " scan's reference pose for {pre} scans, then the scans come from a random stretch of the"
     " same log at least 3 m away while the odometry runs on from the old place with that"
-    " stretch's own increments; {post} scans follow. Two collapse rules run on the same trials:"
-    " the default (an unexplained scan ends the track only if it contradicts the pose, or after"
-    " a break in the scan-to-scan fit) and -1 (every unexplained scan counts). `lost <= 3`:"
+    " stretch's own increments; {post} scans follow. Two rules run on the same trials: the"
+    " default (a rejected scan ends the track only if it contradicts the pose, beams through"
+    " drawn walls, or after a break in the scan-to-scan fit) and -1 (every rejected,"
+    " low-scoring scan counts). `lost <= 3`:"
     " trials no longer `tracking` within 3 scans of the jump; `lost at`: scans until then;"
     " `wrong scans`: `tracking` poses after the jump more than 0.5 m or 10° from the reference"
     " (trials with any); `re-fixed`: trials `tracking` at the right place again after a loss."

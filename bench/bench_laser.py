@@ -21,7 +21,7 @@ import time  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from service.core.raycast import RayCaster  # noqa: E402
+from service.core.sensor.raycast import RayCaster  # noqa: E402
 from sim_publisher.laser import LaserConfig, LaserSimulator  # noqa: E402
 from sim_publisher.office import office_world  # noqa: E402
 from sim_publisher.trajectory import STEP_SETUP2, tour_poses  # noqa: E402

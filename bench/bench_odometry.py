@@ -1,4 +1,4 @@
-"""Odometry checked against the scans (``service.core.scan_odometry``): how far each
+"""Odometry checked against the scans (``service.core.tracking.scan_odometry``): how far each
 odometry increment is from the reference's, as received and as corrected.
 
 For every pair of scans ``(j, i)`` that both have a reference pose -- consecutive scans
@@ -36,9 +36,9 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 import numpy as np
 
 from bench.harness import REPO as ROOT
-from service.core.motion import MotionConfig
 from service.core.pose import compose, invert
-from service.core.scan_odometry import ScanOdometry
+from service.core.tracking.motion import MotionConfig
+from service.core.tracking.scan_odometry import ScanOdometry
 from sim_publisher import results_page as report
 from sim_publisher.results_page import Provenance
 
@@ -192,19 +192,18 @@ def world_rows(seeds: list[int], motion: MotionConfig) -> tuple[list[str], list[
 
 
 PARAGRAPH = (
-    "How far each odometry increment between two scans is from the reference's, as the robot"
-    " reported it and as checked against the scans (`service.core.scan_odometry`): translation"
-    " and heading error percentiles over all pairs of scans, the pairs the check made worse /"
-    " better by more than 5 cm, the share of scans whose increment the scan fit replaced, and"
-    " the check's time per scan. Pairs: consecutive scans (gap 1), scans 10 apart (gap 10), or"
-    " on intel, whose corrected references are sparse, consecutive corrected scans (gap ref);"
-    " `of 3`: the tour fed every third scan (increments three times as long). Real logs: the"
-    " Freiburg SLAM benchmark against its GMapping-corrected references (intel and fr079 tuning,"
-    " mit-csail held out); generated buildings: setup 2 tours with two moving people against"
-    " the simulator's truth (seeds 0-19 tuning, >= 1000 held out). The second table splits the"
-    " heading error by the reference's turn between the two scans"
-    " (`MotionConfig.matched_turn_noise`). Definitions: the docstring of"
-    " `bench/bench_odometry.py`."
+    "How far each odometry increment between two scans is from the reference's, as the robot "
+    "reported it and as checked against the scans (`service.core.tracking.scan_odometry`): "
+    "translation and heading error percentiles over all pairs of scans, the pairs the check made "
+    "worse / better by more than 5 cm, the share of scans whose increment the scan fit replaced, "
+    "and the check's time per scan. Pairs: consecutive scans (gap 1), scans 10 apart (gap 10), or "
+    "on intel, whose corrected references are sparse, consecutive corrected scans (gap ref); `of "
+    "3`: the tour fed every third scan (increments three times as long). Real logs: the Freiburg "
+    "SLAM benchmark against its GMapping-corrected references (intel and fr079 tuning, mit-csail "
+    "held out); generated buildings: setup 2 tours with two moving people against the simulator's "
+    "truth (seeds 0-19 tuning, >= 1000 held out). The second table splits the heading error by the "
+    "reference's turn between the two scans (`MotionConfig.matched_turn_noise`). Definitions: the "
+    "docstring of `bench/bench_odometry.py`."
 )
 
 

@@ -40,12 +40,12 @@ from typing import Any
 
 import numpy as np
 
-import service.core.configuration as conf_mod
-import service.core.localizer as loc_mod
-import service.core.matching as match_mod
-import service.core.shape_cost as cost_mod
-import service.core.two_step as step_mod
-from service.core import _kernels
+import service.core.shapes.configuration as conf_mod
+import service.core.shapes.matching as match_mod
+import service.core.shapes.shape_cost as cost_mod
+import service.core.shapes.two_step as step_mod
+import service.core.tracking.localizer as loc_mod
+from service.core import kernels
 from sim_publisher.scenario import make_setup
 
 STAGES = ("extraction", "map view", "heading", "S*", "ΔA fits", "DP", "pose", "fit", "walls")
@@ -114,7 +114,7 @@ def main() -> None:
     wl = loc_mod.ShapeLocalizer(warm.map_data, warm.truth[0])
     for i in range(len(warm)):
         wl.update(*warm.scan(i))
-    kind = "numba" if _kernels.HAVE_NUMBA else "numpy/Python reference (numba not installed)"
+    kind = "numba" if kernels.HAVE_NUMBA else "numpy/Python reference (numba not installed)"
     print(
         f"kernels {kind}; "
         f"first updates of this process (kernel load or compile): {time.perf_counter() - t0:.2f} s"

@@ -18,9 +18,9 @@ from collections.abc import Callable
 
 import numpy as np
 
-from service.core.dce import DCE_NOISE_THRESHOLD, dce, refine_vertices
-from service.core.polylines import group_polylines
-from service.core.similarity import (
+from service.core.shapes.dce import DCE_NOISE_THRESHOLD, dce, refine_vertices
+from service.core.shapes.polylines import group_polylines
+from service.core.shapes.similarity import (
     partial_optimal_similarity,
     prepare,
     shape_complexity,

@@ -1,4 +1,5 @@
-"""The search's work model against this machine's CPU (``service.core.global_search.WORK_MS``).
+"""The search's work model against this machine's CPU
+(``service.core.reloc.global_search.WORK_MS``).
 
 A budgeted search (``GlobalConfig.search_budget_ms``) counts its work in reference ms from a
 deterministic model, so the same scans give the same poses on any machine. This bench times
@@ -19,7 +20,7 @@ Items (per pose, on scans of the map's tour at their reference poses, perturbed 
 - ``beams90``: the shortlist's 90-beam check;
 - ``refine``: the four-stage refinement;
 - ``verify``: a verification over ``verify_beams`` beams;
-- ``frame``: a keyframe's one-pose polish and beam score (``evidence.pair_ms``).
+- ``frame``: a keyframe's one-pose polish and beam score (``drive.pair_ms``).
 
 The S* comparisons and induced alignments are not timed here (their cost depends on the
 scan's shape, not the map; a drive trial's per-step timing showed them within 0.4-1.5x of
@@ -44,24 +45,21 @@ from typing import Any
 import numpy as np
 
 from bench import bench_global as bg
-from service.core import evidence as ev
-from service.core.configuration import scan_configuration
-from service.core.global_search import (
+from service.core.reloc import drive as ev
+from service.core.reloc.global_search import (
+    FINE_SCALE,
+    SUPPORT_POINTS,
     WORK_MS,
-    _refine,
-    _verify_ms,
+    beam_costs,
     cast_ms,
     polish_ms,
+    refine,
     refine_ms,
-)
-from service.core.pose_scoring import (
-    _beam_costs,
-    _field_violations,
-    _polish,
-    _subsample,
-    _support_many,
     verify,
+    verify_ms,
 )
+from service.core.sensor.scoring import subsample
+from service.core.shapes.configuration import scan_configuration
 
 MAPS = [
     ("office", "office", "metric"),
@@ -85,7 +83,7 @@ def model(loc: Any, points: int) -> dict[str, float]:
         "field40": 40 * WORK_MS["field_beam"],
         "beams90": 90 * WORK_MS["beam"] + cast_ms(idx),
         "refine": refine_ms(idx),
-        "verify": _verify_ms(idx, g),
+        "verify": verify_ms(idx, g),
         "frame": ev.pair_ms(idx, g),
     }
 
@@ -107,39 +105,39 @@ def measure(m: bg.DriveMap, data: Path, scans: int, seed: int) -> tuple[dict[str
             P = scan_configuration(r, a, cfg.extraction())
             if not P.features:
                 continue
-            sp = _subsample(np.vstack([f.points for f in P.features]), g.support_points)
+            sp = subsample(np.vstack([f.points for f in P.features]), SUPPORT_POINTS)
             truth = src.truth[i]
             poses = truth + rng.normal(0.0, [0.2, 0.2, 0.05], size=(12, 3))
             many = truth + rng.normal(0.0, [2.0, 2.0, 1.0], size=(800, 3))
-            kf = ev.make_keyframe(0, r, a, np.zeros(3), 0.0, g)
+            kf = ev.make_frame(0, r, a, np.zeros(3), 0.0, g)
             one = poses[:1]
             laps: list[tuple[str, int, float]] = []
             t0 = clock()
-            _polish(idx, poses, sp, g.fine_scale)
+            idx.sensor.polish(poses, sp, FINE_SCALE)
             laps.append(("polish", len(poses), clock() - t0))
             t0 = clock()
-            _polish(idx, one, sp, g.fine_scale, prior=g.rescore_prior)
+            idx.sensor.polish(one, sp, FINE_SCALE, prior=ev.RESCORE_PRIOR)
             laps.append(("polish1", 1, clock() - t0))
             t0 = clock()
-            _support_many(idx, many, sp, cfg.support_tolerance)
+            idx.sensor.support(many, sp, cfg.support_tolerance)
             laps.append(("support", len(many), clock() - t0))
-            beams = _subsample(np.flatnonzero(np.isfinite(r)), 40)
+            beams = subsample(np.flatnonzero(np.isfinite(r)), 40)
             margin = max(cfg.support_tolerance, g.violation_margin)
             t0 = clock()
-            _field_violations(idx, many, r[beams], a[beams], margin)
+            idx.sensor.crossings(many, r[beams], a[beams], margin)
             laps.append(("field40", len(many), clock() - t0))
             t0 = clock()
-            _beam_costs(idx, poses, r, a, 90, cfg, g)
+            beam_costs(idx.sensor, poses, r, a, 90, cfg, g)
             laps.append(("beams90", len(poses), clock() - t0))
             t0 = clock()
-            _refine(idx, poses, sp, cfg, g)
+            refine(idx, poses, sp, cfg)
             laps.append(("refine", len(poses), clock() - t0))
             t0 = clock()
             for p in poses:
                 verify(idx, p, r, a, P, cfg, g)
             laps.append(("verify", len(poses), clock() - t0))
             t0 = clock()
-            _polish(idx, one, kf.points, g.fine_scale, prior=g.rescore_prior)
+            idx.sensor.polish(one, kf.points, FINE_SCALE, prior=ev.RESCORE_PRIOR)
             ev.frame_cost(idx, one[0], kf, cfg, g)
             laps.append(("frame", 1, clock() - t0))
             if rep:
@@ -160,8 +158,8 @@ def main(scans: int, data: Path, seed: int) -> int:
             continue
         m = bg.DriveMap(group, world, kind)
         got, loc = measure(m, data, scans, seed)
-        ref = model(loc, loc.gconfig.support_points)
-        segs = len(loc.index.caster.segments)
+        ref = model(loc, SUPPORT_POINTS)
+        segs = len(loc.index.sensor.segments)
         for item, ms in got.items():
             rows.append((m.label(), segs, item, ms, ref[item]))
     print("\n| map | segments | item | CPU ms / pose | model ms / pose | ratio |")

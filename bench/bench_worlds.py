@@ -8,8 +8,8 @@ two setups -- 1: exact metric map, a scan every ~11 mm; 2: the building's schema
 method tracks the whole tour from the true first pose, exactly as the paper's experiment does
 on the office (no odometry), and with ``--odom`` also with the simulated odometry every scan
 carries. Without odometry ``shape`` measures the motion between scans from the scans (its laser
-odometry, :mod:`service.core.laser_odometry`); ``--methods shape-paper`` runs it as the paper
-does, with no odometry of any kind (``bench/methods.py``).
+odometry, :mod:`service.core.tracking.laser_odometry`); ``--methods shape-paper`` runs it as the
+paper does, with no odometry of any kind (``bench/methods.py``).
 
 Per setup, method and odometry mode, over the worlds of a split: the median, worst decile
 (10th percentile) and worst world of the proximity test (the paper's: 100 mm / 45 deg on

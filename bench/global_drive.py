@@ -140,6 +140,9 @@ class DriveTask:
     cache: str
     stride: int
     budget: float | None = 50.0
+    #: calibration (``--calibrate DIR``): the decision never fixes; each searching scan's LLR,
+    #: its leader's position error and whether its twin check ran go to ``DIR``
+    calibrate: str | None = None
 
 
 @dataclass

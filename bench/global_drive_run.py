@@ -54,7 +54,9 @@ from bench.global_drive_tables import (
     write_drive_csv,
 )
 from bench.plan_share import PlanShare
+from bench.results import publish
 from service.core.factory import create_localizer
+from service.core.types import wrap_angle
 
 _PLANS: dict[DriveMap, PlanShare] = {}
 
@@ -116,6 +118,11 @@ def _warm(m: DriveMap, src: DriveSource, cache: str) -> None:
     _WARM.add(m)
 
 
+#: A calibration trial ends once the true place's LLR reaches this (nats): below it, the trial
+#: shows what every threshold does.
+CALIBRATE_STOP = 80.0
+
+
 def run_drive_trial(task: DriveTask) -> DriveTrial:
     """Run one trial (see the docstring of ``bench_global.py``)."""
     m = task.map
@@ -125,6 +132,9 @@ def run_drive_trial(task: DriveTask) -> DriveTrial:
     end = trial_end(src.travel, task.start, need)
     idx = fed_scans(task.start, end, src.stride, src.scored)
     loc = _localizer(src.map_data, task.cache, task.budget)
+    rows: list[tuple[float, ...]] = []
+    if task.calibrate:
+        loc.gconfig = loc.gconfig.model_copy(update={"fix_llr": math.inf})
     status: list[str] = []
     work: list[float] = []
     close: list[bool | None] = []
@@ -159,6 +169,20 @@ def run_drive_trial(task: DriveTask) -> DriveTrial:
         close.append(fix_ok(est.pose, t) if scored else None)
         after.append(bool(src.after(i, est.pose)) if scored else None)
         flags.append(searching)
+        if task.calibrate and scored and "llr" in est.extras:
+            x = est.extras
+            rows.append(
+                (
+                    travel[-1],
+                    x["llr"],
+                    float(np.hypot(*(est.pose[:2] - t[:2]))),
+                    abs(float(wrap_angle(float(est.pose[2] - t[2])))),
+                    x.get("lead_checked", 0.0),
+                    x.get("lead_found", 0.0),
+                )
+            )
+            if x["llr"] >= CALIBRATE_STOP and rows[-1][2] <= 0.5:
+                break  # any threshold up to CALIBRATE_STOP would have fixed the true place
         if searching:
             search_ms.append(1e3 * (w1 - w0))
             work.append(float(getattr(loc, "work_ms", math.nan)))
@@ -166,6 +190,12 @@ def run_drive_trial(task: DriveTask) -> DriveTrial:
             if h is not None:
                 hyps.append(h)
     wall = time.perf_counter() - t_start
+    if task.calibrate:
+        Path(task.calibrate).mkdir(parents=True, exist_ok=True)
+        tag = f"{m.group}_{m.world}_{m.kind}_{task.start}"
+        np.save(
+            Path(task.calibrate) / f"{tag}.npy", np.asarray(rows, dtype=np.float64).reshape(-1, 6)
+        )
     out = classify(status, close, after, travel, m.limit)
     s0 = src.truth[task.start]
     sm = np.asarray(search_ms)
@@ -213,9 +243,9 @@ def _pool_map(
 ) -> Iterator[tuple[int, Any]]:
     """``(position, fn(item))`` in completion order; in this process when ``jobs`` <= 1.
     Every process first compiles or loads the core's numba kernels
-    (:func:`service.core._kernels.warm_up`), as the service does at start-up, so no trial's
+    (:func:`service.core.warmup.warm_up`), as the service does at start-up, so no trial's
     CPU counts it (after a kernel changes, compiling took ~5 s of the first trial per process)."""
-    from service.core._kernels import warm_up
+    from service.core.warmup import warm_up
 
     if jobs <= 1:
         warm_up()
@@ -300,7 +330,8 @@ def drive_main(args: argparse.Namespace, argv: Sequence[str]) -> int:
             notes.append(f"{m.label()}: only {starts.size} distinct start scans (of {want})")
         budget = args.budget_ms if args.budget_ms > 0 else None
         tasks += [
-            DriveTask(m, int(s), k, data, cache, strides[m], budget) for k, s in enumerate(starts)
+            DriveTask(m, int(s), k, data, cache, strides[m], budget, args.calibrate)
+            for k, s in enumerate(starts)
         ]
     for n in notes:
         print(n)
@@ -406,4 +437,5 @@ def drive_main(args: argparse.Namespace, argv: Sequence[str]) -> int:
     md += [*idx_lines, ""]
     (out / "drive.md").write_text("\n".join(md), encoding="utf-8")
     print(f"wrote {out / 'drive.md'} and {out / 'drive.csv'}")
+    publish(args.results, "drive", "\n".join(md), ["bench.bench_global", *argv])
     return 0

@@ -2,10 +2,10 @@
 ``lines``, as :func:`service.core.factory.create_localizer` builds them) and ``shape-paper``.
 
 ``shape`` is what the service gives a robot: on a scan without odometry its laser odometry
-(:mod:`service.core.laser_odometry`) measures the motion from the previous scan. ``shape-paper``
-is the same localiser without it, the seed paper's own mode (no odometry of any kind: the
-robot's recent velocity is the prior); with odometry on every scan the two are the same bit for
-bit.
+(:mod:`service.core.tracking.laser_odometry`) measures the motion from the previous scan.
+``shape-paper`` is the same localiser without it, the seed paper's own mode (no odometry of any
+kind: the robot's recent velocity is the prior); with odometry on every scan the two are the
+same bit for bit.
 """
 
 from __future__ import annotations

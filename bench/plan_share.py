@@ -18,13 +18,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from service.core.mapmodel import MapModel
+from service.core.sensor.mapmodel import MapModel
 from service.core.types import MapData
 
 
 class PlanShare:
     """The plan-share test of one map: the map's own nearest-wall query
-    (:meth:`service.core.mapmodel.MapModel.nearest`, exact point-to-segment distances)."""
+    (:meth:`service.core.sensor.mapmodel.MapModel.nearest`, exact point-to-segment distances)."""
 
     def __init__(self, map_data: MapData, tolerance: float = 0.3, max_range: float = 15.0) -> None:
         self._model = MapModel(map_data, reach=max(1.0, tolerance))

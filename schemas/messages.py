@@ -341,14 +341,15 @@ class Scan(WireModel):
 
 
 _STATUS = Literal["tracking", "lost", "initializing"]
+_STATE = Literal["tracking", "dead_reckoning", "searching", "probation"]
 
 
 class PoseMsg(WireModel):
     """A pose estimate: published on ``<prefix>/robots/<robot_id>/pose`` after every scan.
 
     ``seq``/``stamp`` are those of the scan it answers; ``pose`` is in the map frame.
-    ``covariance``, ``explained``, ``ambiguity``, ``hypotheses``, ``candidates`` and ``odom``
-    are project additions (optional).
+    ``covariance``, ``explained``, ``ambiguity``, ``hypotheses``, ``candidates``, ``odom`` and
+    ``state`` are project additions (optional).
     """
 
     schema_name: ClassVar[str] = "pose"
@@ -383,7 +384,9 @@ class PoseMsg(WireModel):
     )
     ambiguity: UnitFloat = Field(
         default=None,
-        description="Project addition: best vs second-best hypothesis cost ratio, [0, 1].",
+        description="Project addition, during a search: the probability that the best "
+        "hypothesis is not the place, 1 / (1 + e^LLR) of the relocalisation's decision, "
+        "[0, 1] (1: no place leads yet).",
     )
     hypotheses: Annotated[
         int | None,
@@ -422,6 +425,17 @@ class PoseMsg(WireModel):
         description=(
             "Project addition: the odometry pose of the scan this estimate answers (absent "
             "if it carried none), so that another service instance can take the robot over."
+        ),
+    )
+    state: _STATE | None = Field(
+        default=None,
+        description=(
+            "Project addition: the localiser's state behind the status (shape method; absent "
+            "for methods without one). tracking: the map confirms the pose (status "
+            "tracking). dead_reckoning: the map does not explain the scans; the pose is "
+            "carried by the odometry, its covariance growing (status lost). searching: a "
+            "global search, the pose its best guess (status initializing, or lost after a "
+            "fix). probation: a search's winner tracked before it is published (the same)."
         ),
     )
 

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from service.core import numeric
-from service.core.raycast import RayCaster
+from service.core.sensor.raycast import RayCaster
 from service.errors import InvalidMessage
 
 

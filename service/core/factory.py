@@ -32,9 +32,11 @@ def create_localizer(
 
     ``initial_pose`` ``None`` asks for global localisation (only ``shape`` supports it; the
     baselines need a start pose). ``config`` is the method's own config model, or ``None`` for
-    its defaults (which may depend on ``map_data.kind``).
+    its defaults (which may depend on ``map_data.kind``); for ``shape`` a
+    :class:`service.core.config.LocalizerConfig` (a preset and the user's knobs) or the
+    tracker's :class:`~service.core.tracking.shape_config.ShapeConfig` alone.
 
-    ``shape`` returns a :class:`service.core.global_localization.GlobalShapeLocalizer`: the
+    ``shape`` returns a :class:`service.core.reloc.global_localization.GlobalShapeLocalizer`: the
     shape tracker plus global search when the pose is unknown or lost. ``cache_dir`` is where
     its per-map view index is cached across restarts (``None``: built in memory on the first
     global search). ``search_budget_ms`` spreads its global search over scans within that
@@ -43,7 +45,7 @@ def create_localizer(
 
     ``laser_odometry``: a scan that carries no odometry gets the motion measured between it
     and the previous scan as its odometry, decided per scan
-    (:class:`service.core.laser_odometry.LaserOdometryLocalizer`; scans with odometry pass
+    (:class:`service.core.tracking.laser_odometry.LaserOdometryLocalizer`; scans with odometry pass
     unchanged). ``False``: the method alone, as the seed paper runs it without odometry;
     ``None`` (default): on for ``shape``, off for the baselines (``icp`` and ``lines`` stay
     the paper's comparison methods, which start each scan from their previous estimate).
@@ -60,7 +62,7 @@ def create_localizer(
             start = to_laser(np.asarray(initial_pose, dtype=np.float64), offset)
     loc = _method_localizer(method, map_data, start, config, cache_dir, search_budget_ms)
     if laser_odometry or (laser_odometry is None and method == "shape"):
-        from service.core.laser_odometry import with_laser_odometry
+        from service.core.tracking.laser_odometry import with_laser_odometry
 
         loc = with_laser_odometry(loc)
     if offset is None:
@@ -79,10 +81,14 @@ def _method_localizer(
     search_budget_ms: float | None,
 ) -> Localizer:
     if method == "shape":
-        from service.core.global_config import GlobalConfig
-        from service.core.global_localization import GlobalShapeLocalizer
+        from service.core.config import LocalizerConfig
+        from service.core.reloc.config import GlobalConfig
+        from service.core.reloc.global_localization import GlobalShapeLocalizer
 
-        g = GlobalConfig.for_kind(map_data.kind)
+        if isinstance(config, LocalizerConfig):
+            config, g = config.tracking(), config.reloc()
+        else:
+            g = GlobalConfig.for_kind(map_data.kind)
         if search_budget_ms is not None:
             g = g.model_copy(update={"search_budget_ms": float(search_budget_ms)})
         return GlobalShapeLocalizer(map_data, initial_pose, config, gconfig=g, cache_dir=cache_dir)

@@ -33,7 +33,7 @@ import math
 
 import numpy as np
 
-from service.core._kernels import HAVE_NUMBA, njit
+from service.core.kernels import HAVE_NUMBA, njit
 
 __all__ = [
     "atan2",

@@ -5,8 +5,8 @@ applied to points ``p`` (robot frame or any source frame) it gives ``R(phi) @ p 
 pose ``[x, y, theta]`` in the map frame is exactly the transform from the robot frame to the map
 frame (REP 103).
 
-The shape matching (:mod:`service.core.matching`) decides *which* scan polyline corresponds to
-*which* map polyline. This module turns those correspondences into a precise pose: points along
+The shape matching (:mod:`service.core.shapes.matching`) decides *which* scan polyline corresponds
+to *which* map polyline. This module turns those correspondences into a precise pose: points along
 every matched scan polyline are paired with the nearest point of the map geometry of *its own*
 matched partner only (never of another map polyline), and the rigid transform is solved by
 weighted least squares, re-pairing a few times (:func:`pose_from_matches`).
@@ -15,12 +15,14 @@ weighted least squares, re-pairing a few times (:func:`pose_from_matches`).
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
-from service.core import _kernels, _pose_kernels, numeric
+from service.core import kernels, numeric
+from service.core.kernels import pose as pose_kernels
 from service.core.types import wrap_angle
 from service.errors import LocalizationError
 
@@ -62,6 +64,29 @@ def invert(a: np.ndarray) -> np.ndarray:
 def relative(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """The increment ``d`` with ``a ∘ d = b``: pose ``b`` expressed in the frame of ``a``."""
     return compose(invert(a), b)
+
+
+def propagate(
+    pose: np.ndarray, cov: np.ndarray, delta: np.ndarray, noise: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Dead reckoning: ``pose (+) delta`` and its covariance ``J cov J' + R noise R'`` (``J``
+    the Jacobian of the composition in the pose, ``R`` the rotation of the robot frame,
+    ``noise`` the increment's, robot frame)."""
+    new = compose(pose, delta)
+    c, s = math.cos(float(pose[2])), math.sin(float(pose[2]))
+    dx = -s * float(delta[0]) - c * float(delta[1])
+    dy = c * float(delta[0]) - s * float(delta[1])
+    J = np.array([[1.0, 0.0, dx], [0.0, 1.0, dy], [0.0, 0.0, 1.0]])
+    R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    out = numeric.matmul(numeric.matmul(J, cov), J.T) + numeric.matmul(
+        numeric.matmul(R, noise), R.T
+    )
+    return new, 0.5 * (out + out.T)
+
+
+def sigma_xy(cov: np.ndarray) -> float:
+    """Largest position standard deviation (m) of a pose covariance."""
+    return float(math.sqrt(max(0.0, float(numeric.eigh_sym2(cov[:2, :2])[0][-1]))))
 
 
 def rigid_transform_2d(
@@ -217,10 +242,10 @@ def pose_from_matches(
     each pair). ``covariance=False`` leaves :attr:`PoseFit.covariance` ``None`` (a caller
     that only wants the pose saves the 3x3 inverse).
 
-    The loop runs in a compiled kernel (:func:`service.core._pose_kernels.pose_iterations`) when
+    The loop runs in a compiled kernel (:func:`service.core.kernels.pose.pose_iterations`) when
     numba is available, else in :func:`_pose_from_matches_numpy` (the reference).
     """
-    if not _kernels.HAVE_NUMBA:
+    if not kernels.HAVE_NUMBA:
         fit = _pose_from_matches_numpy(
             pairs.pairs() if isinstance(pairs, StackedPairs) else pairs,
             initial_pose,
@@ -259,7 +284,7 @@ def pose_from_matches(
         pts_all = np.ascontiguousarray(np.vstack(pts_list))
         segs_all = np.ascontiguousarray(np.vstack(seg_list))
     use_prior = prior is not None and prior_weight > 0.0
-    pose, H, rms, n_in, it, have_h = _pose_kernels.pose_iterations(
+    pose, H, rms, n_in, it, have_h = pose_kernels.pose_iterations(
         pts_all,
         own,
         segs_all,

@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 from typing import Any, Literal, Protocol
 
 import numpy as np
+from pydantic import BaseModel
 
 from service.errors import LocalizationError
 
@@ -19,6 +20,10 @@ _TWO_PI = 2.0 * math.pi
 
 MapKind = Literal["metric", "schematic"]
 Status = Literal["tracking", "lost", "initializing"]
+#: The relocalisation state behind an estimate (:mod:`service.core.reloc.states`): the wire's
+#: optional ``state`` field. ``dead_reckoning``, ``searching`` and ``probation`` publish the
+#: status ``lost`` (or ``initializing`` before any fix): the pose is not confirmed by the map.
+State = Literal["tracking", "dead_reckoning", "searching", "probation"]
 #: The methods :func:`service.core.factory.create_localizer` builds. The wire owns the names
 #: (``schemas.messages.METHODS``); the core cannot import it, so this copy must stay equal
 #: (tests/test_layers.py checks).
@@ -129,6 +134,8 @@ class Estimate:
     ``covariance`` is 3x3 or ``None``. While a global search runs, ``hypotheses`` is the
     number of live pose hypotheses and ``candidates`` the best few, ``(k, 4)`` rows
     ``[x, y, theta, cost]`` best first (lower cost is better); both ``None`` otherwise.
+    ``state`` is the relocalisation state behind it (:data:`State`; ``None`` for the
+    baselines, which have none).
     """
 
     pose: np.ndarray
@@ -141,6 +148,7 @@ class Estimate:
     extras: dict[str, float] = field(default_factory=dict)
     hypotheses: int | None = None
     candidates: np.ndarray | None = None
+    state: State | None = None
 
 
 class Localizer(Protocol):
@@ -203,3 +211,19 @@ class LocalizerWrapper:
         if inner is None or name.startswith("__"):
             raise AttributeError(name)
         return getattr(inner, name)
+
+
+class Settings(BaseModel):
+    """A settings model whose state pickled by an earlier version loads: a field added since
+    takes its default, a field removed since is dropped (a robot's localiser is pickled when
+    the service moves it between worker processes, and may have been pickled before an
+    upgrade)."""
+
+    def __setstate__(self, state: dict[Any, Any]) -> None:
+        super().__setstate__(state)
+        fields = type(self).model_fields
+        for name in [n for n in self.__dict__ if n not in fields]:
+            del self.__dict__[name]
+        for name, f in fields.items():
+            if name not in self.__dict__:
+                self.__dict__[name] = f.get_default(call_default_factory=True)

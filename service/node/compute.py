@@ -228,6 +228,7 @@ class ComputePlane:
                 hypotheses=out.get("hypotheses"),
                 candidates=out.get("candidates") or None,
                 odom=None if scan.odom is None else [float(v) for v in scan.odom],
+                state=out.get("state"),
             )
             payload = codec.encode(pose_msg)
         except ShapelocError as e:

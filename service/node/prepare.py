@@ -49,7 +49,7 @@ _ANGLES = np.linspace(-np.pi / 2, np.pi / 2, 181)
 
 
 def _scans(md: MapData, path: np.ndarray, angles: np.ndarray) -> list[np.ndarray]:
-    from service.core.raycast import RayCaster
+    from service.core.sensor.raycast import RayCaster
 
     caster = RayCaster(md.segments())
     return [caster.cast(p, angles, 15.0) for p in path]
@@ -70,9 +70,9 @@ def warm_up_worker() -> float:
     leaves the first-use cost to the first robot)."""
     t0 = time.perf_counter()
     try:
-        from service.core import _kernels
+        from service.core.warmup import warm_up
 
-        _kernels.warm_up()
+        warm_up()
         md = MapData.from_lists("~warm-up", "metric", _ROOM)
         for method, odom in (("shape", True), ("shape", False), ("icp", True), ("lines", True)):
             _drive(md, method, _PATH, odom)
@@ -125,9 +125,9 @@ def build_index(md: MapData, cache_dir: Path | None) -> float:
     """Build (or load) ``md``'s view index of global localisation into ``cache_dir`` (the
     on-disk cache every worker reads), with the shape method's default configuration for the
     map's kind; returns the seconds taken. Raises on failure (the caller reports it)."""
-    from service.core.global_config import GlobalConfig
-    from service.core.global_localization import load_or_build_index
-    from service.core.shape_config import ShapeConfig
+    from service.core.reloc.config import GlobalConfig
+    from service.core.reloc.global_localization import load_or_build_index
+    from service.core.tracking.shape_config import ShapeConfig
 
     t0 = time.perf_counter()
     load_or_build_index(

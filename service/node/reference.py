@@ -26,8 +26,8 @@ from pydantic_core import PydanticUndefined
 from schemas.messages import RobotConfig
 from service.core.baselines.icp import ICPConfig
 from service.core.baselines.lines import LineConfig
-from service.core.global_config import GlobalConfig
-from service.core.shape_config import ShapeConfig
+from service.core.reloc.config import GlobalConfig
+from service.core.tracking.shape_config import ShapeConfig
 from service.node.settings import ENV_PREFIX, ServiceSettings, flag_of
 
 REPO = Path(__file__).resolve().parents[2]

@@ -34,7 +34,8 @@ prepare_map`), so no robot pays for the first use of a worker or a map.
 Replies are ``("ok", payload)`` or ``("err", reason)``; a scan's payload is a dict with
 ``pose`` (list of 3 floats, map frame), ``status``, ``score``, ``explained``, ``ambiguity``,
 ``covariance`` (9 floats row-major, or ``None``), ``hypotheses`` (int or ``None``),
-``candidates`` (rows ``[x, y, theta, cost]``, or ``None``), ``unsettled`` (the robot
+``candidates`` (rows ``[x, y, theta, cost]``, or ``None``), ``state`` (the localiser's state
+behind the status, or ``None``), ``unsettled`` (the robot
 searches or was fixed by a search a few scans ago: the node keeps it on the search worker) and
 ``cpu_ms`` (the worker's CPU time for the request).
 """
@@ -184,7 +185,7 @@ class WorkerCore:
         self.models.pop(md.map_id, None)
         # imported here: the service process imports this module, and the model's compiled
         # kernels would cost it ~125 MB of memory with worker processes
-        from service.core.mapmodel import MapModel
+        from service.core.sensor.mapmodel import MapModel
 
         with contextlib.suppress(LocalizationError):  # no segment: its robots get the error
             self.models[md.map_id] = MapModel.shared(md)
@@ -343,6 +344,7 @@ class WorkerCore:
             # searching or just fixed: the node keeps such a robot on the search worker
             "unsettled": bool(getattr(r.localizer, "unsettled", False)),
             "hypotheses": None if est.hypotheses is None else int(est.hypotheses),
+            "state": getattr(est, "state", None),
             "candidates": _candidate_rows(est.candidates),
         }
 

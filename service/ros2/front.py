@@ -415,7 +415,8 @@ class Ros2Front:
         if out is None:
             return
         amcl, tf = out
-        self._pubs[(rid, "amcl_pose")].put(cdr.encode_pose_with_covariance(amcl))
+        if amcl is not None:
+            self._pubs[(rid, "amcl_pose")].put(cdr.encode_pose_with_covariance(amcl))
         if tf is not None:
             self._pubs[(rid, "tf")].put(cdr.encode_tf([tf]))
 

@@ -116,6 +116,9 @@ class RosRobot:
         self.awaiting_ack = False
         self.probe_at = 0.0
         self.counters = Counters()
+        #: The last tracked ``map -> odom`` (base frames), re-stamped while the robot is not
+        #: tracking; forgotten with a new initial pose.
+        self.map_odom: np.ndarray | None = None
 
     # ----------------------------------------------------------------- inputs
     def on_tf(self, transforms: tuple[Transform2D, ...], static: bool) -> None:
@@ -145,6 +148,7 @@ class RosRobot:
             )
         self.initial_pose = pose
         self._initial_pending = True
+        self.map_odom = None
 
     def on_scan(self, scan: LaserScan, now: float) -> None:
         """Queue a scan until its transforms and the robot's configuration are there."""
@@ -326,12 +330,22 @@ class RosRobot:
         return msg
 
     # ----------------------------------------------------------------- answers
-    def answer(self, pose: PoseMsg) -> tuple[PoseWithCovariance2D, Transform2D | None] | None:
-        """``amcl_pose`` and the ``map -> odom`` transform for an estimate of the service, or
-        None when it answers no scan this front put or the robot is not tracking."""
+    def answer(
+        self, pose: PoseMsg
+    ) -> tuple[PoseWithCovariance2D | None, Transform2D | None] | None:
+        """``amcl_pose`` and the ``map -> odom`` transform for an estimate of the service;
+        None when it answers no scan this front put. An estimate that is not ``tracking``
+        gets no ``amcl_pose``, only the last ``map -> odom`` stamped anew (as AMCL republishes
+        its last transform on every scan): the robot's pose in ``map`` then follows its
+        odometry, the localiser's dead reckoning, and tf listeners do not time out. Before
+        the first tracked estimate, nothing."""
         sent = self.sent.get(pose.seq)
-        if sent is None or abs(pose.stamp - sent.stamp_s) > 1e-6 or pose.status != "tracking":
+        if sent is None or abs(pose.stamp - sent.stamp_s) > 1e-6:
             return None
+        if pose.status != "tracking":
+            if self.map_odom is None or sent.odom_base is None:
+                return None
+            return None, self._map_odom_tf(sent, self.map_odom)
         p = np.asarray(pose.pose, dtype=np.float64)
         cov = (
             np.asarray(pose.covariance, dtype=np.float64)
@@ -349,15 +363,18 @@ class RosRobot:
         )
         tf = None
         if sent.odom_base is not None:
-            m = compose(base, invert(np.asarray(sent.odom_base)))
-            stamp = Stamp.from_nanoseconds(
-                sent.stamp.nanoseconds + round(o.transform_tolerance * 1e9)
-            )
-            tf = Transform2D(
-                stamp, o.global_frame_id, o.odom_frame_id, float(m[0]), float(m[1]), float(m[2])
-            )
+            self.map_odom = compose(base, invert(np.asarray(sent.odom_base)))
+            tf = self._map_odom_tf(sent, self.map_odom)
         self.counters.poses_out += 1
         return amcl, tf
+
+    def _map_odom_tf(self, sent: Sent, m: np.ndarray) -> Transform2D:
+        """``map -> odom`` = ``m``, stamped ``transform_tolerance`` after the scan, as AMCL."""
+        o = self.o
+        stamp = Stamp.from_nanoseconds(sent.stamp.nanoseconds + round(o.transform_tolerance * 1e9))
+        return Transform2D(
+            stamp, o.global_frame_id, o.odom_frame_id, float(m[0]), float(m[1]), float(m[2])
+        )
 
 
 _WAIT = object()

@@ -32,7 +32,7 @@ PROXIMITY: dict[int, tuple[float, float]] = {
 }
 BLOCK_TITLES = {1: "map-based SL", 2: "SL using schematized map"}
 #: The service's methods plus ``shape-paper``: ``shape`` without its laser odometry (the
-#: motion between scans measured from the scans, service.core.laser_odometry), the seed
+#: motion between scans measured from the scans, service.core.tracking.laser_odometry), the seed
 #: paper's own mode; and ``shape-tracker``: the shape tracker alone (no global search after a
 #: loss, no laser odometry), closest to the paper's SBL. Neither is part of the default run.
 EXPERIMENT_METHODS: tuple[str, ...] = (*METHODS, "shape-paper", "shape-tracker")

@@ -48,7 +48,7 @@ def run_method(
     truth = np.asarray(setup_obj.truth, dtype=np.float64)
     n = len(truth)
     if method == "shape-tracker":
-        from service.core.localizer import ShapeLocalizer
+        from service.core.tracking.localizer import ShapeLocalizer
 
         loc: Any = ShapeLocalizer(setup_obj.map_data, truth[0].copy(), None)
     elif method == "shape-paper":

@@ -20,7 +20,7 @@ from clients.__main__ import cli
 from service.adapters.maps.files import load_map_file
 from service.adapters.maps.grid import read_map_yaml
 from service.adapters.maps.world import World
-from service.core.raycast import RayCaster
+from service.core.sensor.raycast import RayCaster
 
 RES = 0.1
 

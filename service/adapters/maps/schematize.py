@@ -17,7 +17,7 @@ map frame (metres):
    stray returns), and every closed ring below ``min_ring_extent``: a closed outline is an
    object seen from all around (a table, a pillar, a cabinet in a world file); only a
    free-standing wall or a block of rooms is that large.
-3. **Simplify corners by DCE** (:mod:`service.core.dce`): vertices are removed in order of
+3. **Simplify corners by DCE** (:mod:`service.core.shapes.dce`): vertices are removed in order of
    least relevance ``d(u, v) + d(v, w) - d(u, w)`` while it is below ``relevance`` metres.
    A right-angle corner with arms ``a`` has relevance ``~0.59 a``; a bump of depth ``d`` on a
    long wall about ``2 d``, so niches, pilasters and boxes along walls shallower than about
@@ -41,7 +41,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from service.adapters.maps.contours import dedupe, is_closed, join_polylines, polyline_length
 from service.core import numeric
-from service.core.dce import dce, relevance_array
+from service.core.shapes.dce import dce, relevance_array
 from service.core.types import MapData
 from service.errors import InvalidMessage
 

@@ -7,7 +7,7 @@ computed once per map over the map's bounding box plus a margin, gives for every
 centre of its nearest occupied cell, so the closest-point query of ICP is a table lookup.
 
 Each :meth:`ICPLocalizer.update` starts from the motion model's prior
-(:mod:`service.core.motion`, shared by every method): the previous estimate moved by the
+(:mod:`service.core.tracking.motion`, shared by every method): the previous estimate moved by the
 odometry increment when the scan carries ``odom``, else the previous estimate itself (the
 paper's experiment sends no odometry), transforms the scan points into the map, pairs each
 with its nearest occupied cell centre, rejects outliers with a distance gate that shrinks
@@ -30,7 +30,7 @@ from service.core.baselines import (
     check_pose,
     scan_points,
 )
-from service.core.motion import Motion, MotionConfig
+from service.core.tracking.motion import Motion, MotionConfig
 from service.core.types import Estimate, MapData, wrap_angle
 from service.errors import LocalizationError
 
@@ -64,7 +64,7 @@ class ICPConfig(BaseModel):
     use_odometry: bool = Field(
         True,
         description="seed each scan with the odometry increment when the scan carries odom "
-        "(service.core.motion, shared by every method); without odometry -- the paper's "
+        "(service.core.tracking.motion, shared by every method); without odometry -- the paper's "
         "experiment -- the start value is the previous estimate",
     )
 

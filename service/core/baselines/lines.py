@@ -8,7 +8,7 @@ a total-least-squares line fit (normal form ``n . p = r``) with outlier points d
 Map side: the map's polylines become line segments, consecutive (nearly) collinear edges
 merged into one.
 
-Matching, starting from the motion model's prior (:mod:`service.core.motion`: the previous
+Matching, starting from the motion model's prior (:mod:`service.core.tracking.motion`: the previous
 estimate moved by the odometry increment when the scan carries ``odom``, else the previous
 estimate, as in the paper's experiment): each scan line, moved into
 the map with the current pose, is associated with the nearest map line (Cox-style) that passes
@@ -33,7 +33,7 @@ from service.core.baselines import (
     scan_points,
     transform_points,
 )
-from service.core.motion import Motion, MotionConfig
+from service.core.tracking.motion import Motion, MotionConfig
 from service.core.types import Estimate, MapData, wrap_angle
 from service.errors import LocalizationError
 
@@ -82,7 +82,7 @@ class LineConfig(BaseModel):
     use_odometry: bool = Field(
         True,
         description="seed each scan with the odometry increment when the scan carries odom "
-        "(service.core.motion, shared by every method); without odometry -- the paper's "
+        "(service.core.tracking.motion, shared by every method); without odometry -- the paper's "
         "experiment -- the start value is the previous estimate",
     )
 

@@ -8,13 +8,13 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
-from service.core import evidence as ev
-from service.core.configuration import Configuration, map_view, scan_configuration
-from service.core.global_config import GlobalConfig
-from service.core.global_localization import load_or_build_index
-from service.core.localizer import ShapeConfig
-from service.core.mapmodel import MapModel
 from service.core.pose import compose, invert, transform_points
+from service.core.reloc import drive as dr
+from service.core.reloc.config import GlobalConfig
+from service.core.reloc.global_localization import load_or_build_index
+from service.core.sensor.mapmodel import MapModel
+from service.core.shapes.configuration import Configuration, map_view, scan_configuration
+from service.core.tracking.localizer import ShapeConfig
 from service.core.types import MapData
 from sim_publisher.scenario import make_setup
 
@@ -110,15 +110,15 @@ def _office_window(first: int, last: int):  # type: ignore[no-untyped-def]
     cfg = ShapeConfig.for_kind(su.map_data.kind)
     g = GlobalConfig.for_kind(su.map_data.kind)
     idx = load_or_build_index(su.map_data, cfg, g)
-    frames: list[ev.Keyframe] = []
+    frames: list[dr.Frame] = []
     travel = 0.0
     for i in range(first, last + 1):
         if i > first:
             d = compose(invert(su.odom[i - 1]), su.odom[i])
             travel += float(np.hypot(d[0], d[1]))
-        if ev.keyframe_due(frames, su.odom[i], travel, g):
-            frames.append(ev.make_keyframe(len(frames), *su.scan(i), su.odom[i], travel, g))
-    return su, cfg, g, idx, ev.window(frames, g)
+        if dr.frame_due(frames, su.odom[i], travel):
+            frames.append(dr.make_frame(len(frames), *su.scan(i), su.odom[i], travel, g))
+    return su, cfg, g, idx, dr.window(frames, g)
 
 
 @pytest.fixture

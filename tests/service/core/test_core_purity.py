@@ -9,7 +9,7 @@ CHECK = """
 import sys
 import numpy as np
 from service.core.factory import create_localizer
-from service.core.global_localization import GlobalShapeLocalizer  # noqa: F401
+from service.core.reloc.global_localization import GlobalShapeLocalizer  # noqa: F401
 from service.core.baselines.icp import ICPLocalizer  # noqa: F401
 from service.core.baselines.lines import LineLocalizer  # noqa: F401
 from service.core.types import MapData

@@ -7,7 +7,7 @@ from collections.abc import Callable
 import numpy as np
 import pytest
 
-from service.core import _kernels
+from service.core import kernels
 from service.core import pose as pose_mod
 from service.core.pose import (
     compose,
@@ -112,7 +112,7 @@ def test_pose_from_matches_rejects_empty_pairs() -> None:
         pose_from_matches([(np.zeros((0, 2)), np.zeros((1, 4)))], np.zeros(3))
 
 
-@pytest.mark.skipif(not _kernels.HAVE_NUMBA, reason="numba kernels not installed")
+@pytest.mark.skipif(not kernels.HAVE_NUMBA, reason="numba kernels not installed")
 def test_compiled_pose_from_matches_agrees_with_the_numpy_reference(random_pairs: Callable) -> None:
     rng = np.random.default_rng(12)
     well_posed = 0

@@ -17,7 +17,7 @@ import zenoh
 
 from schemas.codec import decode, encode
 from schemas.messages import ErrorNotice, Health, Map, PoseMsg, RobotConfig
-from service.core.raycast import RayCaster
+from service.core.sensor.raycast import RayCaster
 from service.node.node import ServiceNode
 from service.node.settings import ServiceSettings
 

@@ -17,7 +17,7 @@ import zenoh
 from schemas import keys
 from schemas.codec import decode, encode
 from schemas.messages import Map, PoseMsg, RobotConfig
-from service.core.raycast import RayCaster
+from service.core.sensor.raycast import RayCaster
 from service.errors import InvalidMessage
 from service.node.mirror import hrw_owner
 from service.node.node import ServiceNode

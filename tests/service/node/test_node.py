@@ -21,7 +21,7 @@ import pytest
 from schemas.codec import decode, encode
 from schemas.limits import MAX_PAYLOAD_BYTES
 from schemas.messages import Health, Map, PoseMsg, RobotConfig
-from service.core.raycast import RayCaster
+from service.core.sensor.raycast import RayCaster
 from service.node.node import MAX_SCAN_BYTES
 from tests.service.node.harness import (
     ROOM,

@@ -12,9 +12,9 @@ from pathlib import Path
 import msgpack
 import numpy as np
 
-from service.core.global_localization import GlobalShapeLocalizer
-from service.core.laser_odometry import LaserOdometryLocalizer
-from service.core.raycast import RayCaster
+from service.core.reloc.global_localization import GlobalShapeLocalizer
+from service.core.sensor.raycast import RayCaster
+from service.core.tracking.laser_odometry import LaserOdometryLocalizer
 from service.node.assignment import Assignment
 from service.node.workers import WorkerCore
 from sim_publisher.scenario import make_setup

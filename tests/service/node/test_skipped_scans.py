@@ -21,7 +21,7 @@ import numpy as np
 
 from schemas.codec import encode
 from schemas.messages import RobotConfig
-from service.core.raycast import RayCaster
+from service.core.sensor.raycast import RayCaster
 from service.core.types import MapData
 from service.node.intake import RawScan, RawScanQueue, ValidScan
 from service.node.scheduler import LatestSlots

@@ -91,10 +91,24 @@ def test_the_answer_is_the_base_pose_with_the_scans_exact_stamp_and_map_to_odom(
     # map -> odom composed with odom -> base gives the base in the map
     assert np.allclose(compose(np.array(tf.pose), np.array([3.0, 1.0, 0.3])), true_base)
     assert np.allclose(np.diag(amcl.covariance)[[0, 1]] >= [0.01, 0.02], True)
-    # not tracking, or an unknown seq: no answer
-    lost = PoseMsg(**{**pm.to_wire(), "status": "lost"})
-    assert r.answer(lost) is None
+    # an unknown seq: no answer
     assert r.answer(PoseMsg(**{**pm.to_wire(), "seq": 99})) is None
+    # not tracking (dead reckoning, a search): no amcl_pose, the last map -> odom re-stamped
+    # at the new scan, whatever pose the estimate carries
+    t2 = t + S // 10
+    _odom(r, t2, (3.5, 1.0, 0.3))
+    r.on_scan(_scan(t2), now=0.0)
+    (scan2,), _ = r.ready_scans(0.0)
+    lost = PoseMsg(
+        **{**pm.to_wire(), "seq": scan2.seq, "stamp": scan2.stamp, "status": "lost",
+           "pose": [0.0, 0.0, 0.0]}
+    )  # fmt: skip
+    amcl2, tf2 = r.answer(lost)  # type: ignore[misc]
+    assert amcl2 is None and tf2 is not None and tf2.pose == tf.pose
+    assert tf2.stamp == Stamp(1_700_000_001, 587_654_321)
+    # a new initial pose forgets it: nothing until the next tracked estimate
+    r.on_initial_pose(PoseWithCovariance2D(Stamp(0, 0), "map", 1.0, 2.0, 0.0, np.eye(3)))
+    assert r.answer(lost) is None
 
 
 def test_base_covariance_is_the_laser_covariance_moved_to_the_base() -> None:

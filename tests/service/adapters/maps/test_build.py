@@ -15,7 +15,7 @@ from service.adapters.maps.build import build_map
 from service.adapters.maps.fidelity import map_fidelity
 from service.adapters.maps.grid import read_map_yaml, write_map_yaml
 from service.adapters.maps.world import World
-from service.core.raycast import RayCaster
+from service.core.sensor.raycast import RayCaster
 from service.errors import InvalidMessage
 
 WKT = "\n".join(

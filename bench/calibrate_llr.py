@@ -1,0 +1,100 @@
+"""The decision's threshold from the false-fix rate on the tuning split.
+
+``python -m bench.calibrate_llr DIR [DIR ...] [--out docs/results/llr-threshold.md]``
+
+Reads the per-trial tables that ``python -m bench.bench_global --drive --calibrate DIR`` writes
+(tuning maps only: the office, generated buildings below 1000, the logs intel and fr079): for
+every searching scan with a reference, the travel (m), the decision's LLR (nats,
+:mod:`service.core.reloc.decision`), the leader's position and heading error and whether its
+self-similarity check ran and how many searches found it. In those runs nothing is ever fixed,
+so each table shows what every threshold ``T`` would have done: the first scan whose leader
+has been checked and reaches ``T`` is the fix; it is a
+false fix when the leader is more than 0.5 m or 10 degrees off. (Counting every such leader
+as a false fix is conservative: the tracker's confirmation and a floor plan's probation
+catch some of them.)
+
+Per map kind it prints, for a grid of thresholds, the false fixes, the trials fixed within
+the travel limit and the median travel to the fix, and the smallest threshold with no false
+fix; the preset's ``fix_llr`` is that threshold times :data:`SAFETY` (the held-out maps are not
+the tuning maps).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+#: The preset's threshold is the smallest one without a false fix on the tuning split times
+#: this: a margin for maps the tuning split has not seen.
+SAFETY = 1.25
+#: Travel limits (m) as the drive bench's: metric maps of the simulated buildings and office
+#: 5 m, floor plans and the real logs 15 m.
+GRID = (1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 8.0, 10.0, 12.0, 15.0, 20.0, 25.0, 30.0, 40.0, 60.0)
+
+
+def load(dirs: list[Path]) -> dict[str, list[tuple[str, np.ndarray]]]:
+    out: dict[str, list[tuple[str, np.ndarray]]] = {"metric": [], "schematic": []}
+    for d in dirs:
+        for f in sorted(d.glob("*.npy")):
+            group, world, kind, _start = f.stem.split("_")
+            if group == "worlds" and int(world.split("@")[0]) >= 1000:
+                continue  # held out: never calibrated on
+            if group == "real" and world == "mit-csail":
+                continue
+            out[kind].append((f"{group}:{world}", np.load(f)))
+    return out
+
+
+def outcome(rows: np.ndarray, t: float) -> tuple[str, float]:
+    """``("right" | "wrong" | "none", travel)`` of one trial at threshold ``t``."""
+    for travel, llr, err, dth, checked, _found in rows:
+        if llr >= t and checked >= 1.0:
+            ok = err <= 0.5 and dth <= np.deg2rad(10.0)
+            return ("right" if ok else "wrong"), float(travel)
+    return "none", float("inf")
+
+
+def limit_of(name: str, kind: str) -> float:
+    return 15.0 if kind == "schematic" or name.startswith("real") else 5.0
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("dirs", nargs="+", type=Path)
+    ap.add_argument("--out", type=Path, default=None)
+    args = ap.parse_args(argv)
+    data = load(args.dirs)
+    lines = ["# The decision's threshold from the tuning split", ""]
+    for kind, trials in data.items():
+        if not trials:
+            continue
+        lines += [
+            f"## {kind} ({len(trials)} tuning trials)",
+            "",
+            "| T (nats) | false fixes | fixed within limit | travel to fix p50 m |",
+            "|---|---|---|---|",
+        ]
+        best = None
+        for t in GRID:
+            res = [(outcome(r, t), n) for n, r in trials]
+            wrong = sum(o == "wrong" for (o, _), _ in res)
+            within = sum(o == "right" and tr <= limit_of(n, kind) for (o, tr), n in res)
+            travel = [tr for (o, tr), _ in res if o == "right"]
+            p50 = float(np.median(travel)) if travel else float("nan")
+            lines.append(f"| {t:g} | {wrong} | {within}/{len(res)} | {p50:.2f} |")
+            if wrong == 0 and best is None:
+                best = t
+        pick = "none" if best is None else f"{best:g} x {SAFETY} = {best * SAFETY:g}"
+        lines += ["", f"Smallest threshold without a false fix: {pick}.", ""]
+    text = "\n".join(lines) + "\n"
+    print(text)
+    if args.out:
+        args.out.write_text(text, encoding="utf-8")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

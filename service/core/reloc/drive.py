@@ -1,0 +1,531 @@
+"""Hypotheses over a drive: the places a search found, followed scan by scan and judged on the
+same frames of the drive.
+
+Why. A search runs on the scan at hand, so a place it finds is good *now*; a place along a
+corridor with a repeating pattern of doors, or the twin of a room, can be as good now as the
+true place while the drive so far tells them apart. With odometry a hypothesis' pose now
+implies where the robot stood on every earlier scan, so it is scored there too (back-scored):
+every hypothesis is judged on the same keyframes, the ones before a search found it included
+(on the tuning log fr079's floor plan, 16 keyframes over 4.9 m gave the true place a mean
+beam cost of 0.39 and an alias 4.4 m along the corridor 0.55, where the last scans ranked the
+alias first).
+
+What. The frames of the evidence (:class:`Frame`, :func:`window`), the hypotheses followed
+over them (:class:`Track`), re-fitted on each scan (:func:`rescore`) and scored on the
+keyframes they lack (:func:`backfill`); a finished search's places join them (:func:`merge`),
+the clearly worse are let go (:func:`prune`). Work is counted in reference ms
+(:data:`service.core.reloc.global_search.WORK_MS`), so the same scans give the same poses on
+any machine and under any load. Units: metres, radians; poses ``[x, y, theta]`` in the map
+frame, odometry poses in the odometry frame.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Generator
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from service.core.pose import compose, relative
+from service.core.reloc.config import GlobalConfig
+from service.core.reloc.global_search import (
+    COST_FLOOR,
+    DISTINCT_DISTANCE,
+    FINE_SCALE,
+    SUPPORT_POINTS,
+    WORK_MS,
+    Hypothesis,
+    beam_model,
+    beams_ms,
+    near,
+    polish_ms,
+    refine,
+    refine_ms,
+    support_sample,
+    verify,
+    verify_ms,
+)
+from service.core.reloc.view_index import ViewIndex
+from service.core.sensor.scoring import EFFECTIVE_BEAMS, beam_fractions, subsample
+from service.core.shapes.configuration import Configuration
+from service.core.tracking.shape_config import ShapeConfig
+from service.core.types import wrap_angle
+
+#: Heading change (rad) a robot may make between two scans without odometry (the tracker's
+#: max_turn): a place found again within ``near``'s distance of a track is that track.
+TURN_BETWEEN_SCANS = 1.3
+#: Share of the keyframe spacing and turn a scan may move from the last and still repeat the
+#: newest keyframe (:meth:`Drive.repeat`): a robot standing or creeping, not driving.
+CREEP = 0.25
+#: Polish stages (step m, step rad) of a track's first keyframe: +-0.43 m / +-10 degrees.
+WIDE_POLISH = ((0.15, 0.06), (0.05, 0.02), (0.015, 0.006))
+#: With odometry a scan becomes a keyframe when the robot has driven this far (m) since the
+#: last one: closer scans repeat each other's evidence ...
+EVIDENCE_SPACING = 0.3
+#: ... or turned this much (rad): a turn shows new walls.
+EVIDENCE_TURN = 0.3
+#: At most this many keyframes in the window (``GlobalConfig.evidence_span``).
+EVIDENCE_FRAMES = 20
+#: Without odometry the window holds the last this many scans.
+SCAN_WINDOW = 6
+#: A frame's cost is clipped here: one keyframe with a person in front of the laser must not
+#: outweigh the drive.
+EVIDENCE_CLIP = 1.0
+#: A track this many nats below the leader, or below the unseen place, on 3 frames at least is
+#: let go (a mean cost 0.3 worse over 10 keyframes).
+EVIDENCE_DROP = 60.0
+#: Weight of the odometry-moved pose as a prior of the re-scoring's polish: without it a
+#: hypothesis slid ~0.1 m per scan along corridors (tuning building 12).
+RESCORE_PRIOR = 0.02
+#: The mean predicted range (m) beyond which the unseen place's cost rises
+#: (``GlobalConfig.null_slope``).
+NULL_REACH = 5.0
+
+
+@dataclass(eq=False)
+class Frame:
+    """A scan of the drive's evidence: ``key`` its serial number; ``ranges`` / ``angles`` the
+    judged beams (valid returns); ``points`` robot-frame return points for the polish;
+    ``odom`` its odometry pose (``None`` without odometry); ``travel`` the drive's odometry
+    travel there (m)."""
+
+    key: int
+    ranges: np.ndarray
+    angles: np.ndarray
+    points: np.ndarray
+    odom: np.ndarray | None
+    travel: float
+
+
+@dataclass(eq=False)
+class Track:
+    """A hypothesis followed over the drive: ``pose`` now; ``hyp`` its latest verification;
+    ``ll`` its log-likelihood (nats; weighted by :attr:`Drive.weights`) per frame key and
+    ``at`` its pose there; ``found`` how many searches found it; ``checked`` whether its
+    self-similarity check ran."""
+
+    pose: np.ndarray
+    hyp: Hypothesis
+    ll: dict[int, float] = field(default_factory=dict)
+    at: dict[int, np.ndarray] = field(default_factory=dict)
+    found: int = 1
+    checked: bool = False
+    #: the unseen place's cost per keyframe key in the region of the track's pose there
+    #: (:func:`null_cost`)
+    null: dict[int, float] = field(default_factory=dict)
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update({"null": {}, **state})  # pickled before it had ``null``
+
+
+@dataclass(eq=False)
+class Job:
+    """A search in progress: its step generator and the odometry pose of the scan it started
+    on (``None`` without odometry); ``track`` the track a self-similarity check is for;
+    ``frame`` without odometry the plain-scan frame it searched (its places' verification is
+    their evidence there)."""
+
+    steps: Generator[float, None, Any]
+    odom: np.ndarray | None
+    track: Track | None = None
+    frame: Frame | None = None
+
+
+def odometry_move(since: np.ndarray | None, now: np.ndarray | None) -> np.ndarray | None:
+    """Robot-frame motion from odometry pose ``since`` to ``now`` (``None`` if either is)."""
+    return None if since is None or now is None else relative(since, now)
+
+
+@dataclass(eq=False)
+class Drive:
+    """The hypotheses over a drive and their evidence: ``tracks``, the ``frames`` of the
+    window (``next_key`` numbers the next), the odometry ``travel`` (m) since the drive
+    began, the pending search ``job`` and self-similarity check ``twin``, the scans of the
+    composite (``history``) and the robot's known speed before a loss (map frame, m per scan;
+    ``None``: unknown). The pending jobs are not pickled (generators): a search starts again
+    on the next scan."""
+
+    tracks: list[Track] = field(default_factory=list)
+    frames: list[Frame] = field(default_factory=list)
+    next_key: int = 0
+    travel: float = 0.0
+    job: Job | None = None
+    twin: Job | None = None
+    history: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = field(default_factory=list)
+    speed: np.ndarray | None = None
+    #: every keyframe's weight by key (1 and the scans that repeated it, :meth:`repeat`),
+    #: those that left the window included: a hypothesis' scores there are kept (they were
+    #: measured while the odometry between the keyframe and its pose then was short), so
+    #: evidence that told two places apart is not forgotten
+    weights: dict[int, float] = field(default_factory=dict)
+
+    def __getstate__(self) -> dict[str, Any]:
+        return {**self.__dict__, "job": None, "twin": None}
+
+    def move(self, delta: np.ndarray, step: float) -> None:
+        """Move every track by the odometry increment ``delta`` (robot frame) of length
+        ``step`` (m)."""
+        self.travel += step
+        for t in self.tracks:
+            t.pose = compose(t.pose, delta)
+
+    def add(self, frame: Frame, g: GlobalConfig) -> None:
+        """Add a frame; the window keeps the recent ones (:func:`window`)."""
+        self.next_key = frame.key + 1
+        self.frames = window([*self.frames, frame], g)
+        if frame.odom is not None:
+            self.weights[frame.key] = 1.0
+
+    def repeat(self, step: float, turn: float, g: GlobalConfig) -> None:
+        """A scan with odometry that added no keyframe, ``step`` (m) and ``turn`` (rad) from
+        the last one. Standing or creeping (under :data:`CREEP` of :data:`EVIDENCE_SPACING` and
+        :data:`EVIDENCE_TURN`) it repeats the newest keyframe: its noise, a person who moved, a
+        slightly different heading are new evidence, its walls are not (not so a driving
+        robot's: docs/decisions/0017). The n-th repeat adds ``d ** n`` of a keyframe
+        (``w <- 1 + d w``, ``d = 1 - 1 / repeat_window``)."""
+        creep = step < CREEP * EVIDENCE_SPACING and abs(turn) < CREEP * EVIDENCE_TURN
+        if creep and self.frames and self.frames[-1].odom is not None:
+            key = self.frames[-1].key
+            d = 1.0 - 1.0 / g.repeat_window
+            self.weights[key] = 1.0 + d * self.weights.get(key, 1.0)
+
+    def evidence_keys(self, g: GlobalConfig) -> dict[int, float]:
+        """The frames the decision sums over, key -> weight: every keyframe of the drive with
+        odometry, the window's plain scans without (consecutive scans see nearly the same:
+        their evidence is not carried beyond the window)."""
+        win = window(self.frames, g)
+        if win and win[-1].odom is None:
+            return {f.key: 1.0 for f in win}
+        return dict(self.weights)
+
+
+def held(pose: np.ndarray) -> Hypothesis:
+    """The hypothesis of a pose the tracker held until a loss (verified a scan ago)."""
+    return Hypothesis(pose=np.asarray(pose, dtype=np.float64).copy(), cost=0.05)
+
+
+# ------------------------------------------------------------------------------- frames
+def make_frame(
+    key: int,
+    ranges: np.ndarray,
+    angles: np.ndarray,
+    odom: np.ndarray | None,
+    travel: float,
+    g: GlobalConfig,
+) -> Frame:
+    """A :class:`Frame` of one scan (``ranges`` metres, NaN = no return; ``angles`` radians
+    robot frame; ``odom`` its odometry pose or ``None``: a plain scan)."""
+    r = np.asarray(ranges, dtype=np.float64)
+    a = np.asarray(angles, dtype=np.float64)
+    sel = subsample(np.nonzero(np.isfinite(r))[0], g.verify_beams)
+    rr, aa = r[sel].copy(), a[sel].copy()
+    pts = np.column_stack([rr * np.cos(aa), rr * np.sin(aa)])
+    return Frame(
+        key=key,
+        ranges=rr,
+        angles=aa,
+        points=subsample(pts, SUPPORT_POINTS).copy(),
+        odom=None if odom is None else np.asarray(odom, dtype=np.float64).copy(),
+        travel=float(travel),
+    )
+
+
+def frame_due(frames: list[Frame], odom: np.ndarray, travel: float) -> bool:
+    """Whether a scan at odometry pose ``odom`` and drive travel ``travel`` becomes a keyframe:
+    the first, or :data:`EVIDENCE_SPACING` driven or :data:`EVIDENCE_TURN` turned since the
+    last."""
+    if not frames or frames[-1].odom is None:
+        return True
+    last = frames[-1]
+    if travel - last.travel >= EVIDENCE_SPACING:
+        return True
+    return abs(float(wrap_angle(float(odom[2]) - float(last.odom[2])))) >= EVIDENCE_TURN
+
+
+def window(frames: list[Frame], g: GlobalConfig) -> list[Frame]:
+    """The frames of the window: keyframes within ``evidence_span`` metres of the newest (at
+    most :data:`EVIDENCE_FRAMES`), plain scans the last :data:`SCAN_WINDOW`."""
+    if not frames:
+        return []
+    if frames[-1].odom is None:
+        return [f for f in frames if f.odom is None][-SCAN_WINDOW:]
+    newest = frames[-1].travel
+    out = [f for f in frames if f.odom is not None and newest - f.travel <= g.evidence_span]
+    return out[-EVIDENCE_FRAMES:]
+
+
+def judged(frames: list[Frame]) -> list[int]:
+    """Keys of the window's frames a track must be scored on to be judged: with odometry every
+    keyframe (back-scoring reaches those before it was found); without, the newest scan only,
+    since no odometry carries a place found later back to an earlier scan (those frames count
+    as the unseen place explains them)."""
+    if not frames:
+        return []
+    if frames[-1].odom is None:
+        return [frames[-1].key]
+    return [f.key for f in frames]
+
+
+def loglik(cost: float) -> float:
+    """A frame's log-likelihood (nats) from its beam cost, clipped at :data:`EVIDENCE_CLIP`."""
+    return -EFFECTIVE_BEAMS * (min(cost, EVIDENCE_CLIP) - COST_FLOOR)
+
+
+def frame_cost(
+    index: ViewIndex, pose: np.ndarray, f: Frame, config: ShapeConfig, g: GlobalConfig
+) -> tuple[float, float]:
+    """The beam cost of ``pose`` on frame ``f``'s beams (short returns graded by
+    ``evidence_short_scale``) and the unseen place's cost there (:func:`null_cost`)."""
+    if f.ranges.size == 0:
+        return EVIDENCE_CLIP, g.null_cost
+    assert index.sensor is not None
+    m = beam_model(config, g, short_scale=g.evidence_short_scale)
+    pred, landed = index.sensor.predict(pose, f.ranges, f.angles, m)
+    cost = beam_fractions(f.ranges, pred, m, landed).cost(m)
+    return cost, null_cost(np.where(np.isfinite(pred), pred, m.max_range), g)
+
+
+def null_cost(predicted: np.ndarray, g: GlobalConfig) -> float:
+    """The unseen place's cost on a frame whose beams would meet the map's walls at
+    ``predicted`` ranges (m) (``GlobalConfig.null_slope``)."""
+    if g.null_slope <= 0.0 or predicted.size == 0:
+        return g.null_cost
+    reach = float(np.mean(predicted))
+    return min(EVIDENCE_CLIP, g.null_cost + g.null_slope * max(0.0, reach - NULL_REACH))
+
+
+def pair_ms(index: ViewIndex, g: GlobalConfig) -> float:
+    """Work (reference ms) of scoring one track on one keyframe: a one-pose polish and the
+    beams."""
+    return WORK_MS["polish_call"] + polish_ms(SUPPORT_POINTS) + beams_ms(index, g, g.verify_beams)
+
+
+# ------------------------------------------------------------------------------- re-scoring
+def rescore(
+    index: ViewIndex,
+    tracks: list[Track],
+    ranges: np.ndarray,
+    angles: np.ndarray,
+    P: Configuration,
+    config: ShapeConfig,
+    g: GlobalConfig,
+    limit: float,
+    scan: Frame | None,
+) -> float:
+    """Fit each track (best first) to this scan and verify it, while the work stays within
+    ``limit`` (reference ms). With odometry (``scan`` is ``None``) the tracks were moved by it
+    and a polish on the distance field, the moved pose as its prior, absorbs its error;
+    without, the point-to-line refinement follows the robot's motion, and the verification
+    is the track's evidence on the plain-scan frame ``scan``. Returns the work spent."""
+    if not tracks:
+        return 0.0
+    sp = support_sample(P)
+    odometry = scan is None
+    fit_ms = polish_ms(len(sp)) if odometry else refine_ms(index)
+    each = fit_ms + verify_ms(index, g)
+    n = len(tracks) if not np.isfinite(limit) else max(1, min(len(tracks), int(limit // each)))
+    chosen = sorted(tracks, key=lambda t: t.hyp.cost)[:n]
+    if len(sp) == 0:
+        return n * each
+    poses = np.vstack([t.pose for t in chosen])
+    if odometry:
+        assert index.sensor is not None
+        fitted, _ = index.sensor.polish(poses, sp, FINE_SCALE, prior=RESCORE_PRIOR)
+    else:
+        fitted = refine(index, poses, sp, config)
+    for t, p in zip(chosen, fitted, strict=True):
+        h = verify(index, p, ranges, angles, P, config, g)
+        t.pose = h.pose.copy()
+        t.hyp = h
+        if scan is not None:
+            t.ll[scan.key] = loglik(h.cost)
+            t.at[scan.key] = h.pose.copy()
+    return n * each
+
+
+def backfill(
+    index: ViewIndex,
+    tracks: list[Track],
+    frames: list[Frame],
+    odom_now: np.ndarray,
+    config: ShapeConfig,
+    g: GlobalConfig,
+    limit: float,
+    first: Track | None = None,
+) -> float:
+    """Score the tracks on the keyframes of ``frames`` (the window) they lack, newest
+    keyframe first and breadth first (every track's recent keyframes before anyone's old
+    ones; ``first``, a winner on probation, before the others), within ``limit`` reference
+    ms (at least one score when anything is missing). Scores older than the window are
+    forgotten. Returns the work spent."""
+    keys = {f.key for f in frames}
+    odom_of = {f.key: f.odom for f in frames}
+    for t in tracks:
+        for k in [k for k in t.at if k not in keys]:
+            del t.at[k]  # the score there is kept (Drive.weights)
+    kf = [f for f in frames if f.odom is not None]
+    if not kf:
+        return 0.0
+    assert index.sensor is not None
+    each = pair_ms(index, g)
+    spent = 0.0
+    ranked = sorted(tracks, key=lambda t: (t is not first, -len(t.ll), t.hyp.cost))
+    for f in reversed(kf):
+        for t in ranked:
+            if f.key in t.ll:
+                continue
+            if spent >= limit:
+                return spent
+            newer = [k for k in t.at if k > f.key]
+            if newer:
+                k = min(newer)
+                start = compose(t.at[k], relative(odom_of[k], f.odom))
+            else:
+                start = compose(t.pose, relative(odom_now, f.odom))
+            pose = index.sensor.polish(start[None, :], f.points, FINE_SCALE, prior=RESCORE_PRIOR)[
+                0
+            ][0]
+            cost, null = frame_cost(index, pose, f, config, g)
+            if not t.ll:
+                # a track's first keyframe: also a wider polish without a prior, and the pose
+                # as given; the one the beams explain best is kept (a hypothesis some degrees
+                # off converges before it is judged; tuning building 16: a twin 0.2 m / 10
+                # degrees off the true pose, judged with the narrow polish only, lost to a
+                # mirrored alias)
+                wide, _ = index.sensor.polish(start[None, :], f.points, FINE_SCALE, WIDE_POLISH)
+                for alt in (wide[0], start):
+                    c, n = frame_cost(index, alt, f, config, g)
+                    if c < cost:
+                        pose, cost, null = alt, c, n
+                spent += 0.5 * polish_ms(len(f.points)) + 2 * each
+            t.ll[f.key] = loglik(cost)
+            t.at[f.key] = pose.copy()
+            t.null[f.key] = null
+            spent += each
+    return spent
+
+
+# ------------------------------------------------------------------------------- the tracks
+def merge(
+    tracks: list[Track],
+    hyps: list[Hypothesis],
+    move: np.ndarray | None,
+    keep: int,
+    scored: Frame | None = None,
+) -> list[Track]:
+    """Add the best ``keep`` of a finished search's hypotheses (found on an earlier scan;
+    ``move`` the robot-frame odometry motion since, or ``None``) to ``tracks`` unless one
+    already holds that pose (which then counts one more ``found``). ``scored``: the plain-scan
+    frame the search ran on, still in the window: a new track's verification there is its
+    evidence on it (without it, a place just found would count as explaining the frames as
+    well as the leader, and no LLR could grow while searches keep finding places)."""
+    out = list(tracks)
+    counted: list[Track] = []
+    for h in hyps[:keep]:
+        pose = compose(h.pose, move) if move is not None else np.asarray(h.pose, dtype=float)
+        # without odometry a robot may have turned between two scans and a track's fit from
+        # its last pose may have slid off: a place found again within the same place's
+        # distance of a track is that track, and where the search fitted this scan better
+        # the track follows it (its scores on the frames before are kept)
+        if move is None and scored is not None:
+            dist, turn = DISTINCT_DISTANCE, TURN_BETWEEN_SCANS
+        else:
+            dist, turn = 0.3, 0.15
+        held = [t for t in out if near(t.pose, pose, dist, turn)]
+        for t in held:
+            if t not in counted:
+                t.found += 1
+                counted.append(t)
+            if scored is not None and h.cost < t.hyp.cost:
+                t.pose, t.hyp = pose.copy(), h
+                t.ll[scored.key] = loglik(h.cost)
+                t.at[scored.key] = pose.copy()
+        if held:
+            continue
+        track = Track(pose.copy(), dataclasses.replace(h, pose=pose.copy()))
+        if scored is not None:
+            track.ll[scored.key] = loglik(h.cost)
+            track.at[scored.key] = pose.copy()
+        out.append(track)
+    return out
+
+
+def prune(
+    tracks: list[Track],
+    frames: list[Frame],
+    keys: dict[int, float],
+    leader: Track | None,
+    g: GlobalConfig,
+) -> list[Track]:
+    """The tracks to keep: a track trailing the ``leader`` by :data:`EVIDENCE_DROP` nats in all,
+    or the unseen place as much, on at least 3 common frames of ``keys`` goes; of the
+    rest the best ``keep`` judged on every frame of the window ``frames`` and ``keep`` still
+    being judged, one per place."""
+    null = -EFFECTIVE_BEAMS * (g.null_cost - COST_FLOOR)
+
+    def dropped(t: Track) -> bool:
+        mine = [t.ll[k] for k in keys if k in t.ll]
+        if len(mine) < 3:
+            return False
+        if sum(mine) < len(mine) * null - EVIDENCE_DROP:
+            return True
+        if leader is None or t is leader:
+            return False
+        both = [k for k in keys if k in leader.ll and k in t.ll]
+        lead, own = sum(leader.ll[k] for k in both), sum(t.ll[k] for k in both)
+        return len(both) >= 3 and lead - own > EVIDENCE_DROP
+
+    live = [t for t in tracks if not dropped(t)]
+    win = judged(frames)
+    full = [t for t in live if all(k in t.ll for k in win)]
+
+    def total(t: Track) -> float:
+        return -sum(t.ll.get(k, 0.0) for k in keys)
+
+    done = sorted(full, key=total)
+    if leader is not None and leader in done:
+        done.remove(leader)
+        done.insert(0, leader)
+    pending = sorted((t for t in live if t not in full), key=lambda t: (-len(t.ll), t.hyp.cost))
+    out: list[Track] = []
+    for group in (done, pending):
+        taken = 0
+        for t in group:
+            if taken >= g.keep:
+                break
+            if any(near(t.pose, o.pose) for o in out):
+                continue
+            out.append(t)
+            taken += 1
+    return out
+
+
+def candidates(tracks: list[Track], k: int = 5) -> np.ndarray:
+    """The first ``k`` tracks as ``(k, 4)`` rows ``[x, y, theta, cost]`` (for the wire)."""
+    rows = [[*map(float, t.pose), float(t.hyp.cost)] for t in tracks[:k]]
+    return np.array(rows, dtype=np.float64).reshape(-1, 4)
+
+
+#: Earlier versions' name of a frame (a localiser state pickled by them names it).
+Keyframe = Frame
+
+__all__ = [
+    "WIDE_POLISH",
+    "Drive",
+    "Frame",
+    "Job",
+    "Track",
+    "backfill",
+    "candidates",
+    "frame_due",
+    "held",
+    "judged",
+    "make_frame",
+    "merge",
+    "odometry_move",
+    "prune",
+    "rescore",
+    "window",
+]

@@ -1,0 +1,177 @@
+"""The ``shape`` method's localiser (:class:`GlobalShapeLocalizer`): it holds the parts every
+state uses -- the tracker, the map's view index, the odometry (its one memory) -- and the
+state (:mod:`service.core.reloc.states`); each scan is one call of
+:func:`service.core.reloc.states.step`. Frames and units: REP 103, metres and radians; poses
+``[x, y, theta]`` in the map frame; scan points in the robot frame (x forward, y left).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from service.core.reloc import states as st
+from service.core.reloc.config import GlobalConfig
+from service.core.reloc.view_index import ViewIndex, load_or_build_index
+from service.core.tracking.localizer import ShapeConfig, ShapeLocalizer
+from service.core.tracking.motion import check_pose3
+from service.core.tracking.scan_odometry import Odometry
+from service.core.types import Estimate, MapData, check_scan
+from service.errors import LocalizationError
+
+__all__ = ["GlobalConfig", "GlobalShapeLocalizer", "ShapeConfig", "load_or_build_index"]
+
+
+class GlobalShapeLocalizer:
+    """Shape-based localisation with relocalisation (implements
+    :class:`service.core.types.Localizer`, method ``shape``).
+
+    ``map_data`` the map; ``initial_pose`` ``[x, y, theta]`` map frame, or ``None`` (unknown:
+    global localisation); ``config`` the tracker's :class:`ShapeConfig` (default per map
+    kind); ``gconfig`` a :class:`GlobalConfig`; ``cache_dir`` where the map's
+    :class:`ViewIndex` is cached (``None``: built in memory). The index is built on the first
+    scan that needs a search, not before.
+
+    Each estimate carries the state behind it (``Estimate.state``): ``tracking`` (status
+    ``tracking``), ``dead_reckoning`` (the map does not explain the scans; the dead-reckoned
+    pose and its growing covariance, status ``lost``), ``searching`` and ``probation``
+    (status ``initializing`` before any fix, ``lost`` after one; the best guess, its
+    ambiguity and the candidates).
+    """
+
+    method = "shape"
+
+    def __init__(
+        self,
+        map_data: MapData,
+        initial_pose: np.ndarray | None,
+        config: ShapeConfig | None = None,
+        *,
+        gconfig: GlobalConfig | None = None,
+        cache_dir: Path | None = None,
+    ) -> None:
+        if config is not None and not isinstance(config, ShapeConfig):
+            raise LocalizationError(f"config must be a ShapeConfig, got {type(config).__name__}")
+        self.map_data = map_data
+        self.config = config or ShapeConfig.for_kind(map_data.kind)
+        self.gconfig = gconfig or GlobalConfig.for_kind(map_data.kind)
+        self.cache_dir = None if cache_dir is None else Path(cache_dir)
+        self.tracker = ShapeLocalizer(map_data, initial_pose, self.config)
+        self.odometry = Odometry(self.config.motion)
+        self._index: ViewIndex | None = None
+        self.state: st.State = st.Tracking()
+        #: reference ms of search work spent on the last scan (benchmarks)
+        self.work_ms = 0.0
+        #: scans that searched since the last reset (tests and benchmarks)
+        self.searches = 0
+        self.reset(initial_pose)
+
+    def __getstate__(self) -> dict[str, object]:
+        """Picklable state (a robot moved to another worker process): the view index is left
+        out (the new process loads it from its cache on first use); a search in progress
+        starts again on the next scan (:class:`~service.core.reloc.drive.Drive`)."""
+        return {**self.__dict__, "_index": None}
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        if "state" not in state:
+            state = _from_earlier(state)
+        self.__dict__.update(state)
+
+    @property
+    def index(self) -> ViewIndex:
+        """The map's view index (loaded or built on first use)."""
+        if self._index is None:
+            self._index = load_or_build_index(
+                self.map_data, self.config, self.gconfig, self.cache_dir
+            )
+        return self._index
+
+    @property
+    def pose(self) -> np.ndarray | None:
+        """The last tracked (or dead-reckoned) pose, ``None`` while searching."""
+        if isinstance(self.state, st.Tracking):
+            return self.tracker.pose
+        if isinstance(self.state, st.DeadReckoning):
+            return self.state.pose.copy()
+        return None
+
+    @property
+    def searching(self) -> bool:
+        """``True`` while the pose is unknown: searching, or a winner on probation."""
+        return isinstance(self.state, st.Searching | st.Probation)
+
+    @property
+    def unsettled(self) -> bool:
+        """Searching, or fixed by a search fewer than ``settle_scans`` scans ago: where a
+        service keeps the robot on its search worker."""
+        s = self.state
+        return not isinstance(s, st.Tracking) or s.since_fix < self.gconfig.settle_scans
+
+    def set_search_budget(self, ms: float) -> None:
+        """Set the per-scan work budget of a budgeted search (a search without a budget
+        stays whole). The service halves it while other robots share this robot's worker."""
+        g = self.gconfig
+        if g.search_budget_ms is not None and g.search_budget_ms != ms:
+            self.gconfig = g.model_copy(update={"search_budget_ms": float(ms)})
+
+    def reset(self, initial_pose: np.ndarray | None, odom: np.ndarray | None = None) -> None:
+        """Forget the history; ``None`` starts a global search (status ``initializing``).
+        ``odom``: odometry pose at ``initial_pose`` (the next increment starts from it)."""
+        self.tracker.reset(initial_pose, odom)
+        o = None if odom is None else check_pose3(odom, "odom")
+        self.odometry.reset(o if initial_pose is not None else None)
+        if initial_pose is None:
+            self.state = st.start_search(self, "initializing")
+        else:
+            self.state = st.Tracking()
+        self.work_ms = 0.0
+
+    def update(
+        self,
+        ranges: np.ndarray,
+        angles: np.ndarray,
+        odom: np.ndarray | None = None,
+        odom_spread: np.ndarray | None = None,
+        from_scans: bool = False,
+    ) -> Estimate:
+        """Localise one scan. ``ranges`` metres (NaN = no return), ``angles`` radians robot
+        frame, ``odom`` optional odometry pose (own frame; corrected by the scans first,
+        ``ShapeConfig.motion.scan_odometry``); ``odom_spread`` its increment's translation
+        variance beyond the odometry model's (the tracker's prior,
+        :meth:`service.core.tracking.motion.MotionModel.predict`); ``from_scans``: ``odom`` was
+        measured from the scans themselves (:mod:`service.core.tracking.laser_odometry`), so it
+        cannot vouch for a pose the scan contradicts (``GlobalConfig.scan_odometry_violation``)."""
+        r, a = check_scan(ranges, angles)
+        o = None if odom is None else check_pose3(odom, "odom")
+        step = self.odometry.step(r, a, o, odom_spread)
+        use = step.reading is not None and self.config.motion.use_odometry
+        scan = st.Scan(r, a, step, use, from_scans and step.reading is not None)
+        self.work_ms = 0.0
+        self.state, est = st.step(self, self.state, scan)
+        return est
+
+
+def _from_earlier(old: dict[str, Any]) -> dict[str, Any]:
+    """The state of a localiser pickled by an earlier version (one class with a search
+    mode): its tracker, map and settings are kept; a robot that was tracking goes on
+    tracking from its pose, one that was searching starts a new search."""
+    new = {k: old[k] for k in ("map_data", "config", "cache_dir", "tracker") if k in old}
+    kind = new["map_data"].kind
+    g = GlobalConfig.for_kind(kind)
+    budget = getattr(old.get("gconfig"), "search_budget_ms", None)
+    if budget is not None:
+        g = g.model_copy(update={"search_budget_ms": float(budget)})
+    new.update(gconfig=g, _index=None, work_ms=0.0, searches=0)
+    odo = Odometry(new["config"].motion)
+    last = old.get("_last_odom")
+    odo.reset(None if last is None else np.asarray(last, dtype=np.float64))
+    new["odometry"] = odo
+    tracking = not old.get("_searching", True) and old.get("_probation") is None
+    if tracking and new["tracker"].pose is not None:
+        new["state"] = st.Tracking()
+    else:
+        status = "lost" if old.get("_search_status") == "lost" else "initializing"
+        new["state"] = st.Searching(st.dr.Drive(), st.Prior(None, None, 1.0, 1.0), status)
+    return new

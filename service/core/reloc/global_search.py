@@ -1,0 +1,529 @@
+"""The global search: :func:`search_steps` ranks pose hypotheses for one scan over the whole map
+and :func:`self_similar_steps` looks for a twin place, both as steps spread over scans (their
+work counted by :data:`WORK_MS`); :func:`run_steps` runs them to the end."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Generator
+from dataclasses import dataclass
+from typing import TypeVar
+
+import numpy as np
+
+from service.core.pose import transform_points
+from service.core.reloc.config import GlobalConfig
+from service.core.reloc.view_index import ViewIndex
+from service.core.reloc.view_index.build import anchor, shape_units
+from service.core.reloc.view_index.viewpoints import SPACING
+from service.core.sensor.pose_batch import fit_pairs
+from service.core.sensor.scoring import BeamModel, SensorModel, subsample
+from service.core.shapes.configuration import (
+    Configuration,
+    scan_configuration,
+)
+from service.core.shapes.matching import induced_alignment
+from service.core.shapes.similarity import prepare, shape_complexity, shape_distance
+from service.core.tracking.localizer import ShapeConfig
+from service.core.types import wrap_angle
+
+T = TypeVar("T")
+
+#: The search compares the scan's this many most complex units (the rest repeat them) ...
+SCAN_UNITS = 5
+#: ... of at least this shape complexity (m·rad): a straight wall tells nothing.
+MIN_UNIT_COMPLEXITY = 0.05
+#: |range difference| (m) allowed between a scan unit and a view unit beyond the grid's
+#: half-diagonal.
+RANGE_SLACK = 0.4
+#: View units less complex than this x the scan unit's are skipped.
+VIEW_COMPLEXITY_RATIO = 0.25
+#: S* gate of a pair (m) ...
+MAX_SHAPE_DISTANCE = 0.6
+#: ... and corresponding anchor corners turn alike within this (rad).
+MAX_TURN_DIFFERENCE = 0.35
+#: Induced poses per scan, shared by the chosen scan units.
+PAIRS_BUDGET = 360
+#: Scan points of the support ranking, the fits and every polish.
+SUPPORT_POINTS = 80
+#: Coarse pose cell (m) of the shortlist (GlobalConfig.shortlist) ...
+SHORTLIST_CELL = 0.4
+#: ... and its heading width (rad) ...
+SHORTLIST_ANGLE = 0.2
+#: ... and the beams of its quick check.
+SHORTLIST_BEAMS = 90
+#: Point-to-line fit steps per refinement stage.
+REFINE_ITERATIONS = 6
+#: Cauchy scale (m) of the tight fit stage and of the polish.
+FINE_SCALE = 0.05
+#: Hypotheses farther apart than this (m) are distinct places ...
+DISTINCT_DISTANCE = 0.8
+#: ... or whose headings differ more than this (rad).
+DISTINCT_ANGLE = 0.5
+#: Cost of a beam through a drawn wall, in unexplained beams: a wall in the way contradicts a
+#: pose, a missing one only fails to confirm it.
+VIOLATION_WEIGHT = 2.0
+#: Added to every beam cost.
+COST_FLOOR = 0.05
+
+
+@dataclass
+class Hypothesis:
+    """A pose hypothesis ``[x, y, theta]`` (map frame) with its verification on one scan:
+    ``hit`` fraction of beams returned where the map predicts (within the support tolerance),
+    ``violation`` fraction of beams that passed through a map wall, ``cost`` (lower is
+    better), ``explained`` length fraction of the scan's polylines lying on the map there."""
+
+    pose: np.ndarray
+    cost: float
+    hit: float = 0.0
+    violation: float = 0.0
+    explained: float = 0.0
+
+
+def beam_model(config: ShapeConfig, gconfig: GlobalConfig, short_scale: float = 0.0) -> BeamModel:
+    """The beam model of the search's checks: the tracker's support tolerance and view range,
+    the search's violation margin, weights and see-through (``short_scale``: the keyframe
+    evidence's grading of short returns, :mod:`service.core.reloc.drive`)."""
+    return BeamModel(
+        tolerance=config.support_tolerance,
+        margin=gconfig.violation_margin,
+        max_range=config.view_max_range,
+        see_through=gconfig.see_through,
+        short_scale=short_scale,
+        short_credit=gconfig.short_credit,
+        violation_weight=VIOLATION_WEIGHT,
+        floor=COST_FLOOR,
+    )
+
+
+def beam_costs(
+    sensor: SensorModel,
+    poses: np.ndarray,
+    ranges: np.ndarray,
+    angles: np.ndarray,
+    beams: int,
+    config: ShapeConfig,
+    gconfig: GlobalConfig,
+) -> np.ndarray:
+    """The beam part of :func:`verify`'s cost (without its floor) for each of ``poses``
+    ``(k, 3)`` on ``beams`` evenly chosen valid beams. A quick ranking: unlike the point
+    support it sees beams that pass through a wall, and it does not reward a wrong place for
+    lining up furniture with map walls."""
+    sel = subsample(np.nonzero(np.isfinite(ranges))[0], beams)
+    if sel.size == 0:
+        return np.full(len(poses), np.inf)
+    m = beam_model(config, gconfig)
+    fr = sensor.beams(np.asarray(poses, dtype=np.float64), ranges[sel], angles[sel], m)
+    return np.array([f.beam_cost(m) for f in fr])
+
+
+def verify(
+    index: ViewIndex,
+    pose: np.ndarray,
+    ranges: np.ndarray,
+    angles: np.ndarray,
+    P: Configuration,
+    config: ShapeConfig,
+    gconfig: GlobalConfig,
+) -> Hypothesis:
+    """Check a pose against the map beam by beam and feature by feature (the sensor model's
+    :meth:`~service.core.sensor.scoring.SensorModel.beams` on ``gconfig.verify_beams`` valid
+    beams, and the length share of the scan's polylines lying on the map, ``explained``).
+    Cost ``1 - hit - short_credit * short + violation_weight * violation + cost_floor``."""
+    sensor = index.sensor
+    assert sensor is not None
+    idx = subsample(np.nonzero(np.isfinite(ranges))[0], gconfig.verify_beams)
+    if idx.size == 0:
+        return Hypothesis(pose=pose.copy(), cost=1.0 + COST_FLOOR)
+    m = beam_model(config, gconfig)
+    f = sensor.beams(pose[None, :], ranges[idx], angles[idx], m)[0]
+    explained = sensor.explained_length(pose, P.features, config.support_tolerance)
+    return Hypothesis(
+        pose=pose.copy(),
+        cost=f.cost(m),
+        hit=f.hit,
+        violation=f.through,
+        explained=explained,
+    )
+
+
+@dataclass
+class SearchResult:
+    """Ranked distinct hypotheses (best first); ``candidates`` how many pose hypotheses the
+    shape pairs induced."""
+
+    hypotheses: list[Hypothesis]
+    candidates: int
+
+
+def _ranked_units(
+    P: Configuration, threshold: float
+) -> tuple[list[np.ndarray], list[tuple[float, int]]]:
+    """The scan's units (robot frame) and ``(shape complexity, unit index)`` most complex
+    first."""
+    found = shape_units(P, threshold, cyclic=False)
+    comp = [(shape_complexity(u), k) for k, u in enumerate(found)]
+    comp.sort(key=lambda t: (-t[0], t[1]))
+    return found, comp
+
+
+def support_sample(P: Configuration) -> np.ndarray:
+    """:data:`SUPPORT_POINTS` of the scan's feature points (robot frame) for the fits."""
+    pts = np.vstack([f.points for f in P.features]) if P.features else np.zeros((0, 2))
+    return subsample(pts, SUPPORT_POINTS)
+
+
+def refine(index: ViewIndex, poses: np.ndarray, sp: np.ndarray, config: ShapeConfig) -> np.ndarray:
+    """Refine poses ``(k, 3)`` against the map with the robot-frame scan points ``sp``: a
+    point-to-line fit (Cauchy scale of the tracker), a tight second stage on the segments
+    right under the points, a polish on the distance field and a last continuous fit."""
+    sensor = index.sensor
+    assert sensor is not None
+
+    def fit(start: np.ndarray, reach: float, scale: float) -> np.ndarray:
+        out, _ = fit_pairs(
+            [sp] * len(start),
+            [sensor.model.nearby_segments(transform_points(p, sp), reach) for p in start],
+            start,
+            iterations=REFINE_ITERATIONS,
+            robust_scale=scale,
+            damping=config.align_damping,
+        )
+        return out
+
+    refined = fit(np.asarray(poses, dtype=np.float64), 0.5, config.align_robust_scale)
+    # then only the segments right under the points and a small robust scale, so returns from
+    # unmapped objects (furniture on a floor plan) stop pulling
+    refined = fit(refined, 2.0 * FINE_SCALE, FINE_SCALE)
+    refined, _ = sensor.polish(refined, sp, FINE_SCALE)
+    # and a last continuous fit from there (the distance field is quantised to its cells)
+    return fit(refined, 2.0 * FINE_SCALE, FINE_SCALE)
+
+
+# distinct and near run for every pair of poses a search or a merge compares: scalar
+# element differences into the same np.hypot (no temporary arrays)
+
+
+def distinct(a: np.ndarray, b: np.ndarray) -> bool:
+    return bool(
+        np.hypot(a[0] - b[0], a[1] - b[1]) > DISTINCT_DISTANCE
+        or abs(wrap_angle(float(a[2] - b[2]))) > DISTINCT_ANGLE
+    )
+
+
+def near(a: np.ndarray, b: np.ndarray, dist: float = 0.3, ang: float = 0.15) -> bool:
+    return bool(
+        np.hypot(a[0] - b[0], a[1] - b[1]) < dist and abs(wrap_angle(float(a[2] - b[2]))) < ang
+    )
+
+
+#: Work model of the search, in milliseconds of one core of the reference machine (the 2-core
+#: build VM) per item: a deterministic stand-in for CPU time, so that a search spread over
+#: scans by a budget takes the same steps, and gives the same poses, on any machine and under
+#: any load (docs/decisions/0005-search-budget-and-work-model.md). A ray cast and the
+#: refinement's nearby segments also cost per segment of the map (every cast measures each
+#: segment before it intersects beams: a real log's metric map, 1 500-2 700 segments, casts
+#: 2-3x slower than a floor plan). Each item is set at or above the slowest tuning map's
+#: measurement (``bench/bench_work_model.py``), so a budget does not buy more CPU than it
+#: names. Since the casts were compiled (service/core/kernels/raycast.py) the cast terms (beam,
+#: cast_segment) overstate them ~2.5x; left as they are, since lowering them made the search
+#: faster and fixed a tuning alias wrong (the drive bench). The shortlist's march on the
+#: distance field (field_beam) is set at the office's and intel's floor plans: up to 1.35x
+#: below building 3's, a few per cent of a search's work, which the cast terms'
+#: overstatement more than covers.
+WORK_MS = {
+    "sstar": 0.0105,  # one S* comparison (shape_distance with an upper bound)
+    "induced": 0.045,  # one S*-induced alignment
+    "support": 0.000012,  # one pose x one point of the support ranking
+    "field_beam": 0.00012,  # one pose x one beam marched on the distance field (see below)
+    "polish": 0.000006,  # one pose x grid cell x point of a distance-field polish ...
+    "polish_call": 0.15,  # ... and one call's fixed part (a keyframe polishes one pose)
+    "beam": 0.0023,  # one pose x one beam of a ray cast check ...
+    "cast_segment": 0.00018,  # ... and one pose x one segment of the map (any ray cast)
+    "layered": 0.1,  # a verification's see-through cast (GlobalConfig.see_through)
+    "refine": 0.6,  # one pose through the four refinement stages ...
+    "refine_segment": 0.00035,  # ... and x one segment of the map (denser segment grid)
+    "verify": 0.3,  # one verification's fixed part (the feature check) ...
+    "verify_beam": 0.0002,  # ... and per beam (plus its ray cast)
+}
+
+_CHUNK_SSTAR = 96  # S* comparisons between two yields
+_CHUNK_POSES = 800  # poses of the support ranking between two yields
+_CHUNK_POLISH = 12  # poses polished between two yields
+_CHUNK_REFINE = 2  # poses refined / verified between two yields
+
+
+def polish_ms(points: int) -> float:
+    """Work (reference ms) of one pose's :func:`_polish` (two 5 x 5 x 5 grids) on ``points``,
+    in a call over several poses."""
+    return 250 * max(points, 1) * WORK_MS["polish"]
+
+
+def cast_ms(index: ViewIndex) -> float:
+    """Work (reference ms) of one pose's ray cast that depends on the map: its segments."""
+    assert index.sensor is not None
+    return len(index.sensor.segments) * WORK_MS["cast_segment"]
+
+
+def refine_ms(index: ViewIndex) -> float:
+    """Work (reference ms) of one pose's :func:`refine` on ``index``'s map."""
+    assert index.sensor is not None
+    return WORK_MS["refine"] + len(index.sensor.segments) * WORK_MS["refine_segment"]
+
+
+def beams_ms(index: ViewIndex, gconfig: GlobalConfig, beams: int) -> float:
+    """Work (reference ms) of one pose's cast and beam fractions over ``beams`` beams (a
+    verification's, a keyframe's score)."""
+    layered = WORK_MS["layered"] if gconfig.see_through else 0.0
+    return beams * WORK_MS["verify_beam"] + cast_ms(index) + layered
+
+
+def verify_ms(index: ViewIndex, gconfig: GlobalConfig) -> float:
+    return WORK_MS["verify"] + beams_ms(index, gconfig, gconfig.verify_beams)
+
+
+def _first_rows(rows: np.ndarray) -> np.ndarray:
+    """Positions (ascending) of the first occurrence of each distinct row of ``rows``
+    ``(n, k)``, whole numbers stored as floats: ``np.sort(np.unique(rows, axis=0,
+    return_index=True)[1])``, computed on one integer key per row (a row-wise unique sorts
+    structured records, ~100x slower on the search's few thousand poses)."""
+    if rows.size == 0:
+        return np.zeros(0, dtype=np.int64)
+    if not np.all(np.isfinite(rows)):
+        return np.sort(np.unique(rows, axis=0, return_index=True)[1])
+    q = rows.astype(np.int64)
+    lo = q.min(axis=0)
+    span = q.max(axis=0) - lo + 1
+    if float(np.prod(span.astype(np.float64))) >= 2.0**62:
+        return np.sort(np.unique(rows, axis=0, return_index=True)[1])
+    key = np.zeros(len(q), dtype=np.int64)
+    for j in range(q.shape[1]):
+        key = key * span[j] + (q[:, j] - lo[j])
+    return np.sort(np.unique(key, return_index=True)[1])
+
+
+def advance(
+    steps: Generator[float, None, T], spent: float, budget: float
+) -> tuple[float, bool, T | None]:
+    """Run a step generator until the scan's work ``spent`` reaches ``budget`` (at least one
+    step, so a search always progresses). Returns ``(spent, done, result)``."""
+    while True:
+        try:
+            w = next(steps)
+        except StopIteration as stop:
+            return spent, True, stop.value
+        spent += w
+        if spent >= budget:
+            return spent, False, None
+
+
+def run_steps(steps: Generator[float, None, T]) -> T:
+    """Run a step generator to the end and return its result."""
+    return advance(steps, 0.0, math.inf)[2]  # type: ignore[return-value]
+
+
+def search_steps(
+    index: ViewIndex,
+    ranges: np.ndarray,
+    angles: np.ndarray,
+    config: ShapeConfig,
+    gconfig: GlobalConfig | None = None,
+    seeds: list[np.ndarray] | tuple[np.ndarray, ...] = (),
+    P: Configuration | None = None,
+) -> Generator[float, None, SearchResult]:
+    """The global search for one scan over the whole map, as a generator that yields, after
+    each bounded chunk of work, that chunk's cost in reference ms (:data:`WORK_MS`), and
+    returns the :class:`SearchResult`: distinct hypotheses, best (lowest cost) first.
+
+    ``ranges`` metres (NaN = no return), ``angles`` radians (robot frame); ``config`` the
+    tracker's settings; ``seeds`` extra poses (the kept hypotheses, moved by odometry); ``P``
+    the scan's configuration if already computed.
+
+    The :data:`SCAN_UNITS` most complex scan units are compared by S* with every index unit
+    whose range from its viewpoint is within the grid half-diagonal plus :data:`RANGE_SLACK`
+    of the scan unit's; the most similar pairs (:data:`PAIRS_BUDGET` shared) each induce a
+    pose. All poses and the seeds are ranked by support (distance field); the best
+    ``refine_top`` distinct ones are refined (:func:`refine`) and verified (:func:`verify`).
+    """
+    gconfig = gconfig or GlobalConfig.for_kind(config.kind)
+    sensor = index.sensor
+    assert sensor is not None
+    r = np.asarray(ranges, dtype=np.float64)
+    a = np.asarray(angles, dtype=np.float64)
+    if P is None:
+        P = scan_configuration(r, a, config.extraction())
+    poses: list[np.ndarray] = [np.asarray(s, dtype=np.float64) for s in seeds]
+    anchor_poses: list[np.ndarray] = []
+    n_induced = 0
+    if P.features and len(index):
+        units, comp = _ranked_units(P, config.dce_threshold)
+        chosen = [k for c, k in comp[:SCAN_UNITS] if c >= MIN_UNIT_COMPLEXITY]
+        gate = 0.5 * np.sqrt(2.0) * SPACING + RANGE_SLACK
+        ew, sw = config.shape_end_weight, config.shape_skip_weight
+        for k in chosen:
+            pu = units[k]
+            pa = prepare(pu)
+            dp = np.hypot(pu[:, 0], pu[:, 1])
+            cp = shape_complexity(pu)
+            p_anc, p_dir, p_turn = anchor(pu)
+            cand = np.nonzero(
+                (index.unit_rmin <= dp.max() + gate)
+                & (index.unit_rmax >= dp.min() - gate)
+                & (index.unit_complexity >= VIEW_COMPLEXITY_RATIO * cp)
+            )[0]
+            cornered = abs(p_turn) > 0.2
+            if cornered:  # corresponding corners turn alike
+                dturn = np.mod(index.unit_anchor[cand, 3] - p_turn + np.pi, 2.0 * np.pi) - np.pi
+                cand = cand[np.abs(dturn) < MAX_TURN_DIFFERENCE]
+            # The same physical corner is seen from many viewpoints (one group): S* is
+            # computed for one view of each group (the first), and a similar group lends its
+            # views' anchors to every view of it; the budget of S*-induced alignments thus
+            # covers many distinct places instead of one corner many times.
+            groups = index.unit_group[cand]
+            _, first = np.unique(groups, return_index=True)
+            scored = []
+            for j, u in enumerate(cand[np.sort(first)].tolist()):
+                s = shape_distance(
+                    pa,
+                    index.arcs(u),
+                    end_weight=ew,
+                    skip_weight=sw,
+                    upper_bound=MAX_SHAPE_DISTANCE,
+                )
+                if s < MAX_SHAPE_DISTANCE:
+                    scored.append((s, u))
+                if (j + 1) % _CHUNK_SSTAR == 0:
+                    yield _CHUNK_SSTAR * WORK_MS["sstar"]
+            scored.sort()
+            top = scored[: PAIRS_BUDGET // len(chosen)]
+            for _s, u in top:
+                poses.append(induced_alignment(pa, index.arcs(u)))
+                n_induced += 1
+            if scored and cornered:
+                # every view of a similar group fixes a pose by the anchors (corner vertex
+                # and leaving edge): vectorised, cheap enough for all of them
+                similar = np.isin(groups, index.unit_group[[u for _s, u in scored]])
+                qa = index.unit_anchor[cand[similar]]
+                phi = np.mod(qa[:, 2] - p_dir + np.pi, 2.0 * np.pi) - np.pi
+                c, s_ = np.cos(phi), np.sin(phi)
+                tx = qa[:, 0] - (c * p_anc[0] - s_ * p_anc[1])
+                ty = qa[:, 1] - (s_ * p_anc[0] + c * p_anc[1])
+                anchor_poses.append(np.column_stack([tx, ty, phi]))
+                n_induced += len(qa)
+            yield len(top) * WORK_MS["induced"] + (len(first) % _CHUNK_SSTAR) * WORK_MS["sstar"]
+    if not poses and not anchor_poses:
+        return SearchResult(hypotheses=[], candidates=0)
+    H = np.vstack([np.asarray(poses).reshape(-1, 3), *anchor_poses])
+    sp = support_sample(P)
+    if len(sp) == 0:
+        return SearchResult(hypotheses=[], candidates=n_induced)
+    parts = []
+    for i in range(0, len(H), _CHUNK_POSES):
+        block = H[i : i + _CHUNK_POSES]
+        parts.append(sensor.support(block, sp, config.support_tolerance))
+        yield len(block) * len(sp) * WORK_MS["support"]
+    sup = np.concatenate(parts)
+    order = np.argsort(-sup, kind="stable")
+    if gconfig.shortlist > 0:
+        # An induced pose near the truth is often 0.2-0.4 m / 5-10 deg off, so its raw support
+        # trails a wrong place's that happens to line up. Keep the best pose per coarse pose
+        # cell, polish the best cells' poses on the distance field (coarse then fine grid) and
+        # rank by the polished score instead.
+        heading = (wrap_angle(H[:, 2]) + np.pi) / SHORTLIST_ANGLE
+        cells = np.floor(np.column_stack([H[:, :2] / SHORTLIST_CELL, heading]))
+        reps = order[_first_rows(cells[order])]
+        nb = gconfig.shortlist_violation_beams
+        beams = subsample(np.flatnonzero(np.isfinite(r)), nb) if nb > 0 else np.zeros(0, int)
+        if beams.size and len(reps):
+            # Where the plan shows little of what the laser sees, wrong places whose walls
+            # the furniture happens to fit out-score the true one on support; most of their
+            # other beams pass through a drawn wall, the true pose's hardly any. The cells are
+            # ranked by support less the verification's weight times that share.
+            margin = max(config.support_tolerance, gconfig.violation_margin)
+            vparts = []
+            for i in range(0, len(reps), _CHUNK_POSES):
+                block = H[reps[i : i + _CHUNK_POSES]]
+                vparts.append(sensor.crossings(block, r[beams], a[beams], margin))
+                yield len(block) * beams.size * WORK_MS["field_beam"]
+            score = sup[reps] - VIOLATION_WEIGHT * np.concatenate(vparts)
+            reps = reps[np.argsort(-score, kind="stable")]
+        short = reps[: gconfig.shortlist]
+        polished_parts = []
+        quick_parts = []
+        for i in range(0, len(short), _CHUNK_POLISH):
+            block = H[short[i : i + _CHUNK_POLISH]]
+            pol, _score = sensor.polish(block, sp, FINE_SCALE, stages=((0.15, 0.06), (0.05, 0.02)))
+            polished_parts.append(pol)
+            quick_parts.append(beam_costs(sensor, pol, r, a, SHORTLIST_BEAMS, config, gconfig))
+            yield len(block) * (
+                polish_ms(len(sp)) + SHORTLIST_BEAMS * WORK_MS["beam"] + cast_ms(index)
+            )
+        H = np.vstack(polished_parts)
+        quick = np.concatenate(quick_parts)
+        order = np.argsort(quick, kind="stable")
+    picked: list[np.ndarray] = []
+    for i in order.tolist():
+        if len(picked) >= gconfig.refine_top:
+            break
+        if any(near(H[i], p) for p in picked):
+            continue
+        picked.append(H[i])
+    hyps: list[Hypothesis] = []
+    for i in range(0, len(picked), _CHUNK_REFINE):
+        block = np.vstack(picked[i : i + _CHUNK_REFINE])
+        refined = refine(index, block, sp, config)
+        hyps.extend(verify(index, p, r, a, P, config, gconfig) for p in refined)
+        yield len(block) * (refine_ms(index) + verify_ms(index, gconfig))
+    hyps.sort(key=lambda h: h.cost)
+    out: list[Hypothesis] = []
+    for h in hyps:
+        if all(not near(h.pose, o.pose) for o in out):
+            out.append(h)
+    return SearchResult(hypotheses=out, candidates=n_induced)
+
+
+def self_similar_steps(
+    index: ViewIndex,
+    best: Hypothesis,
+    ranges: np.ndarray,
+    angles: np.ndarray,
+    P: Configuration,
+    config: ShapeConfig,
+    gconfig: GlobalConfig,
+) -> Generator[float, None, Hypothesis | None]:
+    """The map's own twin of ``best``, verified on the real scan, or ``None``, as steps (like
+    :func:`search_steps`).
+
+    A search can miss the true place altogether (furniture hides its walls) and then crown a
+    congruent room elsewhere with no close rival. So before a fix the map is asked where else
+    it looks the same: the scan the MAP would give at ``best.pose`` (a ray cast over the real
+    scan's beams that have returns) runs through :func:`search_steps` itself; every
+    resulting pose distinct from ``best`` is a place the map cannot tell from it, and is
+    verified (:func:`verify`) on the real ``ranges`` / ``angles`` both as found and refined on
+    the real scan's points (:func:`refine`), whichever verifies better (the map-only search
+    aligned it to the map's own view; furniture can drag the fit off). Returns the best
+    verified twin (lowest cost)."""
+    ok = np.isfinite(ranges)
+    assert index.sensor is not None
+    pred = index.sensor.caster.cast(best.pose, angles, config.view_max_range)
+    pred = np.where(ok, pred, np.nan)
+    if np.count_nonzero(np.isfinite(pred)) < 10:
+        return None
+    res = yield from search_steps(index, pred, angles, config, gconfig)
+    cands = [h.pose for h in res.hypotheses if distinct(h.pose, best.pose)]
+    sp = support_sample(P)
+    if not cands or len(sp) == 0:
+        return None
+    out: Hypothesis | None = None
+    for i in range(0, len(cands), _CHUNK_REFINE):
+        block = np.vstack(cands[i : i + _CHUNK_REFINE])
+        refined = refine(index, block, sp, config)
+        for pose in [*block, *refined]:
+            if not distinct(pose, best.pose):
+                continue
+            v = verify(index, pose, ranges, angles, P, config, gconfig)
+            if out is None or v.cost < out.cost:
+                out = v
+        yield len(block) * (refine_ms(index) + 2.0 * verify_ms(index, gconfig))
+    return out

@@ -1,0 +1,693 @@
+"""Relocalisation as a state machine (docs/decisions/0017-relocalisation-state-machine.md): the
+states as objects and one transition function, :func:`step` (``(state, scan) -> (state,
+estimate)``).
+
+* :class:`Tracking` -- the shape tracker follows the robot. With odometry a *dead-reckoned
+  reference* rides along: the pose the odometry carried from the last scan the map explained
+  well (``good_support``), with its growing covariance. A fit of a poorly explained scan is
+  believed only within :data:`GATE_SIGMAS` of it, and a rejected scan only while the
+  reference's sigma is below ``track_sigma``; beyond either, the robot dead-reckons. A scan
+  that contradicts the pose (beams through drawn walls, or the scan-to-scan fit broken: a
+  kidnap) ``lost_after`` times in a row starts a search; without odometry the tracker's own
+  ``lost`` (or a scan that fits nothing) does.
+* :class:`DeadReckoning` -- the published pose is the dead-reckoned one (status ``lost``).
+  ``relock_scans`` scans in a row the tracker, run from it, explains well within the gate fix
+  the robot again; scans that contradict it, or a sigma past ``max_dead_reckoning_sigma``,
+  start a search with it as the prior.
+* :class:`Searching` -- the global search over a drive (:mod:`service.core.reloc.drive`)
+  within the per-scan budget; the decision (:mod:`service.core.reloc.decision`) names a
+  winner, the tracker confirms it.
+* :class:`Probation` -- with odometry a winner is tracked ``probation_travel`` metres while
+  the evidence goes on, and fixed if the decision still names it then.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+
+from service.core import numeric
+from service.core.pose import propagate, sigma_xy
+from service.core.reloc import drive as dr
+from service.core.reloc.composite import composite_scan
+from service.core.reloc.config import GlobalConfig
+from service.core.reloc.decision import CELL_VOLUME, Prior, Verdict, decide
+from service.core.reloc.global_search import advance, search_steps, self_similar_steps
+from service.core.reloc.view_index import ViewIndex
+from service.core.reloc.view_index.viewpoints import SPACING
+from service.core.shapes.configuration import Configuration, scan_configuration
+from service.core.tracking.localizer import ShapeConfig, ShapeLocalizer
+from service.core.tracking.scan_odometry import OdometryStep
+from service.core.types import Estimate, Status, wrap_angle
+
+#: Heading offsets (rad) under which a kept hypothesis seeds the next search: a robot may turn
+#: that much between two scans, more than the fit recovers.
+SEED_TURNS = (0.0, -0.4, 0.4, -0.8, 0.8)
+#: Work (reference ms) of the tracker's confirmation of a winner: a tracker update from a
+#: fresh reset, measured 10 / 21 ms median on the office's metric / schematic map.
+CONFIRM_MS = 20.0
+#: Covariance (m², rad²) of a pose the map has just confirmed, at least: the reference starts
+#: there, and a fit is compared with a dead-reckoned pose within it. A fit's own covariance
+#: says how well the points pin it, not how far a wrong association moves it: consecutive
+#: accepted fits on the tuning logs differ from the odometry's step by up to ~5 cm and ~1.5
+#: degrees.
+FIX_COV = np.diag([0.05**2, 0.05**2, 0.03**2])
+#: Without odometry the prior around the last tracked pose widens by this many metres per
+#: scan and per metre of the robot's known speed per scan (it may turn any amount).
+HELD_GROWTH = 2.0
+#: With a budget, at most this share re-scores the kept hypotheses on the scan and
+#: EVIDENCE_SHARE scores them on the keyframes they lack; the search gets the rest (0.3 / 0.2
+#: against 0.5 / 0.3 on tuning worlds 0-19: 96 against 93 % fixed in 15 m).
+RESCORE_SHARE = 0.3
+EVIDENCE_SHARE = 0.2
+#: At most this shortlist ...
+TWIN_SHORTLIST = 60
+#: ... and refine_top in a self-similarity check (it searches the map's own view).
+TWIN_REFINE_TOP = 12
+#: The tracker's first fit must lie this close to the winner (m) ...
+CONFIRM_DISTANCE = 0.3
+#: ... and turned less than this (rad) ...
+CONFIRM_ANGLE = 0.1
+#: ... with a position sigma of at most this (m): a corridor's parallel walls verify equally
+#: well 0.8 m further along (intel floor plan: a fix 0.8 m off, sigma 0.19 m; correct fixes
+#: 0.004-0.01 m).
+CONFIRM_SIGMA = 0.05
+#: Standard deviations of the dead-reckoned reference a poorly explained fit may stray from it
+#: before the robot dead-reckons.
+GATE_SIGMAS = 3.0
+#: With odometry the search matches the last this many scans fused (1: every scan alone) ...
+COMPOSITE_SCANS = 3
+#: ... into this many beams (never finer than the laser's) ...
+COMPOSITE_BINS = 720
+#: ... leaving out scans farther than this (m) from the newest.
+COMPOSITE_TRAVEL = 0.5
+#: With the odometry prior off, an odometry turn larger than this (rad) still moves the
+#: tracker's pose first (the tracker follows turns up to 1.3 rad).
+ODOM_TURN_ASSIST = 1.0
+
+
+@dataclass(frozen=True)
+class Scan:
+    """One scan and its odometry: ``ranges`` (m, NaN = none) and ``angles`` (rad, robot
+    frame), the :class:`~service.core.tracking.scan_odometry.OdometryStep`, and whether the
+    tracker uses the odometry as its prior (``odometry``)."""
+
+    ranges: np.ndarray
+    angles: np.ndarray
+    odom: OdometryStep
+    odometry: bool
+    #: the odometry was measured from the scans themselves (laser odometry): it cannot vouch
+    #: for a pose the scan contradicts, accepted or not
+    from_scans: bool = False
+
+
+class Context(Protocol):
+    """What the states use of the localiser."""
+
+    config: ShapeConfig
+    gconfig: GlobalConfig
+    tracker: ShapeLocalizer
+    work_ms: float
+    searches: int
+
+    @property
+    def index(self) -> ViewIndex: ...
+
+
+# ------------------------------------------------------------------------------- the states
+@dataclass
+class Tracking:
+    """The tracker follows; ``ref`` / ``cov`` the dead-reckoned reference (module docstring;
+    ``None`` without odometry), ``strikes`` scans in a row that contradicted the pose,
+    ``broken`` whether the scan-to-scan fit broke since the last scan the map explained well,
+    ``since_fix`` scans since a search's fix (a service keeps such a robot on its search
+    worker for ``settle_scans``)."""
+
+    ref: np.ndarray | None = None
+    cov: np.ndarray | None = None
+    strikes: int = 0
+    since_fix: int = 1 << 30
+    broken: bool = False
+    name: str = "tracking"
+
+
+@dataclass
+class DeadReckoning:
+    """The map does not explain the scans: ``pose`` / ``cov`` dead-reckoned; ``relock`` scans
+    in a row the tracker explained well from it, ``strikes`` scans in a row that contradicted
+    it, ``broken`` as :class:`Tracking`'s."""
+
+    pose: np.ndarray
+    cov: np.ndarray
+    relock: int = 0
+    strikes: int = 0
+    broken: bool = False
+    name: str = "dead_reckoning"
+
+
+@dataclass
+class Searching:
+    """The search over a drive: ``drive`` the hypotheses and frames, ``prior`` where the robot
+    may be, ``status`` published (``initializing`` before any fix, ``lost`` after one),
+    ``scans`` searched so far; with a dead-reckoned prior and odometry, ``relock`` scans in a
+    row the tracker explained well from the prior's mean (as :class:`DeadReckoning`)."""
+
+    drive: dr.Drive
+    prior: Prior
+    status: Status = "initializing"
+    scans: int = 0
+    relock: int = 0
+    name: str = "searching"
+
+
+@dataclass
+class Probation:
+    """A winner tracked before it is published: ``winner`` its track among the ``drive``'s,
+    ``left`` the travel (m) still to go, ``rejected`` scans in a row that contradicted it,
+    ``ambiguity`` the decision's when it named the winner (published until the verdict)."""
+
+    drive: dr.Drive
+    prior: Prior
+    winner: dr.Track
+    left: float
+    status: Status = "initializing"
+    rejected: int = 0
+    ambiguity: float = 1.0
+    name: str = "probation"
+
+
+State = Tracking | DeadReckoning | Searching | Probation
+
+
+# ------------------------------------------------------------------------------- helpers
+def mahalanobis2(pose: np.ndarray, mean: np.ndarray, cov: np.ndarray) -> float:
+    """Squared Mahalanobis distance of ``pose`` from ``mean`` under ``cov`` (plus the fit's
+    own covariance, :data:`FIX_COV`)."""
+    e = np.asarray(pose, dtype=np.float64) - mean
+    e[2] = wrap_angle(float(e[2]))
+    return float(numeric.quadratic(e, numeric.inv(cov + FIX_COV)))
+
+
+def fit_cov(est: Estimate) -> np.ndarray:
+    """The covariance a fix starts the reference with: the fit's, at least :data:`FIX_COV`."""
+    if est.covariance is None:
+        return FIX_COV.copy()
+    c = np.asarray(est.covariance, dtype=np.float64).reshape(3, 3)
+    return np.maximum(c, 0.0) * np.eye(3) + FIX_COV if np.all(np.isfinite(c)) else FIX_COV.copy()
+
+
+def _contradicts(ctx: Context, scan: Scan, pose: np.ndarray, cov: np.ndarray | None = None) -> bool:
+    """Whether the scan contradicts ``pose``: more than ``contradiction`` of the tracker's
+    violation beams return from beyond a drawn wall, by more than the tracker's margin plus,
+    for a dead-reckoned pose of covariance ``cov``, :data:`GATE_SIGMAS` of its position sigma (a
+    wall the pose may be that far off from is no contradiction)."""
+    margin = ctx.config.violation_margin
+    if cov is not None:
+        margin += GATE_SIGMAS * sigma_xy(cov)
+    share = ctx.tracker.violations(scan.ranges, scan.angles, [pose], margin)[0]
+    return share > ctx.gconfig.contradiction
+
+
+def start_search(ctx: Context, status: Status, prior: Prior | None = None) -> Searching:
+    """A new search (no hypotheses yet) with ``prior`` (default: uniform over the map)."""
+    return Searching(dr.Drive(), prior or Prior(None, None, 1.0, 1.0), status)
+
+
+# ------------------------------------------------------------------------------- the step
+def step(ctx: Context, state: State, scan: Scan) -> tuple[State, Estimate]:
+    """The one transition function: the next state and the estimate to publish."""
+    if isinstance(state, Tracking):
+        new, est = _tracking(ctx, state, scan)
+    elif isinstance(state, DeadReckoning):
+        new, est = _dead_reckoning(ctx, state, scan)
+    elif isinstance(state, Probation):
+        new, est = _probation(ctx, state, scan)
+    else:
+        new, est = _searching(ctx, state, scan)
+    est.state = "searching" if isinstance(new, Searching) else new.name  # type: ignore[assignment]
+    if isinstance(new, Searching) and est.ambiguity is None:
+        est.ambiguity = 1.0  # a search that has only begun: no place leads yet
+    if not isinstance(new, Tracking) and est.status == "tracking":
+        est.status = "lost"
+    return new, est
+
+
+def _tracking(ctx: Context, s: Tracking, scan: Scan) -> tuple[State, Estimate]:
+    g = ctx.gconfig
+    o = scan.odom
+    if o.delta is not None and not scan.odometry and abs(float(o.delta[2])) > ODOM_TURN_ASSIST:
+        # a turn the shape tracker cannot bridge without its odometry prior (a look-around
+        # spin after the fix): the odometry's heading change moves its pose first
+        ctx.tracker.predict(o.delta)
+    est = ctx.tracker.update(scan.ranges, scan.angles, o.reading, o.matched_from, o.spread)
+    if est.ambiguity is not None:
+        # the tracker's own ambiguity compares step-2 hypotheses that often converge to one
+        # pose: no integrity signal; the published ambiguity is the search's
+        est.extras["tracker_ambiguity"] = float(est.ambiguity)
+    est.ambiguity = None
+    s.since_fix += 1
+    rejected = "rejected" in est.extras
+    if not scan.odometry:
+        s.ref = s.cov = None
+        if est.status == "lost" or (rejected and est.score < g.collapse_score):
+            # with no odometry to bridge it, a scan that fits the map nowhere near the pose
+            # ends the track
+            est.extras["collapsed"] = 1.0
+            return _lost(ctx, est.pose, None), est
+        return s, est
+    if o.delta is None or s.ref is None or s.cov is None:
+        s.ref, s.cov = est.pose.copy(), fit_cov(est)  # the reference starts here
+        return s, est
+    s.ref, s.cov = propagate(s.ref, s.cov, o.delta, o.noise(ctx.config.motion))
+    slid = False
+    if scan.from_scans and g.scan_odometry_violation < 1.0:
+        # an odometry measured from the scans moves a pose that slid along a corridor (where
+        # neither the scans nor a floor plan pin it), or turned wrong, as precisely as a right
+        # one: the map alone can tell, and beams through its walls do
+        share = ctx.tracker.violations(scan.ranges, scan.angles, [est.pose])[0]
+        est.extras["pose_violation"] = share
+        slid = share > g.scan_odometry_violation
+    if not slid and not rejected and (est.explained or 0.0) >= g.good_support:
+        s.ref, s.cov, s.strikes, s.broken = est.pose.copy(), fit_cov(est), 0, False
+        return s, est
+    # a poorly explained scan: does it contradict the pose (a kidnap)? After a break of the
+    # scan-to-scan fit every scan the map fits poorly does: the scans after a kidnap match
+    # each other again, and a floor plan's outline may half explain them without a beam
+    # through a wall. Otherwise only a scan the tracker rejects, scoring low, whose beams
+    # cross drawn walls: beams through a deleted or moved piece of furniture cross one too,
+    # on a scan the tracker still fits (a map from another day)
+    low = est.score < g.collapse_score
+    s.broken = (s.broken or o.broken) and low
+    contradicted = slid or s.broken or (rejected and low and _contradicts(ctx, scan, est.pose))
+    s.strikes = s.strikes + 1 if contradicted else 0
+    if s.strikes >= ctx.config.lost_after:
+        est.extras["contradicted"] = 1.0
+        return _lost(ctx, s.ref, s.cov), est
+    stray = not rejected and mahalanobis2(est.pose, s.ref, s.cov) > GATE_SIGMAS**2
+    if stray or est.status == "lost" or sigma_xy(s.cov) > g.track_sigma:
+        est.extras["stray" if stray else "unexplained"] = 1.0
+        ctx.tracker.reset(None)
+        dead = DeadReckoning(s.ref.copy(), s.cov.copy(), strikes=s.strikes, broken=s.broken)
+        return dead, _dead_estimate(dead, est)
+    return s, est
+
+
+def _lost(ctx: Context, pose: np.ndarray, cov: np.ndarray | None) -> Searching:
+    """A search after the track is lost at ``pose`` (with odometry: dead-reckoned, ``cov``;
+    without: the last tracked pose, widened scan by scan); its prior the pose's Gaussian with
+    ``kidnap_weight`` spread over the map's places."""
+    speed = ctx.tracker.known_speed()
+    ctx.tracker.reset(None)
+    if cov is None:
+        step_m = 0.0 if speed is None else float(np.hypot(*speed))
+        grow = (HELD_GROWTH * max(step_m, 0.05)) ** 2
+        cov = np.diag([grow, grow, math.pi**2])
+    pose = np.asarray(pose, dtype=np.float64).copy()
+    srch = start_search(ctx, "lost", Prior(pose, cov.copy(), ctx.gconfig.kidnap_weight, 0.0))
+    srch.drive.tracks = [dr.Track(pose.copy(), dr.held(pose))]
+    srch.drive.speed = speed
+    return srch
+
+
+def _dead_estimate(d: DeadReckoning, est: Estimate) -> Estimate:
+    return Estimate(
+        pose=d.pose.copy(),
+        status="lost",
+        score=est.score,
+        explained=est.explained,
+        covariance=d.cov.copy(),
+        extras=est.extras,
+    )
+
+
+def _relock(
+    ctx: Context, pose: np.ndarray, cov: np.ndarray, scan: Scan
+) -> tuple[Estimate, np.ndarray, np.ndarray, bool]:
+    """The tracker run from the dead-reckoned ``pose`` (covariance ``cov``), this scan's
+    odometry increment its prior. Returns the fit, the dead-reckoned pose and covariance
+    after this scan (the fit's pose when it is good), and whether it is good: accepted,
+    explaining ``good_support`` of the scan, within :data:`GATE_SIGMAS` of the dead-reckoned
+    pose."""
+    g = ctx.gconfig
+    o = scan.odom
+    assert o.delta is not None
+    ctx.tracker.reset(pose, o.previous)
+    est = ctx.tracker.update(scan.ranges, scan.angles, o.reading, o.matched_from, o.spread)
+    est.ambiguity = None
+    # (the tracker keeps this fit: if it relocks, tracking goes on from it)
+    pose, cov = propagate(pose, cov, o.delta, o.noise(ctx.config.motion))
+    good = (
+        "rejected" not in est.extras
+        and est.status == "tracking"
+        and (est.explained or 0.0) >= g.good_support
+        and mahalanobis2(est.pose, pose, cov) <= GATE_SIGMAS**2
+    )
+    if good:
+        pose = est.pose.copy()  # follow the fit; the odometry carries it from here
+    return est, pose, cov, good
+
+
+def _dead_reckoning(ctx: Context, d: DeadReckoning, scan: Scan) -> tuple[State, Estimate]:
+    g = ctx.gconfig
+    o = scan.odom
+    if not scan.odometry or o.delta is None or o.previous is None:
+        # the odometry stopped: nothing carries the pose any more
+        return _lost(ctx, d.pose, d.cov), Estimate(d.pose.copy(), "lost", 0.0)
+    est, d.pose, d.cov, good = _relock(ctx, d.pose, d.cov, scan)
+    d.relock = d.relock + 1 if good else 0
+    d.broken = (d.broken or o.broken) and est.score < g.collapse_score  # as in Tracking
+    if d.relock >= g.relock_scans:
+        est.extras["relocked"] = 1.0
+        return Tracking(est.pose.copy(), fit_cov(est)), est
+    contradicted = d.broken or _contradicts(ctx, scan, d.pose, d.cov)
+    d.strikes = d.strikes + 1 if contradicted else 0
+    out = _dead_estimate(d, est)
+    if d.strikes >= ctx.config.lost_after or sigma_xy(d.cov) > g.max_dead_reckoning_sigma:
+        # a search, the dead-reckoned pose its prior (and still relocked the same way)
+        out.extras["contradicted" if d.strikes else "dead_reckoning_expired"] = 1.0
+        return _lost(ctx, d.pose, d.cov), out
+    return d, out
+
+
+# ------------------------------------------------------------------------------- searching
+def _seeds(drive: dr.Drive, prior: Prior, odometry: bool) -> list[np.ndarray]:
+    """The kept tracks as the next search's seeds, each turned by :data:`SEED_TURNS`, and the
+    prior's mean (all round the circle without odometry: the robot may have turned)."""
+    out = [
+        np.array([t.pose[0], t.pose[1], wrap_angle(t.pose[2] + dth)])
+        for t in drive.tracks
+        for dth in SEED_TURNS
+    ]
+    if prior.mean is not None:
+        turns = SEED_TURNS if odometry else tuple(np.arange(8) * (np.pi / 4))
+        x, y, th = prior.mean
+        out += [np.array([x, y, wrap_angle(th + t)]) for t in turns]
+    return out
+
+
+def _composite(drive: dr.Drive, scan: Scan, g: GlobalConfig) -> tuple[np.ndarray, np.ndarray]:
+    """The scan the search matches: this one, or with odometry the virtual 360-degree
+    composite of the last :data:`COMPOSITE_SCANS` within :data:`COMPOSITE_TRAVEL`."""
+    r, a, here = scan.ranges, scan.angles, scan.odom.reading
+    if here is None or COMPOSITE_SCANS <= 1:
+        drive.history = []
+        return r, a
+    drive.history = [
+        h
+        for h in drive.history[-(COMPOSITE_SCANS - 1) :]
+        if np.hypot(*(h[2][:2] - here[:2])) <= COMPOSITE_TRAVEL
+    ]
+    drive.history.append((r, a, here.copy()))
+    if len(drive.history) == 1:
+        return r, a
+    inc = float(np.median(np.abs(np.diff(a)))) if a.size > 1 else 0.0
+    bins = COMPOSITE_BINS
+    if inc > 0.0:  # no finer than the laser's beams (holes would split every polyline)
+        bins = int(min(bins, max(8, np.floor(2.0 * np.pi / inc + 1e-6))))
+    return composite_scan(drive.history, bins)
+
+
+def _keyframe(drv: dr.Drive, scan: Scan, g: GlobalConfig) -> None:
+    """A scan with odometry: a keyframe when it is due, else a repeat of the newest one."""
+    o = scan.odom.reading
+    assert o is not None
+    if dr.frame_due(drv.frames, o, drv.travel):
+        drv.add(dr.make_frame(drv.next_key, scan.ranges, scan.angles, o, drv.travel, g), g)
+    else:
+        d = scan.odom.delta
+        drv.repeat(scan.odom.step, 0.0 if d is None else float(d[2]), g)
+
+
+def _search_work(
+    ctx: Context, drv: dr.Drive, prior: Prior, scan: Scan
+) -> tuple[float, int, tuple[np.ndarray, np.ndarray, Configuration]]:
+    """One scan's search work within the budget: frames, re-scoring, back-scoring, the
+    pending self-similarity check or search. Returns the work spent, the finished search's
+    candidates (-1: none finished) and the scan the search matched (ranges, angles and its
+    configuration)."""
+    g = ctx.gconfig
+    budget = math.inf if g.search_budget_ms is None else float(g.search_budget_ms)
+    o = scan.odom
+    rs, as_ = _composite(drv, scan, g)
+    P = scan_configuration(rs, as_, ctx.config.extraction())
+    frame = None
+    if o.reading is not None:
+        _keyframe(drv, scan, g)
+    else:
+        frame = dr.make_frame(drv.next_key, scan.ranges, scan.angles, None, drv.travel, g)
+        drv.add(frame, g)
+    spent = dr.rescore(
+        ctx.index, drv.tracks, rs, as_, P, ctx.config, g, budget * RESCORE_SHARE, frame
+    )
+    # the evidence's share is scored after the search, so the places it found this scan are
+    # judged on the window before the decision (unscored, each would count as the leader)
+    evidence = budget * EVIDENCE_SHARE if o.reading is not None else 0.0
+    search_limit = budget - evidence if math.isfinite(budget) else budget
+    found = -1
+    if drv.twin is not None:
+        spent, done, twin = advance(drv.twin.steps, spent, search_limit)
+        if done:
+            job, drv.twin = drv.twin, None
+            if job.track is not None:
+                job.track.checked = True
+            if twin is not None:
+                move = dr.odometry_move(job.odom, o.reading)
+                drv.tracks = dr.merge(drv.tracks, [twin], move, 1)
+    if drv.twin is None and spent < search_limit:
+        if drv.job is None:
+            seeds = _seeds(drv, prior, o.reading is not None)
+            steps = search_steps(ctx.index, rs, as_, ctx.config, g, seeds=seeds, P=P)
+            drv.job = dr.Job(steps, None if o.reading is None else o.reading.copy(), frame=frame)
+        spent, done, res = advance(drv.job.steps, spent, search_limit)
+        if done:
+            move = dr.odometry_move(drv.job.odom, o.reading)
+            searched = drv.job.frame
+            live = searched is not None and any(f is searched for f in dr.window(drv.frames, g))
+            scored = searched if live else None
+            drv.tracks = dr.merge(drv.tracks, res.hypotheses, move, g.keep, scored)
+            drv.job = None
+            found = res.candidates
+    if o.reading is not None:
+        frames = dr.window(drv.frames, g)
+        spent += dr.backfill(ctx.index, drv.tracks, frames, o.reading, ctx.config, g, evidence)
+    return spent, found, (rs, as_, P)
+
+
+def _decide(ctx: Context, drv: dr.Drive, prior: Prior) -> Verdict:
+    g = ctx.gconfig
+    frames = dr.window(drv.frames, g)
+    if prior.cells <= 0.0:
+        prior.cells = max(1.0, len(ctx.index.viewpoints) * SPACING**2 * 2.0 * math.pi / CELL_VOLUME)
+    keys = drv.evidence_keys(g)
+    verdict = decide(drv.tracks, frames, keys, prior, g)
+    drv.tracks = dr.prune(drv.tracks, frames, keys, verdict.leader, g)
+    return verdict
+
+
+def _searching(ctx: Context, s: Searching, scan: Scan) -> tuple[State, Estimate]:
+    g = ctx.gconfig
+    ctx.searches += 1
+    s.scans += 1
+    o = scan.odom
+    drv = s.drive
+    if o.delta is not None:
+        drv.move(o.delta, o.step)
+        if s.prior.mean is not None and s.prior.cov is not None and scan.odometry:
+            # the dead-reckoned pose relocks as in DeadReckoning while the search goes on
+            est, mean, cov, good = _relock(ctx, s.prior.mean, s.prior.cov, scan)
+            s.prior = Prior(mean, cov, s.prior.kidnap, s.prior.cells)
+            s.relock = s.relock + 1 if good else 0
+            if s.relock >= g.relock_scans:
+                est.extras["relocked"] = 1.0
+                return Tracking(est.pose.copy(), fit_cov(est)), est
+        else:
+            s.prior = s.prior.moved(o.delta, o.noise(ctx.config.motion))
+    elif s.prior.mean is not None and s.prior.cov is not None:
+        speed = 0.0 if drv.speed is None else float(np.hypot(*drv.speed))
+        grow = (HELD_GROWTH * max(0.05, speed)) ** 2
+        s.prior = Prior(
+            s.prior.mean, s.prior.cov + np.diag([grow, grow, 0.0]), s.prior.kidnap, s.prior.cells
+        )
+    spent, found, (rs, as_, P) = _search_work(ctx, drv, s.prior, scan)
+    verdict = _decide(ctx, drv, s.prior)
+    lead = verdict.leader
+    extras: dict[str, float] = {
+        "hypotheses": float(len(drv.tracks)),
+        "llr": max(-99.0, min(verdict.llr, 99.0)),
+        "work_ms": spent,
+    }
+    if found >= 0:
+        extras["search_done"] = 1.0
+    if lead is not None:
+        extras["lead_checked"] = float(lead.checked)
+        extras["lead_found"] = float(lead.found)
+    if lead is not None and not lead.checked and drv.twin is None:
+        twin = {
+            "shortlist": min(g.shortlist, TWIN_SHORTLIST),
+            "refine_top": min(g.refine_top, TWIN_REFINE_TOP),
+        }
+        tg = g.model_copy(update=twin)
+        steps = self_similar_steps(ctx.index, lead.hyp, rs, as_, P, ctx.config, tg)
+        drv.twin = dr.Job(steps, None if o.reading is None else o.reading.copy(), track=lead)
+    ctx.work_ms = spent
+    if lead is not None and verdict.llr >= g.fix_llr and lead.checked:
+        ctx.work_ms += CONFIRM_MS
+        est = _confirm(ctx, drv, lead, scan)
+        if est is not None:
+            est.ambiguity = verdict.ambiguity
+            est.extras.update(extras)
+            if o.reading is not None and g.probation_travel > 0.0:
+                p = Probation(
+                    drv, s.prior, lead, g.probation_travel, s.status, ambiguity=verdict.ambiguity
+                )
+                return p, _probation_estimate(p, est)
+            est.extras["global_fix"] = 1.0
+            return Tracking(
+                est.pose.copy() if scan.odometry else None, fit_cov(est), since_fix=0
+            ), est
+        extras["confirm_rejected"] = 1.0
+    return s, _guess(drv, s, verdict, extras, g.fix_llr)
+
+
+def _guess(
+    drv: dr.Drive,
+    s: Searching | Probation,
+    verdict: Verdict,
+    extras: dict[str, float],
+    fix_llr: float,
+) -> Estimate:
+    """The pose published while the search goes on. After a loss, the prior's mean (the
+    dead-reckoned pose, or the last tracked one carried by the laser odometry) with its
+    covariance until a place is fixed: a leader short of ``fix_llr`` is a place the evidence
+    may still overturn (on fr079's floor plan one led 22 m from the robot for 60 scans), and
+    a robot's consumers should not see it jump there and back. Before any fix (nothing
+    known): the leader, else the best track by cost, else the origin."""
+    lead = verdict.leader
+    if s.prior.mean is not None and not verdict.llr >= fix_llr:
+        lead = None
+    elif lead is None and drv.tracks:
+        lead = min(drv.tracks, key=lambda t: t.hyp.cost)
+    if lead is not None:
+        pose, hyp = lead.pose.copy(), lead.hyp
+        score = float(np.clip(1.0 - hyp.cost + 0.05, 0.0, 1.0))
+        explained = float(hyp.explained)
+    else:
+        pose = np.zeros(3) if s.prior.mean is None else s.prior.mean.copy()
+        score, explained = 0.0, 0.0
+    order = ([lead] if lead is not None else []) + [t for t in drv.tracks if t is not lead]
+    return Estimate(
+        pose=pose,
+        status=s.status,
+        score=score,
+        explained=explained,
+        ambiguity=verdict.ambiguity,
+        covariance=None if s.prior.cov is None or lead is not None else s.prior.cov.copy(),
+        extras=extras,
+        hypotheses=len(drv.tracks),
+        candidates=dr.candidates(order),
+    )
+
+
+def _confirm(ctx: Context, drv: dr.Drive, lead: dr.Track, scan: Scan) -> Estimate | None:
+    """The tracker, reset to the winner with this scan's odometry, must accept the scan within
+    :data:`CONFIRM_DISTANCE` / :data:`CONFIRM_ANGLE` of it with a position sigma of at most
+    :data:`CONFIRM_SIGMA`; then tracking starts (the estimate); ``None`` otherwise."""
+    o = scan.odom
+    ctx.tracker.reset(lead.pose, o.reading)
+    if drv.speed is not None:
+        ctx.tracker.set_speed(drv.speed)
+    est = ctx.tracker.update(scan.ranges, scan.angles, o.reading, o.matched_from, o.spread)
+    close = (
+        np.hypot(*(est.pose[:2] - lead.pose[:2])) <= CONFIRM_DISTANCE
+        and abs(float(wrap_angle(est.pose[2] - lead.pose[2]))) <= CONFIRM_ANGLE
+        and est.covariance is not None
+        and sigma_xy(np.asarray(est.covariance).reshape(3, 3)) <= CONFIRM_SIGMA
+    )
+    if est.status == "tracking" and "rejected" not in est.extras and close:
+        return est
+    ctx.tracker.reset(None)
+    return None
+
+
+# ------------------------------------------------------------------------------- probation
+def _probation_estimate(p: Probation, est: Estimate) -> Estimate:
+    est.status = p.status
+    est.ambiguity = p.ambiguity
+    est.extras["probation"] = max(0.0, p.left)
+    est.hypotheses = len(p.drive.tracks)
+    order = [p.winner, *(t for t in p.drive.tracks if t is not p.winner)]
+    est.candidates = dr.candidates(order)
+    return est
+
+
+def _probation(ctx: Context, p: Probation, scan: Scan) -> tuple[State, Estimate]:
+    g = ctx.gconfig
+    o = scan.odom
+    est = ctx.tracker.update(scan.ranges, scan.angles, o.reading, o.matched_from, o.spread)
+    est.ambiguity = None
+    drv = p.drive
+    rejected = "rejected" in est.extras
+    # as in Tracking, the odometry bridges a rejected scan unless it contradicts the pose (a
+    # hall a floor plan draws as its outline: the tracker rejects scan after scan there)
+    low = est.score < g.collapse_score
+    p.rejected = p.rejected + 1 if rejected and low and _contradicts(ctx, scan, est.pose) else 0
+    ctx.work_ms = 0.0
+    if o.delta is not None and o.reading is not None:
+        drv.move(o.delta, o.step)
+        p.prior = p.prior.moved(o.delta, o.noise(ctx.config.motion))
+        p.winner.pose = est.pose.copy()
+        # the winner must be followed probation_travel metres on motion the scans confirm: an
+        # increment the scan-to-scan fit could not match is the raw odometry's, and the
+        # tracker follows it (a dropout's catch-up turns the pose with it)
+        p.left = g.probation_travel if o.broken else p.left - o.step
+        _keyframe(drv, scan, g)
+        frames = dr.window(drv.frames, g)
+        budget = math.inf if g.search_budget_ms is None else float(g.search_budget_ms)
+        evidence = budget * EVIDENCE_SHARE
+        ctx.work_ms = dr.backfill(
+            ctx.index, drv.tracks, frames, o.reading, ctx.config, g, evidence, p.winner
+        )
+    else:
+        p.left = math.inf  # no travel to count: the probation cannot end well
+    if est.status == "lost" or p.rejected >= ctx.config.lost_after or p.left == math.inf:
+        return _fail(ctx, p, {"probation_failed": 1.0})
+    complete = all(f.key in p.winner.ll for f in frames)
+    if p.left > 0.0 or rejected or not complete:
+        # a probation passes only on a scan the tracker accepted, once the winner is scored
+        # on the whole window (the verdict compares it with the rest there)
+        return p, _probation_estimate(p, est)
+    verdict = _decide(ctx, drv, p.prior)
+    if verdict.leader is p.winner and verdict.llr >= g.fix_llr:
+        est.ambiguity = verdict.ambiguity
+        est.extras.update(
+            {"global_fix": 1.0, "probation_passed": 1.0, "llr": min(verdict.llr, 99.0)}
+        )
+        return Tracking(est.pose.copy(), fit_cov(est), since_fix=0), est
+    return _fail(ctx, p, {"probation_failed": 1.0, "probation_beaten": 1.0})
+
+
+def _fail(ctx: Context, p: Probation, extras: dict[str, float]) -> tuple[State, Estimate]:
+    """A failed probation: the search goes on with the hypotheses it held (the winner among
+    them)."""
+    ctx.tracker.reset(None)
+    s = Searching(p.drive, p.prior, p.status)
+    verdict = Verdict(None, -math.inf)
+    extras["hypotheses"] = float(len(p.drive.tracks))
+    return s, _guess(p.drive, s, verdict, extras, ctx.gconfig.fix_llr)
+
+
+__all__ = [
+    "CONFIRM_MS",
+    "Context",
+    "DeadReckoning",
+    "Probation",
+    "Scan",
+    "Searching",
+    "State",
+    "Tracking",
+    "start_search",
+    "step",
+]

@@ -1,0 +1,32 @@
+"""The tracks a drive lets go (service.core.reloc.drive.prune): a track trailing the leader by
+evidence_drop nats on the frames both were scored on goes, one closer stays."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from service.core.reloc.config import GlobalConfig
+from service.core.reloc.drive import EVIDENCE_DROP, Frame, Track, prune
+from service.core.reloc.global_search import Hypothesis
+
+
+def _track(x: float, per_frame: float, frames: int) -> Track:
+    pose = np.array([x, 0.0, 0.0])
+    return Track(pose, Hypothesis(pose.copy(), 0.3), ll={k: per_frame for k in range(frames)})
+
+
+def test_a_track_trailing_the_leader_by_evidence_drop_in_all_goes() -> None:
+    g = GlobalConfig.for_kind("schematic")
+    n = 10
+    empty = np.zeros(0)
+    frames = [Frame(k, empty, empty, np.zeros((0, 2)), np.zeros(3), 0.3 * k) for k in range(n)]
+    keys = {k: 1.0 for k in range(n)}
+    leader = _track(0.0, -1.0, n)
+    # 7 nats a frame behind (a mean beam cost 0.35 worse) over 10 frames: 70 > evidence_drop
+    behind = _track(5.0, -8.0, n)
+    # 4 nats a frame behind: 40 in all, within evidence_drop
+    close = _track(10.0, -5.0, n)
+    kept = prune([leader, behind, close], frames, keys, leader, g)
+    assert EVIDENCE_DROP == 60.0
+    assert leader in kept and close in kept
+    assert behind not in kept

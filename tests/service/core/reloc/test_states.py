@@ -1,0 +1,100 @@
+"""Relocalisation's state machine (service/core/reloc/states.py) on a small synthetic room:
+tracking -> dead reckoning where the map explains nothing -> tracking again where it does; a
+robot without odometry searches with the last pose as its prior; a localiser pickled in any
+state goes on."""
+
+from __future__ import annotations
+
+import itertools
+import pickle
+
+import numpy as np
+
+from service.core.factory import create_localizer
+from service.core.reloc import states as st
+from service.core.reloc.global_localization import GlobalShapeLocalizer
+from service.core.sensor.raycast import RayCaster
+from service.core.tracking.laser_odometry import LaserOdometryLocalizer
+from service.core.types import MapData
+
+
+def _ring(x0: float, y0: float, x1: float, y1: float) -> np.ndarray:
+    return np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1], [x0, y0]], dtype=float)
+
+
+def _room() -> MapData:
+    walls = np.array([[0, 0], [6, 0], [6, 4], [2.5, 4], [2.5, 3.2], [0, 3.2], [0, 0]], float)
+    return MapData.from_lists("room", "metric", [walls, _ring(1.5, 1.0, 2.3, 1.8)])
+
+
+ANGLES = np.linspace(-np.pi, np.pi, 360, endpoint=False)
+
+
+def _scan(pose: np.ndarray, seen: bool, k: int) -> np.ndarray:
+    """The room's scan at ``pose`` (noise 1 cm), or nothing at all (``seen`` false: a stretch
+    the map does not hold, every beam without a return)."""
+    if not seen:
+        return np.full(ANGLES.shape, np.nan)
+    rng = np.random.default_rng(k)
+    r = RayCaster(_room().segments()).cast(pose, ANGLES, 15.0)
+    return r + rng.normal(0.0, 0.01, r.shape)
+
+
+def test_unexplained_scans_dead_reckon_with_a_growing_covariance_and_relock() -> None:
+    """The robot drives on while its scans show nothing the map holds: the tracker rejects
+    them, and once the odometry's sigma since the last explained scan passes track_sigma the
+    localiser dead-reckons (status lost, the odometry's pose, a growing covariance). Back where
+    the map explains its scans, it tracks again after relock_scans of them, at the truth."""
+    poses = [np.array([1.0 + 0.05 * k, 2.4, 0.0]) for k in range(60)]
+    loc = create_localizer("shape", _room(), poses[0])
+    assert isinstance(loc, LaserOdometryLocalizer)  # the factory default
+    assert isinstance(loc.inner, GlobalShapeLocalizer)
+    loc.gconfig = loc.gconfig.model_copy(update={"track_sigma": 0.06})
+    seen = [k < 10 or k >= 40 for k in range(60)]
+    out = [
+        loc.update(_scan(p, s, k), ANGLES, p)
+        for k, (p, s) in enumerate(zip(poses, seen, strict=True))
+    ]
+    states = [e.state for e in out]
+    assert states[:10] == ["tracking"] * 10
+    first = states.index("dead_reckoning")
+    assert 10 <= first < 40
+    assert all(e.status == "lost" for e in out[first:40])
+    sig = [float(np.sqrt(e.covariance.reshape(3, 3)[1, 1])) for e in out[first:40]]
+    assert all(b >= a for a, b in itertools.pairwise(sig)), sig
+    for k in range(first, 40):  # the dead-reckoned pose: the odometry's, exact here
+        assert np.hypot(*(out[k].pose[:2] - poses[k][:2])) < 0.05
+    back = states.index("tracking", 40)
+    assert back <= 40 + loc.gconfig.relock_scans
+    assert out[back].extras.get("relocked") == 1.0
+    assert all(s == "tracking" for s in states[back:])
+    assert np.hypot(*(out[-1].pose[:2] - poses[-1][:2])) < 0.05
+
+
+def test_without_odometry_a_loss_searches_around_the_last_pose() -> None:
+    """No odometry: nothing carries the pose, so scans the map does not explain end the
+    track at once and the search starts with the last pose as its prior; the published pose
+    stays there (not a far guess) until a place is more probable than the rest."""
+    p = np.array([2.8, 2.4, 0.0])
+    loc = create_localizer("shape", _room(), p)
+    assert loc.update(_scan(p, True, 0), ANGLES).state == "tracking"
+    est = loc.update(_scan(p, False, 1), ANGLES)
+    assert est.state == "searching" and est.status == "lost"
+    assert isinstance(loc.state, st.Searching) and loc.state.prior.mean is not None
+    np.testing.assert_allclose(loc.state.prior.mean[:2], p[:2], atol=0.05)
+
+
+def test_a_localiser_pickled_in_any_state_goes_on() -> None:
+    """States are plain data; a search in progress (a generator) starts again on the next
+    scan after a move to another process."""
+    poses = [np.array([3.0 + 0.03 * k, 2.0, 0.2 * k]) for k in range(8)]
+    loc = create_localizer("shape", _room(), None, search_budget_ms=5.0)
+    for k in range(4):
+        loc.update(_scan(poses[k], True, k), ANGLES, poses[k])
+    assert isinstance(loc.state, st.Searching)
+    copy = pickle.loads(pickle.dumps(loc))
+    assert copy.state.drive.job is None and copy.state.drive.twin is None
+    assert len(copy.state.drive.tracks) == len(loc.state.drive.tracks)
+    for k in range(4, 8):
+        est = copy.update(_scan(poses[k], True, k), ANGLES, poses[k])
+        assert est.state in ("searching", "probation", "tracking")
