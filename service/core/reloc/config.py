@@ -32,8 +32,8 @@ class GlobalConfig(Settings):
         None,
         ge=0,
         description="Work (reference ms, service.core.reloc.global_search.WORK_MS) a search may "
-        "do per scan; the rest waits for the next scans. None: no budget, every scan searches as "
-        "far as the search goes (the paper's experiment). The service sets it (50 by default).",
+        "do per scan; the rest waits for the next scans. None: every scan searches to the end "
+        "(the paper's experiment). The service sets it (50 by default).",
     )
     # --- viewpoints, search ------------------------------------------------------------------
     min_enclosed: float = Field(
@@ -41,23 +41,23 @@ class GlobalConfig(Settings):
         gt=0,
         le=1,
         description="Share of enclosure beams that must hit: a viewpoint is inside the building. "
-        "Schematic: 0.6 (plans draw doors open: at 0.9 fr079 / intel paths lay 34 / 38 % over "
-        "0.52 m from a viewpoint, where the search induces no pose; at 0.6 1.4 / 2.6 %).",
+        "Schematic: 0.6 (plans draw doors open: at 0.9 a third of a robot's path lies far from "
+        "any viewpoint, where the search induces no pose).",
     )
     shortlist: int = Field(
         0,
         ge=0,
         description="Coarse pose cells polished on the distance field and ranked by a quick beam "
-        "check before refine_top are refined; 0 = rank the raw poses by point support. "
+        "check before refine_top are refined; 0: rank the raw poses by point support. "
         "Schematic: 150 (furniture hides the walls point support needs).",
     )
     shortlist_violation_beams: int = Field(
         0,
         ge=0,
         description="Beams marched on the distance field to rank the coarse cells by support "
-        "less VIOLATION_WEIGHT x the share through drawn walls; 0 = by support alone. "
-        "Schematic: 40 (wrong places whose walls furniture fits let a third to two thirds of "
-        "their beams through walls, the true pose 0-15 %: fr079's east hall).",
+        "less VIOLATION_WEIGHT x the share through drawn walls; 0: by support alone. "
+        "Schematic: 40 (a wrong place whose walls the furniture fits lets many beams through "
+        "drawn walls, the true pose few).",
     )
     refine_top: int = Field(
         16, ge=1, description="Hypotheses refined and verified. Schematic: 32 (twin rooms)."
@@ -78,8 +78,7 @@ class GlobalConfig(Settings):
     see_through: bool = Field(
         False,
         description="A return beyond the predicted wall on a mapped surface behind it is no "
-        "violation. Metric: on (a map drawn from scans holds chairs and doors that moved; "
-        "fr079: 30 % of scans verified at cost > 0.95 at their reference pose, 7 % with it).",
+        "violation. Metric: on (a map drawn from scans holds chairs and doors that moved).",
     )
     short_credit: float = Field(
         0.0,
@@ -108,13 +107,8 @@ class GlobalConfig(Settings):
         gt=0,
         description="A hypothesis is fixed once its log-likelihood over the window, with its "
         "prior, exceeds every distinct alternative's and the unseen place's together by this "
-        "many nats (service.core.reloc.decision); set from the false-fix rate on the tuning "
-        "split (bench/calibrate_llr.py: the smallest threshold without a false fix, times "
-        "1.25; budget 50). Metric maps: 80 drives of intel and fr079, a false fix up to 15 "
-        "nats (fr079, a corridor's twin 12.8 m away and turned 180 degrees, while the robot "
-        "crept), none from 20; 78 of 80 fixed within 15 m at 20 and at 25, p50 0.87 m to the "
-        "fix at 25 (60 drives of buildings 0-19 and the logs had shown none from 10). Floor "
-        "plans: 60 drives, 2 false fixes at 15, none from 20; 57 of 60 fixed within 15 m.",
+        "many nats (service.core.reloc.decision): the smallest threshold without a false fix "
+        "on the tuning split, times 1.25 (bench/calibrate_llr.py; docs/decisions/0017).",
     )
     null_cost: float = Field(
         0.8,
@@ -122,10 +116,7 @@ class GlobalConfig(Settings):
         description="The unseen place: what the search has not found is assumed to explain "
         "each frame at this cost. The leader must beat it as it beats the places found. "
         "Schematic: 0.7, the true pose's frame cost at the 90th percentile on the tuning "
-        "floor plans (fr079 p50 / p90 0.47 / 0.72, intel 0.28 / 0.72, buildings 0-5 0.31-0.59 "
-        "/ 0.46-0.85; 379 frames): at 0.8 a corridor alias of fr079 12 m off, explaining its "
-        "17 keyframes at a mean cost of 0.69 while the true place was never found, beat the "
-        "unseen place by 20 nats and was fixed (drive bench, start 2553).",
+        "floor plans (at 0.8 an alias was fixed while the true place was never found).",
     )
     null_slope: float = Field(
         0.0,
@@ -135,23 +126,8 @@ class GlobalConfig(Settings):
         "beyond drive.NULL_REACH on average (at most drive.EVIDENCE_CLIP): where they stand "
         "far off, furniture the map does not hold stands between, and the true place explains "
         "a keyframe worse. Schematic: 0.05, the true pose's keyframe cost at the 90th "
-        "percentile by that mean range on the tuning logs' floor plans (fr079 and intel, 849 "
-        "frames): up to 5 m 0.57-0.66, 5-6 m 0.66-0.74, 6-8 m 0.76-0.78, beyond 8 m 0.89-0.92 "
-        "(fr079's east hall, drawn as its outline: the true place at 0.71-0.74 lost to a "
-        "constant 0.7). Metric: 0 (a map drawn from scans holds the furniture).",
-    )
-    repeat_window: int = Field(
-        1,
-        ge=1,
-        description="With odometry a robot standing or creeping gains at most this many "
-        "keyframes' evidence from one (service.core.reloc.drive.Drive.repeat; 1: none). 1 on "
-        "both kinds of map: a repeat's evidence about the walls is the keyframe's own, and a "
-        "wrong place gains from it as much as the true one. With 6 on metric maps a robot "
-        "standing where a map lacks a corridor (intel, a third of its walls removed) fixed a "
-        "place 13.7 m off at 26 nats while its dead-reckoned pose was 0.16 m from the truth: "
-        "tracking poses more than 0.5 m off on the tuning logs' partial maps 0.61 % (21) with "
-        "6, none with 1 (bench_partial --logs intel,fr079). On floor plans 6 gave a false "
-        "fix at 37 nats on intel's plan.",
+        "percentile by that range on the tuning floor plans. Metric: 0 (a map drawn from "
+        "scans holds the furniture).",
     )
     kidnap_weight: float = Field(
         0.01,
@@ -210,9 +186,8 @@ class GlobalConfig(Settings):
         ge=0,
         le=1,
         description="A scan contradicts a pose when more than this share of its beams returns "
-        "from beyond a drawn wall (unexplained scans at the true pose on fr079: 0.011 / 0.033 "
-        "p50 / p90; kidnapped: 0.06 / 0.24 p10 / p50). The kidnap bench compares it with -1 "
-        "(bench/bench_kidnap.py).",
+        "from beyond a drawn wall: above the share at the true pose, below a kidnapped "
+        "robot's (bench/bench_kidnap.py).",
     )
     scan_odometry_violation: float = Field(
         1.0,
@@ -221,14 +196,10 @@ class GlobalConfig(Settings):
         description="With an odometry measured from the scans themselves (laser odometry, "
         "update(from_scans=True)), a tracked scan whose pose has more than this share of the "
         "tracker's violation beams returning from beyond a drawn wall contradicts it, accepted "
-        "and well explained or not: such an odometry moves a pose that slid along a corridor "
-        "(neither the scans nor a floor plan pin it there) or turned wrong as precisely as a "
-        "right one, and only the map can tell. Above the share at the true pose, which a plan "
-        "drawn with closed doors raises: tuning buildings 0-9 (setup 2) p99 0.078, max 0.122, "
-        "never 3 scans in a row above 0.1; tuning log intel's schematised map, poses within "
-        "0.3 m, p99 0.078. Schematic: 0.15. Metric: 1 (off): there the laser odometry gives "
-        "no increment along an unobserved axis and the map's furniture pins the pose (tuning "
-        "log intel's metric map: lost 1.0 -> 1.8 % with it on).",
+        "or not: such an odometry moves a pose that slid along a corridor or turned wrong as "
+        "precisely as a right one, and only the map can tell. Schematic: 0.15, above the share "
+        "at the true pose on plans drawn with closed doors. Metric: 1 (off): the map's "
+        "furniture pins the pose, and with it on more scans were lost.",
     )
     settle_scans: int = Field(
         20,

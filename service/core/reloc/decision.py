@@ -1,33 +1,26 @@
 """The one decision rule of relocalisation: a log-likelihood ratio of the best place against
 the rest, over the drive's frames, with a prior.
 
-Every kept hypothesis ``h`` has a log-likelihood ``L_h`` (nats) on each frame of the window
-(:mod:`service.core.reloc.drive`). With a prior ``pi`` over poses, the evidence of ``h`` is
-``E_h = sum_k w_k L_h,k + log pi(h)``, ``w_k`` the frame's weight: 1, and with odometry the
-discounted scans that repeated a keyframe (:meth:`~service.core.reloc.drive.Drive.repeat`:
-a robot standing still or creeping gains evidence scan by scan, boundedly). The *rest* are
-the distinct alternatives (farther than ``distinct_distance`` / ``distinct_angle``) and the
-*unseen place*, a stand-in for what the search has not found, which explains every frame at
-``null_cost``. The leader (the largest ``E`` among the tracks scored on every frame) wins
-when
+Every kept hypothesis ``h`` has a log-likelihood ``L_h`` (nats) on each frame of the drive
+(:mod:`service.core.reloc.drive`); with a prior ``pi`` over poses its evidence is ``E_h =
+sum_k L_h,k + log pi(h)``. The *rest* are the distinct alternatives (farther than
+``DISTINCT_DISTANCE`` / ``DISTINCT_ANGLE``) and the *unseen place*, a stand-in for what the
+search has not found, which explains every frame at ``null_cost``. The leader (the largest
+``E`` among the tracks scored on every frame) wins when
 
     LLR = E_leader - log(sum over the rest of exp(E_a))  >=  fix_llr,
 
 i.e. when the posterior odds of the leader against everything else reach ``exp(fix_llr)``.
-Where an alternative has not been scored on a keyframe yet it counts as explaining it as
-well as the leader does (it can only lower the LLR): a place just found is judged on the
-whole window, back-scored, before it can be ruled out. A plain scan (no odometry) before a
-place was found can never be scored for it (nothing carries the place back there): there the
-place counts at its own mean log-likelihood per frame. Counted as the leader's, every search
-that found a new middling place reset the LLR to one scan's margin over it, and without
-odometry no LLR grew beyond ~9 nats.
+An alternative not yet scored on a keyframe counts as explaining it as well as the leader (it
+can only lower the LLR): a place just found is back-scored on the whole window before it can
+be ruled out. On a plain scan (no odometry) from before a place was found, which nothing can
+carry it back to, the place counts at its own mean log-likelihood per frame: counted as the
+leader's, every middling place a search found would reset the LLR.
 
 The prior (:class:`Prior`): uniform over the map while nothing is known (it cancels); after a
 loss, the dead-reckoned pose's Gaussian with ``kidnap_weight`` of the mass spread evenly over
 the map, so a place near where the robot should be needs far less evidence than one across
-the building. Both are the same rule; only the prior differs.
-
-Units: nats; poses ``[x, y, theta]`` map frame; covariances m², rad².
+the building. Nats; poses ``[x, y, theta]`` map frame; covariances m², rad².
 """
 
 from __future__ import annotations
@@ -111,10 +104,10 @@ CELL_VOLUME = math.pi * DISTINCT_DISTANCE**2 * 2.0 * DISTINCT_ANGLE
 
 
 def decide(
-    tracks: list[Track], frames: list[Frame], keys: dict[int, float], prior: Prior, g: GlobalConfig
+    tracks: list[Track], frames: list[Frame], keys: list[int], prior: Prior, g: GlobalConfig
 ) -> Verdict:
     """The leader of ``tracks`` and its LLR against the rest (module docstring), summed over
-    the frames ``keys`` (key -> weight, :meth:`~service.core.reloc.drive.Drive.evidence_keys`).
+    the frames ``keys`` (:meth:`~service.core.reloc.drive.Drive.evidence_keys`).
     The leader must be scored on the frames of the window ``frames`` that
     :func:`~service.core.reloc.drive.judged` names; a frame it lacks otherwise counts as the
     unseen place explains it."""
@@ -129,15 +122,15 @@ def decide(
         total = 0.0
         own = [t.ll[k] for k in keys if k in t.ll]
         rate = sum(own) / len(own) if own else unseen
-        for k, w in keys.items():
+        for k in keys:
             if k in t.ll:
-                total += w * t.ll[k]
+                total += t.ll[k]
             elif fill is not None and k in plain:
-                total += w * rate
+                total += rate
             elif fill is not None and k in fill.ll:
-                total += w * fill.ll[k]
+                total += fill.ll[k]
             else:
-                total += w * unseen
+                total += unseen
         return total + prior.log(t.pose)
 
     scored = [(evidence(t), t) for t in full]
@@ -145,8 +138,7 @@ def decide(
     # the unseen place explains each keyframe as the true place would in the leader's region
     nulls = leader.null
     null_ll = sum(
-        w * (unseen if k not in nulls else -EFFECTIVE_BEAMS * (nulls[k] - COST_FLOOR))
-        for k, w in keys.items()
+        unseen if k not in nulls else -EFFECTIVE_BEAMS * (nulls[k] - COST_FLOOR) for k in keys
     )
     if prior.mean is None:
         null = null_ll + prior.log(leader.pose)  # uniform: the same prior as any place

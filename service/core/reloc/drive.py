@@ -1,22 +1,18 @@
 """Hypotheses over a drive: the places a search found, followed scan by scan and judged on the
 same frames of the drive.
 
-Why. A search runs on the scan at hand, so a place it finds is good *now*; a place along a
-corridor with a repeating pattern of doors, or the twin of a room, can be as good now as the
-true place while the drive so far tells them apart. With odometry a hypothesis' pose now
-implies where the robot stood on every earlier scan, so it is scored there too (back-scored):
-every hypothesis is judged on the same keyframes, the ones before a search found it included
-(on the tuning log fr079's floor plan, 16 keyframes over 4.9 m gave the true place a mean
-beam cost of 0.39 and an alias 4.4 m along the corridor 0.55, where the last scans ranked the
-alias first).
+A search runs on the scan at hand, so a place it finds is good *now*; a corridor's repeating
+doors or a room's twin can be as good now as the true place while the drive so far tells them
+apart. With odometry a hypothesis' pose now implies where the robot stood on every earlier
+keyframe, so it is scored there too (back-scored) and every hypothesis is judged on the same
+keyframes, those before a search found it included (docs/decisions/0017).
 
-What. The frames of the evidence (:class:`Frame`, :func:`window`), the hypotheses followed
-over them (:class:`Track`), re-fitted on each scan (:func:`rescore`) and scored on the
-keyframes they lack (:func:`backfill`); a finished search's places join them (:func:`merge`),
-the clearly worse are let go (:func:`prune`). Work is counted in reference ms
-(:data:`service.core.reloc.global_search.WORK_MS`), so the same scans give the same poses on
-any machine and under any load. Units: metres, radians; poses ``[x, y, theta]`` in the map
-frame, odometry poses in the odometry frame.
+The frames (:class:`Frame`, :func:`window`), the hypotheses followed over them
+(:class:`Track`), re-fitted on each scan (:func:`rescore`) and scored on the keyframes they lack
+(:func:`backfill`); a finished search's places join them (:func:`merge`), the clearly worse go
+(:func:`prune`). Work is counted in reference ms (:data:`.global_search.WORK_MS`), so the same
+scans give the same poses on any machine and under any load. Metres, radians; poses ``[x, y,
+theta]`` in the map frame, odometry poses in the odometry frame.
 """
 
 from __future__ import annotations
@@ -29,6 +25,7 @@ from typing import Any
 import numpy as np
 
 from service.core.pose import compose, relative
+from service.core.reloc.composite import composite_scan
 from service.core.reloc.config import GlobalConfig
 from service.core.reloc.global_search import (
     COST_FLOOR,
@@ -56,13 +53,10 @@ from service.core.types import wrap_angle
 #: Heading change (rad) a robot may make between two scans without odometry (the tracker's
 #: max_turn): a place found again within ``near``'s distance of a track is that track.
 TURN_BETWEEN_SCANS = 1.3
-#: Share of the keyframe spacing and turn a scan may move from the last and still repeat the
-#: newest keyframe (:meth:`Drive.repeat`): a robot standing or creeping, not driving.
-CREEP = 0.25
 #: Polish stages (step m, step rad) of a track's first keyframe: +-0.43 m / +-10 degrees.
 WIDE_POLISH = ((0.15, 0.06), (0.05, 0.02), (0.015, 0.006))
 #: With odometry a scan becomes a keyframe when the robot has driven this far (m) since the
-#: last one: closer scans repeat each other's evidence ...
+#: last one (closer scans repeat each other's evidence about the walls) ...
 EVIDENCE_SPACING = 0.3
 #: ... or turned this much (rad): a turn shows new walls.
 EVIDENCE_TURN = 0.3
@@ -77,11 +71,18 @@ EVIDENCE_CLIP = 1.0
 #: let go (a mean cost 0.3 worse over 10 keyframes).
 EVIDENCE_DROP = 60.0
 #: Weight of the odometry-moved pose as a prior of the re-scoring's polish: without it a
-#: hypothesis slid ~0.1 m per scan along corridors (tuning building 12).
+#: hypothesis slides along corridors.
 RESCORE_PRIOR = 0.02
 #: The mean predicted range (m) beyond which the unseen place's cost rises
 #: (``GlobalConfig.null_slope``).
 NULL_REACH = 5.0
+#: With odometry the search matches the last this many scans fused (1: every scan alone) ...
+COMPOSITE_SCANS = 3
+#: ... into this many beams (never finer than the laser's) ...
+COMPOSITE_BINS = 720
+#: ... leaving out scans farther than this (m) from the newest (their occlusions no longer
+#: hold).
+COMPOSITE_TRAVEL = 0.5
 
 
 @dataclass(eq=False)
@@ -102,9 +103,9 @@ class Frame:
 @dataclass(eq=False)
 class Track:
     """A hypothesis followed over the drive: ``pose`` now; ``hyp`` its latest verification;
-    ``ll`` its log-likelihood (nats; weighted by :attr:`Drive.weights`) per frame key and
-    ``at`` its pose there; ``found`` how many searches found it; ``checked`` whether its
-    self-similarity check ran."""
+    ``ll`` its log-likelihood (nats) per frame key and ``at`` its pose there; ``found`` how
+    many searches found it; ``checked`` whether its self-similarity check ran; ``null`` the
+    unseen place's cost per keyframe in the region of its pose there (:func:`null_cost`)."""
 
     pose: np.ndarray
     hyp: Hypothesis
@@ -112,8 +113,6 @@ class Track:
     at: dict[int, np.ndarray] = field(default_factory=dict)
     found: int = 1
     checked: bool = False
-    #: the unseen place's cost per keyframe key in the region of the track's pose there
-    #: (:func:`null_cost`)
     null: dict[int, float] = field(default_factory=dict)
 
     def __setstate__(self, state: dict[str, Any]) -> None:
@@ -143,9 +142,11 @@ class Drive:
     """The hypotheses over a drive and their evidence: ``tracks``, the ``frames`` of the
     window (``next_key`` numbers the next), the odometry ``travel`` (m) since the drive
     began, the pending search ``job`` and self-similarity check ``twin``, the scans of the
-    composite (``history``) and the robot's known speed before a loss (map frame, m per scan;
-    ``None``: unknown). The pending jobs are not pickled (generators): a search starts again
-    on the next scan."""
+    composite (``history``), the robot's known speed before a loss (map frame, m per scan;
+    ``None``: unknown) and the key of every ``keyframe`` of the drive, those that left the
+    window included: a track's scores there are kept (measured while the odometry to its pose
+    then was short), so evidence that told two places apart is not forgotten. The pending
+    jobs are not pickled (generators): a search starts again on the next scan."""
 
     tracks: list[Track] = field(default_factory=list)
     frames: list[Frame] = field(default_factory=list)
@@ -155,14 +156,15 @@ class Drive:
     twin: Job | None = None
     history: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = field(default_factory=list)
     speed: np.ndarray | None = None
-    #: every keyframe's weight by key (1 and the scans that repeated it, :meth:`repeat`),
-    #: those that left the window included: a hypothesis' scores there are kept (they were
-    #: measured while the odometry between the keyframe and its pose then was short), so
-    #: evidence that told two places apart is not forgotten
-    weights: dict[int, float] = field(default_factory=dict)
+    keyframes: list[int] = field(default_factory=list)
 
     def __getstate__(self) -> dict[str, Any]:
         return {**self.__dict__, "job": None, "twin": None}
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        # pickled with a weight per keyframe (every one 1): the keys are the keyframes
+        state.setdefault("keyframes", list(state.pop("weights", {})))
+        self.__dict__.update(state)
 
     def move(self, delta: np.ndarray, step: float) -> None:
         """Move every track by the odometry increment ``delta`` (robot frame) of length
@@ -176,34 +178,48 @@ class Drive:
         self.next_key = frame.key + 1
         self.frames = window([*self.frames, frame], g)
         if frame.odom is not None:
-            self.weights[frame.key] = 1.0
+            self.keyframes.append(frame.key)
 
-    def repeat(self, step: float, turn: float, g: GlobalConfig) -> None:
-        """A scan with odometry that added no keyframe, ``step`` (m) and ``turn`` (rad) from
-        the last one. Standing or creeping (under :data:`CREEP` of :data:`EVIDENCE_SPACING` and
-        :data:`EVIDENCE_TURN`) it repeats the newest keyframe: its noise, a person who moved, a
-        slightly different heading are new evidence, its walls are not (not so a driving
-        robot's: docs/decisions/0017). The n-th repeat adds ``d ** n`` of a keyframe
-        (``w <- 1 + d w``, ``d = 1 - 1 / repeat_window``)."""
-        creep = step < CREEP * EVIDENCE_SPACING and abs(turn) < CREEP * EVIDENCE_TURN
-        if creep and self.frames and self.frames[-1].odom is not None:
-            key = self.frames[-1].key
-            d = 1.0 - 1.0 / g.repeat_window
-            self.weights[key] = 1.0 + d * self.weights.get(key, 1.0)
+    def observe(
+        self, ranges: np.ndarray, angles: np.ndarray, odom: np.ndarray, g: GlobalConfig
+    ) -> None:
+        """A scan with odometry pose ``odom``: a keyframe when one is due (:func:`frame_due`).
+        A scan that adds none adds no evidence: a standing robot's scans repeat the walls of
+        its keyframe for a wrong place as much as for the true one."""
+        if frame_due(self.frames, odom, self.travel):
+            self.add(make_frame(self.next_key, ranges, angles, odom, self.travel, g), g)
 
-    def evidence_keys(self, g: GlobalConfig) -> dict[int, float]:
-        """The frames the decision sums over, key -> weight: every keyframe of the drive with
-        odometry, the window's plain scans without (consecutive scans see nearly the same:
-        their evidence is not carried beyond the window)."""
+    def evidence_keys(self, g: GlobalConfig) -> list[int]:
+        """The frames the decision sums over: every keyframe of the drive with odometry, the
+        window's plain scans without (consecutive scans see nearly the same: their evidence
+        is not carried beyond the window)."""
         win = window(self.frames, g)
         if win and win[-1].odom is None:
-            return {f.key: 1.0 for f in win}
-        return dict(self.weights)
+            return [f.key for f in win]
+        return list(self.keyframes)
 
-
-def held(pose: np.ndarray) -> Hypothesis:
-    """The hypothesis of a pose the tracker held until a loss (verified a scan ago)."""
-    return Hypothesis(pose=np.asarray(pose, dtype=np.float64).copy(), cost=0.05)
+    def composite(
+        self, ranges: np.ndarray, angles: np.ndarray, odom: np.ndarray | None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The scan the search matches: this one, or with odometry pose ``odom`` the virtual
+        360-degree composite of the last :data:`COMPOSITE_SCANS` within
+        :data:`COMPOSITE_TRAVEL` (:func:`.composite.composite_scan`)."""
+        if odom is None or COMPOSITE_SCANS <= 1:
+            self.history = []
+            return ranges, angles
+        self.history = [
+            h
+            for h in self.history[-(COMPOSITE_SCANS - 1) :]
+            if np.hypot(*(h[2][:2] - odom[:2])) <= COMPOSITE_TRAVEL
+        ]
+        self.history.append((ranges, angles, odom.copy()))
+        if len(self.history) == 1:
+            return ranges, angles
+        inc = float(np.median(np.abs(np.diff(angles)))) if angles.size > 1 else 0.0
+        bins = COMPOSITE_BINS
+        if inc > 0.0:  # no finer than the laser's beams (holes would split every polyline)
+            bins = int(min(bins, max(8, np.floor(2.0 * np.pi / inc + 1e-6))))
+        return composite_scan(self.history, bins)
 
 
 # ------------------------------------------------------------------------------- frames
@@ -364,7 +380,7 @@ def backfill(
     odom_of = {f.key: f.odom for f in frames}
     for t in tracks:
         for k in [k for k in t.at if k not in keys]:
-            del t.at[k]  # the score there is kept (Drive.weights)
+            del t.at[k]  # the score there is kept (Drive.keyframes)
     kf = [f for f in frames if f.odom is not None]
     if not kf:
         return 0.0
@@ -391,9 +407,7 @@ def backfill(
             if not t.ll:
                 # a track's first keyframe: also a wider polish without a prior, and the pose
                 # as given; the one the beams explain best is kept (a hypothesis some degrees
-                # off converges before it is judged; tuning building 16: a twin 0.2 m / 10
-                # degrees off the true pose, judged with the narrow polish only, lost to a
-                # mirrored alias)
+                # off converges before it is judged, else it may lose to a mirrored alias)
                 wide, _ = index.sensor.polish(start[None, :], f.points, FINE_SCALE, WIDE_POLISH)
                 for alt in (wide[0], start):
                     c, n = frame_cost(index, alt, f, config, g)
@@ -455,7 +469,7 @@ def merge(
 def prune(
     tracks: list[Track],
     frames: list[Frame],
-    keys: dict[int, float],
+    keys: list[int],
     leader: Track | None,
     g: GlobalConfig,
 ) -> list[Track]:
@@ -502,30 +516,13 @@ def prune(
     return out
 
 
-def candidates(tracks: list[Track], k: int = 5) -> np.ndarray:
-    """The first ``k`` tracks as ``(k, 4)`` rows ``[x, y, theta, cost]`` (for the wire)."""
-    rows = [[*map(float, t.pose), float(t.hyp.cost)] for t in tracks[:k]]
+def candidates(tracks: list[Track], first: Track | None = None, k: int = 5) -> np.ndarray:
+    """The first ``k`` tracks, ``first`` before the others, as ``(k, 4)`` rows ``[x, y, theta,
+    cost]`` (for the wire)."""
+    order = ([first] if first is not None else []) + [t for t in tracks if t is not first]
+    rows = [[*map(float, t.pose), float(t.hyp.cost)] for t in order[:k]]
     return np.array(rows, dtype=np.float64).reshape(-1, 4)
 
 
 #: Earlier versions' name of a frame (a localiser state pickled by them names it).
 Keyframe = Frame
-
-__all__ = [
-    "WIDE_POLISH",
-    "Drive",
-    "Frame",
-    "Job",
-    "Track",
-    "backfill",
-    "candidates",
-    "frame_due",
-    "held",
-    "judged",
-    "make_frame",
-    "merge",
-    "odometry_move",
-    "prune",
-    "rescore",
-    "window",
-]

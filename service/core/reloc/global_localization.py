@@ -123,7 +123,7 @@ class GlobalShapeLocalizer:
         o = None if odom is None else check_pose3(odom, "odom")
         self.odometry.reset(o if initial_pose is not None else None)
         if initial_pose is None:
-            self.state = st.start_search(self, "initializing")
+            self.state = st.Searching()
         else:
             self.state = st.Tracking()
         self.work_ms = 0.0
@@ -173,5 +173,5 @@ def _from_earlier(old: dict[str, Any]) -> dict[str, Any]:
         new["state"] = st.Tracking()
     else:
         status = "lost" if old.get("_search_status") == "lost" else "initializing"
-        new["state"] = st.Searching(st.dr.Drive(), st.Prior(None, None, 1.0, 1.0), status)
+        new["state"] = st.Searching(status=status)
     return new

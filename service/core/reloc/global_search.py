@@ -18,10 +18,7 @@ from service.core.reloc.view_index.build import anchor, shape_units
 from service.core.reloc.view_index.viewpoints import SPACING
 from service.core.sensor.pose_batch import fit_pairs
 from service.core.sensor.scoring import BeamModel, SensorModel, subsample
-from service.core.shapes.configuration import (
-    Configuration,
-    scan_configuration,
-)
+from service.core.shapes.configuration import Configuration, scan_configuration
 from service.core.shapes.matching import induced_alignment
 from service.core.shapes.similarity import prepare, shape_complexity, shape_distance
 from service.core.tracking.localizer import ShapeConfig
@@ -157,17 +154,6 @@ class SearchResult:
     candidates: int
 
 
-def _ranked_units(
-    P: Configuration, threshold: float
-) -> tuple[list[np.ndarray], list[tuple[float, int]]]:
-    """The scan's units (robot frame) and ``(shape complexity, unit index)`` most complex
-    first."""
-    found = shape_units(P, threshold, cyclic=False)
-    comp = [(shape_complexity(u), k) for k, u in enumerate(found)]
-    comp.sort(key=lambda t: (-t[0], t[1]))
-    return found, comp
-
-
 def support_sample(P: Configuration) -> np.ndarray:
     """:data:`SUPPORT_POINTS` of the scan's feature points (robot frame) for the fits."""
     pts = np.vstack([f.points for f in P.features]) if P.features else np.zeros((0, 2))
@@ -202,10 +188,10 @@ def refine(index: ViewIndex, poses: np.ndarray, sp: np.ndarray, config: ShapeCon
 
 
 # distinct and near run for every pair of poses a search or a merge compares: scalar
-# element differences into the same np.hypot (no temporary arrays)
-
-
+# differences, no temporary arrays
 def distinct(a: np.ndarray, b: np.ndarray) -> bool:
+    """Whether poses ``a`` and ``b`` are distinct places (:data:`DISTINCT_DISTANCE`,
+    :data:`DISTINCT_ANGLE`)."""
     return bool(
         np.hypot(a[0] - b[0], a[1] - b[1]) > DISTINCT_DISTANCE
         or abs(wrap_angle(float(a[2] - b[2]))) > DISTINCT_ANGLE
@@ -213,6 +199,7 @@ def distinct(a: np.ndarray, b: np.ndarray) -> bool:
 
 
 def near(a: np.ndarray, b: np.ndarray, dist: float = 0.3, ang: float = 0.15) -> bool:
+    """Whether poses ``a`` and ``b`` lie within ``dist`` (m) and ``ang`` (rad): one pose."""
     return bool(
         np.hypot(a[0] - b[0], a[1] - b[1]) < dist and abs(wrap_angle(float(a[2] - b[2]))) < ang
     )
@@ -221,22 +208,16 @@ def near(a: np.ndarray, b: np.ndarray, dist: float = 0.3, ang: float = 0.15) -> 
 #: Work model of the search, in milliseconds of one core of the reference machine (the 2-core
 #: build VM) per item: a deterministic stand-in for CPU time, so that a search spread over
 #: scans by a budget takes the same steps, and gives the same poses, on any machine and under
-#: any load (docs/decisions/0005-search-budget-and-work-model.md). A ray cast and the
-#: refinement's nearby segments also cost per segment of the map (every cast measures each
-#: segment before it intersects beams: a real log's metric map, 1 500-2 700 segments, casts
-#: 2-3x slower than a floor plan). Each item is set at or above the slowest tuning map's
-#: measurement (``bench/bench_work_model.py``), so a budget does not buy more CPU than it
-#: names. Since the casts were compiled (service/core/kernels/raycast.py) the cast terms (beam,
-#: cast_segment) overstate them ~2.5x; left as they are, since lowering them made the search
-#: faster and fixed a tuning alias wrong (the drive bench). The shortlist's march on the
-#: distance field (field_beam) is set at the office's and intel's floor plans: up to 1.35x
-#: below building 3's, a few per cent of a search's work, which the cast terms'
-#: overstatement more than covers.
+#: any load (docs/decisions/0005). A ray cast and the refinement's nearby segments also cost
+#: per segment of the map. Each item is set at or above the slowest tuning map's measurement
+#: (``bench/bench_work_model.py``), so a budget does not buy more CPU than it names; the cast
+#: terms, measured before the casts were compiled, now overstate them and are left so, since
+#: lowering them fixed a tuning alias wrong (docs/decisions/0017).
 WORK_MS = {
     "sstar": 0.0105,  # one S* comparison (shape_distance with an upper bound)
     "induced": 0.045,  # one S*-induced alignment
     "support": 0.000012,  # one pose x one point of the support ranking
-    "field_beam": 0.00012,  # one pose x one beam marched on the distance field (see below)
+    "field_beam": 0.00012,  # one pose x one beam marched on the distance field
     "polish": 0.000006,  # one pose x grid cell x point of a distance-field polish ...
     "polish_call": 0.15,  # ... and one call's fixed part (a keyframe polishes one pose)
     "beam": 0.0023,  # one pose x one beam of a ray cast check ...
@@ -280,6 +261,7 @@ def beams_ms(index: ViewIndex, gconfig: GlobalConfig, beams: int) -> float:
 
 
 def verify_ms(index: ViewIndex, gconfig: GlobalConfig) -> float:
+    """Work (reference ms) of one pose's :func:`verify`."""
     return WORK_MS["verify"] + beams_ms(index, gconfig, gconfig.verify_beams)
 
 
@@ -357,7 +339,10 @@ def search_steps(
     anchor_poses: list[np.ndarray] = []
     n_induced = 0
     if P.features and len(index):
-        units, comp = _ranked_units(P, config.dce_threshold)
+        units = shape_units(P, config.dce_threshold, cyclic=False)
+        comp = sorted(
+            ((shape_complexity(u), k) for k, u in enumerate(units)), key=lambda t: (-t[0], t[1])
+        )
         chosen = [k for c, k in comp[:SCAN_UNITS] if c >= MIN_UNIT_COMPLEXITY]
         gate = 0.5 * np.sqrt(2.0) * SPACING + RANGE_SLACK
         ew, sw = config.shape_end_weight, config.shape_skip_weight
@@ -376,10 +361,9 @@ def search_steps(
             if cornered:  # corresponding corners turn alike
                 dturn = np.mod(index.unit_anchor[cand, 3] - p_turn + np.pi, 2.0 * np.pi) - np.pi
                 cand = cand[np.abs(dturn) < MAX_TURN_DIFFERENCE]
-            # The same physical corner is seen from many viewpoints (one group): S* is
-            # computed for one view of each group (the first), and a similar group lends its
-            # views' anchors to every view of it; the budget of S*-induced alignments thus
-            # covers many distinct places instead of one corner many times.
+            # the same physical corner is seen from many viewpoints (one group): S* is computed
+            # for the group's first view, and a similar group lends every view its anchors, so
+            # the induced alignments cover many places instead of one corner many times
             groups = index.unit_group[cand]
             _, first = np.unique(groups, return_index=True)
             scored = []
@@ -426,20 +410,18 @@ def search_steps(
     sup = np.concatenate(parts)
     order = np.argsort(-sup, kind="stable")
     if gconfig.shortlist > 0:
-        # An induced pose near the truth is often 0.2-0.4 m / 5-10 deg off, so its raw support
-        # trails a wrong place's that happens to line up. Keep the best pose per coarse pose
-        # cell, polish the best cells' poses on the distance field (coarse then fine grid) and
-        # rank by the polished score instead.
+        # an induced pose near the truth is often some decimetres and degrees off, its raw
+        # support below a wrong place's that happens to line up: the best pose per coarse cell
+        # is polished on the distance field and ranked by a quick beam check instead
         heading = (wrap_angle(H[:, 2]) + np.pi) / SHORTLIST_ANGLE
         cells = np.floor(np.column_stack([H[:, :2] / SHORTLIST_CELL, heading]))
         reps = order[_first_rows(cells[order])]
         nb = gconfig.shortlist_violation_beams
         beams = subsample(np.flatnonzero(np.isfinite(r)), nb) if nb > 0 else np.zeros(0, int)
         if beams.size and len(reps):
-            # Where the plan shows little of what the laser sees, wrong places whose walls
-            # the furniture happens to fit out-score the true one on support; most of their
-            # other beams pass through a drawn wall, the true pose's hardly any. The cells are
-            # ranked by support less the verification's weight times that share.
+            # where the plan shows little of what the laser sees, wrong places whose walls the
+            # furniture fits out-score the true one on support, but most of their other beams
+            # pass through a drawn wall, the true pose's hardly any
             margin = max(config.support_tolerance, gconfig.violation_margin)
             vparts = []
             for i in range(0, len(reps), _CHUNK_POSES):

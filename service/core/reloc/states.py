@@ -14,17 +14,17 @@ estimate)``).
   ``relock_scans`` scans in a row the tracker, run from it, explains well within the gate fix
   the robot again; scans that contradict it, or a sigma past ``max_dead_reckoning_sigma``,
   start a search with it as the prior.
-* :class:`Searching` -- the global search over a drive (:mod:`service.core.reloc.drive`)
-  within the per-scan budget; the decision (:mod:`service.core.reloc.decision`) names a
-  winner, the tracker confirms it.
+* :class:`Searching` -- the global search over a drive (:mod:`.drive`) within the per-scan
+  budget; the decision (:mod:`.decision`) names a winner, the tracker confirms it.
 * :class:`Probation` -- with odometry a winner is tracked ``probation_travel`` metres while
   the evidence goes on, and fixed if the decision still names it then.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Protocol
 
 import numpy as np
@@ -32,10 +32,9 @@ import numpy as np
 from service.core import numeric
 from service.core.pose import propagate, sigma_xy
 from service.core.reloc import drive as dr
-from service.core.reloc.composite import composite_scan
 from service.core.reloc.config import GlobalConfig
 from service.core.reloc.decision import CELL_VOLUME, Prior, Verdict, decide
-from service.core.reloc.global_search import advance, search_steps, self_similar_steps
+from service.core.reloc.global_search import Hypothesis, advance, search_steps, self_similar_steps
 from service.core.reloc.view_index import ViewIndex
 from service.core.reloc.view_index.viewpoints import SPACING
 from service.core.shapes.configuration import Configuration, scan_configuration
@@ -46,44 +45,35 @@ from service.core.types import Estimate, Status, wrap_angle
 #: Heading offsets (rad) under which a kept hypothesis seeds the next search: a robot may turn
 #: that much between two scans, more than the fit recovers.
 SEED_TURNS = (0.0, -0.4, 0.4, -0.8, 0.8)
-#: Work (reference ms) of the tracker's confirmation of a winner: a tracker update from a
-#: fresh reset, measured 10 / 21 ms median on the office's metric / schematic map.
+#: Work (reference ms) of the tracker's confirmation of a winner: one tracker update from a
+#: fresh reset, as measured.
 CONFIRM_MS = 20.0
 #: Covariance (m², rad²) of a pose the map has just confirmed, at least: the reference starts
 #: there, and a fit is compared with a dead-reckoned pose within it. A fit's own covariance
-#: says how well the points pin it, not how far a wrong association moves it: consecutive
-#: accepted fits on the tuning logs differ from the odometry's step by up to ~5 cm and ~1.5
-#: degrees.
+#: says how well the points pin it, not how far a wrong association moves it (accepted fits
+#: differ from the odometry's step by up to ~5 cm and ~1.5 degrees).
 FIX_COV = np.diag([0.05**2, 0.05**2, 0.03**2])
 #: Without odometry the prior around the last tracked pose widens by this many metres per
 #: scan and per metre of the robot's known speed per scan (it may turn any amount).
 HELD_GROWTH = 2.0
 #: With a budget, at most this share re-scores the kept hypotheses on the scan and
-#: EVIDENCE_SHARE scores them on the keyframes they lack; the search gets the rest (0.3 / 0.2
-#: against 0.5 / 0.3 on tuning worlds 0-19: 96 against 93 % fixed in 15 m).
+#: EVIDENCE_SHARE scores them on the keyframes they lack; the search gets the rest (larger
+#: shares for the tracks fixed fewer robots).
 RESCORE_SHARE = 0.3
 EVIDENCE_SHARE = 0.2
-#: At most this shortlist ...
+#: At most this shortlist and refine_top in a self-similarity check (it searches the map's
+#: own view).
 TWIN_SHORTLIST = 60
-#: ... and refine_top in a self-similarity check (it searches the map's own view).
 TWIN_REFINE_TOP = 12
-#: The tracker's first fit must lie this close to the winner (m) ...
+#: The tracker's first fit must lie this close to the winner (m), turned less than this (rad)
+#: and with a position sigma of at most this (m): a corridor's parallel walls verify equally
+#: well further along, and a right fix is pinned to a centimetre.
 CONFIRM_DISTANCE = 0.3
-#: ... and turned less than this (rad) ...
 CONFIRM_ANGLE = 0.1
-#: ... with a position sigma of at most this (m): a corridor's parallel walls verify equally
-#: well 0.8 m further along (intel floor plan: a fix 0.8 m off, sigma 0.19 m; correct fixes
-#: 0.004-0.01 m).
 CONFIRM_SIGMA = 0.05
 #: Standard deviations of the dead-reckoned reference a poorly explained fit may stray from it
 #: before the robot dead-reckons.
 GATE_SIGMAS = 3.0
-#: With odometry the search matches the last this many scans fused (1: every scan alone) ...
-COMPOSITE_SCANS = 3
-#: ... into this many beams (never finer than the laser's) ...
-COMPOSITE_BINS = 720
-#: ... leaving out scans farther than this (m) from the newest.
-COMPOSITE_TRAVEL = 0.5
 #: With the odometry prior off, an odometry turn larger than this (rad) still moves the
 #: tracker's pose first (the tracker follows turns up to 1.3 rad).
 ODOM_TURN_ASSIST = 1.0
@@ -92,15 +82,15 @@ ODOM_TURN_ASSIST = 1.0
 @dataclass(frozen=True)
 class Scan:
     """One scan and its odometry: ``ranges`` (m, NaN = none) and ``angles`` (rad, robot
-    frame), the :class:`~service.core.tracking.scan_odometry.OdometryStep`, and whether the
-    tracker uses the odometry as its prior (``odometry``)."""
+    frame), the :class:`~service.core.tracking.scan_odometry.OdometryStep`, whether the
+    tracker uses the odometry as its prior (``odometry``) and whether it was measured from the
+    scans themselves (``from_scans``, laser odometry: it cannot vouch for a pose the scan
+    contradicts)."""
 
     ranges: np.ndarray
     angles: np.ndarray
     odom: OdometryStep
     odometry: bool
-    #: the odometry was measured from the scans themselves (laser odometry): it cannot vouch
-    #: for a pose the scan contradicts, accepted or not
     from_scans: bool = False
 
 
@@ -120,11 +110,11 @@ class Context(Protocol):
 # ------------------------------------------------------------------------------- the states
 @dataclass
 class Tracking:
-    """The tracker follows; ``ref`` / ``cov`` the dead-reckoned reference (module docstring;
-    ``None`` without odometry), ``strikes`` scans in a row that contradicted the pose,
-    ``broken`` whether the scan-to-scan fit broke since the last scan the map explained well,
-    ``since_fix`` scans since a search's fix (a service keeps such a robot on its search
-    worker for ``settle_scans``)."""
+    """The tracker follows; ``ref`` / ``cov`` the dead-reckoned reference (``None`` without
+    odometry), ``strikes`` scans in a row that contradicted the pose, ``broken`` whether the
+    scan-to-scan fit broke since the last scan the map explained well, ``since_fix`` scans
+    since a search's fix (a service keeps such a robot on its search worker for
+    ``settle_scans``)."""
 
     ref: np.ndarray | None = None
     cov: np.ndarray | None = None
@@ -137,8 +127,8 @@ class Tracking:
 @dataclass
 class DeadReckoning:
     """The map does not explain the scans: ``pose`` / ``cov`` dead-reckoned; ``relock`` scans
-    in a row the tracker explained well from it, ``strikes`` scans in a row that contradicted
-    it, ``broken`` as :class:`Tracking`'s."""
+    in a row the tracker explained well from it, ``strikes`` and ``broken`` as
+    :class:`Tracking`'s."""
 
     pose: np.ndarray
     cov: np.ndarray
@@ -151,12 +141,12 @@ class DeadReckoning:
 @dataclass
 class Searching:
     """The search over a drive: ``drive`` the hypotheses and frames, ``prior`` where the robot
-    may be, ``status`` published (``initializing`` before any fix, ``lost`` after one),
-    ``scans`` searched so far; with a dead-reckoned prior and odometry, ``relock`` scans in a
-    row the tracker explained well from the prior's mean (as :class:`DeadReckoning`)."""
+    may be (default: uniform over the map), ``status`` published (``initializing`` before any
+    fix, ``lost`` after one), ``scans`` searched so far; with a dead-reckoned prior and
+    odometry, ``relock`` as :class:`DeadReckoning`'s, from the prior's mean."""
 
-    drive: dr.Drive
-    prior: Prior
+    drive: dr.Drive = field(default_factory=dr.Drive)
+    prior: Prior = field(default_factory=lambda: Prior(None, None, 1.0, 1.0))
     status: Status = "initializing"
     scans: int = 0
     relock: int = 0
@@ -199,6 +189,12 @@ def fit_cov(est: Estimate) -> np.ndarray:
     return np.maximum(c, 0.0) * np.eye(3) + FIX_COV if np.all(np.isfinite(c)) else FIX_COV.copy()
 
 
+def _fit(ctx: Context, scan: Scan) -> Estimate:
+    """The tracker's update on ``scan``."""
+    o = scan.odom
+    return ctx.tracker.update(scan.ranges, scan.angles, o.reading, o.matched_from, o.spread)
+
+
 def _contradicts(ctx: Context, scan: Scan, pose: np.ndarray, cov: np.ndarray | None = None) -> bool:
     """Whether the scan contradicts ``pose``: more than ``contradiction`` of the tracker's
     violation beams return from beyond a drawn wall, by more than the tracker's margin plus,
@@ -209,11 +205,6 @@ def _contradicts(ctx: Context, scan: Scan, pose: np.ndarray, cov: np.ndarray | N
         margin += GATE_SIGMAS * sigma_xy(cov)
     share = ctx.tracker.violations(scan.ranges, scan.angles, [pose], margin)[0]
     return share > ctx.gconfig.contradiction
-
-
-def start_search(ctx: Context, status: Status, prior: Prior | None = None) -> Searching:
-    """A new search (no hypotheses yet) with ``prior`` (default: uniform over the map)."""
-    return Searching(dr.Drive(), prior or Prior(None, None, 1.0, 1.0), status)
 
 
 # ------------------------------------------------------------------------------- the step
@@ -227,7 +218,7 @@ def step(ctx: Context, state: State, scan: Scan) -> tuple[State, Estimate]:
         new, est = _probation(ctx, state, scan)
     else:
         new, est = _searching(ctx, state, scan)
-    est.state = "searching" if isinstance(new, Searching) else new.name  # type: ignore[assignment]
+    est.state = new.name  # type: ignore[assignment]
     if isinstance(new, Searching) and est.ambiguity is None:
         est.ambiguity = 1.0  # a search that has only begun: no place leads yet
     if not isinstance(new, Tracking) and est.status == "tracking":
@@ -239,10 +230,10 @@ def _tracking(ctx: Context, s: Tracking, scan: Scan) -> tuple[State, Estimate]:
     g = ctx.gconfig
     o = scan.odom
     if o.delta is not None and not scan.odometry and abs(float(o.delta[2])) > ODOM_TURN_ASSIST:
-        # a turn the shape tracker cannot bridge without its odometry prior (a look-around
-        # spin after the fix): the odometry's heading change moves its pose first
+        # a turn the tracker cannot bridge without its odometry prior (a look-around spin
+        # after the fix): the odometry's heading change moves its pose first
         ctx.tracker.predict(o.delta)
-    est = ctx.tracker.update(scan.ranges, scan.angles, o.reading, o.matched_from, o.spread)
+    est = _fit(ctx, scan)
     if est.ambiguity is not None:
         # the tracker's own ambiguity compares step-2 hypotheses that often converge to one
         # pose: no integrity signal; the published ambiguity is the search's
@@ -253,8 +244,7 @@ def _tracking(ctx: Context, s: Tracking, scan: Scan) -> tuple[State, Estimate]:
     if not scan.odometry:
         s.ref = s.cov = None
         if est.status == "lost" or (rejected and est.score < g.collapse_score):
-            # with no odometry to bridge it, a scan that fits the map nowhere near the pose
-            # ends the track
+            # nothing bridges a scan that fits the map nowhere near the pose
             est.extras["collapsed"] = 1.0
             return _lost(ctx, est.pose, None), est
         return s, est
@@ -264,9 +254,8 @@ def _tracking(ctx: Context, s: Tracking, scan: Scan) -> tuple[State, Estimate]:
     s.ref, s.cov = propagate(s.ref, s.cov, o.delta, o.noise(ctx.config.motion))
     slid = False
     if scan.from_scans and g.scan_odometry_violation < 1.0:
-        # an odometry measured from the scans moves a pose that slid along a corridor (where
-        # neither the scans nor a floor plan pin it), or turned wrong, as precisely as a right
-        # one: the map alone can tell, and beams through its walls do
+        # an odometry measured from the scans moves a pose that slid along a corridor, or
+        # turned wrong, as precisely as a right one: only beams through the map's walls tell
         share = ctx.tracker.violations(scan.ranges, scan.angles, [est.pose])[0]
         est.extras["pose_violation"] = share
         slid = share > g.scan_odometry_violation
@@ -274,11 +263,10 @@ def _tracking(ctx: Context, s: Tracking, scan: Scan) -> tuple[State, Estimate]:
         s.ref, s.cov, s.strikes, s.broken = est.pose.copy(), fit_cov(est), 0, False
         return s, est
     # a poorly explained scan: does it contradict the pose (a kidnap)? After a break of the
-    # scan-to-scan fit every scan the map fits poorly does: the scans after a kidnap match
-    # each other again, and a floor plan's outline may half explain them without a beam
-    # through a wall. Otherwise only a scan the tracker rejects, scoring low, whose beams
-    # cross drawn walls: beams through a deleted or moved piece of furniture cross one too,
-    # on a scan the tracker still fits (a map from another day)
+    # scan-to-scan fit every scan the map fits poorly does (the scans after a kidnap match
+    # each other again, and a plan's outline may half explain them without a beam through a
+    # wall); otherwise only a rejected, low-scoring scan whose beams cross drawn walls (beams
+    # through moved furniture cross one too, on a scan the tracker still fits)
     low = est.score < g.collapse_score
     s.broken = (s.broken or o.broken) and low
     contradicted = slid or s.broken or (rejected and low and _contradicts(ctx, scan, est.pose))
@@ -298,7 +286,8 @@ def _tracking(ctx: Context, s: Tracking, scan: Scan) -> tuple[State, Estimate]:
 def _lost(ctx: Context, pose: np.ndarray, cov: np.ndarray | None) -> Searching:
     """A search after the track is lost at ``pose`` (with odometry: dead-reckoned, ``cov``;
     without: the last tracked pose, widened scan by scan); its prior the pose's Gaussian with
-    ``kidnap_weight`` spread over the map's places."""
+    ``kidnap_weight`` spread over the map's places, its first track the pose itself (verified
+    a scan ago)."""
     speed = ctx.tracker.known_speed()
     ctx.tracker.reset(None)
     if cov is None:
@@ -306,10 +295,9 @@ def _lost(ctx: Context, pose: np.ndarray, cov: np.ndarray | None) -> Searching:
         grow = (HELD_GROWTH * max(step_m, 0.05)) ** 2
         cov = np.diag([grow, grow, math.pi**2])
     pose = np.asarray(pose, dtype=np.float64).copy()
-    srch = start_search(ctx, "lost", Prior(pose, cov.copy(), ctx.gconfig.kidnap_weight, 0.0))
-    srch.drive.tracks = [dr.Track(pose.copy(), dr.held(pose))]
-    srch.drive.speed = speed
-    return srch
+    held = dr.Track(pose.copy(), Hypothesis(pose=pose.copy(), cost=0.05))
+    prior = Prior(pose, cov.copy(), ctx.gconfig.kidnap_weight, 0.0)
+    return Searching(dr.Drive(tracks=[held], speed=speed), prior, "lost")
 
 
 def _dead_estimate(d: DeadReckoning, est: Estimate) -> Estimate:
@@ -327,27 +315,23 @@ def _relock(
     ctx: Context, pose: np.ndarray, cov: np.ndarray, scan: Scan
 ) -> tuple[Estimate, np.ndarray, np.ndarray, bool]:
     """The tracker run from the dead-reckoned ``pose`` (covariance ``cov``), this scan's
-    odometry increment its prior. Returns the fit, the dead-reckoned pose and covariance
-    after this scan (the fit's pose when it is good), and whether it is good: accepted,
-    explaining ``good_support`` of the scan, within :data:`GATE_SIGMAS` of the dead-reckoned
-    pose."""
-    g = ctx.gconfig
+    odometry increment its prior. Returns the fit (the tracker keeps it: a relock tracks on
+    from it), the dead-reckoned pose and covariance after this scan (the fit's pose when it
+    is good), and whether it is good: accepted, explaining ``good_support`` of the scan,
+    within :data:`GATE_SIGMAS` of the dead-reckoned pose."""
     o = scan.odom
     assert o.delta is not None
     ctx.tracker.reset(pose, o.previous)
-    est = ctx.tracker.update(scan.ranges, scan.angles, o.reading, o.matched_from, o.spread)
+    est = _fit(ctx, scan)
     est.ambiguity = None
-    # (the tracker keeps this fit: if it relocks, tracking goes on from it)
     pose, cov = propagate(pose, cov, o.delta, o.noise(ctx.config.motion))
     good = (
         "rejected" not in est.extras
         and est.status == "tracking"
-        and (est.explained or 0.0) >= g.good_support
+        and (est.explained or 0.0) >= ctx.gconfig.good_support
         and mahalanobis2(est.pose, pose, cov) <= GATE_SIGMAS**2
     )
-    if good:
-        pose = est.pose.copy()  # follow the fit; the odometry carries it from here
-    return est, pose, cov, good
+    return est, est.pose.copy() if good else pose, cov, good
 
 
 def _dead_reckoning(ctx: Context, d: DeadReckoning, scan: Scan) -> tuple[State, Estimate]:
@@ -388,37 +372,8 @@ def _seeds(drive: dr.Drive, prior: Prior, odometry: bool) -> list[np.ndarray]:
     return out
 
 
-def _composite(drive: dr.Drive, scan: Scan, g: GlobalConfig) -> tuple[np.ndarray, np.ndarray]:
-    """The scan the search matches: this one, or with odometry the virtual 360-degree
-    composite of the last :data:`COMPOSITE_SCANS` within :data:`COMPOSITE_TRAVEL`."""
-    r, a, here = scan.ranges, scan.angles, scan.odom.reading
-    if here is None or COMPOSITE_SCANS <= 1:
-        drive.history = []
-        return r, a
-    drive.history = [
-        h
-        for h in drive.history[-(COMPOSITE_SCANS - 1) :]
-        if np.hypot(*(h[2][:2] - here[:2])) <= COMPOSITE_TRAVEL
-    ]
-    drive.history.append((r, a, here.copy()))
-    if len(drive.history) == 1:
-        return r, a
-    inc = float(np.median(np.abs(np.diff(a)))) if a.size > 1 else 0.0
-    bins = COMPOSITE_BINS
-    if inc > 0.0:  # no finer than the laser's beams (holes would split every polyline)
-        bins = int(min(bins, max(8, np.floor(2.0 * np.pi / inc + 1e-6))))
-    return composite_scan(drive.history, bins)
-
-
-def _keyframe(drv: dr.Drive, scan: Scan, g: GlobalConfig) -> None:
-    """A scan with odometry: a keyframe when it is due, else a repeat of the newest one."""
-    o = scan.odom.reading
-    assert o is not None
-    if dr.frame_due(drv.frames, o, drv.travel):
-        drv.add(dr.make_frame(drv.next_key, scan.ranges, scan.angles, o, drv.travel, g), g)
-    else:
-        d = scan.odom.delta
-        drv.repeat(scan.odom.step, 0.0 if d is None else float(d[2]), g)
+def _budget(g: GlobalConfig) -> float:
+    return math.inf if g.search_budget_ms is None else float(g.search_budget_ms)
 
 
 def _search_work(
@@ -429,13 +384,13 @@ def _search_work(
     candidates (-1: none finished) and the scan the search matched (ranges, angles and its
     configuration)."""
     g = ctx.gconfig
-    budget = math.inf if g.search_budget_ms is None else float(g.search_budget_ms)
+    budget = _budget(g)
     o = scan.odom
-    rs, as_ = _composite(drv, scan, g)
+    rs, as_ = drv.composite(scan.ranges, scan.angles, o.reading)
     P = scan_configuration(rs, as_, ctx.config.extraction())
     frame = None
     if o.reading is not None:
-        _keyframe(drv, scan, g)
+        drv.observe(scan.ranges, scan.angles, o.reading, g)
     else:
         frame = dr.make_frame(drv.next_key, scan.ranges, scan.angles, None, drv.travel, g)
         drv.add(frame, g)
@@ -498,7 +453,7 @@ def _searching(ctx: Context, s: Searching, scan: Scan) -> tuple[State, Estimate]
         if s.prior.mean is not None and s.prior.cov is not None and scan.odometry:
             # the dead-reckoned pose relocks as in DeadReckoning while the search goes on
             est, mean, cov, good = _relock(ctx, s.prior.mean, s.prior.cov, scan)
-            s.prior = Prior(mean, cov, s.prior.kidnap, s.prior.cells)
+            s.prior = dataclasses.replace(s.prior, mean=mean, cov=cov)
             s.relock = s.relock + 1 if good else 0
             if s.relock >= g.relock_scans:
                 est.extras["relocked"] = 1.0
@@ -508,9 +463,7 @@ def _searching(ctx: Context, s: Searching, scan: Scan) -> tuple[State, Estimate]
     elif s.prior.mean is not None and s.prior.cov is not None:
         speed = 0.0 if drv.speed is None else float(np.hypot(*drv.speed))
         grow = (HELD_GROWTH * max(0.05, speed)) ** 2
-        s.prior = Prior(
-            s.prior.mean, s.prior.cov + np.diag([grow, grow, 0.0]), s.prior.kidnap, s.prior.cells
-        )
+        s.prior = dataclasses.replace(s.prior, cov=s.prior.cov + np.diag([grow, grow, 0.0]))
     spent, found, (rs, as_, P) = _search_work(ctx, drv, s.prior, scan)
     verdict = _decide(ctx, drv, s.prior)
     lead = verdict.leader
@@ -525,11 +478,12 @@ def _searching(ctx: Context, s: Searching, scan: Scan) -> tuple[State, Estimate]
         extras["lead_checked"] = float(lead.checked)
         extras["lead_found"] = float(lead.found)
     if lead is not None and not lead.checked and drv.twin is None:
-        twin = {
-            "shortlist": min(g.shortlist, TWIN_SHORTLIST),
-            "refine_top": min(g.refine_top, TWIN_REFINE_TOP),
-        }
-        tg = g.model_copy(update=twin)
+        tg = g.model_copy(
+            update={
+                "shortlist": min(g.shortlist, TWIN_SHORTLIST),
+                "refine_top": min(g.refine_top, TWIN_REFINE_TOP),
+            }
+        )
         steps = self_similar_steps(ctx.index, lead.hyp, rs, as_, P, ctx.config, tg)
         drv.twin = dr.Job(steps, None if o.reading is None else o.reading.copy(), track=lead)
     ctx.work_ms = spent
@@ -545,9 +499,8 @@ def _searching(ctx: Context, s: Searching, scan: Scan) -> tuple[State, Estimate]
                 )
                 return p, _probation_estimate(p, est)
             est.extras["global_fix"] = 1.0
-            return Tracking(
-                est.pose.copy() if scan.odometry else None, fit_cov(est), since_fix=0
-            ), est
+            ref = est.pose.copy() if scan.odometry else None
+            return Tracking(ref, fit_cov(est), since_fix=0), est
         extras["confirm_rejected"] = 1.0
     return s, _guess(drv, s, verdict, extras, g.fix_llr)
 
@@ -562,9 +515,8 @@ def _guess(
     """The pose published while the search goes on. After a loss, the prior's mean (the
     dead-reckoned pose, or the last tracked one carried by the laser odometry) with its
     covariance until a place is fixed: a leader short of ``fix_llr`` is a place the evidence
-    may still overturn (on fr079's floor plan one led 22 m from the robot for 60 scans), and
-    a robot's consumers should not see it jump there and back. Before any fix (nothing
-    known): the leader, else the best track by cost, else the origin."""
+    may still overturn, and a robot's consumers should not see it jump there and back. Before
+    any fix (nothing known): the leader, else the best track by cost, else the origin."""
     lead = verdict.leader
     if s.prior.mean is not None and not verdict.llr >= fix_llr:
         lead = None
@@ -577,7 +529,6 @@ def _guess(
     else:
         pose = np.zeros(3) if s.prior.mean is None else s.prior.mean.copy()
         score, explained = 0.0, 0.0
-    order = ([lead] if lead is not None else []) + [t for t in drv.tracks if t is not lead]
     return Estimate(
         pose=pose,
         status=s.status,
@@ -587,7 +538,7 @@ def _guess(
         covariance=None if s.prior.cov is None or lead is not None else s.prior.cov.copy(),
         extras=extras,
         hypotheses=len(drv.tracks),
-        candidates=dr.candidates(order),
+        candidates=dr.candidates(drv.tracks, first=lead),
     )
 
 
@@ -595,11 +546,10 @@ def _confirm(ctx: Context, drv: dr.Drive, lead: dr.Track, scan: Scan) -> Estimat
     """The tracker, reset to the winner with this scan's odometry, must accept the scan within
     :data:`CONFIRM_DISTANCE` / :data:`CONFIRM_ANGLE` of it with a position sigma of at most
     :data:`CONFIRM_SIGMA`; then tracking starts (the estimate); ``None`` otherwise."""
-    o = scan.odom
-    ctx.tracker.reset(lead.pose, o.reading)
+    ctx.tracker.reset(lead.pose, scan.odom.reading)
     if drv.speed is not None:
         ctx.tracker.set_speed(drv.speed)
-    est = ctx.tracker.update(scan.ranges, scan.angles, o.reading, o.matched_from, o.spread)
+    est = _fit(ctx, scan)
     close = (
         np.hypot(*(est.pose[:2] - lead.pose[:2])) <= CONFIRM_DISTANCE
         and abs(float(wrap_angle(est.pose[2] - lead.pose[2]))) <= CONFIRM_ANGLE
@@ -618,15 +568,14 @@ def _probation_estimate(p: Probation, est: Estimate) -> Estimate:
     est.ambiguity = p.ambiguity
     est.extras["probation"] = max(0.0, p.left)
     est.hypotheses = len(p.drive.tracks)
-    order = [p.winner, *(t for t in p.drive.tracks if t is not p.winner)]
-    est.candidates = dr.candidates(order)
+    est.candidates = dr.candidates(p.drive.tracks, first=p.winner)
     return est
 
 
 def _probation(ctx: Context, p: Probation, scan: Scan) -> tuple[State, Estimate]:
     g = ctx.gconfig
     o = scan.odom
-    est = ctx.tracker.update(scan.ranges, scan.angles, o.reading, o.matched_from, o.spread)
+    est = _fit(ctx, scan)
     est.ambiguity = None
     drv = p.drive
     rejected = "rejected" in est.extras
@@ -639,14 +588,12 @@ def _probation(ctx: Context, p: Probation, scan: Scan) -> tuple[State, Estimate]
         drv.move(o.delta, o.step)
         p.prior = p.prior.moved(o.delta, o.noise(ctx.config.motion))
         p.winner.pose = est.pose.copy()
-        # the winner must be followed probation_travel metres on motion the scans confirm: an
-        # increment the scan-to-scan fit could not match is the raw odometry's, and the
-        # tracker follows it (a dropout's catch-up turns the pose with it)
+        # the travel counts on motion the scans confirm: an increment the scan-to-scan fit
+        # could not match is the raw odometry's, and the tracker follows it
         p.left = g.probation_travel if o.broken else p.left - o.step
-        _keyframe(drv, scan, g)
+        drv.observe(scan.ranges, scan.angles, o.reading, g)
         frames = dr.window(drv.frames, g)
-        budget = math.inf if g.search_budget_ms is None else float(g.search_budget_ms)
-        evidence = budget * EVIDENCE_SHARE
+        evidence = _budget(g) * EVIDENCE_SHARE
         ctx.work_ms = dr.backfill(
             ctx.index, drv.tracks, frames, o.reading, ctx.config, g, evidence, p.winner
         )
@@ -674,20 +621,5 @@ def _fail(ctx: Context, p: Probation, extras: dict[str, float]) -> tuple[State, 
     them)."""
     ctx.tracker.reset(None)
     s = Searching(p.drive, p.prior, p.status)
-    verdict = Verdict(None, -math.inf)
     extras["hypotheses"] = float(len(p.drive.tracks))
-    return s, _guess(p.drive, s, verdict, extras, ctx.gconfig.fix_llr)
-
-
-__all__ = [
-    "CONFIRM_MS",
-    "Context",
-    "DeadReckoning",
-    "Probation",
-    "Scan",
-    "Searching",
-    "State",
-    "Tracking",
-    "start_search",
-    "step",
-]
+    return s, _guess(p.drive, s, Verdict(None, -math.inf), extras, ctx.gconfig.fix_llr)
