@@ -64,7 +64,7 @@ EVIDENCE_TURN = 0.3
 EVIDENCE_FRAMES = 20
 #: Without odometry the window holds the last this many scans.
 SCAN_WINDOW = 6
-#: A frame's cost is clipped here: one keyframe with a person in front of the laser must not
+#: A frame's cost is clipped here: one keyframe with a person before the laser must not
 #: outweigh the drive.
 EVIDENCE_CLIP = 1.0
 #: A track this many nats below the leader, or below the unseen place, on 3 frames at least is
@@ -76,12 +76,11 @@ RESCORE_PRIOR = 0.02
 #: The mean predicted range (m) beyond which the unseen place's cost rises
 #: (``GlobalConfig.null_slope``).
 NULL_REACH = 5.0
-#: With odometry the search matches the last this many scans fused (1: every scan alone) ...
+#: With odometry the search matches the last this many scans fused (1: every scan alone) into
+#: this many beams (never finer than the laser's), leaving out scans farther than this (m)
+#: from the newest (their occlusions no longer hold).
 COMPOSITE_SCANS = 3
-#: ... into this many beams (never finer than the laser's) ...
 COMPOSITE_BINS = 720
-#: ... leaving out scans farther than this (m) from the newest (their occlusions no longer
-#: hold).
 COMPOSITE_TRAVEL = 0.5
 
 
@@ -118,13 +117,18 @@ class Track:
     def __setstate__(self, state: dict[str, Any]) -> None:
         self.__dict__.update({"null": {}, **state})  # pickled before it had ``null``
 
+    def record(self, key: int, cost: float, pose: np.ndarray) -> None:
+        """Its evidence on frame ``key``: the beam cost ``cost`` at ``pose``."""
+        self.ll[key] = loglik(cost)
+        self.at[key] = pose.copy()
+
 
 @dataclass(eq=False)
 class Job:
-    """A search in progress: its step generator and the odometry pose of the scan it started
-    on (``None`` without odometry); ``track`` the track a self-similarity check is for;
-    ``frame`` without odometry the plain-scan frame it searched (its places' verification is
-    their evidence there)."""
+    """A search in progress: its step generator, the odometry pose of the scan it started on
+    (``None`` without odometry), the ``track`` a self-similarity check is for, and without
+    odometry the plain-scan ``frame`` it searched (its places' verification is their evidence
+    there)."""
 
     steps: Generator[float, None, Any]
     odom: np.ndarray | None
@@ -140,13 +144,11 @@ def odometry_move(since: np.ndarray | None, now: np.ndarray | None) -> np.ndarra
 @dataclass(eq=False)
 class Drive:
     """The hypotheses over a drive and their evidence: ``tracks``, the ``frames`` of the
-    window (``next_key`` numbers the next), the odometry ``travel`` (m) since the drive
-    began, the pending search ``job`` and self-similarity check ``twin``, the scans of the
-    composite (``history``), the robot's known speed before a loss (map frame, m per scan;
-    ``None``: unknown) and the key of every ``keyframe`` of the drive, those that left the
-    window included: a track's scores there are kept (measured while the odometry to its pose
-    then was short), so evidence that told two places apart is not forgotten. The pending
-    jobs are not pickled (generators): a search starts again on the next scan."""
+    window (``next_key`` numbers the next), the odometry ``travel`` (m), the pending search
+    ``job`` and self-similarity check ``twin`` (not pickled: a search starts again), the scans
+    of the composite (``history``), the robot's known speed before a loss (map frame, m per
+    scan) and the key of every keyframe, those that left the window included: a track's
+    scores there are kept, so evidence that told two places apart is not forgotten."""
 
     tracks: list[Track] = field(default_factory=list)
     frames: list[Frame] = field(default_factory=list)
@@ -167,8 +169,7 @@ class Drive:
         self.__dict__.update(state)
 
     def move(self, delta: np.ndarray, step: float) -> None:
-        """Move every track by the odometry increment ``delta`` (robot frame) of length
-        ``step`` (m)."""
+        """Move every track by the odometry increment ``delta`` (robot frame, ``step`` m)."""
         self.travel += step
         for t in self.tracks:
             t.pose = compose(t.pose, delta)
@@ -183,16 +184,15 @@ class Drive:
     def observe(
         self, ranges: np.ndarray, angles: np.ndarray, odom: np.ndarray, g: GlobalConfig
     ) -> None:
-        """A scan with odometry pose ``odom``: a keyframe when one is due (:func:`frame_due`).
-        A scan that adds none adds no evidence: a standing robot's scans repeat the walls of
-        its keyframe for a wrong place as much as for the true one."""
+        """A scan with odometry pose ``odom``: a keyframe when one is due (:func:`frame_due`),
+        else no evidence (a standing robot's scans repeat its keyframe's walls, for a wrong
+        place as much as for the true one)."""
         if frame_due(self.frames, odom, self.travel):
             self.add(make_frame(self.next_key, ranges, angles, odom, self.travel, g), g)
 
     def evidence_keys(self, g: GlobalConfig) -> list[int]:
-        """The frames the decision sums over: every keyframe of the drive with odometry, the
-        window's plain scans without (consecutive scans see nearly the same: their evidence
-        is not carried beyond the window)."""
+        """The frames the decision sums over: every keyframe of the drive, or without odometry
+        the window's plain scans (consecutive scans see nearly the same)."""
         win = window(self.frames, g)
         if win and win[-1].odom is None:
             return [f.key for f in win]
@@ -201,9 +201,8 @@ class Drive:
     def composite(
         self, ranges: np.ndarray, angles: np.ndarray, odom: np.ndarray | None
     ) -> tuple[np.ndarray, np.ndarray]:
-        """The scan the search matches: this one, or with odometry pose ``odom`` the virtual
-        360-degree composite of the last :data:`COMPOSITE_SCANS` within
-        :data:`COMPOSITE_TRAVEL` (:func:`.composite.composite_scan`)."""
+        """The scan the search matches: this one, or with odometry pose ``odom`` the composite
+        of the last :data:`COMPOSITE_SCANS` (:func:`.composite.composite_scan`)."""
         if odom is None or COMPOSITE_SCANS <= 1:
             self.history = []
             return ranges, angles
@@ -231,8 +230,7 @@ def make_frame(
     travel: float,
     g: GlobalConfig,
 ) -> Frame:
-    """A :class:`Frame` of one scan (``ranges`` metres, NaN = no return; ``angles`` radians
-    robot frame; ``odom`` its odometry pose or ``None``: a plain scan)."""
+    """A :class:`Frame` of one scan (``odom`` its odometry pose or ``None``: a plain scan)."""
     r = np.asarray(ranges, dtype=np.float64)
     a = np.asarray(angles, dtype=np.float64)
     sel = subsample(np.nonzero(np.isfinite(r))[0], g.verify_beams)
@@ -250,14 +248,12 @@ def make_frame(
 
 def frame_due(frames: list[Frame], odom: np.ndarray, travel: float) -> bool:
     """Whether a scan at odometry pose ``odom`` and drive travel ``travel`` becomes a keyframe:
-    the first, or :data:`EVIDENCE_SPACING` driven or :data:`EVIDENCE_TURN` turned since the
-    last."""
+    the first, or :data:`EVIDENCE_SPACING` driven or :data:`EVIDENCE_TURN` turned since."""
     if not frames or frames[-1].odom is None:
         return True
     last = frames[-1]
-    if travel - last.travel >= EVIDENCE_SPACING:
-        return True
-    return abs(float(wrap_angle(float(odom[2]) - float(last.odom[2])))) >= EVIDENCE_TURN
+    turn = abs(float(wrap_angle(float(odom[2]) - float(last.odom[2]))))
+    return travel - last.travel >= EVIDENCE_SPACING or turn >= EVIDENCE_TURN
 
 
 def window(frames: list[Frame], g: GlobalConfig) -> list[Frame]:
@@ -273,13 +269,10 @@ def window(frames: list[Frame], g: GlobalConfig) -> list[Frame]:
 
 
 def judged(frames: list[Frame]) -> list[int]:
-    """Keys of the window's frames a track must be scored on to be judged: with odometry every
-    keyframe (back-scoring reaches those before it was found); without, the newest scan only,
-    since no odometry carries a place found later back to an earlier scan (those frames count
-    as the unseen place explains them)."""
-    if not frames:
-        return []
-    if frames[-1].odom is None:
+    """Keys of the window's frames a track must be scored on to be judged: every keyframe
+    (back-scoring reaches those before it was found), or without odometry the newest scan
+    only (nothing carries a place found later back to an earlier scan)."""
+    if frames and frames[-1].odom is None:
         return [frames[-1].key]
     return [f.key for f in frames]
 
@@ -313,8 +306,7 @@ def null_cost(predicted: np.ndarray, g: GlobalConfig) -> float:
 
 
 def pair_ms(index: ViewIndex, g: GlobalConfig) -> float:
-    """Work (reference ms) of scoring one track on one keyframe: a one-pose polish and the
-    beams."""
+    """Work (reference ms) of scoring one track on one keyframe: a polish and the beams."""
     return WORK_MS["polish_call"] + polish_ms(SUPPORT_POINTS) + beams_ms(index, g, g.verify_beams)
 
 
@@ -330,11 +322,10 @@ def rescore(
     limit: float,
     scan: Frame | None,
 ) -> float:
-    """Fit each track (best first) to this scan and verify it, while the work stays within
-    ``limit`` (reference ms). With odometry (``scan`` is ``None``) the tracks were moved by it
-    and a polish on the distance field, the moved pose as its prior, absorbs its error;
-    without, the point-to-line refinement follows the robot's motion, and the verification
-    is the track's evidence on the plain-scan frame ``scan``. Returns the work spent."""
+    """Fit each track (best first) to this scan and verify it within ``limit`` reference ms;
+    return the work spent. With odometry (``scan`` is ``None``) the tracks were moved by it
+    and a polish, the moved pose its prior, absorbs its error; without, the point-to-line
+    refinement follows the robot, and the verification is the track's evidence on ``scan``."""
     if not tracks:
         return 0.0
     sp = support_sample(P)
@@ -352,12 +343,10 @@ def rescore(
     else:
         fitted = refine(index, poses, sp, config)
     for t, p in zip(chosen, fitted, strict=True):
-        h = verify(index, p, ranges, angles, P, config, g)
-        t.pose = h.pose.copy()
-        t.hyp = h
+        t.hyp = verify(index, p, ranges, angles, P, config, g)
+        t.pose = t.hyp.pose.copy()
         if scan is not None:
-            t.ll[scan.key] = loglik(h.cost)
-            t.at[scan.key] = h.pose.copy()
+            t.record(scan.key, t.hyp.cost, t.hyp.pose)
     return n * each
 
 
@@ -371,11 +360,9 @@ def backfill(
     limit: float,
     first: Track | None = None,
 ) -> float:
-    """Score the tracks on the keyframes of ``frames`` (the window) they lack, newest
-    keyframe first and breadth first (every track's recent keyframes before anyone's old
-    ones; ``first``, a winner on probation, before the others), within ``limit`` reference
-    ms (at least one score when anything is missing). Scores older than the window are
-    forgotten. Returns the work spent."""
+    """Score the tracks on the window's keyframes they lack, newest first and breadth first
+    (``first``, a winner on probation, before the others), within ``limit`` reference ms (at
+    least one score); return the work spent. Poses older than the window are forgotten."""
     keys = {f.key for f in frames}
     odom_of = {f.key: f.odom for f in frames}
     for t in tracks:
@@ -400,9 +387,10 @@ def backfill(
                 start = compose(t.at[k], relative(odom_of[k], f.odom))
             else:
                 start = compose(t.pose, relative(odom_now, f.odom))
-            pose = index.sensor.polish(start[None, :], f.points, FINE_SCALE, prior=RESCORE_PRIOR)[
-                0
-            ][0]
+            polished, _ = index.sensor.polish(
+                start[None, :], f.points, FINE_SCALE, prior=RESCORE_PRIOR
+            )
+            pose = polished[0]
             cost, null = frame_cost(index, pose, f, config, g)
             if not t.ll:
                 # a track's first keyframe: also a wider polish without a prior, and the pose
@@ -414,8 +402,7 @@ def backfill(
                     if c < cost:
                         pose, cost, null = alt, c, n
                 spent += 0.5 * polish_ms(len(f.points)) + 2 * each
-            t.ll[f.key] = loglik(cost)
-            t.at[f.key] = pose.copy()
+            t.record(f.key, cost, pose)
             t.null[f.key] = null
             spent += each
     return spent
@@ -429,20 +416,18 @@ def merge(
     keep: int,
     scored: Frame | None = None,
 ) -> list[Track]:
-    """Add the best ``keep`` of a finished search's hypotheses (found on an earlier scan;
-    ``move`` the robot-frame odometry motion since, or ``None``) to ``tracks`` unless one
-    already holds that pose (which then counts one more ``found``). ``scored``: the plain-scan
-    frame the search ran on, still in the window: a new track's verification there is its
-    evidence on it (without it, a place just found would count as explaining the frames as
-    well as the leader, and no LLR could grow while searches keep finding places)."""
+    """Add the best ``keep`` of a finished search's hypotheses (``move``: the robot-frame
+    odometry motion since its scan, or ``None``) to ``tracks``, unless one already holds the
+    pose (found once more). ``scored``: the plain-scan frame the search ran on, still in the
+    window, where a place's verification is its evidence (unscored it would count as the
+    leader, and no LLR could grow while searches keep finding places)."""
     out = list(tracks)
     counted: list[Track] = []
     for h in hyps[:keep]:
         pose = compose(h.pose, move) if move is not None else np.asarray(h.pose, dtype=float)
-        # without odometry a robot may have turned between two scans and a track's fit from
-        # its last pose may have slid off: a place found again within the same place's
-        # distance of a track is that track, and where the search fitted this scan better
-        # the track follows it (its scores on the frames before are kept)
+        # without odometry the robot may have turned and a track's fit slid off: a place found
+        # again within the same place's distance is that track, and follows the search's fit
+        # where it is better
         if move is None and scored is not None:
             dist, turn = DISTINCT_DISTANCE, TURN_BETWEEN_SCANS
         else:
@@ -454,14 +439,12 @@ def merge(
                 counted.append(t)
             if scored is not None and h.cost < t.hyp.cost:
                 t.pose, t.hyp = pose.copy(), h
-                t.ll[scored.key] = loglik(h.cost)
-                t.at[scored.key] = pose.copy()
+                t.record(scored.key, h.cost, pose)
         if held:
             continue
         track = Track(pose.copy(), dataclasses.replace(h, pose=pose.copy()))
         if scored is not None:
-            track.ll[scored.key] = loglik(h.cost)
-            track.at[scored.key] = pose.copy()
+            track.record(scored.key, h.cost, pose)
         out.append(track)
     return out
 
@@ -473,10 +456,9 @@ def prune(
     leader: Track | None,
     g: GlobalConfig,
 ) -> list[Track]:
-    """The tracks to keep: a track trailing the ``leader`` by :data:`EVIDENCE_DROP` nats in all,
-    or the unseen place as much, on at least 3 common frames of ``keys`` goes; of the
-    rest the best ``keep`` judged on every frame of the window ``frames`` and ``keep`` still
-    being judged, one per place."""
+    """The tracks to keep: one trailing the ``leader``, or the unseen place, by
+    :data:`EVIDENCE_DROP` nats on at least 3 common frames of ``keys`` goes; of the rest the
+    best ``keep`` judged on the whole window and ``keep`` still being judged, one per place."""
     null = -EFFECTIVE_BEAMS * (g.null_cost - COST_FLOOR)
 
     def dropped(t: Track) -> bool:

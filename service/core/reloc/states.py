@@ -1,19 +1,16 @@
-"""Relocalisation as a state machine (docs/decisions/0017-relocalisation-state-machine.md): the
-states as objects and one transition function, :func:`step` (``(state, scan) -> (state,
-estimate)``).
+"""Relocalisation as a state machine (docs/decisions/0017): the states as objects and one
+transition function, :func:`step` (``(state, scan) -> (state, estimate)``).
 
 * :class:`Tracking` -- the shape tracker follows the robot. With odometry a *dead-reckoned
-  reference* rides along: the pose the odometry carried from the last scan the map explained
-  well (``good_support``), with its growing covariance. A fit of a poorly explained scan is
-  believed only within :data:`GATE_SIGMAS` of it, and a rejected scan only while the
-  reference's sigma is below ``track_sigma``; beyond either, the robot dead-reckons. A scan
+  reference* rides along from the last scan the map explained well (``good_support``). A fit
+  of a poorly explained scan is believed only within :data:`GATE_SIGMAS` of it, a rejected
+  scan only while its sigma is below ``track_sigma``; beyond, the robot dead-reckons. A scan
   that contradicts the pose (beams through drawn walls, or the scan-to-scan fit broken: a
   kidnap) ``lost_after`` times in a row starts a search; without odometry the tracker's own
   ``lost`` (or a scan that fits nothing) does.
-* :class:`DeadReckoning` -- the published pose is the dead-reckoned one (status ``lost``).
-  ``relock_scans`` scans in a row the tracker, run from it, explains well within the gate fix
-  the robot again; scans that contradict it, or a sigma past ``max_dead_reckoning_sigma``,
-  start a search with it as the prior.
+* :class:`DeadReckoning` -- publishes the dead-reckoned pose (status ``lost``) until
+  ``relock_scans`` scans in a row the tracker, run from it, explains well within the gate, or
+  a search starts from it (scans that contradict it, or ``max_dead_reckoning_sigma``).
 * :class:`Searching` -- the global search over a drive (:mod:`.drive`) within the per-scan
   budget; the decision (:mod:`.decision`) names a winner, the tracker confirms it.
 * :class:`Probation` -- with odometry a winner is tracked ``probation_travel`` metres while
@@ -48,13 +45,12 @@ SEED_TURNS = (0.0, -0.4, 0.4, -0.8, 0.8)
 #: Work (reference ms) of the tracker's confirmation of a winner: one tracker update from a
 #: fresh reset, as measured.
 CONFIRM_MS = 20.0
-#: Covariance (m², rad²) of a pose the map has just confirmed, at least: the reference starts
-#: there, and a fit is compared with a dead-reckoned pose within it. A fit's own covariance
-#: says how well the points pin it, not how far a wrong association moves it (accepted fits
-#: differ from the odometry's step by up to ~5 cm and ~1.5 degrees).
+#: Covariance (m², rad²) of a pose the map has just confirmed, at least: a fit's own says how
+#: well the points pin it, not how far a wrong association moves it (accepted fits differ
+#: from the odometry's step by up to ~5 cm and ~1.5 degrees).
 FIX_COV = np.diag([0.05**2, 0.05**2, 0.03**2])
-#: Without odometry the prior around the last tracked pose widens by this many metres per
-#: scan and per metre of the robot's known speed per scan (it may turn any amount).
+#: Without odometry the prior around the last tracked pose widens by this times the robot's
+#: known speed (m per scan, at least 5 cm) per scan; it may turn any amount.
 HELD_GROWTH = 2.0
 #: With a budget, at most this share re-scores the kept hypotheses on the scan and
 #: EVIDENCE_SHARE scores them on the keyframes they lack; the search gets the rest (larger
@@ -71,8 +67,7 @@ TWIN_REFINE_TOP = 12
 CONFIRM_DISTANCE = 0.3
 CONFIRM_ANGLE = 0.1
 CONFIRM_SIGMA = 0.05
-#: Standard deviations of the dead-reckoned reference a poorly explained fit may stray from it
-#: before the robot dead-reckons.
+#: Sigmas of the dead-reckoned reference a poorly explained fit may stray from it.
 GATE_SIGMAS = 3.0
 #: With the odometry prior off, an odometry turn larger than this (rad) still moves the
 #: tracker's pose first (the tracker follows turns up to 1.3 rad).
@@ -112,9 +107,8 @@ class Context(Protocol):
 class Tracking:
     """The tracker follows; ``ref`` / ``cov`` the dead-reckoned reference (``None`` without
     odometry), ``strikes`` scans in a row that contradicted the pose, ``broken`` whether the
-    scan-to-scan fit broke since the last scan the map explained well, ``since_fix`` scans
-    since a search's fix (a service keeps such a robot on its search worker for
-    ``settle_scans``)."""
+    scan-to-scan fit broke since the last well explained scan, ``since_fix`` scans since a
+    search's fix."""
 
     ref: np.ndarray | None = None
     cov: np.ndarray | None = None
@@ -190,16 +184,14 @@ def fit_cov(est: Estimate) -> np.ndarray:
 
 
 def _fit(ctx: Context, scan: Scan) -> Estimate:
-    """The tracker's update on ``scan``."""
     o = scan.odom
     return ctx.tracker.update(scan.ranges, scan.angles, o.reading, o.matched_from, o.spread)
 
 
 def _contradicts(ctx: Context, scan: Scan, pose: np.ndarray, cov: np.ndarray | None = None) -> bool:
-    """Whether the scan contradicts ``pose``: more than ``contradiction`` of the tracker's
-    violation beams return from beyond a drawn wall, by more than the tracker's margin plus,
-    for a dead-reckoned pose of covariance ``cov``, :data:`GATE_SIGMAS` of its position sigma (a
-    wall the pose may be that far off from is no contradiction)."""
+    """Whether more than ``contradiction`` of the tracker's violation beams return from beyond
+    a drawn wall at ``pose``, by more than the tracker's margin plus, for a dead-reckoned pose
+    of covariance ``cov``, :data:`GATE_SIGMAS` of its sigma (it may be that far off)."""
     margin = ctx.config.violation_margin
     if cov is not None:
         margin += GATE_SIGMAS * sigma_xy(cov)
@@ -284,10 +276,9 @@ def _tracking(ctx: Context, s: Tracking, scan: Scan) -> tuple[State, Estimate]:
 
 
 def _lost(ctx: Context, pose: np.ndarray, cov: np.ndarray | None) -> Searching:
-    """A search after the track is lost at ``pose`` (with odometry: dead-reckoned, ``cov``;
-    without: the last tracked pose, widened scan by scan); its prior the pose's Gaussian with
-    ``kidnap_weight`` spread over the map's places, its first track the pose itself (verified
-    a scan ago)."""
+    """A search after the track is lost at ``pose`` (dead-reckoned, ``cov``; without odometry
+    the last tracked pose, widened scan by scan): its prior the pose's Gaussian with
+    ``kidnap_weight`` spread over the map, its first track the pose (verified a scan ago)."""
     speed = ctx.tracker.known_speed()
     ctx.tracker.reset(None)
     if cov is None:
@@ -314,11 +305,10 @@ def _dead_estimate(d: DeadReckoning, est: Estimate) -> Estimate:
 def _relock(
     ctx: Context, pose: np.ndarray, cov: np.ndarray, scan: Scan
 ) -> tuple[Estimate, np.ndarray, np.ndarray, bool]:
-    """The tracker run from the dead-reckoned ``pose`` (covariance ``cov``), this scan's
-    odometry increment its prior. Returns the fit (the tracker keeps it: a relock tracks on
-    from it), the dead-reckoned pose and covariance after this scan (the fit's pose when it
-    is good), and whether it is good: accepted, explaining ``good_support`` of the scan,
-    within :data:`GATE_SIGMAS` of the dead-reckoned pose."""
+    """The tracker run from the dead-reckoned ``pose`` / ``cov``. Returns its fit (kept: a
+    relock tracks on from it), the pose and covariance after this scan (the fit's pose when
+    good) and whether the fit is good: accepted, explaining ``good_support`` of the scan,
+    within :data:`GATE_SIGMAS`."""
     o = scan.odom
     assert o.delta is not None
     ctx.tracker.reset(pose, o.previous)
@@ -379,10 +369,9 @@ def _budget(g: GlobalConfig) -> float:
 def _search_work(
     ctx: Context, drv: dr.Drive, prior: Prior, scan: Scan
 ) -> tuple[float, int, tuple[np.ndarray, np.ndarray, Configuration]]:
-    """One scan's search work within the budget: frames, re-scoring, back-scoring, the
-    pending self-similarity check or search. Returns the work spent, the finished search's
-    candidates (-1: none finished) and the scan the search matched (ranges, angles and its
-    configuration)."""
+    """One scan's search work within the budget: frames, re-scoring, the pending twin check or
+    search, back-scoring. Returns the work spent, the finished search's candidates (-1: none)
+    and the scan it matched (ranges, angles, configuration)."""
     g = ctx.gconfig
     budget = _budget(g)
     o = scan.odom
@@ -512,11 +501,10 @@ def _guess(
     extras: dict[str, float],
     fix_llr: float,
 ) -> Estimate:
-    """The pose published while the search goes on. After a loss, the prior's mean (the
-    dead-reckoned pose, or the last tracked one carried by the laser odometry) with its
-    covariance until a place is fixed: a leader short of ``fix_llr`` is a place the evidence
-    may still overturn, and a robot's consumers should not see it jump there and back. Before
-    any fix (nothing known): the leader, else the best track by cost, else the origin."""
+    """The pose published while the search goes on: after a loss the prior's mean with its
+    covariance until a fix (a leader short of ``fix_llr`` may still be overturned, and the
+    pose should not jump there and back); before any fix the leader, else the best track by
+    cost, else the origin."""
     lead = verdict.leader
     if s.prior.mean is not None and not verdict.llr >= fix_llr:
         lead = None
@@ -543,9 +531,8 @@ def _guess(
 
 
 def _confirm(ctx: Context, drv: dr.Drive, lead: dr.Track, scan: Scan) -> Estimate | None:
-    """The tracker, reset to the winner with this scan's odometry, must accept the scan within
-    :data:`CONFIRM_DISTANCE` / :data:`CONFIRM_ANGLE` of it with a position sigma of at most
-    :data:`CONFIRM_SIGMA`; then tracking starts (the estimate); ``None`` otherwise."""
+    """The tracker's fit from the winner if it accepts the scan within :data:`CONFIRM_DISTANCE`
+    / :data:`CONFIRM_ANGLE` / :data:`CONFIRM_SIGMA` of it, else ``None``."""
     ctx.tracker.reset(lead.pose, scan.odom.reading)
     if drv.speed is not None:
         ctx.tracker.set_speed(drv.speed)
@@ -617,8 +604,7 @@ def _probation(ctx: Context, p: Probation, scan: Scan) -> tuple[State, Estimate]
 
 
 def _fail(ctx: Context, p: Probation, extras: dict[str, float]) -> tuple[State, Estimate]:
-    """A failed probation: the search goes on with the hypotheses it held (the winner among
-    them)."""
+    """A failed probation: the search goes on with its hypotheses, the winner among them."""
     ctx.tracker.reset(None)
     s = Searching(p.drive, p.prior, p.status)
     extras["hypotheses"] = float(len(p.drive.tracks))
