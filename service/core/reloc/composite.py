@@ -1,18 +1,6 @@
-"""Composite scans: several scans at known relative poses fused into one virtual scan.
-
-A 180-degree laser turned in place sees the whole room over two or three scans, door included,
-which tells twin rooms apart where one scan facing a bare corner cannot. The global search
-therefore matches the scans of its window fused into one virtual 360-degree scan from the
-newest pose (:meth:`.drive.Drive.composite`), as the map's views are 360-degree too:
-
-- ``bins`` beams evenly over (-pi, pi] (bin centres) in the newest scan's robot frame; a bin
-  with no return is NaN. Within one scan the nearest return in a bin wins (occlusion).
-- The newest scan is authoritative: older scans only fill the bins the newer ones left empty
-  (their points carry the odometry error of the turn).
-- A lone empty bin between two nearly equal returns gets their mean: a turned scan's beams
-  straddle bins of about their own width, and a hole would split a polyline.
-- Older points are projected from where they were seen (occlusions are not recomputed), so
-  the caller limits the travel between the scans.
+"""Composite scans: several scans at known relative poses fused into one virtual scan. A
+180-degree laser turned in place sees the whole room over two or three scans, door included,
+which tells twin rooms apart where one scan facing a bare corner cannot.
 """
 
 from __future__ import annotations
@@ -29,10 +17,12 @@ from service.errors import LocalizationError
 def composite_scan(
     scans: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]], bins: int = 720
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Fuse ``scans`` — ``(ranges, angles, pose)`` each, oldest first, ``pose`` ``[x, y,
-    theta]`` in any common frame (odometry) — into one virtual scan ``(ranges, angles)`` of
-    ``bins`` beams over (-pi, pi] in the frame of the LAST scan's pose (module docstring).
-    Raises :class:`LocalizationError` on an empty list, ``bins < 8`` or malformed arrays."""
+    """Fuse ``scans`` (``(ranges, angles, pose)`` each, oldest first, poses in a common frame)
+    into one virtual scan ``(ranges, angles)`` of ``bins`` beams over (-pi, pi] in the frame of
+    the last. That newest scan is authoritative: older ones only fill the bins it left empty
+    (their points carry the odometry's error); within a scan the nearest return in a bin wins.
+    Older points are projected from where they were seen (occlusions are not recomputed), so
+    the caller limits the travel. Raises :class:`LocalizationError` on malformed input."""
     if not scans:
         raise LocalizationError("composite_scan needs at least one scan")
     if bins < 8:
@@ -64,7 +54,8 @@ def composite_scan(
         np.minimum.at(nearest, b, rng)
         free = np.isnan(out) & np.isfinite(nearest)
         out[free] = nearest[free]
-    # a lone hole between two returns within 5 % + 5 cm of each other (cyclically)
+    # a lone hole between two returns within 5 % + 5 cm of each other gets their mean: a turned
+    # scan's beams straddle bins of about their width, and a hole would split a polyline
     left, right = np.roll(out, 1), np.roll(out, -1)
     near = np.abs(left - right) <= 0.05 + 0.05 * np.minimum(left, right)
     hole = np.isnan(out) & np.isfinite(left) & np.isfinite(right) & near

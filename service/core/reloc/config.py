@@ -1,23 +1,25 @@
-"""Settings of relocalisation (:class:`GlobalConfig`): the view index, the global search, the
-hypotheses over a drive, the decision rule and the integrity of tracking.
-
-Two presets (:meth:`GlobalConfig.for_kind`): ``metric`` (a map drawn from the robot's own
-scans: furniture included) and ``schematic`` (a floor plan: walls only, so furniture returns
-are never explained and the bars on how much of a scan the map explains are lower). The user
-knobs among these fields are listed in :mod:`service.core.config`; settings no preset or user
-changes are constants of the modules that use them. Metres, radians; costs are beam costs
-(:meth:`service.core.sensor.scoring.BeamFractions.cost`: 0.05 explained whole, 1.05 nothing),
-log-likelihoods in nats.
+"""Settings of relocalisation (:class:`GlobalConfig`), with two presets: ``metric`` (a map
+drawn from the robot's own scans, furniture included) and ``schematic`` (a floor plan: walls
+only, so furniture returns are never explained). The user knobs among them are listed in
+:mod:`service.core.config`; settings no preset or user changes are constants of the modules
+that use them. Metres, radians; beam costs 0.05 (explained whole) to 1.05; nats.
 """
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Annotated, Literal
 
 from pydantic import ConfigDict, Field
 
 from service.core.types import Settings
 from service.errors import LocalizationError
+
+Positive = Annotated[float, Field(gt=0)]
+NonNegative = Annotated[float, Field(ge=0)]
+Share = Annotated[float, Field(ge=0, le=1)]
+PositiveShare = Annotated[float, Field(gt=0, le=1)]
+Count = Annotated[int, Field(ge=0)]
+AtLeastOne = Annotated[int, Field(ge=1)]
 
 
 class GlobalConfig(Settings):
@@ -27,48 +29,39 @@ class GlobalConfig(Settings):
 
     kind: Literal["metric", "schematic"] = Field("metric", description="Map kind these suit.")
     # --- the per-scan work budget -----------------------------------------------------------
-    search_budget_ms: float | None = Field(
+    search_budget_ms: NonNegative | None = Field(
         None,
-        ge=0,
-        description="Work (reference ms, service.core.reloc.global_search.WORK_MS) a search may "
-        "do per scan, the rest on the next scans. None: every scan searches to the end (the "
-        "paper's experiment). The service sets 50 by default.",
+        description="Work (reference ms, global_search.WORK_MS) a search may do per scan, the "
+        "rest on the next scans; None: each scan searches to the end. The service sets 50.",
     )
     # --- viewpoints, search ------------------------------------------------------------------
-    min_enclosed: float = Field(
+    min_enclosed: PositiveShare = Field(
         0.9,
-        gt=0,
-        le=1,
         description="Share of enclosure beams that must hit for a viewpoint to be inside the "
         "building. Schematic: 0.6 (plans draw doors open; at 0.9 whole paths lie far from any).",
     )
-    shortlist: int = Field(
+    shortlist: Count = Field(
         0,
-        ge=0,
         description="Coarse pose cells polished and ranked by a quick beam check before "
-        "refine_top are refined; 0: rank the raw poses by point support. Schematic: 150 "
-        "(furniture hides the walls point support needs).",
+        "refine_top are refined (0: by point support). Schematic: 150 (furniture hides walls).",
     )
-    shortlist_violation_beams: int = Field(
+    shortlist_violation_beams: Count = Field(
         0,
-        ge=0,
-        description="Beams that rank the coarse cells by support less VIOLATION_WEIGHT x their "
-        "share through drawn walls; 0: by support alone. Schematic: 40 (a wrong place that the "
-        "furniture fits sends many beams through walls, the true pose few).",
+        description="Beams that rank the coarse cells by support less their share through drawn "
+        "walls. Schematic: 40 (where the furniture fits a wrong place, its beams cross walls).",
     )
-    refine_top: int = Field(
-        16, ge=1, description="Hypotheses refined and verified. Schematic: 32 (twin rooms)."
+    refine_top: AtLeastOne = Field(
+        16, description="Hypotheses refined and verified. Schematic: 32 (twin rooms)."
     )
     verify_beams: int = Field(
         240,
         ge=10,
         description="Beams of a verification. Schematic: 720 (a door tells rooms apart).",
     )
-    keep: int = Field(8, ge=1, description="Judged hypotheses kept (and as many being judged).")
+    keep: AtLeastOne = Field(8, description="Judged hypotheses kept (and as many being judged).")
     # --- the beam model of the search and the evidence ---------------------------------------
-    violation_margin: float = Field(
+    violation_margin: NonNegative = Field(
         0.0,
-        ge=0,
         description="A return counts as through a wall only this far (m) beyond it (at least "
         "the support tolerance). Schematic: 0.5 (plans leave out niches and door jambs).",
     )
@@ -77,112 +70,85 @@ class GlobalConfig(Settings):
         description="A return beyond the predicted wall on a mapped surface behind it is no "
         "violation. Metric: on (a map drawn from scans holds chairs and doors that moved).",
     )
-    short_credit: float = Field(
+    short_credit: Share = Field(
         0.0,
-        ge=0,
-        le=1,
         description="Credit for a return short of the predicted wall (something unmapped in "
         "front). Schematic: 0.5 (a floor plan has no furniture).",
     )
     # --- the evidence over a drive ------------------------------------------------------------
-    evidence_span: float = Field(
+    evidence_span: Positive = Field(
         6.0,
-        gt=0,
         description="The window holds the keyframes of the last this many metres: longer and "
         "the odometry's drift bends a hypothesis' older poses off the map.",
     )
-    evidence_short_scale: float = Field(
+    evidence_short_scale: NonNegative = Field(
         0.0,
-        ge=0,
         description="On keyframes a short return counts exp(-(pred - r) / this) of one (0: one). "
         "Schematic: 1.0 (furniture stands just before its room's walls, not far before them).",
     )
     # --- the decision ------------------------------------------------------------------------
-    fix_llr: float = Field(
+    fix_llr: Positive = Field(
         25.0,
-        gt=0,
-        description="A hypothesis is fixed once its log-likelihood over the window, with its "
-        "prior, beats the distinct alternatives' and the unseen place's together by this many "
-        "nats: 1.25 x the smallest threshold without a false fix on the tuning split "
-        "(bench/calibrate_llr.py).",
+        description="A hypothesis is fixed once its log-likelihood ratio against the rest reaches "
+        "this (nats): 1.25 x the smallest without a false fix when tuned (docs/decisions/0017).",
     )
-    null_cost: float = Field(
+    null_cost: Positive = Field(
         0.8,
-        gt=0,
         description="The unseen place (what the search has not found) explains each frame at "
-        "this cost; the leader must beat it too. Schematic: 0.7, the true pose's 90th "
-        "percentile on the tuning floor plans.",
+        "this cost. Schematic: 0.7, the true pose's 90th percentile on tuning floor plans.",
     )
-    null_slope: float = Field(
+    null_slope: NonNegative = Field(
         0.0,
-        ge=0,
-        description="The unseen place's cost on a keyframe rises by this per metre that the "
-        "map's walls, seen from the leader's pose there, stand beyond drive.NULL_REACH on "
-        "average (at most drive.EVIDENCE_CLIP): unmapped furniture stands between far walls, "
-        "and the true place explains the keyframe worse. Schematic: 0.05. Metric: 0 (the map "
-        "holds the furniture).",
+        description="The unseen place's cost on a keyframe rises by this per metre the map's "
+        "walls stand beyond drive.NULL_REACH on average: unmapped furniture stands before far "
+        "walls, and the true place explains less. Schematic: 0.05. Metric: 0.",
     )
-    kidnap_weight: float = Field(
+    kidnap_weight: PositiveShare = Field(
         0.01,
-        gt=0,
-        le=1,
         description="After a loss the prior is the dead-reckoned pose's Gaussian and this share "
         "spread over the map: a robot carried off is rarer than a map that lacks a corridor.",
     )
-    probation_travel: float = Field(
+    probation_travel: NonNegative = Field(
         0.0,
-        ge=0,
-        description="With odometry a winner is tracked this far (m) while the evidence goes on, "
-        "and fixed if it still wins then. Schematic: 2.0 (a plan that lacks walls can let a "
-        "wrong place explain a metre or two best).",
+        description="With odometry a winner is tracked this far (m) and fixed if it still wins "
+        "then. Schematic: 2.0 (a plan lacking walls lets a wrong place win for a metre or two).",
     )
     # --- tracking's integrity (honest status) ------------------------------------------------
-    good_support: float = Field(
+    good_support: PositiveShare = Field(
         0.7,
-        gt=0,
-        le=1,
-        description="A tracked scan whose fit explains this share of its points anchors the "
-        "dead-reckoned reference; a fit of a scan explained worse is only believed within "
-        "states.GATE_SIGMAS of that reference. Schematic: 0.5.",
+        description="A fit explaining this share of its scan anchors the dead-reckoned reference; "
+        "a worse one is believed within states.GATE_SIGMAS of it. Schematic: 0.5.",
     )
-    track_sigma: float = Field(
+    track_sigma: Positive = Field(
         0.15,
-        gt=0,
-        description="A poorly explained scan is published as tracking only while the "
-        "dead-reckoned reference's position sigma is below this (m); beyond, the robot "
-        "dead-reckons (status lost).",
+        description="A poorly explained scan is tracking only while the dead-reckoned "
+        "reference's position sigma is below this (m): beyond, a pose may be half a metre off "
+        "(3 sigma) without the map saying so, and the robot dead-reckons.",
     )
-    collapse_score: float = Field(
+    collapse_score: Share = Field(
         0.5,
-        ge=0,
-        le=1,
         description="Without odometry, a rejected scan scoring below this fits the map nowhere "
         "near the pose and ends the track. Schematic: 0.45.",
     )
-    relock_scans: int = Field(
-        3, ge=1, description="Scans in a row explained well that end dead reckoning (relock)."
+    relock_scans: AtLeastOne = Field(
+        3, description="Scans in a row explained well that end dead reckoning (relock)."
     )
-    max_dead_reckoning_sigma: float = Field(
-        3.0, gt=0, description="Position sigma (m) past which dead reckoning gives way to a search."
+    max_dead_reckoning_sigma: Positive = Field(
+        3.0, description="Position sigma (m) past which dead reckoning gives way to a search."
     )
-    contradiction: float = Field(
+    contradiction: Share = Field(
         0.05,
-        ge=0,
-        le=1,
         description="A scan contradicts a pose when more than this share of its beams returns "
         "from beyond a drawn wall: more than at the true pose, less than kidnapped.",
     )
-    scan_odometry_violation: float = Field(
+    scan_odometry_violation: Share = Field(
         1.0,
-        ge=0,
-        le=1,
-        description="With laser odometry (update(from_scans=True)), a tracked pose with more "
-        "than this share of violation beams is contradicted, accepted or not: that odometry "
-        "carries a pose that slid along a corridor as precisely as a right one. Schematic: "
-        "0.15. Metric: 1 (off; the map's furniture pins the pose).",
+        description="With laser odometry, a tracked pose with more than this share of beams "
+        "through walls is contradicted: that odometry carries a pose that slid along a "
+        "corridor as well as a right one. Schematic: 0.15. Metric: 1 (off: furniture pins it).",
     )
-    settle_scans: int = Field(
-        20, ge=0, description="Scans a fixed robot stays unsettled (on a service's search worker)."
+    settle_scans: Count = Field(
+        20, description="Scans a fixed robot stays unsettled (on a service's search worker)."
     )
 
     @classmethod

@@ -1,26 +1,20 @@
 """The one decision rule of relocalisation: a log-likelihood ratio of the best place against
 the rest, over the drive's frames, with a prior.
 
-Every kept hypothesis ``h`` has a log-likelihood ``L_h`` (nats) on each frame of the drive
-(:mod:`service.core.reloc.drive`); with a prior ``pi`` over poses its evidence is ``E_h =
-sum_k L_h,k + log pi(h)``. The *rest* are the distinct alternatives (farther than
-``DISTINCT_DISTANCE`` / ``DISTINCT_ANGLE``) and the *unseen place*, a stand-in for what the
-search has not found, which explains every frame at ``null_cost``. The leader (the largest
-``E`` among the tracks scored on every frame) wins when
+A hypothesis' evidence is ``E_h = sum_k L_h,k + log pi(h)``: its log-likelihoods (nats) on the
+drive's frames (:mod:`.drive`) and its prior. The *rest* are the distinct alternatives and the
+*unseen place* (what the search has not found), which explains every frame at ``null_cost``.
+The leader, the largest ``E`` among the tracks scored on every frame, wins when
 
     LLR = E_leader - log(sum over the rest of exp(E_a))  >=  fix_llr,
 
-i.e. when the posterior odds of the leader against everything else reach ``exp(fix_llr)``.
-An alternative not yet scored on a keyframe counts as explaining it as well as the leader (it
-can only lower the LLR): a place just found is back-scored on the whole window before it can
-be ruled out. On a plain scan (no odometry) from before a place was found, which nothing can
-carry it back to, the place counts at its own mean log-likelihood per frame: counted as the
-leader's, every middling place a search found would reset the LLR.
-
-The prior (:class:`Prior`): uniform over the map while nothing is known (it cancels); after a
-loss, the dead-reckoned pose's Gaussian with ``kidnap_weight`` of the mass spread evenly over
-the map, so a place near where the robot should be needs far less evidence than one across
-the building. Nats; poses ``[x, y, theta]`` map frame; covariances m², rad².
+i.e. when the posterior odds of the leader against everything else reach ``exp(fix_llr)``. An
+alternative not yet scored on a keyframe counts as explaining it as well as the leader (it can
+only lower the LLR) until it is back-scored; on a plain scan (no odometry) from before it was
+found, which nothing carries it back to, at its own mean (as the leader's, every middling place
+a search found would reset the LLR). The prior (:class:`Prior`) is uniform while nothing is
+known; after a loss, the dead-reckoned pose's Gaussian with ``kidnap_weight`` spread over the
+map, so a place near where the robot should be needs far less evidence than one far away.
 """
 
 from __future__ import annotations
@@ -42,9 +36,8 @@ from service.core.types import wrap_angle
 @dataclass
 class Prior:
     """Where the robot may be before the scans say: ``mean`` / ``cov`` the dead-reckoned pose
-    and its covariance (``None``: nothing known, uniform), ``kidnap`` the share of the mass
-    spread evenly over ``cells`` distinct places of the map (its free area x 2 pi over a
-    place's volume)."""
+    (``None``: uniform), ``kidnap`` the share of the mass spread evenly over ``cells``
+    distinct places of the map (its free area x 2 pi over a place's volume)."""
 
     mean: np.ndarray | None
     cov: np.ndarray | None
@@ -56,22 +49,25 @@ class Prior:
         uniform = math.log(max(self.kidnap, 1e-300)) - math.log(max(self.cells, 1.0))
         if self.mean is None or self.cov is None:
             return uniform
-        e = np.asarray(pose, dtype=np.float64) - self.mean
-        e[2] = wrap_angle(float(e[2]))
-        info = numeric.inv(self.cov)
-        m2 = numeric.quadratic(e, info)
         det = max(_det3(self.cov), 1e-300)
+        m2 = mahalanobis2(pose, self.mean, self.cov)
         density = math.exp(-0.5 * m2) / math.sqrt((2.0 * math.pi) ** 3 * det)
         mass = min(1.0, density * CELL_VOLUME)
         return math.log((1.0 - self.kidnap) * mass + math.exp(uniform) + 1e-300)
 
     def moved(self, delta: np.ndarray, noise: np.ndarray) -> Prior:
-        """The prior after a robot-frame motion ``delta`` with process noise ``noise``
-        (3x3, robot frame)."""
+        """The prior after a robot-frame motion ``delta`` with process noise ``noise``."""
         if self.mean is None or self.cov is None:
             return self
         mean, cov = propagate(self.mean, self.cov, delta, noise)
         return Prior(mean, cov, self.kidnap, self.cells)
+
+
+def mahalanobis2(pose: np.ndarray, mean: np.ndarray, cov: np.ndarray) -> float:
+    """Squared Mahalanobis distance of ``pose`` from ``mean`` under ``cov``."""
+    e = np.asarray(pose, dtype=np.float64) - mean
+    e[2] = wrap_angle(float(e[2]))
+    return float(numeric.quadratic(e, numeric.inv(cov)))
 
 
 def _det3(m: np.ndarray) -> float:
@@ -85,8 +81,7 @@ def _det3(m: np.ndarray) -> float:
 
 @dataclass(frozen=True)
 class Verdict:
-    """The decision on the tracks: the ``leader`` (``None`` when no track is scored on every
-    frame of a long enough window) and its ``llr`` (nats; ``-inf`` without a leader)."""
+    """The ``leader`` scored on the whole window (or ``None``) and its ``llr`` (nats)."""
 
     leader: Track | None
     llr: float
@@ -107,10 +102,8 @@ def decide(
     tracks: list[Track], frames: list[Frame], keys: list[int], prior: Prior, g: GlobalConfig
 ) -> Verdict:
     """The leader of ``tracks`` and its LLR against the rest (module docstring), summed over
-    the frames ``keys`` (:meth:`~service.core.reloc.drive.Drive.evidence_keys`).
-    The leader must be scored on the frames of the window ``frames`` that
-    :func:`~service.core.reloc.drive.judged` names; a frame it lacks otherwise counts as the
-    unseen place explains it."""
+    the frames ``keys``. The leader must be scored on the window's frames that
+    :func:`.drive.judged` names; a frame it lacks otherwise counts as the unseen place's."""
     need = judged(frames)
     full = [t for t in tracks if all(k in t.ll for k in need)]
     if not frames or not full:
@@ -133,8 +126,7 @@ def decide(
                 total += unseen
         return total + prior.log(t.pose)
 
-    scored = [(evidence(t), t) for t in full]
-    best_e, leader = max(scored, key=lambda x: x[0])
+    best_e, leader = max(((evidence(t), t) for t in full), key=lambda x: x[0])
     # the unseen place explains each keyframe as the true place would in the leader's region
     nulls = leader.null
     null_ll = sum(
@@ -144,11 +136,11 @@ def decide(
         null = null_ll + prior.log(leader.pose)  # uniform: the same prior as any place
     else:
         null = null_ll + math.log(max(prior.kidnap, 1e-300)) - math.log(max(prior.cells, 1.0))
-    rest = [null]
-    for t in tracks:
-        if t is leader or not distinct(t.pose, leader.pose):
-            continue
-        rest.append(evidence(t, fill=leader))
+    rest = [null] + [
+        evidence(t, fill=leader)
+        for t in tracks
+        if t is not leader and distinct(t.pose, leader.pose)
+    ]
     top = max(rest)
     log_rest = top + math.log(sum(math.exp(e - top) for e in rest))
     return Verdict(leader, best_e - log_rest)

@@ -1,18 +1,12 @@
 """Hypotheses over a drive: the places a search found, followed scan by scan and judged on the
 same frames of the drive.
 
-A search runs on the scan at hand, so a place it finds is good *now*; a corridor's repeating
-doors or a room's twin can be as good now as the true place while the drive so far tells them
-apart. With odometry a hypothesis' pose now implies where the robot stood on every earlier
-keyframe, so it is scored there too (back-scored) and every hypothesis is judged on the same
-keyframes, those before a search found it included (docs/decisions/0017).
-
-The frames (:class:`Frame`, :func:`window`), the hypotheses followed over them
-(:class:`Track`), re-fitted on each scan (:func:`rescore`) and scored on the keyframes they lack
-(:func:`backfill`); a finished search's places join them (:func:`merge`), the clearly worse go
-(:func:`prune`). Work is counted in reference ms (:data:`.global_search.WORK_MS`), so the same
-scans give the same poses on any machine and under any load. Metres, radians; poses ``[x, y,
-theta]`` in the map frame, odometry poses in the odometry frame.
+A place a search finds is good on the scan at hand; a corridor's repeating doors or a room's
+twin can be as good there as the true place while the drive tells them apart. With odometry a
+hypothesis' pose implies where the robot stood on every earlier keyframe, so all are judged on
+the same keyframes, back-scored on those before a search found them (docs/decisions/0017).
+Work is counted in reference ms (:data:`.global_search.WORK_MS`): the same scans give the same
+poses on any machine. Poses ``[x, y, theta]`` in the map frame, odometry in its own.
 """
 
 from __future__ import annotations
@@ -25,25 +19,9 @@ from typing import Any
 import numpy as np
 
 from service.core.pose import compose, relative
+from service.core.reloc import global_search as gs
 from service.core.reloc.composite import composite_scan
 from service.core.reloc.config import GlobalConfig
-from service.core.reloc.global_search import (
-    COST_FLOOR,
-    DISTINCT_DISTANCE,
-    FINE_SCALE,
-    SUPPORT_POINTS,
-    WORK_MS,
-    Hypothesis,
-    beam_model,
-    beams_ms,
-    near,
-    polish_ms,
-    refine,
-    refine_ms,
-    support_sample,
-    verify,
-    verify_ms,
-)
 from service.core.reloc.view_index import ViewIndex
 from service.core.sensor.scoring import EFFECTIVE_BEAMS, beam_fractions, subsample
 from service.core.shapes.configuration import Configuration
@@ -56,25 +34,21 @@ TURN_BETWEEN_SCANS = 1.3
 #: Polish stages (step m, step rad) of a track's first keyframe: +-0.43 m / +-10 degrees.
 WIDE_POLISH = ((0.15, 0.06), (0.05, 0.02), (0.015, 0.006))
 #: With odometry a scan becomes a keyframe when the robot has driven this far (m) since the
-#: last one (closer scans repeat each other's evidence about the walls) ...
+#: last one (closer scans repeat its evidence), or turned this much (rad, new walls).
 EVIDENCE_SPACING = 0.3
-#: ... or turned this much (rad): a turn shows new walls.
 EVIDENCE_TURN = 0.3
 #: At most this many keyframes in the window (``GlobalConfig.evidence_span``).
 EVIDENCE_FRAMES = 20
 #: Without odometry the window holds the last this many scans.
 SCAN_WINDOW = 6
-#: A frame's cost is clipped here: one keyframe with a person before the laser must not
-#: outweigh the drive.
+#: A frame's cost is clipped here: one keyframe with a person in view must not outweigh a drive.
 EVIDENCE_CLIP = 1.0
-#: A track this many nats below the leader, or below the unseen place, on 3 frames at least is
-#: let go (a mean cost 0.3 worse over 10 keyframes).
+#: A track this many nats below the leader or the unseen place on 3 frames or more is let go
+#: (a mean cost 0.3 worse over 10 keyframes).
 EVIDENCE_DROP = 60.0
-#: Weight of the odometry-moved pose as a prior of the re-scoring's polish: without it a
-#: hypothesis slides along corridors.
+#: Weight of the moved pose as the re-scoring polish's prior: without it tracks slide in corridors.
 RESCORE_PRIOR = 0.02
-#: The mean predicted range (m) beyond which the unseen place's cost rises
-#: (``GlobalConfig.null_slope``).
+#: Mean predicted range (m) beyond which the unseen place's cost rises (GlobalConfig.null_slope).
 NULL_REACH = 5.0
 #: With odometry the search matches the last this many scans fused (1: every scan alone) into
 #: this many beams (never finer than the laser's), leaving out scans farther than this (m)
@@ -86,10 +60,9 @@ COMPOSITE_TRAVEL = 0.5
 
 @dataclass(eq=False)
 class Frame:
-    """A scan of the drive's evidence: ``key`` its serial number; ``ranges`` / ``angles`` the
-    judged beams (valid returns); ``points`` robot-frame return points for the polish;
-    ``odom`` its odometry pose (``None`` without odometry); ``travel`` the drive's odometry
-    travel there (m)."""
+    """A scan of the drive's evidence: ``key`` its serial number, the judged beams (valid
+    returns), robot-frame ``points`` for the polish, its ``odom`` pose (``None`` without
+    odometry) and the drive's ``travel`` there (m)."""
 
     key: int
     ranges: np.ndarray
@@ -101,13 +74,12 @@ class Frame:
 
 @dataclass(eq=False)
 class Track:
-    """A hypothesis followed over the drive: ``pose`` now; ``hyp`` its latest verification;
-    ``ll`` its log-likelihood (nats) per frame key and ``at`` its pose there; ``found`` how
-    many searches found it; ``checked`` whether its self-similarity check ran; ``null`` the
-    unseen place's cost per keyframe in the region of its pose there (:func:`null_cost`)."""
+    """A hypothesis followed over the drive: ``pose`` now, ``hyp`` its latest verification,
+    per frame key its log-likelihood ``ll`` (nats), pose ``at`` and the unseen place's cost
+    ``null`` there; ``found`` by how many searches; ``checked``: its twin check ran."""
 
     pose: np.ndarray
-    hyp: Hypothesis
+    hyp: gs.Hypothesis
     ll: dict[int, float] = field(default_factory=dict)
     at: dict[int, np.ndarray] = field(default_factory=dict)
     found: int = 1
@@ -125,10 +97,8 @@ class Track:
 
 @dataclass(eq=False)
 class Job:
-    """A search in progress: its step generator, the odometry pose of the scan it started on
-    (``None`` without odometry), the ``track`` a self-similarity check is for, and without
-    odometry the plain-scan ``frame`` it searched (its places' verification is their evidence
-    there)."""
+    """A search in progress: its steps, the odometry pose of its scan, the ``track`` a twin
+    check is for, or without odometry the plain-scan ``frame`` it searched."""
 
     steps: Generator[float, None, Any]
     odom: np.ndarray | None
@@ -143,12 +113,10 @@ def odometry_move(since: np.ndarray | None, now: np.ndarray | None) -> np.ndarra
 
 @dataclass(eq=False)
 class Drive:
-    """The hypotheses over a drive and their evidence: ``tracks``, the ``frames`` of the
-    window (``next_key`` numbers the next), the odometry ``travel`` (m), the pending search
-    ``job`` and self-similarity check ``twin`` (not pickled: a search starts again), the scans
-    of the composite (``history``), the robot's known speed before a loss (map frame, m per
-    scan) and the key of every keyframe, those that left the window included: a track's
-    scores there are kept, so evidence that told two places apart is not forgotten."""
+    """The hypotheses over a drive and their evidence: ``tracks``, the window's ``frames``, the
+    odometry ``travel`` (m), the pending search ``job`` and ``twin`` check (not pickled), the
+    composite's scans, the known speed before a loss, and every keyframe's key (a track's
+    scores there are kept: evidence that told two places apart is not forgotten)."""
 
     tracks: list[Track] = field(default_factory=list)
     frames: list[Frame] = field(default_factory=list)
@@ -182,13 +150,16 @@ class Drive:
             self.keyframes.append(frame.key)
 
     def observe(
-        self, ranges: np.ndarray, angles: np.ndarray, odom: np.ndarray, g: GlobalConfig
-    ) -> None:
-        """A scan with odometry pose ``odom``: a keyframe when one is due (:func:`frame_due`),
-        else no evidence (a standing robot's scans repeat its keyframe's walls, for a wrong
-        place as much as for the true one)."""
-        if frame_due(self.frames, odom, self.travel):
-            self.add(make_frame(self.next_key, ranges, angles, odom, self.travel, g), g)
+        self, ranges: np.ndarray, angles: np.ndarray, odom: np.ndarray | None, g: GlobalConfig
+    ) -> Frame | None:
+        """Add a scan's frame: without odometry a plain-scan frame (returned); with odometry
+        pose ``odom`` a keyframe when one is due (:func:`frame_due`), else none (a standing
+        robot's scans repeat its keyframe's walls, for a wrong place as for the true one)."""
+        if odom is not None and not frame_due(self.frames, odom, self.travel):
+            return None
+        frame = make_frame(self.next_key, ranges, angles, odom, self.travel, g)
+        self.add(frame, g)
+        return frame if odom is None else None
 
     def evidence_keys(self, g: GlobalConfig) -> list[int]:
         """The frames the decision sums over: every keyframe of the drive, or without odometry
@@ -201,8 +172,7 @@ class Drive:
     def composite(
         self, ranges: np.ndarray, angles: np.ndarray, odom: np.ndarray | None
     ) -> tuple[np.ndarray, np.ndarray]:
-        """The scan the search matches: this one, or with odometry pose ``odom`` the composite
-        of the last :data:`COMPOSITE_SCANS` (:func:`.composite.composite_scan`)."""
+        """The scan the search matches: this one, or with odometry the last few fused."""
         if odom is None or COMPOSITE_SCANS <= 1:
             self.history = []
             return ranges, angles
@@ -221,7 +191,6 @@ class Drive:
         return composite_scan(self.history, bins)
 
 
-# ------------------------------------------------------------------------------- frames
 def make_frame(
     key: int,
     ranges: np.ndarray,
@@ -234,16 +203,11 @@ def make_frame(
     r = np.asarray(ranges, dtype=np.float64)
     a = np.asarray(angles, dtype=np.float64)
     sel = subsample(np.nonzero(np.isfinite(r))[0], g.verify_beams)
-    rr, aa = r[sel].copy(), a[sel].copy()
-    pts = np.column_stack([rr * np.cos(aa), rr * np.sin(aa)])
-    return Frame(
-        key=key,
-        ranges=rr,
-        angles=aa,
-        points=subsample(pts, SUPPORT_POINTS).copy(),
-        odom=None if odom is None else np.asarray(odom, dtype=np.float64).copy(),
-        travel=float(travel),
-    )
+    ranges, angles = r[sel].copy(), a[sel].copy()
+    points = np.column_stack([ranges * np.cos(angles), ranges * np.sin(angles)])
+    points = subsample(points, gs.SUPPORT_POINTS)
+    odom = None if odom is None else np.asarray(odom, dtype=np.float64).copy()
+    return Frame(key, ranges, angles, points.copy(), odom, float(travel))
 
 
 def frame_due(frames: list[Frame], odom: np.ndarray, travel: float) -> bool:
@@ -279,38 +243,33 @@ def judged(frames: list[Frame]) -> list[int]:
 
 def loglik(cost: float) -> float:
     """A frame's log-likelihood (nats) from its beam cost, clipped at :data:`EVIDENCE_CLIP`."""
-    return -EFFECTIVE_BEAMS * (min(cost, EVIDENCE_CLIP) - COST_FLOOR)
+    return -EFFECTIVE_BEAMS * (min(cost, EVIDENCE_CLIP) - gs.COST_FLOOR)
 
 
 def frame_cost(
     index: ViewIndex, pose: np.ndarray, f: Frame, config: ShapeConfig, g: GlobalConfig
 ) -> tuple[float, float]:
     """The beam cost of ``pose`` on frame ``f``'s beams (short returns graded by
-    ``evidence_short_scale``) and the unseen place's cost there (:func:`null_cost`)."""
+    ``evidence_short_scale``) and the unseen place's cost there, which rises with the mean
+    range of the map's walls (``GlobalConfig.null_slope``)."""
     if f.ranges.size == 0:
         return EVIDENCE_CLIP, g.null_cost
     assert index.sensor is not None
-    m = beam_model(config, g, short_scale=g.evidence_short_scale)
+    m = gs.beam_model(config, g, short_scale=g.evidence_short_scale)
     pred, landed = index.sensor.predict(pose, f.ranges, f.angles, m)
     cost = beam_fractions(f.ranges, pred, m, landed).cost(m)
-    return cost, null_cost(np.where(np.isfinite(pred), pred, m.max_range), g)
-
-
-def null_cost(predicted: np.ndarray, g: GlobalConfig) -> float:
-    """The unseen place's cost on a frame whose beams would meet the map's walls at
-    ``predicted`` ranges (m) (``GlobalConfig.null_slope``)."""
-    if g.null_slope <= 0.0 or predicted.size == 0:
-        return g.null_cost
-    reach = float(np.mean(predicted))
-    return min(EVIDENCE_CLIP, g.null_cost + g.null_slope * max(0.0, reach - NULL_REACH))
+    if g.null_slope <= 0.0:
+        return cost, g.null_cost
+    reach = float(np.mean(np.where(np.isfinite(pred), pred, m.max_range)))
+    return cost, min(EVIDENCE_CLIP, g.null_cost + g.null_slope * max(0.0, reach - NULL_REACH))
 
 
 def pair_ms(index: ViewIndex, g: GlobalConfig) -> float:
     """Work (reference ms) of scoring one track on one keyframe: a polish and the beams."""
-    return WORK_MS["polish_call"] + polish_ms(SUPPORT_POINTS) + beams_ms(index, g, g.verify_beams)
+    polish = gs.WORK_MS["polish_call"] + gs.polish_ms(gs.SUPPORT_POINTS)
+    return polish + gs.beams_ms(index, g, g.verify_beams)
 
 
-# ------------------------------------------------------------------------------- re-scoring
 def rescore(
     index: ViewIndex,
     tracks: list[Track],
@@ -323,15 +282,14 @@ def rescore(
     scan: Frame | None,
 ) -> float:
     """Fit each track (best first) to this scan and verify it within ``limit`` reference ms;
-    return the work spent. With odometry (``scan`` is ``None``) the tracks were moved by it
-    and a polish, the moved pose its prior, absorbs its error; without, the point-to-line
-    refinement follows the robot, and the verification is the track's evidence on ``scan``."""
+    return the work spent. With odometry a polish absorbs its error; without, a refinement
+    follows the robot, and the verification is the track's evidence on the frame ``scan``."""
     if not tracks:
         return 0.0
-    sp = support_sample(P)
+    sp = gs.support_sample(P)
     odometry = scan is None
-    fit_ms = polish_ms(len(sp)) if odometry else refine_ms(index)
-    each = fit_ms + verify_ms(index, g)
+    fit_ms = gs.polish_ms(len(sp)) if odometry else gs.refine_ms(index)
+    each = fit_ms + gs.verify_ms(index, g)
     n = len(tracks) if not np.isfinite(limit) else max(1, min(len(tracks), int(limit // each)))
     chosen = sorted(tracks, key=lambda t: t.hyp.cost)[:n]
     if len(sp) == 0:
@@ -339,11 +297,11 @@ def rescore(
     poses = np.vstack([t.pose for t in chosen])
     if odometry:
         assert index.sensor is not None
-        fitted, _ = index.sensor.polish(poses, sp, FINE_SCALE, prior=RESCORE_PRIOR)
+        fitted, _ = index.sensor.polish(poses, sp, gs.FINE_SCALE, prior=RESCORE_PRIOR)
     else:
-        fitted = refine(index, poses, sp, config)
+        fitted = gs.refine(index, poses, sp, config)
     for t, p in zip(chosen, fitted, strict=True):
-        t.hyp = verify(index, p, ranges, angles, P, config, g)
+        t.hyp = gs.verify(index, p, ranges, angles, P, config, g)
         t.pose = t.hyp.pose.copy()
         if scan is not None:
             t.record(scan.key, t.hyp.cost, t.hyp.pose)
@@ -381,58 +339,52 @@ def backfill(
                 continue
             if spent >= limit:
                 return spent
+            # carried by the odometry from the next keyframe it was scored on, else from now
             newer = [k for k in t.at if k > f.key]
-            if newer:
-                k = min(newer)
-                start = compose(t.at[k], relative(odom_of[k], f.odom))
-            else:
-                start = compose(t.pose, relative(odom_now, f.odom))
+            base, odom = (t.at[min(newer)], odom_of[min(newer)]) if newer else (t.pose, odom_now)
+            start = compose(base, relative(odom, f.odom))
             polished, _ = index.sensor.polish(
-                start[None, :], f.points, FINE_SCALE, prior=RESCORE_PRIOR
+                start[None, :], f.points, gs.FINE_SCALE, prior=RESCORE_PRIOR
             )
             pose = polished[0]
             cost, null = frame_cost(index, pose, f, config, g)
             if not t.ll:
-                # a track's first keyframe: also a wider polish without a prior, and the pose
-                # as given; the one the beams explain best is kept (a hypothesis some degrees
-                # off converges before it is judged, else it may lose to a mirrored alias)
-                wide, _ = index.sensor.polish(start[None, :], f.points, FINE_SCALE, WIDE_POLISH)
+                # a track's first keyframe: also a wide polish and the pose as given, so a
+                # hypothesis some degrees off converges before it is judged
+                wide, _ = index.sensor.polish(start[None, :], f.points, gs.FINE_SCALE, WIDE_POLISH)
                 for alt in (wide[0], start):
                     c, n = frame_cost(index, alt, f, config, g)
                     if c < cost:
                         pose, cost, null = alt, c, n
-                spent += 0.5 * polish_ms(len(f.points)) + 2 * each
+                spent += 0.5 * gs.polish_ms(len(f.points)) + 2 * each
             t.record(f.key, cost, pose)
             t.null[f.key] = null
             spent += each
     return spent
 
 
-# ------------------------------------------------------------------------------- the tracks
 def merge(
     tracks: list[Track],
-    hyps: list[Hypothesis],
+    hyps: list[gs.Hypothesis],
     move: np.ndarray | None,
     keep: int,
     scored: Frame | None = None,
 ) -> list[Track]:
-    """Add the best ``keep`` of a finished search's hypotheses (``move``: the robot-frame
-    odometry motion since its scan, or ``None``) to ``tracks``, unless one already holds the
-    pose (found once more). ``scored``: the plain-scan frame the search ran on, still in the
-    window, where a place's verification is its evidence (unscored it would count as the
-    leader, and no LLR could grow while searches keep finding places)."""
+    """Add the best ``keep`` of a finished search's hypotheses (``move``: the odometry motion
+    since its scan) to ``tracks`` unless one holds the pose already (found once more).
+    ``scored``: the plain-scan frame it ran on, still in the window, where a place's
+    verification is its evidence (unscored it would count as the leader's)."""
     out = list(tracks)
     counted: list[Track] = []
     for h in hyps[:keep]:
         pose = compose(h.pose, move) if move is not None else np.asarray(h.pose, dtype=float)
-        # without odometry the robot may have turned and a track's fit slid off: a place found
-        # again within the same place's distance is that track, and follows the search's fit
-        # where it is better
+        # without odometry the robot may have turned and a fit slid off: a place found again
+        # within a place's distance is that track, and follows the search's better fit
         if move is None and scored is not None:
-            dist, turn = DISTINCT_DISTANCE, TURN_BETWEEN_SCANS
+            dist, turn = gs.DISTINCT_DISTANCE, TURN_BETWEEN_SCANS
         else:
             dist, turn = 0.3, 0.15
-        held = [t for t in out if near(t.pose, pose, dist, turn)]
+        held = [t for t in out if gs.near(t.pose, pose, dist, turn)]
         for t in held:
             if t not in counted:
                 t.found += 1
@@ -459,7 +411,7 @@ def prune(
     """The tracks to keep: one trailing the ``leader``, or the unseen place, by
     :data:`EVIDENCE_DROP` nats on at least 3 common frames of ``keys`` goes; of the rest the
     best ``keep`` judged on the whole window and ``keep`` still being judged, one per place."""
-    null = -EFFECTIVE_BEAMS * (g.null_cost - COST_FLOOR)
+    null = -EFFECTIVE_BEAMS * (g.null_cost - gs.COST_FLOOR)
 
     def dropped(t: Track) -> bool:
         mine = [t.ll[k] for k in keys if k in t.ll]
@@ -477,30 +429,22 @@ def prune(
     win = judged(frames)
     full = [t for t in live if all(k in t.ll for k in win)]
 
-    def total(t: Track) -> float:
-        return -sum(t.ll.get(k, 0.0) for k in keys)
-
-    done = sorted(full, key=total)
-    if leader is not None and leader in done:
-        done.remove(leader)
-        done.insert(0, leader)
+    done = sorted(full, key=lambda t: -sum(t.ll.get(k, 0.0) for k in keys))
+    done.sort(key=lambda t: t is not leader)  # the leader first
     pending = sorted((t for t in live if t not in full), key=lambda t: (-len(t.ll), t.hyp.cost))
     out: list[Track] = []
     for group in (done, pending):
-        taken = 0
+        before = len(out)
         for t in group:
-            if taken >= g.keep:
+            if len(out) - before >= g.keep:
                 break
-            if any(near(t.pose, o.pose) for o in out):
-                continue
-            out.append(t)
-            taken += 1
+            if not any(gs.near(t.pose, o.pose) for o in out):
+                out.append(t)
     return out
 
 
 def candidates(tracks: list[Track], first: Track | None = None, k: int = 5) -> np.ndarray:
-    """The first ``k`` tracks, ``first`` before the others, as ``(k, 4)`` rows ``[x, y, theta,
-    cost]`` (for the wire)."""
+    """The first ``k`` tracks, ``first`` first, as rows ``[x, y, theta, cost]``."""
     order = ([first] if first is not None else []) + [t for t in tracks if t is not first]
     rows = [[*map(float, t.pose), float(t.hyp.cost)] for t in order[:k]]
     return np.array(rows, dtype=np.float64).reshape(-1, 4)

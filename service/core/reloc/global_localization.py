@@ -24,17 +24,10 @@ __all__ = ["GlobalConfig", "GlobalShapeLocalizer", "ShapeConfig", "load_or_build
 
 class GlobalShapeLocalizer:
     """Shape-based localisation with relocalisation (a :class:`service.core.types.Localizer`,
-    method ``shape``).
-
-    ``initial_pose`` ``[x, y, theta]`` or ``None`` (unknown: global localisation); ``config``
-    and ``gconfig`` default to the map kind's presets; ``cache_dir`` is where the map's
+    method ``shape``). ``initial_pose`` ``None``: unknown (global localisation); ``config`` and
+    ``gconfig`` default to the map kind's presets; ``cache_dir``: where the map's
     :class:`ViewIndex` is cached (``None``: in memory), built on the first scan that searches.
-
-    Each estimate carries its state (``Estimate.state``): ``tracking``, ``dead_reckoning``
-    (the dead-reckoned pose and its growing covariance, status ``lost``), ``searching`` and
-    ``probation`` (status ``initializing`` before any fix, ``lost`` after one; the best guess,
-    its ambiguity and the candidates).
-    """
+    Each estimate carries its state (:class:`.states.State`'s ``name``)."""
 
     method = "shape"
 
@@ -58,12 +51,10 @@ class GlobalShapeLocalizer:
         self._index: ViewIndex | None = None
         self.state: st.State = st.Tracking()
         self.work_ms = 0.0  # reference ms of search work on the last scan
-        self.searches = 0  # scans that searched
         self.reset(initial_pose)
 
     def __getstate__(self) -> dict[str, object]:
-        """Picklable state (a robot moved to another worker process) without the view index,
-        which the new process loads from its cache on first use."""
+        """Picklable state without the view index (a new process loads it on first use)."""
         return {**self.__dict__, "_index": None}
 
     def __setstate__(self, state: dict[str, Any]) -> None:
@@ -125,12 +116,10 @@ class GlobalShapeLocalizer:
         odom_spread: np.ndarray | None = None,
         from_scans: bool = False,
     ) -> Estimate:
-        """Localise one scan. ``ranges`` metres (NaN = no return), ``angles`` radians robot
-        frame, ``odom`` optional odometry pose (own frame; corrected by the scans first);
-        ``odom_spread`` its increment's translation variance beyond the odometry model's
-        (:meth:`service.core.tracking.motion.MotionModel.predict`); ``from_scans``: ``odom`` was
-        measured from the scans (laser odometry), so it cannot vouch for a pose the scan
-        contradicts (``GlobalConfig.scan_odometry_violation``)."""
+        """Localise one scan (:meth:`service.core.types.Localizer.update`). ``odom_spread``:
+        the increment's translation variance beyond the odometry model's; ``from_scans``:
+        ``odom`` was measured from the scans (laser odometry) and cannot vouch for a pose the
+        scan contradicts (``GlobalConfig.scan_odometry_violation``)."""
         r, a = check_scan(ranges, angles)
         o = None if odom is None else check_pose3(odom, "odom")
         step = self.odometry.step(r, a, o, odom_spread)
@@ -150,7 +139,7 @@ def _from_earlier(old: dict[str, Any]) -> dict[str, Any]:
     budget = getattr(old.get("gconfig"), "search_budget_ms", None)
     if budget is not None:
         g = g.model_copy(update={"search_budget_ms": float(budget)})
-    new.update(gconfig=g, _index=None, work_ms=0.0, searches=0)
+    new.update(gconfig=g, _index=None, work_ms=0.0)
     odo = Odometry(new["config"].motion)
     last = old.get("_last_odom")
     odo.reset(None if last is None else np.asarray(last, dtype=np.float64))

@@ -1,20 +1,7 @@
-"""Relocalisation as a state machine (docs/decisions/0017): the states as objects and one
-transition function, :func:`step` (``(state, scan) -> (state, estimate)``).
-
-* :class:`Tracking` -- the shape tracker follows the robot. With odometry a *dead-reckoned
-  reference* rides along from the last scan the map explained well (``good_support``). A fit
-  of a poorly explained scan is believed only within :data:`GATE_SIGMAS` of it, a rejected
-  scan only while its sigma is below ``track_sigma``; beyond, the robot dead-reckons. A scan
-  that contradicts the pose (beams through drawn walls, or the scan-to-scan fit broken: a
-  kidnap) ``lost_after`` times in a row starts a search; without odometry the tracker's own
-  ``lost`` (or a scan that fits nothing) does.
-* :class:`DeadReckoning` -- publishes the dead-reckoned pose (status ``lost``) until
-  ``relock_scans`` scans in a row the tracker, run from it, explains well within the gate, or
-  a search starts from it (scans that contradict it, or ``max_dead_reckoning_sigma``).
-* :class:`Searching` -- the global search over a drive (:mod:`.drive`) within the per-scan
-  budget; the decision (:mod:`.decision`) names a winner, the tracker confirms it.
-* :class:`Probation` -- with odometry a winner is tracked ``probation_travel`` metres while
-  the evidence goes on, and fixed if the decision still names it then.
+"""Relocalisation as a state machine: the states (:class:`Tracking`, :class:`DeadReckoning`,
+:class:`Searching`, :class:`Probation`) as objects and one transition function, :func:`step`
+(``(state, scan) -> (state, estimate)``). The transitions are drawn in
+docs/architecture-core.md and argued in docs/decisions/0017.
 """
 
 from __future__ import annotations
@@ -26,11 +13,10 @@ from typing import Protocol
 
 import numpy as np
 
-from service.core import numeric
 from service.core.pose import propagate, sigma_xy
 from service.core.reloc import drive as dr
 from service.core.reloc.config import GlobalConfig
-from service.core.reloc.decision import CELL_VOLUME, Prior, Verdict, decide
+from service.core.reloc.decision import CELL_VOLUME, Prior, Verdict, decide, mahalanobis2
 from service.core.reloc.global_search import Hypothesis, advance, search_steps, self_similar_steps
 from service.core.reloc.view_index import ViewIndex
 from service.core.reloc.view_index.viewpoints import SPACING
@@ -42,8 +28,7 @@ from service.core.types import Estimate, Status, wrap_angle
 #: Heading offsets (rad) under which a kept hypothesis seeds the next search: a robot may turn
 #: that much between two scans, more than the fit recovers.
 SEED_TURNS = (0.0, -0.4, 0.4, -0.8, 0.8)
-#: Work (reference ms) of the tracker's confirmation of a winner: one tracker update from a
-#: fresh reset, as measured.
+#: Work (reference ms) of the tracker's confirmation of a winner: one update from a reset.
 CONFIRM_MS = 20.0
 #: Covariance (m², rad²) of a pose the map has just confirmed, at least: a fit's own says how
 #: well the points pin it, not how far a wrong association moves it (accepted fits differ
@@ -57,8 +42,7 @@ HELD_GROWTH = 2.0
 #: shares for the tracks fixed fewer robots).
 RESCORE_SHARE = 0.3
 EVIDENCE_SHARE = 0.2
-#: At most this shortlist and refine_top in a self-similarity check (it searches the map's
-#: own view).
+#: At most this shortlist and refine_top in a twin check (it searches the map's own view).
 TWIN_SHORTLIST = 60
 TWIN_REFINE_TOP = 12
 #: The tracker's first fit must lie this close to the winner (m), turned less than this (rad)
@@ -76,11 +60,8 @@ ODOM_TURN_ASSIST = 1.0
 
 @dataclass(frozen=True)
 class Scan:
-    """One scan and its odometry: ``ranges`` (m, NaN = none) and ``angles`` (rad, robot
-    frame), the :class:`~service.core.tracking.scan_odometry.OdometryStep`, whether the
-    tracker uses the odometry as its prior (``odometry``) and whether it was measured from the
-    scans themselves (``from_scans``, laser odometry: it cannot vouch for a pose the scan
-    contradicts)."""
+    """One scan (robot frame) and its odometry step; ``odometry``: the tracker's prior uses it;
+    ``from_scans``: laser odometry, which cannot vouch for a pose the scan contradicts."""
 
     ranges: np.ndarray
     angles: np.ndarray
@@ -96,19 +77,17 @@ class Context(Protocol):
     gconfig: GlobalConfig
     tracker: ShapeLocalizer
     work_ms: float
-    searches: int
 
     @property
     def index(self) -> ViewIndex: ...
 
 
-# ------------------------------------------------------------------------------- the states
 @dataclass
 class Tracking:
-    """The tracker follows; ``ref`` / ``cov`` the dead-reckoned reference (``None`` without
-    odometry), ``strikes`` scans in a row that contradicted the pose, ``broken`` whether the
-    scan-to-scan fit broke since the last well explained scan, ``since_fix`` scans since a
-    search's fix."""
+    """The tracker follows. With odometry ``ref`` / ``cov``, carried from the last scan the map
+    explained well, gate worse fits (:data:`GATE_SIGMAS`, ``track_sigma``). ``strikes``: scans
+    in a row that contradicted the pose; ``broken``: the scan-to-scan fit broke since the last
+    well explained scan; ``since_fix``: scans since a search's fix."""
 
     ref: np.ndarray | None = None
     cov: np.ndarray | None = None
@@ -120,9 +99,9 @@ class Tracking:
 
 @dataclass
 class DeadReckoning:
-    """The map does not explain the scans: ``pose`` / ``cov`` dead-reckoned; ``relock`` scans
-    in a row the tracker explained well from it, ``strikes`` and ``broken`` as
-    :class:`Tracking`'s."""
+    """The map does not explain the scans: ``pose`` / ``cov`` dead-reckoned (status ``lost``)
+    until ``relock_scans`` (``relock``) the tracker explains well from it, or a search starts
+    from it; ``strikes`` and ``broken`` as :class:`Tracking`'s."""
 
     pose: np.ndarray
     cov: np.ndarray
@@ -134,24 +113,22 @@ class DeadReckoning:
 
 @dataclass
 class Searching:
-    """The search over a drive: ``drive`` the hypotheses and frames, ``prior`` where the robot
-    may be (default: uniform over the map), ``status`` published (``initializing`` before any
-    fix, ``lost`` after one), ``scans`` searched so far; with a dead-reckoned prior and
-    odometry, ``relock`` as :class:`DeadReckoning`'s, from the prior's mean."""
+    """The search over a ``drive``: ``prior`` where the robot may be (default uniform), the
+    ``status`` published (``initializing`` before any fix, ``lost`` after one); ``relock`` as
+    :class:`DeadReckoning`'s, from a dead-reckoned prior's mean."""
 
     drive: dr.Drive = field(default_factory=dr.Drive)
     prior: Prior = field(default_factory=lambda: Prior(None, None, 1.0, 1.0))
     status: Status = "initializing"
-    scans: int = 0
     relock: int = 0
     name: str = "searching"
 
 
 @dataclass
 class Probation:
-    """A winner tracked before it is published: ``winner`` its track among the ``drive``'s,
-    ``left`` the travel (m) still to go, ``rejected`` scans in a row that contradicted it,
-    ``ambiguity`` the decision's when it named the winner (published until the verdict)."""
+    """With odometry a winner (``winner``, among the ``drive``'s tracks) is tracked
+    ``probation_travel`` metres (``left`` to go) and fixed if the decision still names it then;
+    ``rejected``: scans in a row that contradicted it; ``ambiguity``: the decision's."""
 
     drive: dr.Drive
     prior: Prior
@@ -164,15 +141,6 @@ class Probation:
 
 
 State = Tracking | DeadReckoning | Searching | Probation
-
-
-# ------------------------------------------------------------------------------- helpers
-def mahalanobis2(pose: np.ndarray, mean: np.ndarray, cov: np.ndarray) -> float:
-    """Squared Mahalanobis distance of ``pose`` from ``mean`` under ``cov`` (plus the fit's
-    own covariance, :data:`FIX_COV`)."""
-    e = np.asarray(pose, dtype=np.float64) - mean
-    e[2] = wrap_angle(float(e[2]))
-    return float(numeric.quadratic(e, numeric.inv(cov + FIX_COV)))
 
 
 def fit_cov(est: Estimate) -> np.ndarray:
@@ -189,9 +157,8 @@ def _fit(ctx: Context, scan: Scan) -> Estimate:
 
 
 def _contradicts(ctx: Context, scan: Scan, pose: np.ndarray, cov: np.ndarray | None = None) -> bool:
-    """Whether more than ``contradiction`` of the tracker's violation beams return from beyond
-    a drawn wall at ``pose``, by more than the tracker's margin plus, for a dead-reckoned pose
-    of covariance ``cov``, :data:`GATE_SIGMAS` of its sigma (it may be that far off)."""
+    """Whether more than ``contradiction`` of the beams return from beyond a drawn wall at
+    ``pose``, by the tracker's margin plus, with ``cov``, :data:`GATE_SIGMAS` of its sigma."""
     margin = ctx.config.violation_margin
     if cov is not None:
         margin += GATE_SIGMAS * sigma_xy(cov)
@@ -199,7 +166,6 @@ def _contradicts(ctx: Context, scan: Scan, pose: np.ndarray, cov: np.ndarray | N
     return share > ctx.gconfig.contradiction
 
 
-# ------------------------------------------------------------------------------- the step
 def step(ctx: Context, state: State, scan: Scan) -> tuple[State, Estimate]:
     """The one transition function: the next state and the estimate to publish."""
     if isinstance(state, Tracking):
@@ -254,11 +220,9 @@ def _tracking(ctx: Context, s: Tracking, scan: Scan) -> tuple[State, Estimate]:
     if not slid and not rejected and (est.explained or 0.0) >= g.good_support:
         s.ref, s.cov, s.strikes, s.broken = est.pose.copy(), fit_cov(est), 0, False
         return s, est
-    # a poorly explained scan: does it contradict the pose (a kidnap)? After a break of the
-    # scan-to-scan fit every scan the map fits poorly does (the scans after a kidnap match
-    # each other again, and a plan's outline may half explain them without a beam through a
-    # wall); otherwise only a rejected, low-scoring scan whose beams cross drawn walls (beams
-    # through moved furniture cross one too, on a scan the tracker still fits)
+    # a poorly explained scan contradicts the pose (a kidnap) after a break of the scan-to-scan
+    # fit (the scans after a kidnap match each other again), else only if rejected, scoring
+    # low, with beams through drawn walls (moved furniture lets beams through on a good fit)
     low = est.score < g.collapse_score
     s.broken = (s.broken or o.broken) and low
     contradicted = slid or s.broken or (rejected and low and _contradicts(ctx, scan, est.pose))
@@ -266,7 +230,7 @@ def _tracking(ctx: Context, s: Tracking, scan: Scan) -> tuple[State, Estimate]:
     if s.strikes >= ctx.config.lost_after:
         est.extras["contradicted"] = 1.0
         return _lost(ctx, s.ref, s.cov), est
-    stray = not rejected and mahalanobis2(est.pose, s.ref, s.cov) > GATE_SIGMAS**2
+    stray = not rejected and mahalanobis2(est.pose, s.ref, s.cov + FIX_COV) > GATE_SIGMAS**2
     if stray or est.status == "lost" or sigma_xy(s.cov) > g.track_sigma:
         est.extras["stray" if stray else "unexplained"] = 1.0
         ctx.tracker.reset(None)
@@ -305,10 +269,9 @@ def _dead_estimate(d: DeadReckoning, est: Estimate) -> Estimate:
 def _relock(
     ctx: Context, pose: np.ndarray, cov: np.ndarray, scan: Scan
 ) -> tuple[Estimate, np.ndarray, np.ndarray, bool]:
-    """The tracker run from the dead-reckoned ``pose`` / ``cov``. Returns its fit (kept: a
-    relock tracks on from it), the pose and covariance after this scan (the fit's pose when
-    good) and whether the fit is good: accepted, explaining ``good_support`` of the scan,
-    within :data:`GATE_SIGMAS`."""
+    """The tracker run from the dead-reckoned ``pose`` / ``cov``: its fit (kept), the pose (the
+    fit's if good) and covariance after this scan, and whether the fit is good: accepted,
+    explaining ``good_support``, within :data:`GATE_SIGMAS`."""
     o = scan.odom
     assert o.delta is not None
     ctx.tracker.reset(pose, o.previous)
@@ -319,7 +282,7 @@ def _relock(
         "rejected" not in est.extras
         and est.status == "tracking"
         and (est.explained or 0.0) >= ctx.gconfig.good_support
-        and mahalanobis2(est.pose, pose, cov) <= GATE_SIGMAS**2
+        and mahalanobis2(est.pose, pose, cov + FIX_COV) <= GATE_SIGMAS**2
     )
     return est, est.pose.copy() if good else pose, cov, good
 
@@ -346,7 +309,6 @@ def _dead_reckoning(ctx: Context, d: DeadReckoning, scan: Scan) -> tuple[State, 
     return d, out
 
 
-# ------------------------------------------------------------------------------- searching
 def _seeds(drive: dr.Drive, prior: Prior, odometry: bool) -> list[np.ndarray]:
     """The kept tracks as the next search's seeds, each turned by :data:`SEED_TURNS`, and the
     prior's mean (all round the circle without odometry: the robot may have turned)."""
@@ -369,20 +331,14 @@ def _budget(g: GlobalConfig) -> float:
 def _search_work(
     ctx: Context, drv: dr.Drive, prior: Prior, scan: Scan
 ) -> tuple[float, int, tuple[np.ndarray, np.ndarray, Configuration]]:
-    """One scan's search work within the budget: frames, re-scoring, the pending twin check or
-    search, back-scoring. Returns the work spent, the finished search's candidates (-1: none)
-    and the scan it matched (ranges, angles, configuration)."""
+    """One scan's search work within the budget. Returns the work spent, the finished search's
+    candidates (-1: none) and the scan it matched (ranges, angles, configuration)."""
     g = ctx.gconfig
     budget = _budget(g)
     o = scan.odom
     rs, as_ = drv.composite(scan.ranges, scan.angles, o.reading)
     P = scan_configuration(rs, as_, ctx.config.extraction())
-    frame = None
-    if o.reading is not None:
-        drv.observe(scan.ranges, scan.angles, o.reading, g)
-    else:
-        frame = dr.make_frame(drv.next_key, scan.ranges, scan.angles, None, drv.travel, g)
-        drv.add(frame, g)
+    frame = drv.observe(scan.ranges, scan.angles, o.reading, g)  # a plain scan's frame
     spent = dr.rescore(
         ctx.index, drv.tracks, rs, as_, P, ctx.config, g, budget * RESCORE_SHARE, frame
     )
@@ -433,8 +389,6 @@ def _decide(ctx: Context, drv: dr.Drive, prior: Prior) -> Verdict:
 
 def _searching(ctx: Context, s: Searching, scan: Scan) -> tuple[State, Estimate]:
     g = ctx.gconfig
-    ctx.searches += 1
-    s.scans += 1
     o = scan.odom
     drv = s.drive
     if o.delta is not None:
@@ -467,12 +421,11 @@ def _searching(ctx: Context, s: Searching, scan: Scan) -> tuple[State, Estimate]
         extras["lead_checked"] = float(lead.checked)
         extras["lead_found"] = float(lead.found)
     if lead is not None and not lead.checked and drv.twin is None:
-        tg = g.model_copy(
-            update={
-                "shortlist": min(g.shortlist, TWIN_SHORTLIST),
-                "refine_top": min(g.refine_top, TWIN_REFINE_TOP),
-            }
-        )
+        twin = {
+            "shortlist": min(g.shortlist, TWIN_SHORTLIST),
+            "refine_top": min(g.refine_top, TWIN_REFINE_TOP),
+        }
+        tg = g.model_copy(update=twin)
         steps = self_similar_steps(ctx.index, lead.hyp, rs, as_, P, ctx.config, tg)
         drv.twin = dr.Job(steps, None if o.reading is None else o.reading.copy(), track=lead)
     ctx.work_ms = spent
@@ -491,21 +444,15 @@ def _searching(ctx: Context, s: Searching, scan: Scan) -> tuple[State, Estimate]
             ref = est.pose.copy() if scan.odometry else None
             return Tracking(ref, fit_cov(est), since_fix=0), est
         extras["confirm_rejected"] = 1.0
-    return s, _guess(drv, s, verdict, extras, g.fix_llr)
+    return s, _guess(s, verdict, extras, g.fix_llr)
 
 
-def _guess(
-    drv: dr.Drive,
-    s: Searching | Probation,
-    verdict: Verdict,
-    extras: dict[str, float],
-    fix_llr: float,
-) -> Estimate:
+def _guess(s: Searching, verdict: Verdict, extras: dict[str, float], fix_llr: float) -> Estimate:
     """The pose published while the search goes on: after a loss the prior's mean with its
     covariance until a fix (a leader short of ``fix_llr`` may still be overturned, and the
     pose should not jump there and back); before any fix the leader, else the best track by
     cost, else the origin."""
-    lead = verdict.leader
+    drv, lead = s.drive, verdict.leader
     if s.prior.mean is not None and not verdict.llr >= fix_llr:
         lead = None
     elif lead is None and drv.tracks:
@@ -549,7 +496,6 @@ def _confirm(ctx: Context, drv: dr.Drive, lead: dr.Track, scan: Scan) -> Estimat
     return None
 
 
-# ------------------------------------------------------------------------------- probation
 def _probation_estimate(p: Probation, est: Estimate) -> Estimate:
     est.status = p.status
     est.ambiguity = p.ambiguity
@@ -588,10 +534,8 @@ def _probation(ctx: Context, p: Probation, scan: Scan) -> tuple[State, Estimate]
         p.left = math.inf  # no travel to count: the probation cannot end well
     if est.status == "lost" or p.rejected >= ctx.config.lost_after or p.left == math.inf:
         return _fail(ctx, p, {"probation_failed": 1.0})
-    complete = all(f.key in p.winner.ll for f in frames)
-    if p.left > 0.0 or rejected or not complete:
-        # a probation passes only on a scan the tracker accepted, once the winner is scored
-        # on the whole window (the verdict compares it with the rest there)
+    if p.left > 0.0 or rejected or not all(f.key in p.winner.ll for f in frames):
+        # it passes on an accepted scan once the winner is scored on the whole window
         return p, _probation_estimate(p, est)
     verdict = _decide(ctx, drv, p.prior)
     if verdict.leader is p.winner and verdict.llr >= g.fix_llr:
@@ -608,4 +552,4 @@ def _fail(ctx: Context, p: Probation, extras: dict[str, float]) -> tuple[State, 
     ctx.tracker.reset(None)
     s = Searching(p.drive, p.prior, p.status)
     extras["hypotheses"] = float(len(p.drive.tracks))
-    return s, _guess(p.drive, s, Verdict(None, -math.inf), extras, ctx.gconfig.fix_llr)
+    return s, _guess(s, Verdict(None, -math.inf), extras, ctx.gconfig.fix_llr)
