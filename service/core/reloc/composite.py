@@ -1,28 +1,6 @@
-"""Composite scans: several scans at known relative poses fused into one virtual scan.
-
-A robot that does not know where it is can look around: a 180-degree laser turned in place
-sees the whole room over two or three scans, with the door, which tells twin rooms apart
-where a single scan facing a bare corner cannot. The global search
-(:mod:`service.core.reloc.global_localization`) therefore fuses the scans of its search window into
-one virtual 360-degree scan from the newest pose, using the odometry sent with the scans for
-the relative poses, and matches that against the map's abstract sensor readings, which are
-360-degree views too.
-
-Choices (named here, used by the global search):
-
-- The virtual scan has ``bins`` beams evenly over (-pi, pi] (bin centres), robot frame of the
-  newest scan, REP 103 (x forward, y left, angles CCW). A bin with no return is NaN.
-- The newest scan is authoritative: a bin it has a return in keeps that return. Older scans
-  only fill bins the newer ones left empty (behind the robot, outside the newer fields of
-  view). Their points carry the odometry error of the turn, the newest scan's do not.
-- Within one scan, several returns falling into one bin keep the nearest (occlusion).
-- A lone empty bin between two nearly equal returns is filled with their mean: a turned
-  scan's beams straddle bins of about their own width, and a hole would split a polyline.
-- Older points are projected from where they were seen: after a translation the virtual
-  scan is only an approximation of what the newest pose would see (occlusions are not
-  recomputed), so callers limit the travel (:data:`service.core.reloc.states.COMPOSITE_TRAVEL`).
-
-Pure numpy; units metres and radians.
+"""Composite scans: several scans at known relative poses fused into one virtual scan. A
+180-degree laser turned in place sees the whole room over two or three scans, door included,
+which tells twin rooms apart where one scan facing a bare corner cannot.
 """
 
 from __future__ import annotations
@@ -39,10 +17,12 @@ from service.errors import LocalizationError
 def composite_scan(
     scans: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]], bins: int = 720
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Fuse ``scans`` — ``(ranges, angles, pose)`` each, oldest first, ``pose`` ``[x, y,
-    theta]`` in any common frame (odometry) — into one virtual scan ``(ranges, angles)`` of
-    ``bins`` beams over (-pi, pi] in the frame of the LAST scan's pose (module docstring).
-    Raises :class:`LocalizationError` on an empty list, ``bins < 8`` or malformed arrays."""
+    """Fuse ``scans`` (``(ranges, angles, pose)`` each, oldest first, poses in a common frame)
+    into one virtual scan ``(ranges, angles)`` of ``bins`` beams over (-pi, pi] in the frame of
+    the last. That newest scan is authoritative: older ones only fill the bins it left empty
+    (their points carry the odometry's error); within a scan the nearest return in a bin wins.
+    Older points are projected from where they were seen (occlusions are not recomputed), so
+    the caller limits the travel. Raises :class:`LocalizationError` on malformed input."""
     if not scans:
         raise LocalizationError("composite_scan needs at least one scan")
     if bins < 8:
@@ -74,16 +54,10 @@ def composite_scan(
         np.minimum.at(nearest, b, rng)
         free = np.isnan(out) & np.isfinite(nearest)
         out[free] = nearest[free]
-    return _fill_single_gaps(out), angles
-
-
-def _fill_single_gaps(r: np.ndarray) -> np.ndarray:
-    """A lone empty bin between two returns within 5 % + 5 cm of each other gets their mean
-    (module docstring; cyclically: the first and last bins are neighbours)."""
-    left = np.roll(r, 1)
-    right = np.roll(r, -1)
+    # a lone hole between two returns within 5 % + 5 cm of each other gets their mean: a turned
+    # scan's beams straddle bins of about their width, and a hole would split a polyline
+    left, right = np.roll(out, 1), np.roll(out, -1)
     near = np.abs(left - right) <= 0.05 + 0.05 * np.minimum(left, right)
-    hole = np.isnan(r) & np.isfinite(left) & np.isfinite(right) & near
-    out = r.copy()
+    hole = np.isnan(out) & np.isfinite(left) & np.isfinite(right) & near
     out[hole] = 0.5 * (left[hole] + right[hole])
-    return out
+    return out, angles

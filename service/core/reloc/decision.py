@@ -1,33 +1,20 @@
 """The one decision rule of relocalisation: a log-likelihood ratio of the best place against
 the rest, over the drive's frames, with a prior.
 
-Every kept hypothesis ``h`` has a log-likelihood ``L_h`` (nats) on each frame of the window
-(:mod:`service.core.reloc.drive`). With a prior ``pi`` over poses, the evidence of ``h`` is
-``E_h = sum_k w_k L_h,k + log pi(h)``, ``w_k`` the frame's weight: 1, and with odometry the
-discounted scans that repeated a keyframe (:meth:`~service.core.reloc.drive.Drive.repeat`:
-a robot standing still or creeping gains evidence scan by scan, boundedly). The *rest* are
-the distinct alternatives (farther than ``distinct_distance`` / ``distinct_angle``) and the
-*unseen place*, a stand-in for what the search has not found, which explains every frame at
-``null_cost``. The leader (the largest ``E`` among the tracks scored on every frame) wins
-when
+A hypothesis' evidence is ``E_h = sum_k L_h,k + log pi(h)``: its log-likelihoods (nats) on the
+drive's frames (:mod:`.drive`) and its prior. The *rest* are the distinct alternatives and the
+*unseen place* (what the search has not found), which explains every frame at ``null_cost``.
+The leader, the largest ``E`` among the tracks scored on every frame, wins when
 
     LLR = E_leader - log(sum over the rest of exp(E_a))  >=  fix_llr,
 
-i.e. when the posterior odds of the leader against everything else reach ``exp(fix_llr)``.
-Where an alternative has not been scored on a keyframe yet it counts as explaining it as
-well as the leader does (it can only lower the LLR): a place just found is judged on the
-whole window, back-scored, before it can be ruled out. A plain scan (no odometry) before a
-place was found can never be scored for it (nothing carries the place back there): there the
-place counts at its own mean log-likelihood per frame. Counted as the leader's, every search
-that found a new middling place reset the LLR to one scan's margin over it, and without
-odometry no LLR grew beyond ~9 nats.
-
-The prior (:class:`Prior`): uniform over the map while nothing is known (it cancels); after a
-loss, the dead-reckoned pose's Gaussian with ``kidnap_weight`` of the mass spread evenly over
-the map, so a place near where the robot should be needs far less evidence than one across
-the building. Both are the same rule; only the prior differs.
-
-Units: nats; poses ``[x, y, theta]`` map frame; covariances m², rad².
+i.e. when the posterior odds of the leader against everything else reach ``exp(fix_llr)``. An
+alternative not yet scored on a keyframe counts as explaining it as well as the leader (it can
+only lower the LLR) until it is back-scored; on a plain scan (no odometry) from before it was
+found, which nothing carries it back to, at its own mean (as the leader's, every middling place
+a search found would reset the LLR). The prior (:class:`Prior`) is uniform while nothing is
+known; after a loss, the dead-reckoned pose's Gaussian with ``kidnap_weight`` spread over the
+map, so a place near where the robot should be needs far less evidence than one far away.
 """
 
 from __future__ import annotations
@@ -49,9 +36,8 @@ from service.core.types import wrap_angle
 @dataclass
 class Prior:
     """Where the robot may be before the scans say: ``mean`` / ``cov`` the dead-reckoned pose
-    and its covariance (``None``: nothing known, uniform), ``kidnap`` the share of the mass
-    spread evenly over ``cells`` distinct places of the map (its free area x 2 pi over a
-    place's volume)."""
+    (``None``: uniform), ``kidnap`` the share of the mass spread evenly over ``cells``
+    distinct places of the map (its free area x 2 pi over a place's volume)."""
 
     mean: np.ndarray | None
     cov: np.ndarray | None
@@ -63,22 +49,25 @@ class Prior:
         uniform = math.log(max(self.kidnap, 1e-300)) - math.log(max(self.cells, 1.0))
         if self.mean is None or self.cov is None:
             return uniform
-        e = np.asarray(pose, dtype=np.float64) - self.mean
-        e[2] = wrap_angle(float(e[2]))
-        info = numeric.inv(self.cov)
-        m2 = numeric.quadratic(e, info)
         det = max(_det3(self.cov), 1e-300)
+        m2 = mahalanobis2(pose, self.mean, self.cov)
         density = math.exp(-0.5 * m2) / math.sqrt((2.0 * math.pi) ** 3 * det)
         mass = min(1.0, density * CELL_VOLUME)
         return math.log((1.0 - self.kidnap) * mass + math.exp(uniform) + 1e-300)
 
     def moved(self, delta: np.ndarray, noise: np.ndarray) -> Prior:
-        """The prior after a robot-frame motion ``delta`` with process noise ``noise``
-        (3x3, robot frame)."""
+        """The prior after a robot-frame motion ``delta`` with process noise ``noise``."""
         if self.mean is None or self.cov is None:
             return self
         mean, cov = propagate(self.mean, self.cov, delta, noise)
         return Prior(mean, cov, self.kidnap, self.cells)
+
+
+def mahalanobis2(pose: np.ndarray, mean: np.ndarray, cov: np.ndarray) -> float:
+    """Squared Mahalanobis distance of ``pose`` from ``mean`` under ``cov``."""
+    e = np.asarray(pose, dtype=np.float64) - mean
+    e[2] = wrap_angle(float(e[2]))
+    return float(numeric.quadratic(e, numeric.inv(cov)))
 
 
 def _det3(m: np.ndarray) -> float:
@@ -92,8 +81,7 @@ def _det3(m: np.ndarray) -> float:
 
 @dataclass(frozen=True)
 class Verdict:
-    """The decision on the tracks: the ``leader`` (``None`` when no track is scored on every
-    frame of a long enough window) and its ``llr`` (nats; ``-inf`` without a leader)."""
+    """The ``leader`` scored on the whole window (or ``None``) and its ``llr`` (nats)."""
 
     leader: Track | None
     llr: float
@@ -111,13 +99,11 @@ CELL_VOLUME = math.pi * DISTINCT_DISTANCE**2 * 2.0 * DISTINCT_ANGLE
 
 
 def decide(
-    tracks: list[Track], frames: list[Frame], keys: dict[int, float], prior: Prior, g: GlobalConfig
+    tracks: list[Track], frames: list[Frame], keys: list[int], prior: Prior, g: GlobalConfig
 ) -> Verdict:
     """The leader of ``tracks`` and its LLR against the rest (module docstring), summed over
-    the frames ``keys`` (key -> weight, :meth:`~service.core.reloc.drive.Drive.evidence_keys`).
-    The leader must be scored on the frames of the window ``frames`` that
-    :func:`~service.core.reloc.drive.judged` names; a frame it lacks otherwise counts as the
-    unseen place explains it."""
+    the frames ``keys``. The leader must be scored on the window's frames that
+    :func:`.drive.judged` names; a frame it lacks otherwise counts as the unseen place's."""
     need = judged(frames)
     full = [t for t in tracks if all(k in t.ll for k in need)]
     if not frames or not full:
@@ -129,34 +115,32 @@ def decide(
         total = 0.0
         own = [t.ll[k] for k in keys if k in t.ll]
         rate = sum(own) / len(own) if own else unseen
-        for k, w in keys.items():
+        for k in keys:
             if k in t.ll:
-                total += w * t.ll[k]
+                total += t.ll[k]
             elif fill is not None and k in plain:
-                total += w * rate
+                total += rate
             elif fill is not None and k in fill.ll:
-                total += w * fill.ll[k]
+                total += fill.ll[k]
             else:
-                total += w * unseen
+                total += unseen
         return total + prior.log(t.pose)
 
-    scored = [(evidence(t), t) for t in full]
-    best_e, leader = max(scored, key=lambda x: x[0])
+    best_e, leader = max(((evidence(t), t) for t in full), key=lambda x: x[0])
     # the unseen place explains each keyframe as the true place would in the leader's region
     nulls = leader.null
     null_ll = sum(
-        w * (unseen if k not in nulls else -EFFECTIVE_BEAMS * (nulls[k] - COST_FLOOR))
-        for k, w in keys.items()
+        unseen if k not in nulls else -EFFECTIVE_BEAMS * (nulls[k] - COST_FLOOR) for k in keys
     )
     if prior.mean is None:
         null = null_ll + prior.log(leader.pose)  # uniform: the same prior as any place
     else:
         null = null_ll + math.log(max(prior.kidnap, 1e-300)) - math.log(max(prior.cells, 1.0))
-    rest = [null]
-    for t in tracks:
-        if t is leader or not distinct(t.pose, leader.pose):
-            continue
-        rest.append(evidence(t, fill=leader))
+    rest = [null] + [
+        evidence(t, fill=leader)
+        for t in tracks
+        if t is not leader and distinct(t.pose, leader.pose)
+    ]
     top = max(rest)
     log_rest = top + math.log(sum(math.exp(e - top) for e in rest))
     return Verdict(leader, best_e - log_rest)

@@ -1,22 +1,12 @@
 """Hypotheses over a drive: the places a search found, followed scan by scan and judged on the
 same frames of the drive.
 
-Why. A search runs on the scan at hand, so a place it finds is good *now*; a place along a
-corridor with a repeating pattern of doors, or the twin of a room, can be as good now as the
-true place while the drive so far tells them apart. With odometry a hypothesis' pose now
-implies where the robot stood on every earlier scan, so it is scored there too (back-scored):
-every hypothesis is judged on the same keyframes, the ones before a search found it included
-(on the tuning log fr079's floor plan, 16 keyframes over 4.9 m gave the true place a mean
-beam cost of 0.39 and an alias 4.4 m along the corridor 0.55, where the last scans ranked the
-alias first).
-
-What. The frames of the evidence (:class:`Frame`, :func:`window`), the hypotheses followed
-over them (:class:`Track`), re-fitted on each scan (:func:`rescore`) and scored on the
-keyframes they lack (:func:`backfill`); a finished search's places join them (:func:`merge`),
-the clearly worse are let go (:func:`prune`). Work is counted in reference ms
-(:data:`service.core.reloc.global_search.WORK_MS`), so the same scans give the same poses on
-any machine and under any load. Units: metres, radians; poses ``[x, y, theta]`` in the map
-frame, odometry poses in the odometry frame.
+A place a search finds is good on the scan at hand; a corridor's repeating doors or a room's
+twin can be as good there as the true place while the drive tells them apart. With odometry a
+hypothesis' pose implies where the robot stood on every earlier keyframe, so all are judged on
+the same keyframes, back-scored on those before a search found them (docs/decisions/0017).
+Work is counted in reference ms (:data:`.global_search.WORK_MS`): the same scans give the same
+poses on any machine. Poses ``[x, y, theta]`` in the map frame, odometry in its own.
 """
 
 from __future__ import annotations
@@ -29,24 +19,9 @@ from typing import Any
 import numpy as np
 
 from service.core.pose import compose, relative
+from service.core.reloc import global_search as gs
+from service.core.reloc.composite import composite_scan
 from service.core.reloc.config import GlobalConfig
-from service.core.reloc.global_search import (
-    COST_FLOOR,
-    DISTINCT_DISTANCE,
-    FINE_SCALE,
-    SUPPORT_POINTS,
-    WORK_MS,
-    Hypothesis,
-    beam_model,
-    beams_ms,
-    near,
-    polish_ms,
-    refine,
-    refine_ms,
-    support_sample,
-    verify,
-    verify_ms,
-)
 from service.core.reloc.view_index import ViewIndex
 from service.core.sensor.scoring import EFFECTIVE_BEAMS, beam_fractions, subsample
 from service.core.shapes.configuration import Configuration
@@ -56,40 +31,38 @@ from service.core.types import wrap_angle
 #: Heading change (rad) a robot may make between two scans without odometry (the tracker's
 #: max_turn): a place found again within ``near``'s distance of a track is that track.
 TURN_BETWEEN_SCANS = 1.3
-#: Share of the keyframe spacing and turn a scan may move from the last and still repeat the
-#: newest keyframe (:meth:`Drive.repeat`): a robot standing or creeping, not driving.
-CREEP = 0.25
 #: Polish stages (step m, step rad) of a track's first keyframe: +-0.43 m / +-10 degrees.
 WIDE_POLISH = ((0.15, 0.06), (0.05, 0.02), (0.015, 0.006))
 #: With odometry a scan becomes a keyframe when the robot has driven this far (m) since the
-#: last one: closer scans repeat each other's evidence ...
+#: last one (closer scans repeat its evidence), or turned this much (rad, new walls).
 EVIDENCE_SPACING = 0.3
-#: ... or turned this much (rad): a turn shows new walls.
 EVIDENCE_TURN = 0.3
 #: At most this many keyframes in the window (``GlobalConfig.evidence_span``).
 EVIDENCE_FRAMES = 20
 #: Without odometry the window holds the last this many scans.
 SCAN_WINDOW = 6
-#: A frame's cost is clipped here: one keyframe with a person in front of the laser must not
-#: outweigh the drive.
+#: A frame's cost is clipped here: one keyframe with a person in view must not outweigh a drive.
 EVIDENCE_CLIP = 1.0
-#: A track this many nats below the leader, or below the unseen place, on 3 frames at least is
-#: let go (a mean cost 0.3 worse over 10 keyframes).
+#: A track this many nats below the leader or the unseen place on 3 frames or more is let go
+#: (a mean cost 0.3 worse over 10 keyframes).
 EVIDENCE_DROP = 60.0
-#: Weight of the odometry-moved pose as a prior of the re-scoring's polish: without it a
-#: hypothesis slid ~0.1 m per scan along corridors (tuning building 12).
+#: Weight of the moved pose as the re-scoring polish's prior: without it tracks slide in corridors.
 RESCORE_PRIOR = 0.02
-#: The mean predicted range (m) beyond which the unseen place's cost rises
-#: (``GlobalConfig.null_slope``).
+#: Mean predicted range (m) beyond which the unseen place's cost rises (GlobalConfig.null_slope).
 NULL_REACH = 5.0
+#: With odometry the search matches the last this many scans fused (1: every scan alone) into
+#: this many beams (never finer than the laser's), leaving out scans farther than this (m)
+#: from the newest (their occlusions no longer hold).
+COMPOSITE_SCANS = 3
+COMPOSITE_BINS = 720
+COMPOSITE_TRAVEL = 0.5
 
 
 @dataclass(eq=False)
 class Frame:
-    """A scan of the drive's evidence: ``key`` its serial number; ``ranges`` / ``angles`` the
-    judged beams (valid returns); ``points`` robot-frame return points for the polish;
-    ``odom`` its odometry pose (``None`` without odometry); ``travel`` the drive's odometry
-    travel there (m)."""
+    """A scan of the drive's evidence: ``key`` its serial number, the judged beams (valid
+    returns), robot-frame ``points`` for the polish, its ``odom`` pose (``None`` without
+    odometry) and the drive's ``travel`` there (m)."""
 
     key: int
     ranges: np.ndarray
@@ -101,31 +74,31 @@ class Frame:
 
 @dataclass(eq=False)
 class Track:
-    """A hypothesis followed over the drive: ``pose`` now; ``hyp`` its latest verification;
-    ``ll`` its log-likelihood (nats; weighted by :attr:`Drive.weights`) per frame key and
-    ``at`` its pose there; ``found`` how many searches found it; ``checked`` whether its
-    self-similarity check ran."""
+    """A hypothesis followed over the drive: ``pose`` now, ``hyp`` its latest verification,
+    per frame key its log-likelihood ``ll`` (nats), pose ``at`` and the unseen place's cost
+    ``null`` there; ``found`` by how many searches; ``checked``: its twin check ran."""
 
     pose: np.ndarray
-    hyp: Hypothesis
+    hyp: gs.Hypothesis
     ll: dict[int, float] = field(default_factory=dict)
     at: dict[int, np.ndarray] = field(default_factory=dict)
     found: int = 1
     checked: bool = False
-    #: the unseen place's cost per keyframe key in the region of the track's pose there
-    #: (:func:`null_cost`)
     null: dict[int, float] = field(default_factory=dict)
 
     def __setstate__(self, state: dict[str, Any]) -> None:
         self.__dict__.update({"null": {}, **state})  # pickled before it had ``null``
 
+    def record(self, key: int, cost: float, pose: np.ndarray) -> None:
+        """Its evidence on frame ``key``: the beam cost ``cost`` at ``pose``."""
+        self.ll[key] = loglik(cost)
+        self.at[key] = pose.copy()
+
 
 @dataclass(eq=False)
 class Job:
-    """A search in progress: its step generator and the odometry pose of the scan it started
-    on (``None`` without odometry); ``track`` the track a self-similarity check is for;
-    ``frame`` without odometry the plain-scan frame it searched (its places' verification is
-    their evidence there)."""
+    """A search in progress: its steps, the odometry pose of its scan, the ``track`` a twin
+    check is for, or without odometry the plain-scan ``frame`` it searched."""
 
     steps: Generator[float, None, Any]
     odom: np.ndarray | None
@@ -140,12 +113,10 @@ def odometry_move(since: np.ndarray | None, now: np.ndarray | None) -> np.ndarra
 
 @dataclass(eq=False)
 class Drive:
-    """The hypotheses over a drive and their evidence: ``tracks``, the ``frames`` of the
-    window (``next_key`` numbers the next), the odometry ``travel`` (m) since the drive
-    began, the pending search ``job`` and self-similarity check ``twin``, the scans of the
-    composite (``history``) and the robot's known speed before a loss (map frame, m per scan;
-    ``None``: unknown). The pending jobs are not pickled (generators): a search starts again
-    on the next scan."""
+    """The hypotheses over a drive and their evidence: ``tracks``, the window's ``frames``, the
+    odometry ``travel`` (m), the pending search ``job`` and ``twin`` check (not pickled), the
+    composite's scans, the known speed before a loss, and every keyframe's key (a track's
+    scores there are kept: evidence that told two places apart is not forgotten)."""
 
     tracks: list[Track] = field(default_factory=list)
     frames: list[Frame] = field(default_factory=list)
@@ -155,18 +126,18 @@ class Drive:
     twin: Job | None = None
     history: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = field(default_factory=list)
     speed: np.ndarray | None = None
-    #: every keyframe's weight by key (1 and the scans that repeated it, :meth:`repeat`),
-    #: those that left the window included: a hypothesis' scores there are kept (they were
-    #: measured while the odometry between the keyframe and its pose then was short), so
-    #: evidence that told two places apart is not forgotten
-    weights: dict[int, float] = field(default_factory=dict)
+    keyframes: list[int] = field(default_factory=list)
 
     def __getstate__(self) -> dict[str, Any]:
         return {**self.__dict__, "job": None, "twin": None}
 
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        # pickled with a weight per keyframe (every one 1): the keys are the keyframes
+        state.setdefault("keyframes", list(state.pop("weights", {})))
+        self.__dict__.update(state)
+
     def move(self, delta: np.ndarray, step: float) -> None:
-        """Move every track by the odometry increment ``delta`` (robot frame) of length
-        ``step`` (m)."""
+        """Move every track by the odometry increment ``delta`` (robot frame, ``step`` m)."""
         self.travel += step
         for t in self.tracks:
             t.pose = compose(t.pose, delta)
@@ -176,37 +147,50 @@ class Drive:
         self.next_key = frame.key + 1
         self.frames = window([*self.frames, frame], g)
         if frame.odom is not None:
-            self.weights[frame.key] = 1.0
+            self.keyframes.append(frame.key)
 
-    def repeat(self, step: float, turn: float, g: GlobalConfig) -> None:
-        """A scan with odometry that added no keyframe, ``step`` (m) and ``turn`` (rad) from
-        the last one. Standing or creeping (under :data:`CREEP` of :data:`EVIDENCE_SPACING` and
-        :data:`EVIDENCE_TURN`) it repeats the newest keyframe: its noise, a person who moved, a
-        slightly different heading are new evidence, its walls are not (not so a driving
-        robot's: docs/decisions/0017). The n-th repeat adds ``d ** n`` of a keyframe
-        (``w <- 1 + d w``, ``d = 1 - 1 / repeat_window``)."""
-        creep = step < CREEP * EVIDENCE_SPACING and abs(turn) < CREEP * EVIDENCE_TURN
-        if creep and self.frames and self.frames[-1].odom is not None:
-            key = self.frames[-1].key
-            d = 1.0 - 1.0 / g.repeat_window
-            self.weights[key] = 1.0 + d * self.weights.get(key, 1.0)
+    def observe(
+        self, ranges: np.ndarray, angles: np.ndarray, odom: np.ndarray | None, g: GlobalConfig
+    ) -> Frame | None:
+        """Add a scan's frame: without odometry a plain-scan frame (returned); with odometry
+        pose ``odom`` a keyframe when one is due (:func:`frame_due`), else none (a standing
+        robot's scans repeat its keyframe's walls, for a wrong place as for the true one)."""
+        if odom is not None and not frame_due(self.frames, odom, self.travel):
+            return None
+        frame = make_frame(self.next_key, ranges, angles, odom, self.travel, g)
+        self.add(frame, g)
+        return frame if odom is None else None
 
-    def evidence_keys(self, g: GlobalConfig) -> dict[int, float]:
-        """The frames the decision sums over, key -> weight: every keyframe of the drive with
-        odometry, the window's plain scans without (consecutive scans see nearly the same:
-        their evidence is not carried beyond the window)."""
+    def evidence_keys(self, g: GlobalConfig) -> list[int]:
+        """The frames the decision sums over: every keyframe of the drive, or without odometry
+        the window's plain scans (consecutive scans see nearly the same)."""
         win = window(self.frames, g)
         if win and win[-1].odom is None:
-            return {f.key: 1.0 for f in win}
-        return dict(self.weights)
+            return [f.key for f in win]
+        return list(self.keyframes)
+
+    def composite(
+        self, ranges: np.ndarray, angles: np.ndarray, odom: np.ndarray | None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The scan the search matches: this one, or with odometry the last few fused."""
+        if odom is None or COMPOSITE_SCANS <= 1:
+            self.history = []
+            return ranges, angles
+        self.history = [
+            h
+            for h in self.history[-(COMPOSITE_SCANS - 1) :]
+            if np.hypot(*(h[2][:2] - odom[:2])) <= COMPOSITE_TRAVEL
+        ]
+        self.history.append((ranges, angles, odom.copy()))
+        if len(self.history) == 1:
+            return ranges, angles
+        inc = float(np.median(np.abs(np.diff(angles)))) if angles.size > 1 else 0.0
+        bins = COMPOSITE_BINS
+        if inc > 0.0:  # no finer than the laser's beams (holes would split every polyline)
+            bins = int(min(bins, max(8, np.floor(2.0 * np.pi / inc + 1e-6))))
+        return composite_scan(self.history, bins)
 
 
-def held(pose: np.ndarray) -> Hypothesis:
-    """The hypothesis of a pose the tracker held until a loss (verified a scan ago)."""
-    return Hypothesis(pose=np.asarray(pose, dtype=np.float64).copy(), cost=0.05)
-
-
-# ------------------------------------------------------------------------------- frames
 def make_frame(
     key: int,
     ranges: np.ndarray,
@@ -215,33 +199,25 @@ def make_frame(
     travel: float,
     g: GlobalConfig,
 ) -> Frame:
-    """A :class:`Frame` of one scan (``ranges`` metres, NaN = no return; ``angles`` radians
-    robot frame; ``odom`` its odometry pose or ``None``: a plain scan)."""
+    """A :class:`Frame` of one scan (``odom`` its odometry pose or ``None``: a plain scan)."""
     r = np.asarray(ranges, dtype=np.float64)
     a = np.asarray(angles, dtype=np.float64)
     sel = subsample(np.nonzero(np.isfinite(r))[0], g.verify_beams)
-    rr, aa = r[sel].copy(), a[sel].copy()
-    pts = np.column_stack([rr * np.cos(aa), rr * np.sin(aa)])
-    return Frame(
-        key=key,
-        ranges=rr,
-        angles=aa,
-        points=subsample(pts, SUPPORT_POINTS).copy(),
-        odom=None if odom is None else np.asarray(odom, dtype=np.float64).copy(),
-        travel=float(travel),
-    )
+    ranges, angles = r[sel].copy(), a[sel].copy()
+    points = np.column_stack([ranges * np.cos(angles), ranges * np.sin(angles)])
+    points = subsample(points, gs.SUPPORT_POINTS)
+    odom = None if odom is None else np.asarray(odom, dtype=np.float64).copy()
+    return Frame(key, ranges, angles, points.copy(), odom, float(travel))
 
 
 def frame_due(frames: list[Frame], odom: np.ndarray, travel: float) -> bool:
     """Whether a scan at odometry pose ``odom`` and drive travel ``travel`` becomes a keyframe:
-    the first, or :data:`EVIDENCE_SPACING` driven or :data:`EVIDENCE_TURN` turned since the
-    last."""
+    the first, or :data:`EVIDENCE_SPACING` driven or :data:`EVIDENCE_TURN` turned since."""
     if not frames or frames[-1].odom is None:
         return True
     last = frames[-1]
-    if travel - last.travel >= EVIDENCE_SPACING:
-        return True
-    return abs(float(wrap_angle(float(odom[2]) - float(last.odom[2])))) >= EVIDENCE_TURN
+    turn = abs(float(wrap_angle(float(odom[2]) - float(last.odom[2]))))
+    return travel - last.travel >= EVIDENCE_SPACING or turn >= EVIDENCE_TURN
 
 
 def window(frames: list[Frame], g: GlobalConfig) -> list[Frame]:
@@ -257,52 +233,43 @@ def window(frames: list[Frame], g: GlobalConfig) -> list[Frame]:
 
 
 def judged(frames: list[Frame]) -> list[int]:
-    """Keys of the window's frames a track must be scored on to be judged: with odometry every
-    keyframe (back-scoring reaches those before it was found); without, the newest scan only,
-    since no odometry carries a place found later back to an earlier scan (those frames count
-    as the unseen place explains them)."""
-    if not frames:
-        return []
-    if frames[-1].odom is None:
+    """Keys of the window's frames a track must be scored on to be judged: every keyframe
+    (back-scoring reaches those before it was found), or without odometry the newest scan
+    only (nothing carries a place found later back to an earlier scan)."""
+    if frames and frames[-1].odom is None:
         return [frames[-1].key]
     return [f.key for f in frames]
 
 
 def loglik(cost: float) -> float:
     """A frame's log-likelihood (nats) from its beam cost, clipped at :data:`EVIDENCE_CLIP`."""
-    return -EFFECTIVE_BEAMS * (min(cost, EVIDENCE_CLIP) - COST_FLOOR)
+    return -EFFECTIVE_BEAMS * (min(cost, EVIDENCE_CLIP) - gs.COST_FLOOR)
 
 
 def frame_cost(
     index: ViewIndex, pose: np.ndarray, f: Frame, config: ShapeConfig, g: GlobalConfig
 ) -> tuple[float, float]:
     """The beam cost of ``pose`` on frame ``f``'s beams (short returns graded by
-    ``evidence_short_scale``) and the unseen place's cost there (:func:`null_cost`)."""
+    ``evidence_short_scale``) and the unseen place's cost there, which rises with the mean
+    range of the map's walls (``GlobalConfig.null_slope``)."""
     if f.ranges.size == 0:
         return EVIDENCE_CLIP, g.null_cost
     assert index.sensor is not None
-    m = beam_model(config, g, short_scale=g.evidence_short_scale)
+    m = gs.beam_model(config, g, short_scale=g.evidence_short_scale)
     pred, landed = index.sensor.predict(pose, f.ranges, f.angles, m)
     cost = beam_fractions(f.ranges, pred, m, landed).cost(m)
-    return cost, null_cost(np.where(np.isfinite(pred), pred, m.max_range), g)
-
-
-def null_cost(predicted: np.ndarray, g: GlobalConfig) -> float:
-    """The unseen place's cost on a frame whose beams would meet the map's walls at
-    ``predicted`` ranges (m) (``GlobalConfig.null_slope``)."""
-    if g.null_slope <= 0.0 or predicted.size == 0:
-        return g.null_cost
-    reach = float(np.mean(predicted))
-    return min(EVIDENCE_CLIP, g.null_cost + g.null_slope * max(0.0, reach - NULL_REACH))
+    if g.null_slope <= 0.0:
+        return cost, g.null_cost
+    reach = float(np.mean(np.where(np.isfinite(pred), pred, m.max_range)))
+    return cost, min(EVIDENCE_CLIP, g.null_cost + g.null_slope * max(0.0, reach - NULL_REACH))
 
 
 def pair_ms(index: ViewIndex, g: GlobalConfig) -> float:
-    """Work (reference ms) of scoring one track on one keyframe: a one-pose polish and the
-    beams."""
-    return WORK_MS["polish_call"] + polish_ms(SUPPORT_POINTS) + beams_ms(index, g, g.verify_beams)
+    """Work (reference ms) of scoring one track on one keyframe: a polish and the beams."""
+    polish = gs.WORK_MS["polish_call"] + gs.polish_ms(gs.SUPPORT_POINTS)
+    return polish + gs.beams_ms(index, g, g.verify_beams)
 
 
-# ------------------------------------------------------------------------------- re-scoring
 def rescore(
     index: ViewIndex,
     tracks: list[Track],
@@ -314,17 +281,15 @@ def rescore(
     limit: float,
     scan: Frame | None,
 ) -> float:
-    """Fit each track (best first) to this scan and verify it, while the work stays within
-    ``limit`` (reference ms). With odometry (``scan`` is ``None``) the tracks were moved by it
-    and a polish on the distance field, the moved pose as its prior, absorbs its error;
-    without, the point-to-line refinement follows the robot's motion, and the verification
-    is the track's evidence on the plain-scan frame ``scan``. Returns the work spent."""
+    """Fit each track (best first) to this scan and verify it within ``limit`` reference ms;
+    return the work spent. With odometry a polish absorbs its error; without, a refinement
+    follows the robot, and the verification is the track's evidence on the frame ``scan``."""
     if not tracks:
         return 0.0
-    sp = support_sample(P)
+    sp = gs.support_sample(P)
     odometry = scan is None
-    fit_ms = polish_ms(len(sp)) if odometry else refine_ms(index)
-    each = fit_ms + verify_ms(index, g)
+    fit_ms = gs.polish_ms(len(sp)) if odometry else gs.refine_ms(index)
+    each = fit_ms + gs.verify_ms(index, g)
     n = len(tracks) if not np.isfinite(limit) else max(1, min(len(tracks), int(limit // each)))
     chosen = sorted(tracks, key=lambda t: t.hyp.cost)[:n]
     if len(sp) == 0:
@@ -332,16 +297,14 @@ def rescore(
     poses = np.vstack([t.pose for t in chosen])
     if odometry:
         assert index.sensor is not None
-        fitted, _ = index.sensor.polish(poses, sp, FINE_SCALE, prior=RESCORE_PRIOR)
+        fitted, _ = index.sensor.polish(poses, sp, gs.FINE_SCALE, prior=RESCORE_PRIOR)
     else:
-        fitted = refine(index, poses, sp, config)
+        fitted = gs.refine(index, poses, sp, config)
     for t, p in zip(chosen, fitted, strict=True):
-        h = verify(index, p, ranges, angles, P, config, g)
-        t.pose = h.pose.copy()
-        t.hyp = h
+        t.hyp = gs.verify(index, p, ranges, angles, P, config, g)
+        t.pose = t.hyp.pose.copy()
         if scan is not None:
-            t.ll[scan.key] = loglik(h.cost)
-            t.at[scan.key] = h.pose.copy()
+            t.record(scan.key, t.hyp.cost, t.hyp.pose)
     return n * each
 
 
@@ -355,16 +318,14 @@ def backfill(
     limit: float,
     first: Track | None = None,
 ) -> float:
-    """Score the tracks on the keyframes of ``frames`` (the window) they lack, newest
-    keyframe first and breadth first (every track's recent keyframes before anyone's old
-    ones; ``first``, a winner on probation, before the others), within ``limit`` reference
-    ms (at least one score when anything is missing). Scores older than the window are
-    forgotten. Returns the work spent."""
+    """Score the tracks on the window's keyframes they lack, newest first and breadth first
+    (``first``, a winner on probation, before the others), within ``limit`` reference ms (at
+    least one score); return the work spent. Poses older than the window are forgotten."""
     keys = {f.key for f in frames}
     odom_of = {f.key: f.odom for f in frames}
     for t in tracks:
         for k in [k for k in t.at if k not in keys]:
-            del t.at[k]  # the score there is kept (Drive.weights)
+            del t.at[k]  # the score there is kept (Drive.keyframes)
     kf = [f for f in frames if f.odom is not None]
     if not kf:
         return 0.0
@@ -378,76 +339,64 @@ def backfill(
                 continue
             if spent >= limit:
                 return spent
+            # carried by the odometry from the next keyframe it was scored on, else from now
             newer = [k for k in t.at if k > f.key]
-            if newer:
-                k = min(newer)
-                start = compose(t.at[k], relative(odom_of[k], f.odom))
-            else:
-                start = compose(t.pose, relative(odom_now, f.odom))
-            pose = index.sensor.polish(start[None, :], f.points, FINE_SCALE, prior=RESCORE_PRIOR)[
-                0
-            ][0]
+            base, odom = (t.at[min(newer)], odom_of[min(newer)]) if newer else (t.pose, odom_now)
+            start = compose(base, relative(odom, f.odom))
+            polished, _ = index.sensor.polish(
+                start[None, :], f.points, gs.FINE_SCALE, prior=RESCORE_PRIOR
+            )
+            pose = polished[0]
             cost, null = frame_cost(index, pose, f, config, g)
             if not t.ll:
-                # a track's first keyframe: also a wider polish without a prior, and the pose
-                # as given; the one the beams explain best is kept (a hypothesis some degrees
-                # off converges before it is judged; tuning building 16: a twin 0.2 m / 10
-                # degrees off the true pose, judged with the narrow polish only, lost to a
-                # mirrored alias)
-                wide, _ = index.sensor.polish(start[None, :], f.points, FINE_SCALE, WIDE_POLISH)
+                # a track's first keyframe: also a wide polish and the pose as given, so a
+                # hypothesis some degrees off converges before it is judged
+                wide, _ = index.sensor.polish(start[None, :], f.points, gs.FINE_SCALE, WIDE_POLISH)
                 for alt in (wide[0], start):
                     c, n = frame_cost(index, alt, f, config, g)
                     if c < cost:
                         pose, cost, null = alt, c, n
-                spent += 0.5 * polish_ms(len(f.points)) + 2 * each
-            t.ll[f.key] = loglik(cost)
-            t.at[f.key] = pose.copy()
+                spent += 0.5 * gs.polish_ms(len(f.points)) + 2 * each
+            t.record(f.key, cost, pose)
             t.null[f.key] = null
             spent += each
     return spent
 
 
-# ------------------------------------------------------------------------------- the tracks
 def merge(
     tracks: list[Track],
-    hyps: list[Hypothesis],
+    hyps: list[gs.Hypothesis],
     move: np.ndarray | None,
     keep: int,
     scored: Frame | None = None,
 ) -> list[Track]:
-    """Add the best ``keep`` of a finished search's hypotheses (found on an earlier scan;
-    ``move`` the robot-frame odometry motion since, or ``None``) to ``tracks`` unless one
-    already holds that pose (which then counts one more ``found``). ``scored``: the plain-scan
-    frame the search ran on, still in the window: a new track's verification there is its
-    evidence on it (without it, a place just found would count as explaining the frames as
-    well as the leader, and no LLR could grow while searches keep finding places)."""
+    """Add the best ``keep`` of a finished search's hypotheses (``move``: the odometry motion
+    since its scan) to ``tracks`` unless one holds the pose already (found once more).
+    ``scored``: the plain-scan frame it ran on, still in the window, where a place's
+    verification is its evidence (unscored it would count as the leader's)."""
     out = list(tracks)
     counted: list[Track] = []
     for h in hyps[:keep]:
         pose = compose(h.pose, move) if move is not None else np.asarray(h.pose, dtype=float)
-        # without odometry a robot may have turned between two scans and a track's fit from
-        # its last pose may have slid off: a place found again within the same place's
-        # distance of a track is that track, and where the search fitted this scan better
-        # the track follows it (its scores on the frames before are kept)
+        # without odometry the robot may have turned and a fit slid off: a place found again
+        # within a place's distance is that track, and follows the search's better fit
         if move is None and scored is not None:
-            dist, turn = DISTINCT_DISTANCE, TURN_BETWEEN_SCANS
+            dist, turn = gs.DISTINCT_DISTANCE, TURN_BETWEEN_SCANS
         else:
             dist, turn = 0.3, 0.15
-        held = [t for t in out if near(t.pose, pose, dist, turn)]
+        held = [t for t in out if gs.near(t.pose, pose, dist, turn)]
         for t in held:
             if t not in counted:
                 t.found += 1
                 counted.append(t)
             if scored is not None and h.cost < t.hyp.cost:
                 t.pose, t.hyp = pose.copy(), h
-                t.ll[scored.key] = loglik(h.cost)
-                t.at[scored.key] = pose.copy()
+                t.record(scored.key, h.cost, pose)
         if held:
             continue
         track = Track(pose.copy(), dataclasses.replace(h, pose=pose.copy()))
         if scored is not None:
-            track.ll[scored.key] = loglik(h.cost)
-            track.at[scored.key] = pose.copy()
+            track.record(scored.key, h.cost, pose)
         out.append(track)
     return out
 
@@ -455,15 +404,14 @@ def merge(
 def prune(
     tracks: list[Track],
     frames: list[Frame],
-    keys: dict[int, float],
+    keys: list[int],
     leader: Track | None,
     g: GlobalConfig,
 ) -> list[Track]:
-    """The tracks to keep: a track trailing the ``leader`` by :data:`EVIDENCE_DROP` nats in all,
-    or the unseen place as much, on at least 3 common frames of ``keys`` goes; of the
-    rest the best ``keep`` judged on every frame of the window ``frames`` and ``keep`` still
-    being judged, one per place."""
-    null = -EFFECTIVE_BEAMS * (g.null_cost - COST_FLOOR)
+    """The tracks to keep: one trailing the ``leader``, or the unseen place, by
+    :data:`EVIDENCE_DROP` nats on at least 3 common frames of ``keys`` goes; of the rest the
+    best ``keep`` judged on the whole window and ``keep`` still being judged, one per place."""
+    null = -EFFECTIVE_BEAMS * (g.null_cost - gs.COST_FLOOR)
 
     def dropped(t: Track) -> bool:
         mine = [t.ll[k] for k in keys if k in t.ll]
@@ -481,51 +429,26 @@ def prune(
     win = judged(frames)
     full = [t for t in live if all(k in t.ll for k in win)]
 
-    def total(t: Track) -> float:
-        return -sum(t.ll.get(k, 0.0) for k in keys)
-
-    done = sorted(full, key=total)
-    if leader is not None and leader in done:
-        done.remove(leader)
-        done.insert(0, leader)
+    done = sorted(full, key=lambda t: -sum(t.ll.get(k, 0.0) for k in keys))
+    done.sort(key=lambda t: t is not leader)  # the leader first
     pending = sorted((t for t in live if t not in full), key=lambda t: (-len(t.ll), t.hyp.cost))
     out: list[Track] = []
     for group in (done, pending):
-        taken = 0
+        before = len(out)
         for t in group:
-            if taken >= g.keep:
+            if len(out) - before >= g.keep:
                 break
-            if any(near(t.pose, o.pose) for o in out):
-                continue
-            out.append(t)
-            taken += 1
+            if not any(gs.near(t.pose, o.pose) for o in out):
+                out.append(t)
     return out
 
 
-def candidates(tracks: list[Track], k: int = 5) -> np.ndarray:
-    """The first ``k`` tracks as ``(k, 4)`` rows ``[x, y, theta, cost]`` (for the wire)."""
-    rows = [[*map(float, t.pose), float(t.hyp.cost)] for t in tracks[:k]]
+def candidates(tracks: list[Track], first: Track | None = None, k: int = 5) -> np.ndarray:
+    """The first ``k`` tracks, ``first`` first, as rows ``[x, y, theta, cost]``."""
+    order = ([first] if first is not None else []) + [t for t in tracks if t is not first]
+    rows = [[*map(float, t.pose), float(t.hyp.cost)] for t in order[:k]]
     return np.array(rows, dtype=np.float64).reshape(-1, 4)
 
 
 #: Earlier versions' name of a frame (a localiser state pickled by them names it).
 Keyframe = Frame
-
-__all__ = [
-    "WIDE_POLISH",
-    "Drive",
-    "Frame",
-    "Job",
-    "Track",
-    "backfill",
-    "candidates",
-    "frame_due",
-    "held",
-    "judged",
-    "make_frame",
-    "merge",
-    "odometry_move",
-    "prune",
-    "rescore",
-    "window",
-]

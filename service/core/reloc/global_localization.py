@@ -1,8 +1,6 @@
-"""The ``shape`` method's localiser (:class:`GlobalShapeLocalizer`): it holds the parts every
-state uses -- the tracker, the map's view index, the odometry (its one memory) -- and the
-state (:mod:`service.core.reloc.states`); each scan is one call of
-:func:`service.core.reloc.states.step`. Frames and units: REP 103, metres and radians; poses
-``[x, y, theta]`` in the map frame; scan points in the robot frame (x forward, y left).
+"""The ``shape`` method's localiser (:class:`GlobalShapeLocalizer`): the parts every state uses
+(the tracker, the map's view index, the odometry) and the state (:mod:`.states`); each scan is
+one :func:`.states.step`. REP 103, metres and radians; poses ``[x, y, theta]`` in the map frame.
 """
 
 from __future__ import annotations
@@ -25,21 +23,11 @@ __all__ = ["GlobalConfig", "GlobalShapeLocalizer", "ShapeConfig", "load_or_build
 
 
 class GlobalShapeLocalizer:
-    """Shape-based localisation with relocalisation (implements
-    :class:`service.core.types.Localizer`, method ``shape``).
-
-    ``map_data`` the map; ``initial_pose`` ``[x, y, theta]`` map frame, or ``None`` (unknown:
-    global localisation); ``config`` the tracker's :class:`ShapeConfig` (default per map
-    kind); ``gconfig`` a :class:`GlobalConfig`; ``cache_dir`` where the map's
-    :class:`ViewIndex` is cached (``None``: built in memory). The index is built on the first
-    scan that needs a search, not before.
-
-    Each estimate carries the state behind it (``Estimate.state``): ``tracking`` (status
-    ``tracking``), ``dead_reckoning`` (the map does not explain the scans; the dead-reckoned
-    pose and its growing covariance, status ``lost``), ``searching`` and ``probation``
-    (status ``initializing`` before any fix, ``lost`` after one; the best guess, its
-    ambiguity and the candidates).
-    """
+    """Shape-based localisation with relocalisation (a :class:`service.core.types.Localizer`,
+    method ``shape``). ``initial_pose`` ``None``: unknown (global localisation); ``config`` and
+    ``gconfig`` default to the map kind's presets; ``cache_dir``: where the map's
+    :class:`ViewIndex` is cached (``None``: in memory), built on the first scan that searches.
+    Each estimate carries its state (:class:`.states.State`'s ``name``)."""
 
     method = "shape"
 
@@ -62,16 +50,11 @@ class GlobalShapeLocalizer:
         self.odometry = Odometry(self.config.motion)
         self._index: ViewIndex | None = None
         self.state: st.State = st.Tracking()
-        #: reference ms of search work spent on the last scan (benchmarks)
-        self.work_ms = 0.0
-        #: scans that searched since the last reset (tests and benchmarks)
-        self.searches = 0
+        self.work_ms = 0.0  # reference ms of search work on the last scan
         self.reset(initial_pose)
 
     def __getstate__(self) -> dict[str, object]:
-        """Picklable state (a robot moved to another worker process): the view index is left
-        out (the new process loads it from its cache on first use); a search in progress
-        starts again on the next scan (:class:`~service.core.reloc.drive.Drive`)."""
+        """Picklable state without the view index (a new process loads it on first use)."""
         return {**self.__dict__, "_index": None}
 
     def __setstate__(self, state: dict[str, Any]) -> None:
@@ -122,10 +105,7 @@ class GlobalShapeLocalizer:
         self.tracker.reset(initial_pose, odom)
         o = None if odom is None else check_pose3(odom, "odom")
         self.odometry.reset(o if initial_pose is not None else None)
-        if initial_pose is None:
-            self.state = st.start_search(self, "initializing")
-        else:
-            self.state = st.Tracking()
+        self.state = st.Searching() if initial_pose is None else st.Tracking()
         self.work_ms = 0.0
 
     def update(
@@ -136,13 +116,10 @@ class GlobalShapeLocalizer:
         odom_spread: np.ndarray | None = None,
         from_scans: bool = False,
     ) -> Estimate:
-        """Localise one scan. ``ranges`` metres (NaN = no return), ``angles`` radians robot
-        frame, ``odom`` optional odometry pose (own frame; corrected by the scans first,
-        ``ShapeConfig.motion.scan_odometry``); ``odom_spread`` its increment's translation
-        variance beyond the odometry model's (the tracker's prior,
-        :meth:`service.core.tracking.motion.MotionModel.predict`); ``from_scans``: ``odom`` was
-        measured from the scans themselves (:mod:`service.core.tracking.laser_odometry`), so it
-        cannot vouch for a pose the scan contradicts (``GlobalConfig.scan_odometry_violation``)."""
+        """Localise one scan (:meth:`service.core.types.Localizer.update`). ``odom_spread``:
+        the increment's translation variance beyond the odometry model's; ``from_scans``:
+        ``odom`` was measured from the scans (laser odometry) and cannot vouch for a pose the
+        scan contradicts (``GlobalConfig.scan_odometry_violation``)."""
         r, a = check_scan(ranges, angles)
         o = None if odom is None else check_pose3(odom, "odom")
         step = self.odometry.step(r, a, o, odom_spread)
@@ -158,12 +135,11 @@ def _from_earlier(old: dict[str, Any]) -> dict[str, Any]:
     mode): its tracker, map and settings are kept; a robot that was tracking goes on
     tracking from its pose, one that was searching starts a new search."""
     new = {k: old[k] for k in ("map_data", "config", "cache_dir", "tracker") if k in old}
-    kind = new["map_data"].kind
-    g = GlobalConfig.for_kind(kind)
+    g = GlobalConfig.for_kind(new["map_data"].kind)
     budget = getattr(old.get("gconfig"), "search_budget_ms", None)
     if budget is not None:
         g = g.model_copy(update={"search_budget_ms": float(budget)})
-    new.update(gconfig=g, _index=None, work_ms=0.0, searches=0)
+    new.update(gconfig=g, _index=None, work_ms=0.0)
     odo = Odometry(new["config"].motion)
     last = old.get("_last_odom")
     odo.reset(None if last is None else np.asarray(last, dtype=np.float64))
@@ -173,5 +149,5 @@ def _from_earlier(old: dict[str, Any]) -> dict[str, Any]:
         new["state"] = st.Tracking()
     else:
         status = "lost" if old.get("_search_status") == "lost" else "initializing"
-        new["state"] = st.Searching(st.dr.Drive(), st.Prior(None, None, 1.0, 1.0), status)
+        new["state"] = st.Searching(status=status)
     return new

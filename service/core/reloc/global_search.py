@@ -18,10 +18,7 @@ from service.core.reloc.view_index.build import anchor, shape_units
 from service.core.reloc.view_index.viewpoints import SPACING
 from service.core.sensor.pose_batch import fit_pairs
 from service.core.sensor.scoring import BeamModel, SensorModel, subsample
-from service.core.shapes.configuration import (
-    Configuration,
-    scan_configuration,
-)
+from service.core.shapes.configuration import Configuration, scan_configuration
 from service.core.shapes.matching import induced_alignment
 from service.core.shapes.similarity import prepare, shape_complexity, shape_distance
 from service.core.tracking.localizer import ShapeConfig
@@ -29,36 +26,31 @@ from service.core.types import wrap_angle
 
 T = TypeVar("T")
 
-#: The search compares the scan's this many most complex units (the rest repeat them) ...
+#: The search compares the scan's this many most complex units (the rest repeat them), of at
+#: least this shape complexity (m·rad): a straight wall tells nothing.
 SCAN_UNITS = 5
-#: ... of at least this shape complexity (m·rad): a straight wall tells nothing.
 MIN_UNIT_COMPLEXITY = 0.05
 #: |range difference| (m) allowed between a scan unit and a view unit beyond the grid's
-#: half-diagonal.
+#: half-diagonal; view units less complex than this x the scan unit's are skipped.
 RANGE_SLACK = 0.4
-#: View units less complex than this x the scan unit's are skipped.
 VIEW_COMPLEXITY_RATIO = 0.25
-#: S* gate of a pair (m) ...
+#: S* gate of a pair (m); corresponding anchor corners turn alike within this (rad).
 MAX_SHAPE_DISTANCE = 0.6
-#: ... and corresponding anchor corners turn alike within this (rad).
 MAX_TURN_DIFFERENCE = 0.35
 #: Induced poses per scan, shared by the chosen scan units.
 PAIRS_BUDGET = 360
 #: Scan points of the support ranking, the fits and every polish.
 SUPPORT_POINTS = 80
-#: Coarse pose cell (m) of the shortlist (GlobalConfig.shortlist) ...
+#: Coarse pose cell (m), heading width (rad) and quick-check beams of GlobalConfig.shortlist.
 SHORTLIST_CELL = 0.4
-#: ... and its heading width (rad) ...
 SHORTLIST_ANGLE = 0.2
-#: ... and the beams of its quick check.
 SHORTLIST_BEAMS = 90
 #: Point-to-line fit steps per refinement stage.
 REFINE_ITERATIONS = 6
 #: Cauchy scale (m) of the tight fit stage and of the polish.
 FINE_SCALE = 0.05
-#: Hypotheses farther apart than this (m) are distinct places ...
+#: Hypotheses farther apart than this (m), or turned more than this (rad), are distinct places.
 DISTINCT_DISTANCE = 0.8
-#: ... or whose headings differ more than this (rad).
 DISTINCT_ANGLE = 0.5
 #: Cost of a beam through a drawn wall, in unexplained beams: a wall in the way contradicts a
 #: pose, a missing one only fails to confirm it.
@@ -69,10 +61,9 @@ COST_FLOOR = 0.05
 
 @dataclass
 class Hypothesis:
-    """A pose hypothesis ``[x, y, theta]`` (map frame) with its verification on one scan:
-    ``hit`` fraction of beams returned where the map predicts (within the support tolerance),
-    ``violation`` fraction of beams that passed through a map wall, ``cost`` (lower is
-    better), ``explained`` length fraction of the scan's polylines lying on the map there."""
+    """A pose ``[x, y, theta]`` (map frame) verified on one scan: ``cost`` (lower is better),
+    ``hit`` / ``violation`` the shares of beams returned where the map predicts / through a
+    wall, ``explained`` the length share of the scan's polylines lying on the map."""
 
     pose: np.ndarray
     cost: float
@@ -82,9 +73,7 @@ class Hypothesis:
 
 
 def beam_model(config: ShapeConfig, gconfig: GlobalConfig, short_scale: float = 0.0) -> BeamModel:
-    """The beam model of the search's checks: the tracker's support tolerance and view range,
-    the search's violation margin, weights and see-through (``short_scale``: the keyframe
-    evidence's grading of short returns, :mod:`service.core.reloc.drive`)."""
+    """The beam model of the search's checks (``short_scale``: the keyframe evidence's)."""
     return BeamModel(
         tolerance=config.support_tolerance,
         margin=gconfig.violation_margin,
@@ -106,10 +95,8 @@ def beam_costs(
     config: ShapeConfig,
     gconfig: GlobalConfig,
 ) -> np.ndarray:
-    """The beam part of :func:`verify`'s cost (without its floor) for each of ``poses``
-    ``(k, 3)`` on ``beams`` evenly chosen valid beams. A quick ranking: unlike the point
-    support it sees beams that pass through a wall, and it does not reward a wrong place for
-    lining up furniture with map walls."""
+    """The beam part of :func:`verify`'s cost for each of ``poses`` ``(k, 3)`` on ``beams``
+    valid beams: a quick ranking that, unlike the point support, sees beams through walls."""
     sel = subsample(np.nonzero(np.isfinite(ranges))[0], beams)
     if sel.size == 0:
         return np.full(len(poses), np.inf)
@@ -127,10 +114,8 @@ def verify(
     config: ShapeConfig,
     gconfig: GlobalConfig,
 ) -> Hypothesis:
-    """Check a pose against the map beam by beam and feature by feature (the sensor model's
-    :meth:`~service.core.sensor.scoring.SensorModel.beams` on ``gconfig.verify_beams`` valid
-    beams, and the length share of the scan's polylines lying on the map, ``explained``).
-    Cost ``1 - hit - short_credit * short + violation_weight * violation + cost_floor``."""
+    """Check a pose against the map on ``gconfig.verify_beams`` valid beams and by the length
+    share of the scan's polylines lying on the map (``explained``)."""
     sensor = index.sensor
     assert sensor is not None
     idx = subsample(np.nonzero(np.isfinite(ranges))[0], gconfig.verify_beams)
@@ -139,33 +124,15 @@ def verify(
     m = beam_model(config, gconfig)
     f = sensor.beams(pose[None, :], ranges[idx], angles[idx], m)[0]
     explained = sensor.explained_length(pose, P.features, config.support_tolerance)
-    return Hypothesis(
-        pose=pose.copy(),
-        cost=f.cost(m),
-        hit=f.hit,
-        violation=f.through,
-        explained=explained,
-    )
+    return Hypothesis(pose.copy(), f.cost(m), f.hit, f.through, explained)
 
 
 @dataclass
 class SearchResult:
-    """Ranked distinct hypotheses (best first); ``candidates`` how many pose hypotheses the
-    shape pairs induced."""
+    """Distinct hypotheses, best first, and how many poses the shape pairs induced."""
 
     hypotheses: list[Hypothesis]
     candidates: int
-
-
-def _ranked_units(
-    P: Configuration, threshold: float
-) -> tuple[list[np.ndarray], list[tuple[float, int]]]:
-    """The scan's units (robot frame) and ``(shape complexity, unit index)`` most complex
-    first."""
-    found = shape_units(P, threshold, cyclic=False)
-    comp = [(shape_complexity(u), k) for k, u in enumerate(found)]
-    comp.sort(key=lambda t: (-t[0], t[1]))
-    return found, comp
 
 
 def support_sample(P: Configuration) -> np.ndarray:
@@ -175,9 +142,8 @@ def support_sample(P: Configuration) -> np.ndarray:
 
 
 def refine(index: ViewIndex, poses: np.ndarray, sp: np.ndarray, config: ShapeConfig) -> np.ndarray:
-    """Refine poses ``(k, 3)`` against the map with the robot-frame scan points ``sp``: a
-    point-to-line fit (Cauchy scale of the tracker), a tight second stage on the segments
-    right under the points, a polish on the distance field and a last continuous fit."""
+    """Refine poses ``(k, 3)`` on the robot-frame scan points ``sp``: a point-to-line fit, a
+    tight one, a polish on the distance field and a last continuous fit."""
     sensor = index.sensor
     assert sensor is not None
 
@@ -193,19 +159,16 @@ def refine(index: ViewIndex, poses: np.ndarray, sp: np.ndarray, config: ShapeCon
         return out
 
     refined = fit(np.asarray(poses, dtype=np.float64), 0.5, config.align_robust_scale)
-    # then only the segments right under the points and a small robust scale, so returns from
-    # unmapped objects (furniture on a floor plan) stop pulling
+    # the segments right under the points only, a small robust scale: unmapped furniture
+    # stops pulling; the last fit, as the distance field is quantised to its cells
     refined = fit(refined, 2.0 * FINE_SCALE, FINE_SCALE)
     refined, _ = sensor.polish(refined, sp, FINE_SCALE)
-    # and a last continuous fit from there (the distance field is quantised to its cells)
     return fit(refined, 2.0 * FINE_SCALE, FINE_SCALE)
 
 
-# distinct and near run for every pair of poses a search or a merge compares: scalar
-# element differences into the same np.hypot (no temporary arrays)
-
-
+# distinct and near compare every pair of poses: scalar differences, no temporary arrays
 def distinct(a: np.ndarray, b: np.ndarray) -> bool:
+    """Whether poses ``a`` and ``b`` are distinct places."""
     return bool(
         np.hypot(a[0] - b[0], a[1] - b[1]) > DISTINCT_DISTANCE
         or abs(wrap_angle(float(a[2] - b[2]))) > DISTINCT_ANGLE
@@ -213,30 +176,20 @@ def distinct(a: np.ndarray, b: np.ndarray) -> bool:
 
 
 def near(a: np.ndarray, b: np.ndarray, dist: float = 0.3, ang: float = 0.15) -> bool:
+    """Whether poses ``a`` and ``b`` lie within ``dist`` (m) and ``ang`` (rad): one pose."""
     return bool(
         np.hypot(a[0] - b[0], a[1] - b[1]) < dist and abs(wrap_angle(float(a[2] - b[2]))) < ang
     )
 
 
-#: Work model of the search, in milliseconds of one core of the reference machine (the 2-core
-#: build VM) per item: a deterministic stand-in for CPU time, so that a search spread over
-#: scans by a budget takes the same steps, and gives the same poses, on any machine and under
-#: any load (docs/decisions/0005-search-budget-and-work-model.md). A ray cast and the
-#: refinement's nearby segments also cost per segment of the map (every cast measures each
-#: segment before it intersects beams: a real log's metric map, 1 500-2 700 segments, casts
-#: 2-3x slower than a floor plan). Each item is set at or above the slowest tuning map's
-#: measurement (``bench/bench_work_model.py``), so a budget does not buy more CPU than it
-#: names. Since the casts were compiled (service/core/kernels/raycast.py) the cast terms (beam,
-#: cast_segment) overstate them ~2.5x; left as they are, since lowering them made the search
-#: faster and fixed a tuning alias wrong (the drive bench). The shortlist's march on the
-#: distance field (field_beam) is set at the office's and intel's floor plans: up to 1.35x
-#: below building 3's, a few per cent of a search's work, which the cast terms'
-#: overstatement more than covers.
+#: Work model (ms of one core of the reference machine per item): a stand-in for CPU time, so a
+#: budgeted search gives the same poses on any machine and under any load (docs/decisions/0005),
+#: at or above the slowest tuning map's measurement (bench/bench_work_model.py).
 WORK_MS = {
     "sstar": 0.0105,  # one S* comparison (shape_distance with an upper bound)
     "induced": 0.045,  # one S*-induced alignment
     "support": 0.000012,  # one pose x one point of the support ranking
-    "field_beam": 0.00012,  # one pose x one beam marched on the distance field (see below)
+    "field_beam": 0.00012,  # one pose x one beam marched on the distance field
     "polish": 0.000006,  # one pose x grid cell x point of a distance-field polish ...
     "polish_call": 0.15,  # ... and one call's fixed part (a keyframe polishes one pose)
     "beam": 0.0023,  # one pose x one beam of a ray cast check ...
@@ -255,13 +208,12 @@ _CHUNK_REFINE = 2  # poses refined / verified between two yields
 
 
 def polish_ms(points: int) -> float:
-    """Work (reference ms) of one pose's :func:`_polish` (two 5 x 5 x 5 grids) on ``points``,
-    in a call over several poses."""
+    """Work (reference ms) of one pose's polish (two 5 x 5 x 5 grids) on ``points``."""
     return 250 * max(points, 1) * WORK_MS["polish"]
 
 
 def cast_ms(index: ViewIndex) -> float:
-    """Work (reference ms) of one pose's ray cast that depends on the map: its segments."""
+    """Work (reference ms) of one pose's ray cast per the map's segments."""
     assert index.sensor is not None
     return len(index.sensor.segments) * WORK_MS["cast_segment"]
 
@@ -273,21 +225,20 @@ def refine_ms(index: ViewIndex) -> float:
 
 
 def beams_ms(index: ViewIndex, gconfig: GlobalConfig, beams: int) -> float:
-    """Work (reference ms) of one pose's cast and beam fractions over ``beams`` beams (a
-    verification's, a keyframe's score)."""
+    """Work (reference ms) of one pose's cast and beam fractions over ``beams`` beams."""
     layered = WORK_MS["layered"] if gconfig.see_through else 0.0
     return beams * WORK_MS["verify_beam"] + cast_ms(index) + layered
 
 
 def verify_ms(index: ViewIndex, gconfig: GlobalConfig) -> float:
+    """Work (reference ms) of one pose's :func:`verify`."""
     return WORK_MS["verify"] + beams_ms(index, gconfig, gconfig.verify_beams)
 
 
 def _first_rows(rows: np.ndarray) -> np.ndarray:
-    """Positions (ascending) of the first occurrence of each distinct row of ``rows``
-    ``(n, k)``, whole numbers stored as floats: ``np.sort(np.unique(rows, axis=0,
-    return_index=True)[1])``, computed on one integer key per row (a row-wise unique sorts
-    structured records, ~100x slower on the search's few thousand poses)."""
+    """Positions (ascending) of the first occurrence of each distinct row of ``rows`` ``(n,
+    k)`` (whole numbers as floats), on one integer key per row: a row-wise ``np.unique``
+    sorts structured records, ~100x slower."""
     if rows.size == 0:
         return np.zeros(0, dtype=np.int64)
     if not np.all(np.isfinite(rows)):
@@ -328,25 +279,19 @@ def search_steps(
     ranges: np.ndarray,
     angles: np.ndarray,
     config: ShapeConfig,
-    gconfig: GlobalConfig | None = None,
+    gconfig: GlobalConfig,
     seeds: list[np.ndarray] | tuple[np.ndarray, ...] = (),
     P: Configuration | None = None,
 ) -> Generator[float, None, SearchResult]:
-    """The global search for one scan over the whole map, as a generator that yields, after
-    each bounded chunk of work, that chunk's cost in reference ms (:data:`WORK_MS`), and
-    returns the :class:`SearchResult`: distinct hypotheses, best (lowest cost) first.
-
-    ``ranges`` metres (NaN = no return), ``angles`` radians (robot frame); ``config`` the
-    tracker's settings; ``seeds`` extra poses (the kept hypotheses, moved by odometry); ``P``
-    the scan's configuration if already computed.
+    """The global search for one scan over the whole map: a generator yielding each chunk's
+    work (reference ms, :data:`WORK_MS`) and returning the :class:`SearchResult`.
 
     The :data:`SCAN_UNITS` most complex scan units are compared by S* with every index unit
-    whose range from its viewpoint is within the grid half-diagonal plus :data:`RANGE_SLACK`
-    of the scan unit's; the most similar pairs (:data:`PAIRS_BUDGET` shared) each induce a
-    pose. All poses and the seeds are ranked by support (distance field); the best
-    ``refine_top`` distinct ones are refined (:func:`refine`) and verified (:func:`verify`).
+    at a similar range from its viewpoint; the most similar pairs (:data:`PAIRS_BUDGET`) each
+    induce a pose. These and the ``seeds`` (the kept hypotheses) are ranked by support on the
+    distance field; the best ``refine_top`` distinct ones are refined and verified. ``P``:
+    the scan's configuration if already computed.
     """
-    gconfig = gconfig or GlobalConfig.for_kind(config.kind)
     sensor = index.sensor
     assert sensor is not None
     r = np.asarray(ranges, dtype=np.float64)
@@ -357,10 +302,17 @@ def search_steps(
     anchor_poses: list[np.ndarray] = []
     n_induced = 0
     if P.features and len(index):
-        units, comp = _ranked_units(P, config.dce_threshold)
+        units = shape_units(P, config.dce_threshold, cyclic=False)
+        comp = sorted(
+            ((shape_complexity(u), k) for k, u in enumerate(units)), key=lambda t: (-t[0], t[1])
+        )
         chosen = [k for c, k in comp[:SCAN_UNITS] if c >= MIN_UNIT_COMPLEXITY]
         gate = 0.5 * np.sqrt(2.0) * SPACING + RANGE_SLACK
-        ew, sw = config.shape_end_weight, config.shape_skip_weight
+        sstar = {
+            "end_weight": config.shape_end_weight,
+            "skip_weight": config.shape_skip_weight,
+            "upper_bound": MAX_SHAPE_DISTANCE,
+        }
         for k in chosen:
             pu = units[k]
             pa = prepare(pu)
@@ -376,33 +328,23 @@ def search_steps(
             if cornered:  # corresponding corners turn alike
                 dturn = np.mod(index.unit_anchor[cand, 3] - p_turn + np.pi, 2.0 * np.pi) - np.pi
                 cand = cand[np.abs(dturn) < MAX_TURN_DIFFERENCE]
-            # The same physical corner is seen from many viewpoints (one group): S* is
-            # computed for one view of each group (the first), and a similar group lends its
-            # views' anchors to every view of it; the budget of S*-induced alignments thus
-            # covers many distinct places instead of one corner many times.
+            # one S* per group of views of the same corner, and a similar group lends every view
+            # its anchor: the alignments cover many places, not one corner many times
             groups = index.unit_group[cand]
             _, first = np.unique(groups, return_index=True)
             scored = []
             for j, u in enumerate(cand[np.sort(first)].tolist()):
-                s = shape_distance(
-                    pa,
-                    index.arcs(u),
-                    end_weight=ew,
-                    skip_weight=sw,
-                    upper_bound=MAX_SHAPE_DISTANCE,
-                )
+                s = shape_distance(pa, index.arcs(u), **sstar)
                 if s < MAX_SHAPE_DISTANCE:
                     scored.append((s, u))
                 if (j + 1) % _CHUNK_SSTAR == 0:
                     yield _CHUNK_SSTAR * WORK_MS["sstar"]
             scored.sort()
             top = scored[: PAIRS_BUDGET // len(chosen)]
-            for _s, u in top:
-                poses.append(induced_alignment(pa, index.arcs(u)))
-                n_induced += 1
+            poses += [induced_alignment(pa, index.arcs(u)) for _s, u in top]
+            n_induced += len(top)
             if scored and cornered:
-                # every view of a similar group fixes a pose by the anchors (corner vertex
-                # and leaving edge): vectorised, cheap enough for all of them
+                # each view of a similar group fixes a pose by its anchor (vectorised: cheap)
                 similar = np.isin(groups, index.unit_group[[u for _s, u in scored]])
                 qa = index.unit_anchor[cand[similar]]
                 phi = np.mod(qa[:, 2] - p_dir + np.pi, 2.0 * np.pi) - np.pi
@@ -412,12 +354,10 @@ def search_steps(
                 anchor_poses.append(np.column_stack([tx, ty, phi]))
                 n_induced += len(qa)
             yield len(top) * WORK_MS["induced"] + (len(first) % _CHUNK_SSTAR) * WORK_MS["sstar"]
-    if not poses and not anchor_poses:
-        return SearchResult(hypotheses=[], candidates=0)
-    H = np.vstack([np.asarray(poses).reshape(-1, 3), *anchor_poses])
     sp = support_sample(P)
-    if len(sp) == 0:
+    if (not poses and not anchor_poses) or len(sp) == 0:
         return SearchResult(hypotheses=[], candidates=n_induced)
+    H = np.vstack([np.asarray(poses).reshape(-1, 3), *anchor_poses])
     parts = []
     for i in range(0, len(H), _CHUNK_POSES):
         block = H[i : i + _CHUNK_POSES]
@@ -426,20 +366,16 @@ def search_steps(
     sup = np.concatenate(parts)
     order = np.argsort(-sup, kind="stable")
     if gconfig.shortlist > 0:
-        # An induced pose near the truth is often 0.2-0.4 m / 5-10 deg off, so its raw support
-        # trails a wrong place's that happens to line up. Keep the best pose per coarse pose
-        # cell, polish the best cells' poses on the distance field (coarse then fine grid) and
-        # rank by the polished score instead.
+        # an induced pose near the truth is often decimetres off, its support below a wrong
+        # place's: the best per coarse cell is polished and ranked by a quick beam check
         heading = (wrap_angle(H[:, 2]) + np.pi) / SHORTLIST_ANGLE
         cells = np.floor(np.column_stack([H[:, :2] / SHORTLIST_CELL, heading]))
         reps = order[_first_rows(cells[order])]
         nb = gconfig.shortlist_violation_beams
         beams = subsample(np.flatnonzero(np.isfinite(r)), nb) if nb > 0 else np.zeros(0, int)
         if beams.size and len(reps):
-            # Where the plan shows little of what the laser sees, wrong places whose walls
-            # the furniture happens to fit out-score the true one on support; most of their
-            # other beams pass through a drawn wall, the true pose's hardly any. The cells are
-            # ranked by support less the verification's weight times that share.
+            # a wrong place whose walls the furniture fits out-scores the true one on support,
+            # but most of its other beams pass through drawn walls, the true pose's hardly any
             margin = max(config.support_tolerance, gconfig.violation_margin)
             vparts = []
             for i in range(0, len(reps), _CHUNK_POSES):
@@ -449,8 +385,7 @@ def search_steps(
             score = sup[reps] - VIOLATION_WEIGHT * np.concatenate(vparts)
             reps = reps[np.argsort(-score, kind="stable")]
         short = reps[: gconfig.shortlist]
-        polished_parts = []
-        quick_parts = []
+        polished_parts, quick_parts = [], []
         for i in range(0, len(short), _CHUNK_POLISH):
             block = H[short[i : i + _CHUNK_POLISH]]
             pol, _score = sensor.polish(block, sp, FINE_SCALE, stages=((0.15, 0.06), (0.05, 0.02)))
@@ -460,15 +395,13 @@ def search_steps(
                 polish_ms(len(sp)) + SHORTLIST_BEAMS * WORK_MS["beam"] + cast_ms(index)
             )
         H = np.vstack(polished_parts)
-        quick = np.concatenate(quick_parts)
-        order = np.argsort(quick, kind="stable")
+        order = np.argsort(np.concatenate(quick_parts), kind="stable")
     picked: list[np.ndarray] = []
     for i in order.tolist():
         if len(picked) >= gconfig.refine_top:
             break
-        if any(near(H[i], p) for p in picked):
-            continue
-        picked.append(H[i])
+        if not any(near(H[i], p) for p in picked):
+            picked.append(H[i])
     hyps: list[Hypothesis] = []
     for i in range(0, len(picked), _CHUNK_REFINE):
         block = np.vstack(picked[i : i + _CHUNK_REFINE])
@@ -492,22 +425,16 @@ def self_similar_steps(
     config: ShapeConfig,
     gconfig: GlobalConfig,
 ) -> Generator[float, None, Hypothesis | None]:
-    """The map's own twin of ``best``, verified on the real scan, or ``None``, as steps (like
-    :func:`search_steps`).
+    """The map's own twin of ``best`` verified on the real scan, or ``None``, as steps.
 
-    A search can miss the true place altogether (furniture hides its walls) and then crown a
-    congruent room elsewhere with no close rival. So before a fix the map is asked where else
-    it looks the same: the scan the MAP would give at ``best.pose`` (a ray cast over the real
-    scan's beams that have returns) runs through :func:`search_steps` itself; every
-    resulting pose distinct from ``best`` is a place the map cannot tell from it, and is
-    verified (:func:`verify`) on the real ``ranges`` / ``angles`` both as found and refined on
-    the real scan's points (:func:`refine`), whichever verifies better (the map-only search
-    aligned it to the map's own view; furniture can drag the fit off). Returns the best
-    verified twin (lowest cost)."""
-    ok = np.isfinite(ranges)
+    A search can miss the true place (furniture hides its walls) and crown a congruent room
+    elsewhere with no close rival. So before a fix the scan the map would give at
+    ``best.pose`` is searched for; every distinct place found is one the map cannot tell from
+    it, verified on the real scan as found and refined on its points (furniture can drag the
+    fit off), whichever is better. Returns the best verified twin."""
     assert index.sensor is not None
     pred = index.sensor.caster.cast(best.pose, angles, config.view_max_range)
-    pred = np.where(ok, pred, np.nan)
+    pred = np.where(np.isfinite(ranges), pred, np.nan)
     if np.count_nonzero(np.isfinite(pred)) < 10:
         return None
     res = yield from search_steps(index, pred, angles, config, gconfig)

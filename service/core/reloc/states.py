@@ -1,41 +1,23 @@
-"""Relocalisation as a state machine (docs/decisions/0017-relocalisation-state-machine.md): the
-states as objects and one transition function, :func:`step` (``(state, scan) -> (state,
-estimate)``).
-
-* :class:`Tracking` -- the shape tracker follows the robot. With odometry a *dead-reckoned
-  reference* rides along: the pose the odometry carried from the last scan the map explained
-  well (``good_support``), with its growing covariance. A fit of a poorly explained scan is
-  believed only within :data:`GATE_SIGMAS` of it, and a rejected scan only while the
-  reference's sigma is below ``track_sigma``; beyond either, the robot dead-reckons. A scan
-  that contradicts the pose (beams through drawn walls, or the scan-to-scan fit broken: a
-  kidnap) ``lost_after`` times in a row starts a search; without odometry the tracker's own
-  ``lost`` (or a scan that fits nothing) does.
-* :class:`DeadReckoning` -- the published pose is the dead-reckoned one (status ``lost``).
-  ``relock_scans`` scans in a row the tracker, run from it, explains well within the gate fix
-  the robot again; scans that contradict it, or a sigma past ``max_dead_reckoning_sigma``,
-  start a search with it as the prior.
-* :class:`Searching` -- the global search over a drive (:mod:`service.core.reloc.drive`)
-  within the per-scan budget; the decision (:mod:`service.core.reloc.decision`) names a
-  winner, the tracker confirms it.
-* :class:`Probation` -- with odometry a winner is tracked ``probation_travel`` metres while
-  the evidence goes on, and fixed if the decision still names it then.
+"""Relocalisation as a state machine: the states (:class:`Tracking`, :class:`DeadReckoning`,
+:class:`Searching`, :class:`Probation`) as objects and one transition function, :func:`step`
+(``(state, scan) -> (state, estimate)``). The transitions are drawn in
+docs/architecture-core.md and argued in docs/decisions/0017.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Protocol
 
 import numpy as np
 
-from service.core import numeric
 from service.core.pose import propagate, sigma_xy
 from service.core.reloc import drive as dr
-from service.core.reloc.composite import composite_scan
 from service.core.reloc.config import GlobalConfig
-from service.core.reloc.decision import CELL_VOLUME, Prior, Verdict, decide
-from service.core.reloc.global_search import advance, search_steps, self_similar_steps
+from service.core.reloc.decision import CELL_VOLUME, Prior, Verdict, decide, mahalanobis2
+from service.core.reloc.global_search import Hypothesis, advance, search_steps, self_similar_steps
 from service.core.reloc.view_index import ViewIndex
 from service.core.reloc.view_index.viewpoints import SPACING
 from service.core.shapes.configuration import Configuration, scan_configuration
@@ -46,44 +28,31 @@ from service.core.types import Estimate, Status, wrap_angle
 #: Heading offsets (rad) under which a kept hypothesis seeds the next search: a robot may turn
 #: that much between two scans, more than the fit recovers.
 SEED_TURNS = (0.0, -0.4, 0.4, -0.8, 0.8)
-#: Work (reference ms) of the tracker's confirmation of a winner: a tracker update from a
-#: fresh reset, measured 10 / 21 ms median on the office's metric / schematic map.
+#: Work (reference ms) of the tracker's confirmation of a winner: one update from a reset.
 CONFIRM_MS = 20.0
-#: Covariance (m², rad²) of a pose the map has just confirmed, at least: the reference starts
-#: there, and a fit is compared with a dead-reckoned pose within it. A fit's own covariance
-#: says how well the points pin it, not how far a wrong association moves it: consecutive
-#: accepted fits on the tuning logs differ from the odometry's step by up to ~5 cm and ~1.5
-#: degrees.
+#: Covariance (m², rad²) of a pose the map has just confirmed, at least: a fit's own says how
+#: well the points pin it, not how far a wrong association moves it (accepted fits differ
+#: from the odometry's step by up to ~5 cm and ~1.5 degrees).
 FIX_COV = np.diag([0.05**2, 0.05**2, 0.03**2])
-#: Without odometry the prior around the last tracked pose widens by this many metres per
-#: scan and per metre of the robot's known speed per scan (it may turn any amount).
+#: Without odometry the prior around the last tracked pose widens by this times the robot's
+#: known speed (m per scan, at least 5 cm) per scan; it may turn any amount.
 HELD_GROWTH = 2.0
 #: With a budget, at most this share re-scores the kept hypotheses on the scan and
-#: EVIDENCE_SHARE scores them on the keyframes they lack; the search gets the rest (0.3 / 0.2
-#: against 0.5 / 0.3 on tuning worlds 0-19: 96 against 93 % fixed in 15 m).
+#: EVIDENCE_SHARE scores them on the keyframes they lack; the search gets the rest (larger
+#: shares for the tracks fixed fewer robots).
 RESCORE_SHARE = 0.3
 EVIDENCE_SHARE = 0.2
-#: At most this shortlist ...
+#: At most this shortlist and refine_top in a twin check (it searches the map's own view).
 TWIN_SHORTLIST = 60
-#: ... and refine_top in a self-similarity check (it searches the map's own view).
 TWIN_REFINE_TOP = 12
-#: The tracker's first fit must lie this close to the winner (m) ...
+#: The tracker's first fit must lie this close to the winner (m), turned less than this (rad)
+#: and with a position sigma of at most this (m): a corridor's parallel walls verify equally
+#: well further along, and a right fix is pinned to a centimetre.
 CONFIRM_DISTANCE = 0.3
-#: ... and turned less than this (rad) ...
 CONFIRM_ANGLE = 0.1
-#: ... with a position sigma of at most this (m): a corridor's parallel walls verify equally
-#: well 0.8 m further along (intel floor plan: a fix 0.8 m off, sigma 0.19 m; correct fixes
-#: 0.004-0.01 m).
 CONFIRM_SIGMA = 0.05
-#: Standard deviations of the dead-reckoned reference a poorly explained fit may stray from it
-#: before the robot dead-reckons.
+#: Sigmas of the dead-reckoned reference a poorly explained fit may stray from it.
 GATE_SIGMAS = 3.0
-#: With odometry the search matches the last this many scans fused (1: every scan alone) ...
-COMPOSITE_SCANS = 3
-#: ... into this many beams (never finer than the laser's) ...
-COMPOSITE_BINS = 720
-#: ... leaving out scans farther than this (m) from the newest.
-COMPOSITE_TRAVEL = 0.5
 #: With the odometry prior off, an odometry turn larger than this (rad) still moves the
 #: tracker's pose first (the tracker follows turns up to 1.3 rad).
 ODOM_TURN_ASSIST = 1.0
@@ -91,16 +60,13 @@ ODOM_TURN_ASSIST = 1.0
 
 @dataclass(frozen=True)
 class Scan:
-    """One scan and its odometry: ``ranges`` (m, NaN = none) and ``angles`` (rad, robot
-    frame), the :class:`~service.core.tracking.scan_odometry.OdometryStep`, and whether the
-    tracker uses the odometry as its prior (``odometry``)."""
+    """One scan (robot frame) and its odometry step; ``odometry``: the tracker's prior uses it;
+    ``from_scans``: laser odometry, which cannot vouch for a pose the scan contradicts."""
 
     ranges: np.ndarray
     angles: np.ndarray
     odom: OdometryStep
     odometry: bool
-    #: the odometry was measured from the scans themselves (laser odometry): it cannot vouch
-    #: for a pose the scan contradicts, accepted or not
     from_scans: bool = False
 
 
@@ -111,20 +77,17 @@ class Context(Protocol):
     gconfig: GlobalConfig
     tracker: ShapeLocalizer
     work_ms: float
-    searches: int
 
     @property
     def index(self) -> ViewIndex: ...
 
 
-# ------------------------------------------------------------------------------- the states
 @dataclass
 class Tracking:
-    """The tracker follows; ``ref`` / ``cov`` the dead-reckoned reference (module docstring;
-    ``None`` without odometry), ``strikes`` scans in a row that contradicted the pose,
-    ``broken`` whether the scan-to-scan fit broke since the last scan the map explained well,
-    ``since_fix`` scans since a search's fix (a service keeps such a robot on its search
-    worker for ``settle_scans``)."""
+    """The tracker follows. With odometry ``ref`` / ``cov``, carried from the last scan the map
+    explained well, gate worse fits (:data:`GATE_SIGMAS`, ``track_sigma``). ``strikes``: scans
+    in a row that contradicted the pose; ``broken``: the scan-to-scan fit broke since the last
+    well explained scan; ``since_fix``: scans since a search's fix."""
 
     ref: np.ndarray | None = None
     cov: np.ndarray | None = None
@@ -136,9 +99,9 @@ class Tracking:
 
 @dataclass
 class DeadReckoning:
-    """The map does not explain the scans: ``pose`` / ``cov`` dead-reckoned; ``relock`` scans
-    in a row the tracker explained well from it, ``strikes`` scans in a row that contradicted
-    it, ``broken`` as :class:`Tracking`'s."""
+    """The map does not explain the scans: ``pose`` / ``cov`` dead-reckoned (status ``lost``)
+    until ``relock_scans`` (``relock``) the tracker explains well from it, or a search starts
+    from it; ``strikes`` and ``broken`` as :class:`Tracking`'s."""
 
     pose: np.ndarray
     cov: np.ndarray
@@ -150,24 +113,22 @@ class DeadReckoning:
 
 @dataclass
 class Searching:
-    """The search over a drive: ``drive`` the hypotheses and frames, ``prior`` where the robot
-    may be, ``status`` published (``initializing`` before any fix, ``lost`` after one),
-    ``scans`` searched so far; with a dead-reckoned prior and odometry, ``relock`` scans in a
-    row the tracker explained well from the prior's mean (as :class:`DeadReckoning`)."""
+    """The search over a ``drive``: ``prior`` where the robot may be (default uniform), the
+    ``status`` published (``initializing`` before any fix, ``lost`` after one); ``relock`` as
+    :class:`DeadReckoning`'s, from a dead-reckoned prior's mean."""
 
-    drive: dr.Drive
-    prior: Prior
+    drive: dr.Drive = field(default_factory=dr.Drive)
+    prior: Prior = field(default_factory=lambda: Prior(None, None, 1.0, 1.0))
     status: Status = "initializing"
-    scans: int = 0
     relock: int = 0
     name: str = "searching"
 
 
 @dataclass
 class Probation:
-    """A winner tracked before it is published: ``winner`` its track among the ``drive``'s,
-    ``left`` the travel (m) still to go, ``rejected`` scans in a row that contradicted it,
-    ``ambiguity`` the decision's when it named the winner (published until the verdict)."""
+    """With odometry a winner (``winner``, among the ``drive``'s tracks) is tracked
+    ``probation_travel`` metres (``left`` to go) and fixed if the decision still names it then;
+    ``rejected``: scans in a row that contradicted it; ``ambiguity``: the decision's."""
 
     drive: dr.Drive
     prior: Prior
@@ -182,15 +143,6 @@ class Probation:
 State = Tracking | DeadReckoning | Searching | Probation
 
 
-# ------------------------------------------------------------------------------- helpers
-def mahalanobis2(pose: np.ndarray, mean: np.ndarray, cov: np.ndarray) -> float:
-    """Squared Mahalanobis distance of ``pose`` from ``mean`` under ``cov`` (plus the fit's
-    own covariance, :data:`FIX_COV`)."""
-    e = np.asarray(pose, dtype=np.float64) - mean
-    e[2] = wrap_angle(float(e[2]))
-    return float(numeric.quadratic(e, numeric.inv(cov + FIX_COV)))
-
-
 def fit_cov(est: Estimate) -> np.ndarray:
     """The covariance a fix starts the reference with: the fit's, at least :data:`FIX_COV`."""
     if est.covariance is None:
@@ -199,11 +151,14 @@ def fit_cov(est: Estimate) -> np.ndarray:
     return np.maximum(c, 0.0) * np.eye(3) + FIX_COV if np.all(np.isfinite(c)) else FIX_COV.copy()
 
 
+def _fit(ctx: Context, scan: Scan) -> Estimate:
+    o = scan.odom
+    return ctx.tracker.update(scan.ranges, scan.angles, o.reading, o.matched_from, o.spread)
+
+
 def _contradicts(ctx: Context, scan: Scan, pose: np.ndarray, cov: np.ndarray | None = None) -> bool:
-    """Whether the scan contradicts ``pose``: more than ``contradiction`` of the tracker's
-    violation beams return from beyond a drawn wall, by more than the tracker's margin plus,
-    for a dead-reckoned pose of covariance ``cov``, :data:`GATE_SIGMAS` of its position sigma (a
-    wall the pose may be that far off from is no contradiction)."""
+    """Whether more than ``contradiction`` of the beams return from beyond a drawn wall at
+    ``pose``, by the tracker's margin plus, with ``cov``, :data:`GATE_SIGMAS` of its sigma."""
     margin = ctx.config.violation_margin
     if cov is not None:
         margin += GATE_SIGMAS * sigma_xy(cov)
@@ -211,12 +166,6 @@ def _contradicts(ctx: Context, scan: Scan, pose: np.ndarray, cov: np.ndarray | N
     return share > ctx.gconfig.contradiction
 
 
-def start_search(ctx: Context, status: Status, prior: Prior | None = None) -> Searching:
-    """A new search (no hypotheses yet) with ``prior`` (default: uniform over the map)."""
-    return Searching(dr.Drive(), prior or Prior(None, None, 1.0, 1.0), status)
-
-
-# ------------------------------------------------------------------------------- the step
 def step(ctx: Context, state: State, scan: Scan) -> tuple[State, Estimate]:
     """The one transition function: the next state and the estimate to publish."""
     if isinstance(state, Tracking):
@@ -227,7 +176,7 @@ def step(ctx: Context, state: State, scan: Scan) -> tuple[State, Estimate]:
         new, est = _probation(ctx, state, scan)
     else:
         new, est = _searching(ctx, state, scan)
-    est.state = "searching" if isinstance(new, Searching) else new.name  # type: ignore[assignment]
+    est.state = new.name  # type: ignore[assignment]
     if isinstance(new, Searching) and est.ambiguity is None:
         est.ambiguity = 1.0  # a search that has only begun: no place leads yet
     if not isinstance(new, Tracking) and est.status == "tracking":
@@ -239,10 +188,10 @@ def _tracking(ctx: Context, s: Tracking, scan: Scan) -> tuple[State, Estimate]:
     g = ctx.gconfig
     o = scan.odom
     if o.delta is not None and not scan.odometry and abs(float(o.delta[2])) > ODOM_TURN_ASSIST:
-        # a turn the shape tracker cannot bridge without its odometry prior (a look-around
-        # spin after the fix): the odometry's heading change moves its pose first
+        # a turn the tracker cannot bridge without its odometry prior (a look-around spin
+        # after the fix): the odometry's heading change moves its pose first
         ctx.tracker.predict(o.delta)
-    est = ctx.tracker.update(scan.ranges, scan.angles, o.reading, o.matched_from, o.spread)
+    est = _fit(ctx, scan)
     if est.ambiguity is not None:
         # the tracker's own ambiguity compares step-2 hypotheses that often converge to one
         # pose: no integrity signal; the published ambiguity is the search's
@@ -253,8 +202,7 @@ def _tracking(ctx: Context, s: Tracking, scan: Scan) -> tuple[State, Estimate]:
     if not scan.odometry:
         s.ref = s.cov = None
         if est.status == "lost" or (rejected and est.score < g.collapse_score):
-            # with no odometry to bridge it, a scan that fits the map nowhere near the pose
-            # ends the track
+            # nothing bridges a scan that fits the map nowhere near the pose
             est.extras["collapsed"] = 1.0
             return _lost(ctx, est.pose, None), est
         return s, est
@@ -264,21 +212,17 @@ def _tracking(ctx: Context, s: Tracking, scan: Scan) -> tuple[State, Estimate]:
     s.ref, s.cov = propagate(s.ref, s.cov, o.delta, o.noise(ctx.config.motion))
     slid = False
     if scan.from_scans and g.scan_odometry_violation < 1.0:
-        # an odometry measured from the scans moves a pose that slid along a corridor (where
-        # neither the scans nor a floor plan pin it), or turned wrong, as precisely as a right
-        # one: the map alone can tell, and beams through its walls do
+        # an odometry measured from the scans moves a pose that slid along a corridor, or
+        # turned wrong, as precisely as a right one: only beams through the map's walls tell
         share = ctx.tracker.violations(scan.ranges, scan.angles, [est.pose])[0]
         est.extras["pose_violation"] = share
         slid = share > g.scan_odometry_violation
     if not slid and not rejected and (est.explained or 0.0) >= g.good_support:
         s.ref, s.cov, s.strikes, s.broken = est.pose.copy(), fit_cov(est), 0, False
         return s, est
-    # a poorly explained scan: does it contradict the pose (a kidnap)? After a break of the
-    # scan-to-scan fit every scan the map fits poorly does: the scans after a kidnap match
-    # each other again, and a floor plan's outline may half explain them without a beam
-    # through a wall. Otherwise only a scan the tracker rejects, scoring low, whose beams
-    # cross drawn walls: beams through a deleted or moved piece of furniture cross one too,
-    # on a scan the tracker still fits (a map from another day)
+    # a poorly explained scan contradicts the pose (a kidnap) after a break of the scan-to-scan
+    # fit (the scans after a kidnap match each other again), else only if rejected, scoring
+    # low, with beams through drawn walls (moved furniture lets beams through on a good fit)
     low = est.score < g.collapse_score
     s.broken = (s.broken or o.broken) and low
     contradicted = slid or s.broken or (rejected and low and _contradicts(ctx, scan, est.pose))
@@ -286,7 +230,7 @@ def _tracking(ctx: Context, s: Tracking, scan: Scan) -> tuple[State, Estimate]:
     if s.strikes >= ctx.config.lost_after:
         est.extras["contradicted"] = 1.0
         return _lost(ctx, s.ref, s.cov), est
-    stray = not rejected and mahalanobis2(est.pose, s.ref, s.cov) > GATE_SIGMAS**2
+    stray = not rejected and mahalanobis2(est.pose, s.ref, s.cov + FIX_COV) > GATE_SIGMAS**2
     if stray or est.status == "lost" or sigma_xy(s.cov) > g.track_sigma:
         est.extras["stray" if stray else "unexplained"] = 1.0
         ctx.tracker.reset(None)
@@ -296,9 +240,9 @@ def _tracking(ctx: Context, s: Tracking, scan: Scan) -> tuple[State, Estimate]:
 
 
 def _lost(ctx: Context, pose: np.ndarray, cov: np.ndarray | None) -> Searching:
-    """A search after the track is lost at ``pose`` (with odometry: dead-reckoned, ``cov``;
-    without: the last tracked pose, widened scan by scan); its prior the pose's Gaussian with
-    ``kidnap_weight`` spread over the map's places."""
+    """A search after the track is lost at ``pose`` (dead-reckoned, ``cov``; without odometry
+    the last tracked pose, widened scan by scan): its prior the pose's Gaussian with
+    ``kidnap_weight`` spread over the map, its first track the pose (verified a scan ago)."""
     speed = ctx.tracker.known_speed()
     ctx.tracker.reset(None)
     if cov is None:
@@ -306,10 +250,9 @@ def _lost(ctx: Context, pose: np.ndarray, cov: np.ndarray | None) -> Searching:
         grow = (HELD_GROWTH * max(step_m, 0.05)) ** 2
         cov = np.diag([grow, grow, math.pi**2])
     pose = np.asarray(pose, dtype=np.float64).copy()
-    srch = start_search(ctx, "lost", Prior(pose, cov.copy(), ctx.gconfig.kidnap_weight, 0.0))
-    srch.drive.tracks = [dr.Track(pose.copy(), dr.held(pose))]
-    srch.drive.speed = speed
-    return srch
+    held = dr.Track(pose.copy(), Hypothesis(pose=pose.copy(), cost=0.05))
+    prior = Prior(pose, cov.copy(), ctx.gconfig.kidnap_weight, 0.0)
+    return Searching(dr.Drive(tracks=[held], speed=speed), prior, "lost")
 
 
 def _dead_estimate(d: DeadReckoning, est: Estimate) -> Estimate:
@@ -326,28 +269,22 @@ def _dead_estimate(d: DeadReckoning, est: Estimate) -> Estimate:
 def _relock(
     ctx: Context, pose: np.ndarray, cov: np.ndarray, scan: Scan
 ) -> tuple[Estimate, np.ndarray, np.ndarray, bool]:
-    """The tracker run from the dead-reckoned ``pose`` (covariance ``cov``), this scan's
-    odometry increment its prior. Returns the fit, the dead-reckoned pose and covariance
-    after this scan (the fit's pose when it is good), and whether it is good: accepted,
-    explaining ``good_support`` of the scan, within :data:`GATE_SIGMAS` of the dead-reckoned
-    pose."""
-    g = ctx.gconfig
+    """The tracker run from the dead-reckoned ``pose`` / ``cov``: its fit (kept), the pose (the
+    fit's if good) and covariance after this scan, and whether the fit is good: accepted,
+    explaining ``good_support``, within :data:`GATE_SIGMAS`."""
     o = scan.odom
     assert o.delta is not None
     ctx.tracker.reset(pose, o.previous)
-    est = ctx.tracker.update(scan.ranges, scan.angles, o.reading, o.matched_from, o.spread)
+    est = _fit(ctx, scan)
     est.ambiguity = None
-    # (the tracker keeps this fit: if it relocks, tracking goes on from it)
     pose, cov = propagate(pose, cov, o.delta, o.noise(ctx.config.motion))
     good = (
         "rejected" not in est.extras
         and est.status == "tracking"
-        and (est.explained or 0.0) >= g.good_support
-        and mahalanobis2(est.pose, pose, cov) <= GATE_SIGMAS**2
+        and (est.explained or 0.0) >= ctx.gconfig.good_support
+        and mahalanobis2(est.pose, pose, cov + FIX_COV) <= GATE_SIGMAS**2
     )
-    if good:
-        pose = est.pose.copy()  # follow the fit; the odometry carries it from here
-    return est, pose, cov, good
+    return est, est.pose.copy() if good else pose, cov, good
 
 
 def _dead_reckoning(ctx: Context, d: DeadReckoning, scan: Scan) -> tuple[State, Estimate]:
@@ -372,7 +309,6 @@ def _dead_reckoning(ctx: Context, d: DeadReckoning, scan: Scan) -> tuple[State, 
     return d, out
 
 
-# ------------------------------------------------------------------------------- searching
 def _seeds(drive: dr.Drive, prior: Prior, odometry: bool) -> list[np.ndarray]:
     """The kept tracks as the next search's seeds, each turned by :data:`SEED_TURNS`, and the
     prior's mean (all round the circle without odometry: the robot may have turned)."""
@@ -388,57 +324,21 @@ def _seeds(drive: dr.Drive, prior: Prior, odometry: bool) -> list[np.ndarray]:
     return out
 
 
-def _composite(drive: dr.Drive, scan: Scan, g: GlobalConfig) -> tuple[np.ndarray, np.ndarray]:
-    """The scan the search matches: this one, or with odometry the virtual 360-degree
-    composite of the last :data:`COMPOSITE_SCANS` within :data:`COMPOSITE_TRAVEL`."""
-    r, a, here = scan.ranges, scan.angles, scan.odom.reading
-    if here is None or COMPOSITE_SCANS <= 1:
-        drive.history = []
-        return r, a
-    drive.history = [
-        h
-        for h in drive.history[-(COMPOSITE_SCANS - 1) :]
-        if np.hypot(*(h[2][:2] - here[:2])) <= COMPOSITE_TRAVEL
-    ]
-    drive.history.append((r, a, here.copy()))
-    if len(drive.history) == 1:
-        return r, a
-    inc = float(np.median(np.abs(np.diff(a)))) if a.size > 1 else 0.0
-    bins = COMPOSITE_BINS
-    if inc > 0.0:  # no finer than the laser's beams (holes would split every polyline)
-        bins = int(min(bins, max(8, np.floor(2.0 * np.pi / inc + 1e-6))))
-    return composite_scan(drive.history, bins)
-
-
-def _keyframe(drv: dr.Drive, scan: Scan, g: GlobalConfig) -> None:
-    """A scan with odometry: a keyframe when it is due, else a repeat of the newest one."""
-    o = scan.odom.reading
-    assert o is not None
-    if dr.frame_due(drv.frames, o, drv.travel):
-        drv.add(dr.make_frame(drv.next_key, scan.ranges, scan.angles, o, drv.travel, g), g)
-    else:
-        d = scan.odom.delta
-        drv.repeat(scan.odom.step, 0.0 if d is None else float(d[2]), g)
+def _budget(g: GlobalConfig) -> float:
+    return math.inf if g.search_budget_ms is None else float(g.search_budget_ms)
 
 
 def _search_work(
     ctx: Context, drv: dr.Drive, prior: Prior, scan: Scan
 ) -> tuple[float, int, tuple[np.ndarray, np.ndarray, Configuration]]:
-    """One scan's search work within the budget: frames, re-scoring, back-scoring, the
-    pending self-similarity check or search. Returns the work spent, the finished search's
-    candidates (-1: none finished) and the scan the search matched (ranges, angles and its
-    configuration)."""
+    """One scan's search work within the budget. Returns the work spent, the finished search's
+    candidates (-1: none) and the scan it matched (ranges, angles, configuration)."""
     g = ctx.gconfig
-    budget = math.inf if g.search_budget_ms is None else float(g.search_budget_ms)
+    budget = _budget(g)
     o = scan.odom
-    rs, as_ = _composite(drv, scan, g)
+    rs, as_ = drv.composite(scan.ranges, scan.angles, o.reading)
     P = scan_configuration(rs, as_, ctx.config.extraction())
-    frame = None
-    if o.reading is not None:
-        _keyframe(drv, scan, g)
-    else:
-        frame = dr.make_frame(drv.next_key, scan.ranges, scan.angles, None, drv.travel, g)
-        drv.add(frame, g)
+    frame = drv.observe(scan.ranges, scan.angles, o.reading, g)  # a plain scan's frame
     spent = dr.rescore(
         ctx.index, drv.tracks, rs, as_, P, ctx.config, g, budget * RESCORE_SHARE, frame
     )
@@ -489,8 +389,6 @@ def _decide(ctx: Context, drv: dr.Drive, prior: Prior) -> Verdict:
 
 def _searching(ctx: Context, s: Searching, scan: Scan) -> tuple[State, Estimate]:
     g = ctx.gconfig
-    ctx.searches += 1
-    s.scans += 1
     o = scan.odom
     drv = s.drive
     if o.delta is not None:
@@ -498,7 +396,7 @@ def _searching(ctx: Context, s: Searching, scan: Scan) -> tuple[State, Estimate]
         if s.prior.mean is not None and s.prior.cov is not None and scan.odometry:
             # the dead-reckoned pose relocks as in DeadReckoning while the search goes on
             est, mean, cov, good = _relock(ctx, s.prior.mean, s.prior.cov, scan)
-            s.prior = Prior(mean, cov, s.prior.kidnap, s.prior.cells)
+            s.prior = dataclasses.replace(s.prior, mean=mean, cov=cov)
             s.relock = s.relock + 1 if good else 0
             if s.relock >= g.relock_scans:
                 est.extras["relocked"] = 1.0
@@ -508,9 +406,7 @@ def _searching(ctx: Context, s: Searching, scan: Scan) -> tuple[State, Estimate]
     elif s.prior.mean is not None and s.prior.cov is not None:
         speed = 0.0 if drv.speed is None else float(np.hypot(*drv.speed))
         grow = (HELD_GROWTH * max(0.05, speed)) ** 2
-        s.prior = Prior(
-            s.prior.mean, s.prior.cov + np.diag([grow, grow, 0.0]), s.prior.kidnap, s.prior.cells
-        )
+        s.prior = dataclasses.replace(s.prior, cov=s.prior.cov + np.diag([grow, grow, 0.0]))
     spent, found, (rs, as_, P) = _search_work(ctx, drv, s.prior, scan)
     verdict = _decide(ctx, drv, s.prior)
     lead = verdict.leader
@@ -545,30 +441,22 @@ def _searching(ctx: Context, s: Searching, scan: Scan) -> tuple[State, Estimate]
                 )
                 return p, _probation_estimate(p, est)
             est.extras["global_fix"] = 1.0
-            return Tracking(
-                est.pose.copy() if scan.odometry else None, fit_cov(est), since_fix=0
-            ), est
+            ref = est.pose.copy() if scan.odometry else None
+            return Tracking(ref, fit_cov(est), since_fix=0), est
         extras["confirm_rejected"] = 1.0
-    return s, _guess(drv, s, verdict, extras, g.fix_llr, o.delta is not None)
+    return s, _guess(s, verdict, extras, g.fix_llr, carried=o.delta is not None)
 
 
 def _guess(
-    drv: dr.Drive,
-    s: Searching | Probation,
-    verdict: Verdict,
-    extras: dict[str, float],
-    fix_llr: float,
-    carried: bool = True,
+    s: Searching, verdict: Verdict, extras: dict[str, float], fix_llr: float, carried: bool = True
 ) -> Estimate:
-    """The pose published while the search goes on. After a loss, while an odometry carries
-    the prior (``carried``), its mean (the dead-reckoned pose, or the last tracked one carried
-    by the laser odometry) with its covariance until a place is fixed: a leader short of
-    ``fix_llr`` is a place the evidence may still overturn (on fr079's floor plan one led 22 m
-    from the robot for 60 scans), and a robot's consumers should not see it jump there and
-    back. Otherwise the leader, else the best track by cost, else the prior's mean or the
-    origin: with no odometry at all the prior's mean stays where the track was lost while the
-    robot drives on (fr079's floor plan: 8 % of such poses within 0.5 m, the leader's 34 %)."""
-    lead = verdict.leader
+    """The pose published while the search goes on: after a loss, while an odometry carries
+    the prior (``carried``), its mean with its covariance until a fix (a leader short of
+    ``fix_llr`` may still be overturned, and the pose should not jump there and back);
+    otherwise the leader, else the best track by cost, else the prior's mean or the origin.
+    Without any odometry the prior's mean stays where the track was lost while the robot
+    drives on (fr079's floor plan: 8 % of such poses within 0.5 m, the leader's 34 %)."""
+    drv, lead = s.drive, verdict.leader
     if carried and s.prior.mean is not None and not verdict.llr >= fix_llr:
         lead = None
     elif lead is None and drv.tracks:
@@ -580,7 +468,6 @@ def _guess(
     else:
         pose = np.zeros(3) if s.prior.mean is None else s.prior.mean.copy()
         score, explained = 0.0, 0.0
-    order = ([lead] if lead is not None else []) + [t for t in drv.tracks if t is not lead]
     return Estimate(
         pose=pose,
         status=s.status,
@@ -590,19 +477,17 @@ def _guess(
         covariance=None if s.prior.cov is None or lead is not None else s.prior.cov.copy(),
         extras=extras,
         hypotheses=len(drv.tracks),
-        candidates=dr.candidates(order),
+        candidates=dr.candidates(drv.tracks, first=lead),
     )
 
 
 def _confirm(ctx: Context, drv: dr.Drive, lead: dr.Track, scan: Scan) -> Estimate | None:
-    """The tracker, reset to the winner with this scan's odometry, must accept the scan within
-    :data:`CONFIRM_DISTANCE` / :data:`CONFIRM_ANGLE` of it with a position sigma of at most
-    :data:`CONFIRM_SIGMA`; then tracking starts (the estimate); ``None`` otherwise."""
-    o = scan.odom
-    ctx.tracker.reset(lead.pose, o.reading)
+    """The tracker's fit from the winner if it accepts the scan within :data:`CONFIRM_DISTANCE`
+    / :data:`CONFIRM_ANGLE` / :data:`CONFIRM_SIGMA` of it, else ``None``."""
+    ctx.tracker.reset(lead.pose, scan.odom.reading)
     if drv.speed is not None:
         ctx.tracker.set_speed(drv.speed)
-    est = ctx.tracker.update(scan.ranges, scan.angles, o.reading, o.matched_from, o.spread)
+    est = _fit(ctx, scan)
     close = (
         np.hypot(*(est.pose[:2] - lead.pose[:2])) <= CONFIRM_DISTANCE
         and abs(float(wrap_angle(est.pose[2] - lead.pose[2]))) <= CONFIRM_ANGLE
@@ -615,21 +500,19 @@ def _confirm(ctx: Context, drv: dr.Drive, lead: dr.Track, scan: Scan) -> Estimat
     return None
 
 
-# ------------------------------------------------------------------------------- probation
 def _probation_estimate(p: Probation, est: Estimate) -> Estimate:
     est.status = p.status
     est.ambiguity = p.ambiguity
     est.extras["probation"] = max(0.0, p.left)
     est.hypotheses = len(p.drive.tracks)
-    order = [p.winner, *(t for t in p.drive.tracks if t is not p.winner)]
-    est.candidates = dr.candidates(order)
+    est.candidates = dr.candidates(p.drive.tracks, first=p.winner)
     return est
 
 
 def _probation(ctx: Context, p: Probation, scan: Scan) -> tuple[State, Estimate]:
     g = ctx.gconfig
     o = scan.odom
-    est = ctx.tracker.update(scan.ranges, scan.angles, o.reading, o.matched_from, o.spread)
+    est = _fit(ctx, scan)
     est.ambiguity = None
     drv = p.drive
     rejected = "rejected" in est.extras
@@ -642,14 +525,12 @@ def _probation(ctx: Context, p: Probation, scan: Scan) -> tuple[State, Estimate]
         drv.move(o.delta, o.step)
         p.prior = p.prior.moved(o.delta, o.noise(ctx.config.motion))
         p.winner.pose = est.pose.copy()
-        # the winner must be followed probation_travel metres on motion the scans confirm: an
-        # increment the scan-to-scan fit could not match is the raw odometry's, and the
-        # tracker follows it (a dropout's catch-up turns the pose with it)
+        # the travel counts on motion the scans confirm: an increment the scan-to-scan fit
+        # could not match is the raw odometry's, and the tracker follows it
         p.left = g.probation_travel if o.broken else p.left - o.step
-        _keyframe(drv, scan, g)
+        drv.observe(scan.ranges, scan.angles, o.reading, g)
         frames = dr.window(drv.frames, g)
-        budget = math.inf if g.search_budget_ms is None else float(g.search_budget_ms)
-        evidence = budget * EVIDENCE_SHARE
+        evidence = _budget(g) * EVIDENCE_SHARE
         ctx.work_ms = dr.backfill(
             ctx.index, drv.tracks, frames, o.reading, ctx.config, g, evidence, p.winner
         )
@@ -657,10 +538,8 @@ def _probation(ctx: Context, p: Probation, scan: Scan) -> tuple[State, Estimate]
         p.left = math.inf  # no travel to count: the probation cannot end well
     if est.status == "lost" or p.rejected >= ctx.config.lost_after or p.left == math.inf:
         return _fail(ctx, p, {"probation_failed": 1.0})
-    complete = all(f.key in p.winner.ll for f in frames)
-    if p.left > 0.0 or rejected or not complete:
-        # a probation passes only on a scan the tracker accepted, once the winner is scored
-        # on the whole window (the verdict compares it with the rest there)
+    if p.left > 0.0 or rejected or not all(f.key in p.winner.ll for f in frames):
+        # it passes on an accepted scan once the winner is scored on the whole window
         return p, _probation_estimate(p, est)
     verdict = _decide(ctx, drv, p.prior)
     if verdict.leader is p.winner and verdict.llr >= g.fix_llr:
@@ -673,24 +552,8 @@ def _probation(ctx: Context, p: Probation, scan: Scan) -> tuple[State, Estimate]
 
 
 def _fail(ctx: Context, p: Probation, extras: dict[str, float]) -> tuple[State, Estimate]:
-    """A failed probation: the search goes on with the hypotheses it held (the winner among
-    them)."""
+    """A failed probation: the search goes on with its hypotheses, the winner among them."""
     ctx.tracker.reset(None)
     s = Searching(p.drive, p.prior, p.status)
-    verdict = Verdict(None, -math.inf)
     extras["hypotheses"] = float(len(p.drive.tracks))
-    return s, _guess(p.drive, s, verdict, extras, ctx.gconfig.fix_llr)
-
-
-__all__ = [
-    "CONFIRM_MS",
-    "Context",
-    "DeadReckoning",
-    "Probation",
-    "Scan",
-    "Searching",
-    "State",
-    "Tracking",
-    "start_search",
-    "step",
-]
+    return s, _guess(s, Verdict(None, -math.inf), extras, ctx.gconfig.fix_llr)

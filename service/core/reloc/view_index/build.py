@@ -1,6 +1,5 @@
-"""Building a map's :class:`ViewIndex` (:func:`build_index`, no disk access) and the content
-hash it is known and cached by (:func:`index_key`).
-"""
+"""Building a map's :class:`ViewIndex` (:func:`build_index`) and the content hash it is cached
+by (:func:`index_key`)."""
 
 from __future__ import annotations
 
@@ -12,21 +11,11 @@ import numpy as np
 
 from service.core import numeric
 from service.core.reloc.config import GlobalConfig
+from service.core.reloc.view_index import viewpoints as vp
 from service.core.reloc.view_index.index import FORMAT_VERSION, ViewIndex
-from service.core.reloc.view_index.viewpoints import (
-    ENCLOSURE_BEAMS,
-    MIN_CLEARANCE,
-    SMALL_RING_AREA,
-    SPACING,
-    candidate_viewpoints,
-)
 from service.core.sensor.raycast import RayCaster
 from service.core.sensor.scoring import sensor_model
-from service.core.shapes.configuration import (
-    Configuration,
-    ExtractionParams,
-    map_view,
-)
+from service.core.shapes.configuration import Configuration, map_view
 from service.core.shapes.dce import dce
 from service.core.shapes.similarity import shape_complexity
 from service.core.tracking.localizer import ShapeConfig
@@ -46,11 +35,11 @@ def index_key(map_data: MapData, config: ShapeConfig, gconfig: GlobalConfig) -> 
         "view_beams": config.view_beams,
         "view_max_range": config.view_max_range,
         "index": {
-            "spacing": SPACING,
-            "min_clearance": MIN_CLEARANCE,
-            "enclosure_beams": ENCLOSURE_BEAMS,
+            "spacing": vp.SPACING,
+            "min_clearance": vp.MIN_CLEARANCE,
+            "enclosure_beams": vp.ENCLOSURE_BEAMS,
             "min_enclosed": gconfig.min_enclosed,
-            "small_ring_area": SMALL_RING_AREA,
+            "small_ring_area": vp.SMALL_RING_AREA,
         },
     }
     h.update(json.dumps(params, sort_keys=True).encode())
@@ -58,10 +47,9 @@ def index_key(map_data: MapData, config: ShapeConfig, gconfig: GlobalConfig) -> 
 
 
 def anchor(verts: np.ndarray) -> tuple[np.ndarray, float, float]:
-    """The unit's most salient vertex ``(2,)`` (largest ``|turn| * min(adjacent arm)``, the
-    vertex contributing most to the shape complexity), the direction (rad) of the edge
-    leaving it and its signed turn angle (rad). Many viewpoints see the same corner: the
-    anchor identifies it, and two corresponding anchors fix a pose by themselves."""
+    """The unit's most salient vertex ``(2,)`` (largest ``|turn| * min(adjacent arm)``), the
+    direction (rad) of the edge leaving it and its signed turn (rad). Many viewpoints see the
+    same corner: the anchor identifies it, and two corresponding anchors fix a pose."""
     if len(verts) < 3:
         d = verts[-1] - verts[0]
         return verts.mean(axis=0), numeric.atan2(d[1], d[0]), 0.0
@@ -73,21 +61,15 @@ def anchor(verts: np.ndarray) -> tuple[np.ndarray, float, float]:
     return verts[1 + k], float(ang[1 + k]), float(turn[k])
 
 
-def joined(a: np.ndarray, b: np.ndarray, threshold: float) -> np.ndarray:
-    """Two consecutive features' vertices as one unit, re-simplified by DCE (eq. 2) so that
-    the short junction between them (the two pieces of a corner share about one point) does
-    not hide the corner from the shape complexity."""
-    u = np.vstack([a, b])
-    return u[dce(u, threshold)]
-
-
 def shape_units(C: Configuration, threshold: float, cyclic: bool) -> list[np.ndarray]:
     """Vertices of each feature and of each pair of consecutive features (``cyclic``: the last
-    and the first too, as in a 360-degree view)."""
+    and the first too, as in a 360-degree view). A pair is re-simplified by DCE (eq. 2), so
+    the short junction of a corner's two pieces does not hide the corner."""
     f, n = C.features, len(C.features)
     out = [x.vertices for x in f]
     for i in range(n if cyclic and n > 2 else max(n - 1, 0)):
-        out.append(joined(f[i].vertices, f[(i + 1) % n].vertices, threshold))
+        u = np.vstack([f[i].vertices, f[(i + 1) % n].vertices])
+        out.append(u[dce(u, threshold)])
     return out
 
 
@@ -96,33 +78,25 @@ _GROUP_CELL = 0.25
 _GROUP_ANGLE = np.pi / 6.0
 
 
-def _group_ids(keys: list[tuple[int, int, int]]) -> np.ndarray:
-    ids: dict[tuple[int, int, int], int] = {}
-    return np.asarray([ids.setdefault(k, len(ids)) for k in keys], dtype=np.int64)
-
-
 def build_index(
     map_data: MapData, config: ShapeConfig | None = None, gconfig: GlobalConfig | None = None
 ) -> ViewIndex:
-    """Precompute the :class:`ViewIndex` of a map (no disk access).
-
-    For every :func:`candidate_viewpoints` point, the 360-degree map view is extracted with
-    the tracker's own parameters (``config``: view beams, range, grouping, DCE, pieces), and
-    its units are stored with their complexity and range. Cost: one map view per viewpoint.
-    """
+    """The :class:`ViewIndex` of a map (no disk access): the units of the 360-degree map view
+    from every :func:`candidate_viewpoints` point, extracted with the tracker's parameters."""
     config = config or ShapeConfig.for_kind(map_data.kind)
     gconfig = gconfig or GlobalConfig.for_kind(map_data.kind)
     t0 = time.perf_counter()
     caster = RayCaster(map_data.segments())
-    params: ExtractionParams = config.extraction()
-    vps = candidate_viewpoints(
+    params = config.extraction()
+    vps = vp.candidate_viewpoints(
         map_data, min_enclosed=gconfig.min_enclosed, max_range=config.view_max_range, caster=caster
     )
     uview: list[int] = []
     rmin: list[float] = []
     rmax: list[float] = []
     ucomp: list[float] = []
-    ukey: list[tuple[int, int, int]] = []
+    groups: dict[tuple[int, int, int], int] = {}
+    ugroup: list[int] = []
     uanc: list[tuple[float, float, float, float]] = []
     verts: list[np.ndarray] = []
     for v, p in enumerate(vps):
@@ -145,7 +119,8 @@ def build_index(
             anc, direction, turn = anchor(uv)
             uanc.append((float(anc[0]), float(anc[1]), direction, turn))
             cell = np.floor(anc / _GROUP_CELL).astype(int)
-            ukey.append((int(cell[0]), int(cell[1]), int(np.floor(direction / _GROUP_ANGLE))))
+            key = (int(cell[0]), int(cell[1]), int(np.floor(direction / _GROUP_ANGLE)))
+            ugroup.append(groups.setdefault(key, len(groups)))
             verts.append(uv)
     off = np.zeros(len(verts) + 1, dtype=np.int64)
     if verts:
@@ -159,7 +134,7 @@ def build_index(
         unit_rmin=np.asarray(rmin, dtype=np.float64),
         unit_rmax=np.asarray(rmax, dtype=np.float64),
         unit_complexity=np.asarray(ucomp, dtype=np.float64),
-        unit_group=_group_ids(ukey),
+        unit_group=np.asarray(ugroup, dtype=np.int64),
         unit_anchor=np.asarray(uanc, dtype=np.float64).reshape(-1, 4),
         unit_vert_off=off,
         unit_verts=np.vstack(verts) if verts else np.zeros((0, 2)),

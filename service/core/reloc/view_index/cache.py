@@ -1,9 +1,6 @@
 """The view index cache: on disk per map, and the last few indexes in this process' memory.
-
-An index file (:func:`cache_path`) is named by the map id and its :func:`index_key`; it is
-written atomically (:func:`save_index`) and every field is checked when it is read back
-(:func:`load_index`), so a corrupt or stale file is rebuilt, never trusted.
-:func:`load_or_build_index` is what the localiser calls.
+A file is named by the map id and its :func:`index_key`, written atomically and checked field
+by field when read back: a corrupt or stale file is rebuilt, never trusted.
 """
 
 from __future__ import annotations
@@ -29,18 +26,15 @@ from service.errors import LocalizationError
 
 log = logging.getLogger("shapeloc.global")
 
-_CACHE_PREFIX = "viewindex-"
-
 
 def cache_path(cache_dir: Path, map_id: str, key: str) -> Path:
     """File of a map's index: ``<cache_dir>/viewindex-<safe map id>-<key[:20]>.npz``."""
     safe = re.sub(r"[^A-Za-z0-9_.-]", "_", map_id)[:80]
-    return Path(cache_dir) / f"{_CACHE_PREFIX}{safe}-{key[:20]}.npz"
+    return Path(cache_dir) / f"viewindex-{safe}-{key[:20]}.npz"
 
 
 def save_index(index: ViewIndex, cache_dir: Path) -> Path:
-    """Write ``index`` atomically (temporary file, fsync, rename) and remove older index files
-    of the same map id. Returns the path."""
+    """Write ``index`` atomically and remove older files of its map id; return the path."""
     cache_dir = Path(cache_dir)
     cache_dir.mkdir(parents=True, exist_ok=True)
     path = cache_path(cache_dir, index.map_id, index.key)
@@ -85,9 +79,8 @@ def load_or_build_index(
     gconfig: GlobalConfig | None = None,
     cache_dir: Path | None = None,
 ) -> ViewIndex:
-    """The map's index: from this process' memory, else from ``cache_dir`` (if given and the
-    file is valid), else built (and then saved to ``cache_dir``). A corrupt or mismatched file
-    is logged as a warning and rebuilt, never trusted. Robots on the same map share it."""
+    """The map's index, shared by the robots on it: from this process' memory, else from a
+    valid file in ``cache_dir``, else built (and saved there)."""
     config = config or ShapeConfig.for_kind(map_data.kind)
     gconfig = gconfig or GlobalConfig.for_kind(map_data.kind)
     key = index_key(map_data, config, gconfig)

@@ -1,12 +1,6 @@
-"""The per-map view index of global localisation: :class:`ViewIndex`.
-
-Per candidate viewpoint the map view reduced to its units, with the lookups global search
-makes on them (unit vertices and their S* arcs) and the plain-array form the on-disk cache
-stores (:meth:`ViewIndex.to_arrays` / :meth:`ViewIndex.from_arrays`, versioned by
-:data:`FORMAT_VERSION`). Built by :mod:`service.core.reloc.view_index.build`, cached by
-:mod:`service.core.reloc.view_index.cache`. The map itself -- segments, distance field, ray
-casting, scoring -- is the sensor model's (:attr:`ViewIndex.sensor`, attached when the index
-is loaded or built for a map, not stored).
+"""The per-map view index of global localisation (:class:`ViewIndex`): per candidate viewpoint
+the map view's units, the lookups the search makes on them, and the plain arrays the on-disk
+cache stores (versioned by :data:`FORMAT_VERSION`).
 """
 
 from __future__ import annotations
@@ -21,9 +15,7 @@ from service.core.sensor.scoring import SensorModel
 from service.core.shapes.similarity import ShapeArcs, prepare
 from service.errors import LocalizationError
 
-#: Version of the on-disk index format; bump when the file layout or its meaning changes (2:
-#: bearings from service.core.numeric, the same bits on every CPU; 3: the segments and the
-#: distance field left to the sensor model).
+#: Version of the on-disk index format; bump when the file layout or its meaning changes.
 FORMAT_VERSION = 3
 #: The arrays of an index file and their types.
 _ARRAYS = {
@@ -41,17 +33,15 @@ _ARRAYS = {
 
 @dataclass(eq=False)
 class ViewIndex:
-    """Everything global search needs about one map, precomputed (see :func:`build_index`).
+    """Everything global search needs about one map, precomputed (:func:`.build.build_index`).
 
     ``viewpoints`` ``(v, 2)`` map frame. Units (a view feature or two consecutive ones) are
-    stored flat: ``unit_view`` (viewpoint index), ``unit_rmin``/``unit_rmax`` (nearest and farthest
-    vertex distance from its viewpoint, m), ``unit_complexity`` (m·rad), ``unit_group`` (units
-    of different viewpoints with the same anchor — the same physical corner — share it),
-    ``unit_anchor`` ``(u, 4)`` the anchor vertex x, y (map frame), the direction of the edge
-    leaving it and its signed turn (rad), vertices
-    ``unit_verts[unit_vert_off[u]:unit_vert_off[u+1]]`` (map frame). ``key`` the cache key,
-    ``build_seconds`` how long the build took. ``sensor`` the map's sensor model (segments,
-    distance field, ray casting), attached when the index is loaded or built, not stored.
+    stored flat: ``unit_view`` (viewpoint), ``unit_rmin`` / ``unit_rmax`` (nearest and farthest
+    vertex from it, m), ``unit_complexity`` (m·rad), ``unit_group`` (units with the same anchor,
+    the same physical corner, share it), ``unit_anchor`` ``(u, 4)`` the anchor vertex x, y,
+    the direction of the edge leaving it and its turn (rad), vertices
+    ``unit_verts[unit_vert_off[u]:unit_vert_off[u+1]]`` (map frame). ``sensor``: the map's
+    sensor model (segments, distance field, ray casting), attached, not stored.
     """
 
     key: str
@@ -73,17 +63,13 @@ class ViewIndex:
     def __len__(self) -> int:
         return int(self.unit_view.size)
 
-    def verts(self, u: int) -> np.ndarray:
-        """Vertices ``(k, 2)`` of unit ``u`` (map frame, m)."""
-        return self.unit_verts[self.unit_vert_off[u] : self.unit_vert_off[u + 1]]
-
     def arcs(self, u: int) -> ShapeArcs:
-        """Unit ``u`` prepared for S* (lazily, kept)."""
+        """Unit ``u``'s vertices prepared for S* (lazily, kept)."""
         if not self._arcs:
             self._arcs = [None] * len(self)
         a = self._arcs[u]
         if a is None:
-            a = prepare(self.verts(u))
+            a = prepare(self.unit_verts[self.unit_vert_off[u] : self.unit_vert_off[u + 1]])
             self._arcs[u] = a
         return a
 
@@ -95,8 +81,7 @@ class ViewIndex:
 
     @staticmethod
     def from_arrays(arrays: Any, expect_key: str) -> ViewIndex:
-        """Rebuild from :meth:`to_arrays` output, checking every field; raises
-        :class:`LocalizationError` on anything unexpected (the cache is never trusted)."""
+        """Rebuild from :meth:`to_arrays` output, checking every field (never trusted)."""
         try:
             meta = json.loads(str(arrays["meta"][()]))
             if meta.get("format") != FORMAT_VERSION or meta.get("key") != expect_key:

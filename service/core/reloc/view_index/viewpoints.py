@@ -21,36 +21,20 @@ ENCLOSURE_BEAMS = 90
 SMALL_RING_AREA = 6.0
 
 
-def _closed_rings(map_data: MapData, max_area: float) -> list[Polygon]:
-    out = []
-    for p in map_data.polylines:
-        if len(p) >= 4 and np.allclose(p[0], p[-1]):
-            poly = Polygon(p)
-            if poly.is_valid and 0.0 < poly.area < max_area:
-                out.append(poly)
-    return out
-
-
 def candidate_viewpoints(
     map_data: MapData,
     spacing: float = SPACING,
     *,
     min_clearance: float = MIN_CLEARANCE,
-    enclosure_beams: int = ENCLOSURE_BEAMS,
     min_enclosed: float = 0.9,
     max_range: float = 15.0,
-    small_ring_area: float = SMALL_RING_AREA,
     caster: RayCaster | None = None,
 ) -> np.ndarray:
-    """Grid points over the map's free space, ``(v, 2)`` map frame (metres).
-
-    A point of the ``spacing``-metre grid (offset half a cell from the map's bounds) is kept
-    when (a) it is farther than ``min_clearance`` from every polyline, (b) at least
-    ``min_enclosed`` of ``enclosure_beams`` evenly spread rays hit a polyline within
-    ``max_range`` (outside a building most rays escape), and (c) it does not lie inside a
-    closed ring of area below ``small_ring_area`` m² (furniture and pillars are small closed
-    rings; rooms are larger or drawn open at their doors).
-    """
+    """The points ``(v, 2)`` of a ``spacing``-metre grid over the map's free space: farther
+    than ``min_clearance`` from every polyline, ``min_enclosed`` of :data:`ENCLOSURE_BEAMS`
+    rays hitting a polyline within ``max_range`` (outside a building most escape), and not in
+    a closed ring smaller than :data:`SMALL_RING_AREA` (furniture and pillars; rooms are
+    larger or drawn open at their doors)."""
     if spacing <= 0:
         raise LocalizationError(f"spacing must be > 0, got {spacing}")
     caster = caster or RayCaster(map_data.segments())
@@ -63,13 +47,14 @@ def candidate_viewpoints(
     pts = np.column_stack([gx.ravel(), gy.ravel()])
     clear = _segment_clearance(pts, caster.segments)
     pts = pts[clear > min_clearance]
-    rings = _closed_rings(map_data, small_ring_area)
+    rings = [Polygon(p) for p in map_data.polylines if len(p) >= 4 and np.allclose(p[0], p[-1])]
+    rings = [r for r in rings if r.is_valid and 0.0 < r.area < SMALL_RING_AREA]
     if rings and len(pts):
         inside = np.zeros(len(pts), dtype=bool)
         for r in rings:
             inside |= contains_xy(r, pts[:, 0], pts[:, 1])
         pts = pts[~inside]
-    angles = -np.pi + (np.arange(enclosure_beams) + 0.5) * (2.0 * np.pi / enclosure_beams)
+    angles = -np.pi + (np.arange(ENCLOSURE_BEAMS) + 0.5) * (2.0 * np.pi / ENCLOSURE_BEAMS)
     keep = np.zeros(len(pts), dtype=bool)
     for k, p in enumerate(pts):
         r = caster.cast(np.array([p[0], p[1], 0.0]), angles, max_range)

@@ -17,10 +17,10 @@ from service.core.reloc.global_search import COST_FLOOR, Hypothesis
 G = GlobalConfig.for_kind("metric")
 
 
-def _frames(n: int) -> tuple[list[Frame], dict[int, float]]:
+def _frames(n: int) -> tuple[list[Frame], list[int]]:
     z = np.zeros(0)
     frames = [Frame(k, z, z, np.zeros((0, 2)), np.zeros(3), 0.3 * k) for k in range(n)]
-    return frames, {f.key: 1.0 for f in frames}
+    return frames, [f.key for f in frames]
 
 
 def _track(x: float, ll: list[float] | None, keys: int | None = None) -> Track:

@@ -17,7 +17,6 @@ from service.core.reloc import view_index as vi
 from service.core.reloc.global_search import run_steps, search_steps, self_similar_steps, verify
 from service.core.reloc.view_index import cache as view_index_cache
 from service.core.shapes.configuration import scan_configuration
-from service.core.tracking.scan_odometry import OdometryStep
 from service.core.types import MapData, wrap_angle
 from sim_publisher.laser import LaserSimulator
 from sim_publisher.office import office_metric_map, office_schematic_map, office_world
@@ -208,8 +207,8 @@ def test_global_search_with_laser_odometry_fixes_no_robot_wrongly() -> None:
     """The same starts with the scans' own motion as odometry: the search weighs places over
     the drive's keyframes, one per 0.3 m, so three creeping scans (6 cm) add none after the
     first and no place reaches the fix odds yet (a scan repeating its keyframe's view would
-    count that view's evidence again, for a wrong place as much as for the true one:
-    GlobalConfig.repeat_window). None is fixed wrongly."""
+    count that view's evidence again, for a wrong place as much as for the true one). None is
+    fixed wrongly."""
     found, wrong, n = _global_trials(office_metric_map(), 1, 20, seed=2026, laser_odometry=True)
     assert wrong == 0, f"{wrong} of {n} wrong ({found} right)"
 
@@ -304,14 +303,13 @@ def test_symmetric_room_stays_ambiguous_after_looking_around() -> None:
 
 
 def test_composite_needs_odometry_and_stays_within_the_travel_limit() -> None:
-    g = gl.GlobalConfig.for_kind("metric")
-    assert st.COMPOSITE_SCANS == 3 and st.COMPOSITE_TRAVEL == 0.5
+    assert st.dr.COMPOSITE_SCANS == 3 and st.dr.COMPOSITE_TRAVEL == 0.5
     drive = st.dr.Drive()
     a = np.linspace(-np.pi / 2, np.pi / 2, 181)
     r = np.full(181, 2.0)
 
     def feed(odom: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
-        return st._composite(drive, st.Scan(r, a, OdometryStep(odom), odom is not None), g)
+        return drive.composite(r, a, odom)
 
     out, _ = feed(None)  # no odometry: the scan alone, nothing kept
     assert out is r and drive.history == []

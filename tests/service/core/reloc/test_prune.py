@@ -20,7 +20,7 @@ def test_a_track_trailing_the_leader_by_evidence_drop_in_all_goes() -> None:
     n = 10
     empty = np.zeros(0)
     frames = [Frame(k, empty, empty, np.zeros((0, 2)), np.zeros(3), 0.3 * k) for k in range(n)]
-    keys = {k: 1.0 for k in range(n)}
+    keys = list(range(n))
     leader = _track(0.0, -1.0, n)
     # 7 nats a frame behind (a mean beam cost 0.35 worse) over 10 frames: 70 > evidence_drop
     behind = _track(5.0, -8.0, n)
