@@ -128,7 +128,7 @@ def subsample(rows: np.ndarray, k: int) -> np.ndarray:
 
 
 @lru_cache(maxsize=64)
-def _axes(step_xy: float, step_th: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def polish_axes(step_xy: float, step_th: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The offsets along x, y and heading of one polish stage (5 each)."""
     o = np.arange(-2, 3)
     axes = (o * step_xy, o * step_xy, o * step_th)
@@ -138,9 +138,9 @@ def _axes(step_xy: float, step_th: float) -> tuple[np.ndarray, np.ndarray, np.nd
 
 
 @lru_cache(maxsize=64)
-def _grid(step_xy: float, step_th: float) -> np.ndarray:
+def polish_offsets(step_xy: float, step_th: float) -> np.ndarray:
     """The 5 x 5 x 5 offsets ``(125, 3)`` of one polish stage, heading fastest."""
-    dx, dy, dth = np.meshgrid(*_axes(step_xy, step_th), indexing="ij")
+    dx, dy, dth = np.meshgrid(*polish_axes(step_xy, step_th), indexing="ij")
     grid = np.column_stack([dx.ravel(), dy.ravel(), dth.ravel()])
     grid.setflags(write=False)
     return grid
@@ -206,7 +206,7 @@ class SensorModel:
         out[ok] = f.values[ij[ok, 1], ij[ok, 0]]
         return out
 
-    def _score_table(self, sigma: float) -> tuple[np.ndarray, float]:
+    def score_table(self, sigma: float) -> tuple[np.ndarray, float]:
         """``exp(-0.5 (min(d, cap) / sigma)²)`` per field cell and outside the field (kept
         per sigma)."""
         key = (float(sigma), FIELD_CAP)
@@ -249,7 +249,7 @@ class SensorModel:
         if len(pts) == 0 or len(poses) == 0:
             return np.zeros(len(poses))
         if kernels.HAVE_NUMBA:
-            table, outside = self._score_table(float(sigma))
+            table, outside = self.score_table(float(sigma))
             return search_kernels.table_scores(
                 table,
                 outside,
@@ -283,18 +283,18 @@ class SensorModel:
         best_score = np.zeros(len(out))
         for step_xy, step_th in stages:
             s_eff = max(sigma, step_xy)
-            delta = _grid(float(step_xy), float(step_th))
+            delta = polish_offsets(float(step_xy), float(step_th))
             cand = out[:, None, :] + delta[None, :, :]  # (k, 125, 3)
             if kernels.HAVE_NUMBA and len(pts) and len(out):
                 # each point's field row and column computed once per heading and offset (the
                 # same bits as field_score on cand)
-                table, outside = self._score_table(float(s_eff))
+                table, outside = self.score_table(float(s_eff))
                 score = search_kernels.grid_scores(
                     table,
                     outside,
                     *self._field_args(),
                     np.ascontiguousarray(out),
-                    *_axes(float(step_xy), float(step_th)),
+                    *polish_axes(float(step_xy), float(step_th)),
                     np.ascontiguousarray(pts, dtype=np.float64),
                 )
             else:

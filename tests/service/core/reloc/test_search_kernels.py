@@ -28,11 +28,11 @@ def test_table_scores_equal_the_direct_kernel_bit_for_bit(sigma: float) -> None:
     f = idx.sensor.field
     args = (float(f.origin[0]), float(f.origin[1]), float(f.resolution))
     direct = search_kernels.field_scores(f.values, *args, poses, pts, sigma, 10.0)
-    table, outside = idx.sensor._score_table(sigma)
+    table, outside = idx.sensor.score_table(sigma)
     looked_up = search_kernels.table_scores(table, outside, *args, poses, pts)
     assert np.array_equal(direct, looked_up)
     assert np.ptp(direct) > 0.02  # inside and outside the field both occur
-    assert idx.sensor._score_table(sigma)[0] is table  # built once
+    assert idx.sensor.score_table(sigma)[0] is table  # built once
 
 
 def test_table_scores_with_repeated_headings_equal_the_direct_kernel() -> None:
@@ -40,13 +40,13 @@ def test_table_scores_with_repeated_headings_equal_the_direct_kernel() -> None:
     # base poses, 60 distinct headings), in order and shuffled
     idx = load_or_build_index(office_schematic_map())
     rng = np.random.default_rng(9)
-    grid = gs._grid(0.05, 0.02)
+    grid = gs.polish_offsets(0.05, 0.02)
     poses = (_poses(rng, 12)[:, None, :] + grid[None, :, :]).reshape(-1, 3)
     shuffled = poses[rng.permutation(len(poses))]
     pts = rng.uniform(-6, 6, size=(80, 2))
     f = idx.sensor.field
     args = (float(f.origin[0]), float(f.origin[1]), float(f.resolution))
-    table, outside = idx.sensor._score_table(0.05)
+    table, outside = idx.sensor.score_table(0.05)
     for ps in (poses, shuffled):
         direct = search_kernels.field_scores(f.values, *args, ps, pts, 0.05, 10.0)
         assert np.array_equal(direct, search_kernels.table_scores(table, outside, *args, ps, pts))
@@ -59,11 +59,11 @@ def test_grid_scores_equal_the_scores_of_every_grid_pose(steps: tuple[float, flo
     idx = load_or_build_index(office_schematic_map())
     rng = np.random.default_rng(10)
     base, pts = _poses(rng, 12), rng.uniform(-6, 6, size=(80, 2))
-    cand = (base[:, None, :] + gs._grid(*steps)[None, :, :]).reshape(-1, 3)
+    cand = (base[:, None, :] + gs.polish_offsets(*steps)[None, :, :]).reshape(-1, 3)
     f = idx.sensor.field
     args = (float(f.origin[0]), float(f.origin[1]), float(f.resolution))
-    table, outside = idx.sensor._score_table(0.05)
-    grid = search_kernels.grid_scores(table, outside, *args, base, *gs._axes(*steps), pts)
+    table, outside = idx.sensor.score_table(0.05)
+    grid = search_kernels.grid_scores(table, outside, *args, base, *gs.polish_axes(*steps), pts)
     direct = search_kernels.field_scores(f.values, *args, cand, pts, 0.05, 10.0)
     assert grid.shape == (12, 125)
     assert np.array_equal(grid.reshape(-1), direct)
