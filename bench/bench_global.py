@@ -34,12 +34,12 @@ Maps (one table row each):
 
 - ``office``: ``make_setup(1)`` (the office's metric map, a scan every 11 mm) and
   ``make_setup(2)`` (its schematic floor plan, a scan every 104 mm), ``--starts`` starts each.
-- ``worlds``: held-out generated buildings (``bench_worlds._building(seed, 0)``: seeds 1000 ..
-  999 + ``--worlds``, no moving people) with ``building_setup(b, 1 | 2, seed=0)``. Per setup
-  the ``--starts`` starts are spread evenly over the worlds (``starts // worlds`` each, the
-  first ``starts % worlds`` worlds one more), so each setup's row has ``--starts`` trials in
-  all. Their tours are 25 m long: a setup-2 trial needs 20 m, so its starts lie in the first
-  5 m of the tour.
+- ``worlds``: held-out generated buildings (``bench_worlds.generated_building(seed, 0)``:
+  seeds 1000 .. 999 + ``--worlds``, no moving people) with ``building_setup(b, 1 | 2,
+  seed=0)``. Per setup the ``--starts`` starts are spread evenly over the worlds (``starts //
+  worlds`` each, the first ``starts % worlds`` worlds one more), so each setup's row has
+  ``--starts`` trials in all. Their tours are 25 m long: a setup-2 trial needs 20 m, so its
+  starts lie in the first 5 m of the tour.
 - ``real``: the logs intel, fr079 (tuning) and mit-csail (HELD OUT) on the committed metric
   and schematised maps (``docs/real/maps/{log}.geojson``, ``{log}_schematic.geojson``), the
   log's laser odometry on, ``--real-starts`` starts per log and map, the scans read from
@@ -134,10 +134,10 @@ from bench.global_drive import (
     REAL_LOGS,
     DriveMap,
     DriveTrial,
-    _localizer,
     choose_starts,
     classify,
     cumulative_travel,
+    drive_localizer,
     drive_maps,
     drive_source,
     fed_scans,
@@ -149,7 +149,7 @@ from bench.global_drive import (
     trial_end,
 )
 from bench.global_drive_run import drive_main
-from bench.global_drive_tables import _pct_inf, share_table
+from bench.global_drive_tables import pct_inf, share_table
 from service.core.factory import create_localizer
 from service.core.reloc import global_localization as gl
 from service.core.types import wrap_angle
@@ -166,11 +166,10 @@ __all__ = [
     "REAL_LOGS",
     "DriveMap",
     "DriveTrial",
-    "_localizer",
-    "_pct_inf",
     "choose_starts",
     "classify",
     "cumulative_travel",
+    "drive_localizer",
     "drive_main",
     "drive_maps",
     "drive_source",
@@ -180,6 +179,7 @@ __all__ = [
     "load_average",
     "main",
     "office_room",
+    "pct_inf",
     "precompute",
     "random_trials",
     "setup_run",

@@ -159,7 +159,7 @@ def real_rows(
 def world_rows(seeds: list[int], motion: MotionConfig) -> tuple[list[str], list[str]]:
     """Rows of the generated buildings (one per split), and of their heading error by turn
     (:func:`_turn_rows`)."""
-    from bench.bench_worlds import _building
+    from bench.bench_worlds import generated_building
     from sim_publisher.scenario import building_setup
 
     groups: dict[str, list[int]] = {
@@ -172,7 +172,7 @@ def world_rows(seeds: list[int], motion: MotionConfig) -> tuple[list[str], list[
             continue
         raws, fixes, shares, times, refs, idx = [], [], [], [], [], []
         for seed in group:
-            su = building_setup(_building(seed, 2), 2, seed=0)
+            su = building_setup(generated_building(seed, 2), 2, seed=0)
             scans = [su.scan(i) for i in range(len(su.truth))]
             fixed, share, ms = run_tour(scans, su.odom, motion)
             pairs = _pairs(np.ones(len(su.truth), dtype=bool), 1)

@@ -250,10 +250,10 @@ def run_case(case: Case, data: str, budget: float, seed: int, cache: str) -> dic
 
         odom = list(log.odom)
     else:
-        from bench.bench_worlds import _building
+        from bench.bench_worlds import generated_building
         from sim_publisher.scenario import building_setup
 
-        b = _building(int(case.name), 0)
+        b = generated_building(int(case.name), 0)
         s = building_setup(b, 1, seed=0)
         md, deleted, moved = another_day_map(b, int(case.name))
         info = {"deleted": deleted, "moved": moved}

@@ -112,9 +112,9 @@ from bench.scale_report import (
     PAIR_HEAD,
     ROW_HEAD,
     SEARCH_HEAD,
-    _f,
     acceptance_lines,
     acceptance_rows,
+    fmt_num,
     git_commit,
     markdown_table,
     pair_cells,
@@ -316,19 +316,19 @@ def main(argv: list[str] | None = None) -> int:
                     t = r["tracked"]
                     line = (
                         f"{spec.label}: answered {100 * t['answered_mean']:.1f} % (worst "
-                        f"{100 * t['answered_min']:.1f} %), p50 {_f(t['p50'])} p99 "
-                        f"{_f(t['p99'])} ms, starved {'yes' if t['starved'] else 'no'}, "
-                        f"correct {_f(100 * t['correct'], '.2f')} %, confident wrong "
+                        f"{100 * t['answered_min']:.1f} %), p50 {fmt_num(t['p50'])} p99 "
+                        f"{fmt_num(t['p99'])} ms, starved {'yes' if t['starved'] else 'no'}, "
+                        f"correct {fmt_num(100 * t['correct'], '.2f')} %, confident wrong "
                         f"{t['confident_wrong']}, svc CPU {r['svc_cpu']:.0f} %, load "
                         f"{r['load']:.2f} (prime {r['prime_s']:.1f} s, publisher lag p99 "
-                        f"{_f(r['pub_lag_p99'])} ms)"
+                        f"{fmt_num(r['pub_lag_p99'])} ms)"
                     )
                     if spec.k:
                         s = r["searchers"]
                         line += (
                             f"\n    searchers: answered {100 * s['answered_mean']:.1f} %, p50 "
-                            f"{_f(s['p50'])} p99 {_f(s['p99'])} ms, searching "
-                            f"{_f(100 * s['searching_share'])} % of their poses, fixes "
+                            f"{fmt_num(s['p50'])} p99 {fmt_num(s['p99'])} ms, searching "
+                            f"{fmt_num(100 * s['searching_share'])} % of their poses, fixes "
                             f"{s['fixes']} ({s['fixes_correct']} correct)"
                         )
                     print(line, flush=True)

@@ -67,7 +67,7 @@ from bench.scale_load import (
     health,
     tree_cpu_s,
 )
-from bench.scale_report import _f, git_commit, markdown_table, text_table
+from bench.scale_report import fmt_num, git_commit, markdown_table, text_table
 from bench.scale_row import Context, RowSpec, run_row
 from bench.scale_walks import make_pool, world_name
 from clients.view.headless import Chromium, find_chromium
@@ -269,15 +269,16 @@ def run_rows(args: argparse.Namespace, tmp: Path) -> list[dict[str, Any]]:
 def line_of(r: dict[str, Any]) -> str:
     t = r["tracked"]
     out = (
-        f"view {r['mode']}: answered {100 * t['answered_mean']:.1f} %, p50 {_f(t['p50'])} "
-        f"p99 {_f(t['p99'])} ms, svc CPU {r['svc_cpu']:.0f} %, load {r['load']:.2f}"
+        f"view {r['mode']}: answered {100 * t['answered_mean']:.1f} %, p50 {fmt_num(t['p50'])} "
+        f"p99 {fmt_num(t['p99'])} ms, svc CPU {r['svc_cpu']:.0f} %, load {r['load']:.2f}"
     )
     if r["page"]:
         pg = r["page"]
         out += (
-            f"; page {_f(pg['rate'])} updates/s (min {_f(pg['rate_min'])}), "
-            f"{_f(pg['drawn'], '.0f')} robots drawn, view CPU {_f(pg['view_cpu'], '.0f')} %, "
-            f"chromium CPU {_f(pg['chrome_cpu'], '.0f')} % over {pg['seconds']:.0f} s"
+            f"; page {fmt_num(pg['rate'])} updates/s (min {fmt_num(pg['rate_min'])}), "
+            f"{fmt_num(pg['drawn'], '.0f')} robots drawn, "
+            f"view CPU {fmt_num(pg['view_cpu'], '.0f')} %, "
+            f"chromium CPU {fmt_num(pg['chrome_cpu'], '.0f')} % over {pg['seconds']:.0f} s"
         )
     return out
 
@@ -287,18 +288,18 @@ def cells(r: dict[str, Any]) -> list[str]:
     page = ["–", "–", "–", "–"]
     if pg:
         page = [
-            _f(pg["view_cpu"], ".0f"),
-            _f(pg["chrome_cpu"], ".0f"),
-            f"{_f(pg['rate'])} ({_f(pg['rate_min'])})",
-            _f(pg["drawn"], ".0f"),
+            fmt_num(pg["view_cpu"], ".0f"),
+            fmt_num(pg["chrome_cpu"], ".0f"),
+            f"{fmt_num(pg['rate'])} ({fmt_num(pg['rate_min'])})",
+            fmt_num(pg["drawn"], ".0f"),
         ]
     return [
         r["mode"],
         str(r["n"]),
         f"{r['rate']:g}",
         f"{100 * t['answered_mean']:.1f} %",
-        _f(t["p50"]),
-        _f(t["p99"]),
+        fmt_num(t["p50"]),
+        fmt_num(t["p99"]),
         f"{r['svc_cpu']:.0f}",
         *page,
         f"{r['load']:.2f}",
@@ -320,7 +321,8 @@ def verdict(results: list[dict[str, Any]]) -> list[tuple[str, bool, str]]:
             (
                 f"service p99 with the view open (N={r['n']} at {r['rate']:g} Hz)",
                 adds <= ACCEPT_P99_ADDS_MS,
-                f"{_f(base)} ms without (mean of {len(without)} rows) -> {_f(r['tracked']['p99'])}"
+                f"{fmt_num(base)} ms without (mean of {len(without)} rows) -> "
+                f"{fmt_num(r['tracked']['p99'])}"
                 f" ms with: adds {adds:+.1f} ms (limit {ACCEPT_P99_ADDS_MS:g})",
             )
         )
@@ -329,8 +331,8 @@ def verdict(results: list[dict[str, Any]]) -> list[tuple[str, bool, str]]:
             (
                 f"page updates in headless chromium (N={r['n']} at {r['rate']:g} Hz)",
                 pg["rate"] >= ACCEPT_RATE and pg["rate_min"] >= ACCEPT_RATE,
-                f"{_f(pg['rate'])} updates/s, slowest 2 s {_f(pg['rate_min'])} (limit "
-                f"{ACCEPT_RATE:g}), {_f(pg.get('drawn', np.nan), '.0f')} of {r['n']} robots "
+                f"{fmt_num(pg['rate'])} updates/s, slowest 2 s {fmt_num(pg['rate_min'])} (limit "
+                f"{ACCEPT_RATE:g}), {fmt_num(pg.get('drawn', np.nan), '.0f')} of {r['n']} robots "
                 "drawn",
             )
         )

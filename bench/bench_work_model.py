@@ -92,7 +92,7 @@ def measure(m: bg.DriveMap, data: Path, scans: int, seed: int) -> tuple[dict[str
     """CPU ms per pose of each item on ``scans`` scans of ``m``'s tour (a first pass over
     them warms the caches and is not counted)."""
     src = bg.drive_source(m, data, 1)
-    loc = bg._localizer(src.map_data, None, 50.0)
+    loc = bg.drive_localizer(src.map_data, None, 50.0)
     idx, cfg, g = loc.index, loc.config, loc.gconfig
     rng = np.random.default_rng(seed)
     scored = np.flatnonzero(src.scored)

@@ -82,7 +82,7 @@ class Run:
 
 
 @lru_cache(maxsize=4)
-def _building(seed: int, people: int, clutter: float | None = None):
+def generated_building(seed: int, people: int, clutter: float | None = None):
     """The generated building of ``seed`` (``clutter``: furniture density, default the
     generator's)."""
     from sim_publisher.generator import BuildingParams, generate_building
@@ -98,7 +98,7 @@ def run_one(
     from bench.methods import make_localizer
     from sim_publisher.scenario import building_setup
 
-    b = _building(seed, people)
+    b = generated_building(seed, people)
     s = building_setup(b, setup, seed=0, max_scans=max_scans)
     loc = make_localizer(method, s.map_data, s.reference[0])
     n = len(s)
@@ -227,7 +227,7 @@ def figure(run: Run, poses: np.ndarray, people: int, max_scans: int | None, path
 
     from sim_publisher.scenario import building_setup
 
-    s = building_setup(_building(run.seed, people), run.setup, seed=0, max_scans=max_scans)
+    s = building_setup(generated_building(run.seed, people), run.setup, seed=0, max_scans=max_scans)
     fig, ax = plt.subplots(figsize=(8, 8))
     for p in s.map_data.polylines:
         ax.plot(p[:, 0], p[:, 1], "k-", lw=0.6)

@@ -371,10 +371,10 @@ def drive_source(m: DriveMap, data: Path, stride: int = 1) -> DriveSource:
         if m.group == "office":
             su = make_setup(setup)
         else:
-            from bench.bench_worlds import _building
+            from bench.bench_worlds import generated_building
             from sim_publisher.scenario import building_setup
 
-            su = building_setup(_building(m.seed, 0, m.clutter), setup, seed=0)
+            su = building_setup(generated_building(m.seed, 0, m.clutter), setup, seed=0)
         src = DriveSource(
             map_data=su.map_data,
             travel=cumulative_travel(su.truth[:, :2]),
@@ -390,7 +390,7 @@ def drive_source(m: DriveMap, data: Path, stride: int = 1) -> DriveSource:
     return src
 
 
-def _localizer(md: MapData, cache: str | None, budget: float | None = None) -> Any:
+def drive_localizer(md: MapData, cache: str | None, budget: float | None = None) -> Any:
     """``create_localizer("shape", md, None)``, with the index cache dir and the per-scan
     search budget (reference ms; ``None``: a whole search per scan)."""
     return create_localizer(

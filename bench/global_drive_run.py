@@ -31,9 +31,9 @@ from bench.global_drive import (
     DriveSource,
     DriveTask,
     DriveTrial,
-    _localizer,
     choose_starts,
     classify,
+    drive_localizer,
     drive_maps,
     drive_source,
     fed_scans,
@@ -74,7 +74,7 @@ def prepare_drive_map(m: DriveMap, data: str, cache: str, stride: int) -> dict[s
     t0 = time.perf_counter()
     src = drive_source(m, Path(data), stride)
     t1 = time.perf_counter()
-    loc = _localizer(src.map_data, cache)
+    loc = drive_localizer(src.map_data, cache)
     idx = getattr(loc, "index", None)
     t2 = time.perf_counter()
     return {
@@ -104,7 +104,7 @@ def _warm(m: DriveMap, src: DriveSource, cache: str) -> None:
     compiled)."""
     if m in _WARM:
         return
-    loc = _localizer(src.map_data, cache)
+    loc = drive_localizer(src.map_data, cache)
     getattr(loc, "index", None)
     if not _WARM:
         scored = np.flatnonzero(src.scored)
@@ -131,7 +131,7 @@ def run_drive_trial(task: DriveTask) -> DriveTrial:
     need = m.limit + DRIVE_MARGIN
     end = trial_end(src.travel, task.start, need)
     idx = fed_scans(task.start, end, src.stride, src.scored)
-    loc = _localizer(src.map_data, task.cache, task.budget)
+    loc = drive_localizer(src.map_data, task.cache, task.budget)
     rows: list[tuple[float, ...]] = []
     if task.calibrate:
         loc.gconfig = loc.gconfig.model_copy(update={"fix_llr": math.inf})

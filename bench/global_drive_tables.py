@@ -42,7 +42,7 @@ def share_table(trials: Sequence[DriveTrial], maps: Sequence[DriveMap]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _pct_inf(x: Sequence[float], q: float) -> float:
+def pct_inf(x: Sequence[float], q: float) -> float:
     """Percentile ``q`` with NaN (not found) counted as infinite; inf when it falls on them."""
     a = np.asarray(x, dtype=np.float64)
     if a.size == 0:
@@ -68,10 +68,10 @@ def summarise_drive(trials: Sequence[DriveTrial]) -> dict[str, Any]:
         "stride": max((t.stride for t in trials), default=1),
         "within": 100.0 * sum(t.within_limit for t in trials) / n if n else math.nan,
         "found": 100.0 * sum(t.found for t in trials) / n if n else math.nan,
-        "travel50": _pct_inf([t.fix_travel_m for t in trials], 50),
-        "travel90": _pct_inf([t.fix_travel_m for t in trials], 90),
-        "cpu50": _pct_inf([t.cpu_to_fix_s for t in trials], 50),
-        "cpu95": _pct_inf([t.cpu_to_fix_s for t in trials], 95),
+        "travel50": pct_inf([t.fix_travel_m for t in trials], 50),
+        "travel90": pct_inf([t.fix_travel_m for t in trials], 90),
+        "cpu50": pct_inf([t.cpu_to_fix_s for t in trials], 50),
+        "cpu95": pct_inf([t.cpu_to_fix_s for t in trials], 95),
         "ffw": sum(t.first_fix_wrong for t in trials),
         "afw_trials": sum(t.wrong_after_fix > 0 for t in trials),
         "relost": sum(t.search_after_fix > 0 for t in trials),
@@ -183,7 +183,7 @@ def room_table(trials: Sequence[DriveTrial]) -> str:
                 continue
             ok = sum(t.within_limit for t in rs)
             wrong = sum(t.first_fix_wrong for t in rs)
-            med = _pct_inf([t.fix_travel_m for t in rs], 50)
+            med = pct_inf([t.fix_travel_m for t in rs], 50)
             cells.append(
                 f"{ok}/{len(rs)}, {_cell(med, '.1f')} m" + (f" ({wrong} wrong)" if wrong else "")
             )

@@ -67,7 +67,7 @@ def search_pairs(results: list[dict[str, Any]]) -> list[dict[str, Any]]:
     return out
 
 
-def _f(v: float, fmt: str = ".1f") -> str:
+def fmt_num(v: float, fmt: str = ".1f") -> str:
     return "nan" if v is None or (isinstance(v, float) and math.isnan(v)) else format(v, fmt)
 
 
@@ -100,15 +100,15 @@ def row_cells(r: dict[str, Any]) -> list[str]:
         f"{r['rate']:g}",
         str(r["k"]),
         f"{100 * t['answered_mean']:.1f} / {100 * t['answered_min']:.1f} %",
-        _f(t["p50"]),
-        _f(t["p99"]),
+        fmt_num(t["p50"]),
+        fmt_num(t["p99"]),
         "yes" if t["starved"] else "no",
-        f"{_f(100 * t['correct'], '.2f')} %",
+        f"{fmt_num(100 * t['correct'], '.2f')} %",
         f"{t['confident_wrong']} / {t['poses']}",
         str(t["not_tracking"]),
         f"{r['svc_cpu']:.0f}",
         f"{r['gen_cpu']:.0f}",
-        _f(r["pub_lag_p99"]),
+        fmt_num(r["pub_lag_p99"]),
         f"{r['load']:.2f}",
     ]
 
@@ -130,9 +130,9 @@ def search_cells(r: dict[str, Any]) -> list[str]:
         f"{world_name(r['world'])} {r['map']} N={r['n']}@{r['rate']:g}Hz",
         str(r["k"]),
         f"{100 * s['answered_mean']:.1f} / {100 * s['answered_min']:.1f} %",
-        _f(s["p50"]),
-        _f(s["p99"]),
-        f"{_f(100 * s['searching_share'])} %",
+        fmt_num(s["p50"]),
+        fmt_num(s["p99"]),
+        f"{fmt_num(100 * s['searching_share'])} %",
         f"{s['fixes']} ({s['fixes_correct']})",
     ]
 
@@ -152,11 +152,11 @@ def pair_cells(p: dict[str, Any]) -> list[str]:
     return [
         p["label"],
         str(p["k"]),
-        f"{_f(p['p50_without'])} / {_f(p['p50_with'])}",
-        f"{_f(p['p99_without'])} / {_f(p['p99_with'])}",
+        f"{fmt_num(p['p50_without'])} / {fmt_num(p['p50_with'])}",
+        f"{fmt_num(p['p99_without'])} / {fmt_num(p['p99_with'])}",
         f"{p['adds_p99']:+.1f} ms",
-        f"{_f(p['worst_without'])} / {_f(p['worst_with'])}",
-        f"{_f(p['max_without'])} / {_f(p['max_with'])}",
+        f"{fmt_num(p['worst_without'])} / {fmt_num(p['worst_with'])}",
+        f"{fmt_num(p['max_without'])} / {fmt_num(p['max_with'])}",
     ]
 
 
@@ -202,7 +202,7 @@ def acceptance_lines(results: list[dict[str, Any]]) -> list[tuple[str, bool, str
                 f"{world_name(r['world'])} {r['map']} N={r['n']} at {r['rate']:g} Hz",
                 row_ok(r),
                 f"answered {100 * t['answered_mean']:.1f} % (worst {100 * t['answered_min']:.1f}"
-                f" %), p99 {_f(t['p99'])} ms, starved {'yes' if t['starved'] else 'no'}",
+                f" %), p99 {fmt_num(t['p99'])} ms, starved {'yes' if t['starved'] else 'no'}",
             )
         )
     for p in search_pairs(results):
@@ -210,7 +210,7 @@ def acceptance_lines(results: list[dict[str, Any]]) -> list[tuple[str, bool, str
             (
                 f"searching: {p['label']} K={p['k']} vs K=0",
                 p["ok"],
-                f"tracked p99 {_f(p['p99_without'])} -> {_f(p['p99_with'])} ms "
+                f"tracked p99 {fmt_num(p['p99_without'])} -> {fmt_num(p['p99_with'])} ms "
                 f"(adds {p['adds_p99']:+.1f} ms; limit {ACCEPT_SEARCH_ADDS_MS:g})",
             )
         )

@@ -27,7 +27,7 @@ import zenoh
 from pydantic import BaseModel
 
 from clients.session import config_endpoints, open_session, zenoh_config
-from clients.stream import M, Stream, _encoding_of
+from clients.stream import M, Stream, encoding_of
 from schemas import keys
 from schemas.codec import MSGPACK_ENCODING, decode, encode
 from schemas.messages import ErrorNotice, Health, Map, PoseMsg, RobotConfig, Scan, Truth
@@ -165,7 +165,7 @@ class ShapelocClient:
             for reply in replies:
                 if reply.ok is not None:
                     s = reply.ok
-                    oks.append((str(s.key_expr), s.payload.to_bytes(), _encoding_of(s)))
+                    oks.append((str(s.key_expr), s.payload.to_bytes(), encoding_of(s)))
                 elif reply.err is not None and err is None:
                     payload = reply.err.payload.to_bytes()
                     if payload == b"Timeout":
@@ -431,7 +431,7 @@ class ShapelocClient:
 
         def on_sample(sample: Any) -> None:
             try:
-                msg = decode(model, sample.payload.to_bytes(), _encoding_of(sample))
+                msg = decode(model, sample.payload.to_bytes(), encoding_of(sample))
             except InvalidMessage:
                 return
             callback(msg)
@@ -471,7 +471,7 @@ class ShapelocClient:
             if accept is not None and id_of(key) not in accept:
                 return
             try:
-                msg = decode(model, sample.payload.to_bytes(), _encoding_of(sample))
+                msg = decode(model, sample.payload.to_bytes(), encoding_of(sample))
             except InvalidMessage:
                 return
             callback(msg)

@@ -23,7 +23,7 @@ from service.errors import InvalidMessage
 M = TypeVar("M", bound=BaseModel)
 
 
-def _encoding_of(sample: Any) -> str | None:
+def encoding_of(sample: Any) -> str | None:
     enc = getattr(sample, "encoding", None)
     return None if enc is None else str(enc)
 
@@ -55,7 +55,7 @@ class Stream(Generic[M]):
     def _on_sample(self, sample: Any) -> None:
         key = str(sample.key_expr)
         if self._key_filter is None or self._key_filter(key):
-            self._queue.put((key, sample.payload.to_bytes(), _encoding_of(sample)))
+            self._queue.put((key, sample.payload.to_bytes(), encoding_of(sample)))
 
     def _decode(self, item: tuple[str, bytes, str | None]) -> tuple[str, M] | None:
         key, payload, enc = item

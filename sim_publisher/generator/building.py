@@ -35,7 +35,7 @@ from sim_publisher.generator.schematic import SchematicMap, schematic_map
 from sim_publisher.generator.tours import (
     DOOR_PASS,
     Person,
-    _Planners,
+    RoomPlanners,
     plan_people,
     plan_tour,
 )
@@ -242,7 +242,7 @@ def generate_building(seed: int, params: BuildingParams | None = None) -> Buildi
         bad = _unreachable(lay, world, ROBOT_RADIUS)
     geoms = [o.geometry for o in world.obstacles]
     tree = shapely.STRtree(geoms)
-    planners = _Planners(lay, world.union)
+    planners = RoomPlanners(lay, world.union)
     tour, visits = plan_tour(
         lay,
         world.union,

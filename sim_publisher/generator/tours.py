@@ -195,7 +195,7 @@ def subdivide(points: np.ndarray, max_edge: float = MAX_EDGE) -> np.ndarray:
 
 # --------------------------------------------------------------------------- the tour
 @dataclass
-class _Planners:
+class RoomPlanners:
     lay: Layout
     obstacles: object
     cache: dict[int, RoomPlanner | None] = field(default_factory=dict)
@@ -206,7 +206,7 @@ class _Planners:
         return self.cache[room]  # type: ignore[return-value]
 
 
-def _tour_doors(lay: Layout, min_width: float) -> dict[int, Door]:
+def tour_doors(lay: Layout, min_width: float) -> dict[int, Door]:
     """Each room's widest corridor/hall door, if wide enough for the tour."""
     out: dict[int, Door] = {}
     for d in lay.doors:
@@ -232,12 +232,12 @@ def plan_tour(
     length: float,
     clearance: float,
     rng: np.random.Generator,
-    planners: _Planners | None = None,
+    planners: RoomPlanners | None = None,
 ) -> tuple[Tour, list[int]]:
     """The tour (calibrated to the paper's turn statistics, truncated to ``length`` m) and the
     rooms it visits in order. Raises InvalidWorld if no room can be visited."""
-    planners = planners or _Planners(lay, obstacles)
-    doors = _tour_doors(lay, 2.0 * clearance + 0.06)
+    planners = planners or RoomPlanners(lay, obstacles)
+    doors = tour_doors(lay, 2.0 * clearance + 0.06)
     graph = CorridorGraph(lay.graph)
     excluded: set[int] = set()
     for _ in range(8):
@@ -299,7 +299,7 @@ def _route(lay, graph, planners, doors, excluded, length, rng):
             near = np.argsort(d)[:3]
             room = order.pop(int(near[int(rng.integers(len(near)))]))
         door = doors[room]
-        p_in = _inside(door, room)
+        p_in = door_inside_point(door, room)
         rp = planners.get(room)
         loop = room_loop(rp, p_in, rng)
         if loop is None:
@@ -328,7 +328,7 @@ def _route(lay, graph, planners, doors, excluded, length, rng):
     return np.vstack(pieces), visits
 
 
-def _inside(door: Door, room: int) -> np.ndarray:
+def door_inside_point(door: Door, room: int) -> np.ndarray:
     return door.center + DOOR_PASS * _door_normal_into(door, room)
 
 
@@ -368,12 +368,12 @@ def plan_people(
     tree: shapely.STRtree,
     count: int,
     rng: np.random.Generator,
-    planners: _Planners | None = None,
+    planners: RoomPlanners | None = None,
 ) -> list[Person]:
     """``count`` people, each walking between two rooms through their doors and the
     corridors, keeping 0.05 m from every static obstacle."""
-    planners = planners or _Planners(lay, obstacles)
-    doors = _tour_doors(lay, 0.8)
+    planners = planners or RoomPlanners(lay, obstacles)
+    doors = tour_doors(lay, 0.8)
     rooms = sorted(doors)
     graph = CorridorGraph(lay.graph)
     people: list[Person] = []
@@ -384,8 +384,8 @@ def plan_people(
         tries += 1
         a, b = (int(v) for v in rng.choice(rooms, 2, replace=False))
         da, db = doors[a], doors[b]
-        loop_a = room_loop(planners.get(a), _inside(da, a), rng)
-        loop_b = room_loop(planners.get(b), _inside(db, b), rng)
+        loop_a = room_loop(planners.get(a), door_inside_point(da, a), rng)
+        loop_b = room_loop(planners.get(b), door_inside_point(db, b), rng)
         if loop_a is None or loop_b is None:
             continue
         la, lb = loop_a.path("start"), loop_b.path("end")

@@ -105,9 +105,9 @@ def test_fix_ok_needs_position_and_heading(bg) -> None:
 
 
 def test_percentile_counts_not_found_as_infinite(bg) -> None:
-    assert bg._pct_inf([1.0, 2.0, 3.0], 50) == 2.0
-    assert math.isinf(bg._pct_inf([1.0, math.nan], 50))
-    assert bg._pct_inf([1.0, 2.0, 3.0, math.nan], 50) == 2.5
+    assert bg.pct_inf([1.0, 2.0, 3.0], 50) == 2.0
+    assert math.isinf(bg.pct_inf([1.0, math.nan], 50))
+    assert bg.pct_inf([1.0, 2.0, 3.0, math.nan], 50) == 2.5
 
 
 def test_hypotheses_read_defensively(bg) -> None:
@@ -167,7 +167,7 @@ def test_clutter_names_the_same_buildings_and_starts_with_more_furniture(bg) -> 
     assert d.code() == m.code()
     assert d.label() == "building 3 (clutter 0.25) setup 2 (schematic)"
     bw = importlib.import_module("bench.bench_worlds")
-    b0, b1 = bw._building(1, 0), bw._building(1, 0, 0.25)
+    b0, b1 = bw.generated_building(1, 0), bw.generated_building(1, 0, 0.25)
     assert b1.clutter > b0.clutter + 0.05
     p0, p1 = b0.schematic().map_data.polylines, b1.schematic().map_data.polylines
     assert len(p0) == len(p1) and all(np.array_equal(a, b) for a, b in zip(p0, p1, strict=True))

@@ -11,7 +11,7 @@ import pytest
 from service.errors import InvalidMessage
 from sim_publisher.generator import Building, BuildingParams, SchematicParams, generate_building
 from sim_publisher.generator.layout import DOOR_APPROACH
-from sim_publisher.generator.tours import _inside, _Planners, _tour_doors, room_loop
+from sim_publisher.generator.tours import RoomPlanners, door_inside_point, room_loop, tour_doors
 from sim_publisher.scenario import building_setup
 from sim_publisher.trajectory import OdometryNoise, relative_motion, run_stats
 
@@ -84,10 +84,10 @@ def test_tour_length_is_a_parameter_capped_by_the_building() -> None:
     assert len(building_setup(short, 2)) == pytest.approx(8.0 / 0.104, abs=2)
     tiny = generate_building(0, BuildingParams(width=10, height=10, tour_length=400.0))
     assert tiny.tour.length < 400.0  # visits every room it can, then stops
-    usable = _tour_doors(tiny.shell, 2 * tiny.params.tour_clearance + 0.06)
-    planners = _Planners(tiny.shell, tiny.world.union)
+    usable = tour_doors(tiny.shell, 2 * tiny.params.tour_clearance + 0.06)
+    planners = RoomPlanners(tiny.shell, tiny.world.union)
     rng = np.random.default_rng(0)
-    can = {r for r, d in usable.items() if room_loop(planners.get(r), _inside(d, r), rng)}
+    can = {r for r, d in usable.items() if room_loop(planners.get(r), door_inside_point(d, r), rng)}
     assert len(can) >= 3 and set(tiny.visits) == can
 
 

@@ -125,7 +125,7 @@ class Harness:
         )
         self.node = ServiceNode(settings, self.session)
         self.node.start()
-        self.caster = RayCaster(_segments(ROOM))
+        self.caster = RayCaster(room_segments(ROOM))
 
     def put(self, key: str, payload: bytes, delete: bool = False, json: bool = False) -> None:
         """Deliver a sample as Zenoh would (scans via callback, control synchronously)."""
@@ -176,10 +176,10 @@ class Harness:
         return q
 
 
-def _segments(polylines: list) -> np.ndarray:
+def room_segments(polylines: list) -> np.ndarray:
     return np.vstack([np.hstack([np.array(p)[:-1], np.array(p)[1:]]) for p in polylines])
 
 
-def _wait_notices(h: Harness, n: int) -> list[ErrorNotice]:
+def wait_notices(h: Harness, n: int) -> list[ErrorNotice]:
     wait_for(lambda: len(h.session.notices()) >= n)
     return h.session.notices()

@@ -13,7 +13,7 @@ from typing import Any
 import msgpack
 import numpy as np
 
-from tests.service.node.harness import START, Harness, _wait_notices, wait_for
+from tests.service.node.harness import START, Harness, wait_for, wait_notices
 
 
 def test_worker_process_crash_is_survived(tmp_path: Path) -> None:
@@ -33,7 +33,7 @@ def test_worker_process_crash_is_survived(tmp_path: Path) -> None:
         assert old_pid is not None and old_pid != os.getpid()
         os.kill(old_pid, signal.SIGKILL)
         h.put_scan("r1", 1, START)
-        notes = _wait_notices(h, 1)
+        notes = wait_notices(h, 1)
         assert "died" in notes[-1].error
         assert link.worker.pid != old_pid  # type: ignore[union-attr]
         p = START + np.array([0.02, 0.0, 0.0])
@@ -88,7 +88,7 @@ def test_garbage_on_a_busy_robots_key_never_displaces_its_valid_scan(harness: Ha
     # backlog (16 samples here), where the surplus is counted only (one summary notice)
     wait_for(lambda: h.health().scans_rejected == 30)
     dropped = h.node.intake.queue.notices_dropped
-    notes = _wait_notices(h, 30 - dropped)
+    notes = wait_notices(h, 30 - dropped)
     per_scan = [n for n in notes if n.key == "shapeloc/robots/r1/scan"]
     assert len(per_scan) == 30 - dropped
     assert all("InvalidMessage" in n.error for n in per_scan)

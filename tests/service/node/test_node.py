@@ -28,9 +28,9 @@ from tests.service.node.harness import (
     START,
     FakeSample,
     Harness,
-    _segments,
-    _wait_notices,
+    room_segments,
     wait_for,
+    wait_notices,
 )
 
 
@@ -84,7 +84,7 @@ def test_bad_control_messages_get_notices(
     if payload is None:
         payload = encode(Map(map_id="room", kind="metric", polylines=ROOM))
     h.put(key, payload)
-    notes = _wait_notices(h, 1)
+    notes = wait_notices(h, 1)
     assert notes[-1].key == key
     assert needle in notes[-1].error
     assert h.health().robots == 0  # nothing half-applied
@@ -98,7 +98,7 @@ def test_config_refused_keeps_previous(harness: Harness) -> None:
         "shapeloc/robots/r1/config",
         msgpack.packb({"map_id": "room", "method": "icp", "initial_pose": None}),
     )
-    _wait_notices(h, 1)
+    wait_notices(h, 1)
     assert h.node.configs["r1"].initial_pose is not None
     h.put_scan("r1", 0, START)
     wait_for(lambda: len(h.poses()) == 1)
@@ -138,7 +138,7 @@ def test_bad_scans_get_notices_and_good_robot_continues(harness: Harness) -> Non
     ]
     for i, (key, payload, needle) in enumerate(bad):
         h.put(key, payload)
-        notes = _wait_notices(h, i + 1)
+        notes = wait_notices(h, i + 1)
         assert notes[-1].key == key
         assert needle in notes[-1].error, notes[-1].error
         h.put_scan("r1", i, START)  # the well-behaved robot keeps getting poses
@@ -172,11 +172,11 @@ def test_map_delete_then_reput(harness: Harness) -> None:
     h.put("shapeloc/maps/room", b"", delete=True)
     assert h.node.maps == {}
     h.put_scan("r1", 1, START)
-    notes = _wait_notices(h, 1)
+    notes = wait_notices(h, 1)
     assert "UnknownMap" in notes[-1].error and "waits" in notes[-1].error
     assert h.health().robots == 1  # kept, waiting
     h.put("shapeloc/maps/room", b"", delete=True)
-    assert "not stored" in _wait_notices(h, 2)[-1].error
+    assert "not stored" in wait_notices(h, 2)[-1].error
     h.put_map()
     h.put_scan("r1", 2, START)
     wait_for(lambda: len(h.poses()) == 2)
@@ -191,7 +191,7 @@ def test_map_replaced_robot_relocalises_on_new_map(harness: Harness) -> None:
     wait_for(lambda: len(h.poses()) == 1)
     shifted = [(np.array(p) + np.array([0.3, 0.0])).tolist() for p in ROOM]
     h.put_map(polylines=shifted)  # the same world, 0.3 m further along x in the map frame
-    h.caster = RayCaster(_segments(shifted))
+    h.caster = RayCaster(room_segments(shifted))
     for i in range(1, 6):
         h.put_scan("r1", i, START + np.array([0.3, 0.0, 0.0]))
         wait_for(lambda i=i: len(h.poses()) == i + 1)
@@ -347,9 +347,9 @@ def test_config_delete_forgets_robot(harness: Harness) -> None:
     assert h.node.state is not None and h.node.state.robots() == {}
     assert b"unknown robot" in h.query("shapeloc/robots/r1/pose").errors[0]
     h.put_scan("r1", 1, START)
-    assert "UnknownRobot" in _wait_notices(h, 1)[-1].error
+    assert "UnknownRobot" in wait_notices(h, 1)[-1].error
     h.put("shapeloc/robots/r1/config", b"", delete=True)
-    assert "unknown robot" in _wait_notices(h, 2)[-1].error
+    assert "unknown robot" in wait_notices(h, 2)[-1].error
 
 
 def test_invalid_stored_pose_is_a_state_error(tmp_path: Path) -> None:

@@ -26,7 +26,7 @@ from service.core.types import MapData
 from service.node.intake import RawScan, RawScanQueue, ValidScan
 from service.node.scheduler import LatestSlots
 from service.node.workers import WorkerCore
-from tests.service.node.harness import ANGLES, ROOM, START, Harness, _segments, wait_for
+from tests.service.node.harness import ANGLES, ROOM, START, Harness, room_segments, wait_for
 
 #: The robot's true poses: 0.08 m forward-ish and a 0.3 rad turn per scan.
 PATH = [START + k * np.array([0.08, 0.03, 0.3]) for k in range(8)]
@@ -70,7 +70,7 @@ def _room_core() -> WorkerCore:
 
 
 def _cast(pose: np.ndarray) -> np.ndarray:
-    return RayCaster(_segments(ROOM)).cast(pose, ANGLES, 15.0)
+    return RayCaster(room_segments(ROOM)).cast(pose, ANGLES, 15.0)
 
 
 def test_the_first_increment_is_measured_from_the_replaced_first_scan() -> None:
