@@ -29,31 +29,31 @@ from pydantic.functional_validators import PlainValidator
 from pydantic.json_schema import WithJsonSchema
 
 from schemas.fields import (
-    _COUNT_DICT,
-    _ID_PATTERN,
-    _NUM_SCHEMA,
+    ID_PATTERN,
+    NUM_SCHEMA,
     Count,
+    CountDict,
+    FieldError,
     FiniteFloat,
     Ident,
     OptIdent,
     OptPose3,
     Pose3,
     UnitFloat,
-    _candidates,
-    _count,
-    _covariance,
-    _custom,
-    _FieldError,
-    _finite,
-    _ident,
-    _nullable,
-    _optional,
-    _polylines,
-    _ranges,
-    _text,
-    _type_name,
-    _v,
+    as_validator,
+    check_candidates,
+    check_count,
+    check_covariance,
+    check_finite,
+    check_ident,
+    check_polylines,
+    check_ranges,
+    custom_error,
     format_validation_error,
+    nullable_schema,
+    optional_check,
+    text_check,
+    type_name,
     wire_type_name,
     wrap_pi,
 )
@@ -120,7 +120,7 @@ class WireModel(BaseModel):
     def parse(cls, obj: object) -> Self:
         """Validate a decoded payload (a dict with string keys) into this model."""
         if not isinstance(obj, dict):
-            raise InvalidMessage(f"message: must be a map, got {_type_name(obj)}")
+            raise InvalidMessage(f"message: must be a map, got {type_name(obj)}")
         if not all(isinstance(k, str) for k in obj):
             raise InvalidMessage("message: keys must be strings")
         # Going through __init__ (not model_validate) keeps the error text free of pydantic's
@@ -205,7 +205,7 @@ class Map(WireModel):
     )
     polylines: Annotated[
         tuple[np.ndarray, ...],
-        PlainValidator(_v(_polylines)),
+        PlainValidator(as_validator(check_polylines)),
         WithJsonSchema(
             {
                 "type": "array",
@@ -230,8 +230,8 @@ class Map(WireModel):
     ]
     name: Annotated[
         str | None,
-        PlainValidator(_v(_optional(_text(MAX_TEXT_LEN, allow_empty=True)))),
-        WithJsonSchema(_nullable({"type": "string", "maxLength": MAX_TEXT_LEN})),
+        PlainValidator(as_validator(optional_check(text_check(MAX_TEXT_LEN, allow_empty=True)))),
+        WithJsonSchema(nullable_schema({"type": "string", "maxLength": MAX_TEXT_LEN})),
     ] = Field(default=None, description="Optional human-readable name.")
 
 
@@ -280,16 +280,18 @@ class Scan(WireModel):
     angle_min: FiniteFloat = Field(description="Angle of beam 0, radians, robot frame.")
     angle_increment: Annotated[
         float,
-        PlainValidator(_v(_finite)),
+        PlainValidator(as_validator(check_finite)),
         WithJsonSchema({"type": "number", "exclusiveMinimum": 0}),
     ] = Field(description="Angle between consecutive beams, radians, > 0.")
     range_min: Annotated[
-        float, PlainValidator(_v(_finite)), WithJsonSchema({"type": "number", "minimum": 0})
+        float,
+        PlainValidator(as_validator(check_finite)),
+        WithJsonSchema({"type": "number", "minimum": 0}),
     ] = Field(description="Shortest valid range, metres, >= 0.")
     range_max: FiniteFloat = Field(description="Longest valid range, metres, > range_min.")
     ranges: Annotated[
         np.ndarray,
-        PlainValidator(_v(_ranges)),
+        PlainValidator(as_validator(check_ranges)),
         WithJsonSchema(
             {
                 "type": "array",
@@ -312,23 +314,23 @@ class Scan(WireModel):
     def _geometry(self) -> Self:
         try:
             if self.angle_increment <= 0.0:
-                raise _FieldError(f"must be > 0, got {self.angle_increment!r}", "angle_increment")
+                raise FieldError(f"must be > 0, got {self.angle_increment!r}", "angle_increment")
             if self.range_min < 0.0:
-                raise _FieldError(f"must be >= 0, got {self.range_min!r}", "range_min")
+                raise FieldError(f"must be >= 0, got {self.range_min!r}", "range_min")
             if not self.range_min < self.range_max:
-                raise _FieldError(
+                raise FieldError(
                     f"must be > range_min ({self.range_min!r}), got {self.range_max!r}",
                     "range_max",
                 )
             fov = (len(self.ranges) - 1) * self.angle_increment
             if fov > MAX_FOV:
-                raise _FieldError(
+                raise FieldError(
                     f"{len(self.ranges)} beams x {self.angle_increment!r} rad spans "
                     f"{fov:.6g} rad, more than 2*pi",
                     "angle_increment",
                 )
-        except _FieldError as f:
-            raise _custom(f) from None
+        except FieldError as f:
+            raise custom_error(f) from None
         return self
 
     def to_wire(self, ranges_as_bytes: bool = False) -> dict[str, Any]:
@@ -365,9 +367,9 @@ class PoseMsg(WireModel):
     latency_ms: FiniteFloat = Field(description="Scan received -> estimate published, ms.")
     covariance: Annotated[
         np.ndarray | None,
-        PlainValidator(_v(_optional(_covariance))),
+        PlainValidator(as_validator(optional_check(check_covariance))),
         WithJsonSchema(
-            _nullable(
+            nullable_schema(
                 {
                     "type": "array",
                     "items": {"type": "number"},
@@ -390,8 +392,8 @@ class PoseMsg(WireModel):
     )
     hypotheses: Annotated[
         int | None,
-        PlainValidator(_v(_optional(_count))),
-        WithJsonSchema(_nullable({"type": "integer", "minimum": 0, "maximum": MAX_UINT})),
+        PlainValidator(as_validator(optional_check(check_count))),
+        WithJsonSchema(nullable_schema({"type": "integer", "minimum": 0, "maximum": MAX_UINT})),
     ] = Field(
         default=None,
         description="Project addition: live pose hypotheses of a global search (initializing "
@@ -399,9 +401,9 @@ class PoseMsg(WireModel):
     )
     candidates: Annotated[
         np.ndarray | None,
-        PlainValidator(_v(_optional(_candidates))),
+        PlainValidator(as_validator(optional_check(check_candidates))),
         WithJsonSchema(
-            _nullable(
+            nullable_schema(
                 {
                     "type": "array",
                     "maxItems": MAX_CANDIDATES,
@@ -442,53 +444,53 @@ class PoseMsg(WireModel):
 
 def _ident_list(v: object) -> list[str]:
     if not isinstance(v, (list, tuple)):
-        raise _FieldError(f"must be a list, got {_type_name(v)}")
+        raise FieldError(f"must be a list, got {type_name(v)}")
     if len(v) > MAX_POLYLINES:
-        raise _FieldError(f"{len(v)} entries exceeds limit {MAX_POLYLINES}")
+        raise FieldError(f"{len(v)} entries exceeds limit {MAX_POLYLINES}")
     out = []
     for i, x in enumerate(v):
         try:
-            out.append(_ident(x))
-        except _FieldError as e:
-            raise _FieldError(e.reason, f"[{i}]") from None
+            out.append(check_ident(x))
+        except FieldError as e:
+            raise FieldError(e.reason, f"[{i}]") from None
     return out
 
 
 def _ms_stats(v: object) -> dict[str, float]:
     if not isinstance(v, dict):
-        raise _FieldError(f"must be a map, got {_type_name(v)}")
+        raise FieldError(f"must be a map, got {type_name(v)}")
     if len(v) > 16:
-        raise _FieldError(f"{len(v)} entries exceeds limit 16")
+        raise FieldError(f"{len(v)} entries exceeds limit 16")
     out: dict[str, float] = {}
     for k, x in v.items():
         if not isinstance(k, str) or not 1 <= len(k) <= 16:
-            raise _FieldError(f"key {k!r} must be a string of 1-16 characters")
-        out[k] = _finite(x, f"[{k!r}]")
+            raise FieldError(f"key {k!r} must be a string of 1-16 characters")
+        out[k] = check_finite(x, f"[{k!r}]")
     return out
 
 
 def _bool(v: object) -> bool:
     if not isinstance(v, (bool, np.bool_)):
-        raise _FieldError(f"must be a boolean, got {_type_name(v)}")
+        raise FieldError(f"must be a boolean, got {type_name(v)}")
     return bool(v)
 
 
 _OPT_BOOL = Annotated[
     bool | None,
-    PlainValidator(_v(_optional(_bool))),
-    WithJsonSchema(_nullable({"type": "boolean"})),
+    PlainValidator(as_validator(optional_check(_bool))),
+    WithJsonSchema(nullable_schema({"type": "boolean"})),
 ]
 _IDENT_LIST = Annotated[
     list[str] | None,
-    PlainValidator(_v(_optional(_ident_list))),
+    PlainValidator(as_validator(optional_check(_ident_list))),
     WithJsonSchema(
-        _nullable({"type": "array", "items": {"type": "string", "pattern": _ID_PATTERN}})
+        nullable_schema({"type": "array", "items": {"type": "string", "pattern": ID_PATTERN}})
     ),
 ]
 _MS_STATS = Annotated[
     dict[str, float] | None,
-    PlainValidator(_v(_optional(_ms_stats))),
-    WithJsonSchema(_nullable({"type": "object", "additionalProperties": _NUM_SCHEMA})),
+    PlainValidator(as_validator(optional_check(_ms_stats))),
+    WithJsonSchema(nullable_schema({"type": "object", "additionalProperties": NUM_SCHEMA})),
 ]
 
 
@@ -510,12 +512,12 @@ class Health(WireModel):
 
     status: Annotated[
         str,
-        PlainValidator(_v(_text(64, allow_empty=False))),
+        PlainValidator(as_validator(text_check(64, allow_empty=False))),
         WithJsonSchema({"type": "string", "minLength": 1, "maxLength": 64}),
     ] = Field(description='"ok" when serving.')
     version: Annotated[
         str,
-        PlainValidator(_v(_text(256, allow_empty=False))),
+        PlainValidator(as_validator(text_check(256, allow_empty=False))),
         WithJsonSchema({"type": "string", "minLength": 1, "maxLength": 256}),
     ]
     robots: Count
@@ -527,13 +529,13 @@ class Health(WireModel):
     )
     uptime_s: Annotated[
         float | None,
-        PlainValidator(_v(_optional(_finite))),
-        WithJsonSchema(_nullable(_NUM_SCHEMA)),
+        PlainValidator(as_validator(optional_check(check_finite))),
+        WithJsonSchema(nullable_schema(NUM_SCHEMA)),
     ] = Field(default=None, description="Project addition: seconds since the service started.")
-    errors: _COUNT_DICT = Field(
+    errors: CountDict = Field(
         default=None, description="Project addition: rejected messages per error kind."
     )
-    robots_by_status: _COUNT_DICT = Field(
+    robots_by_status: CountDict = Field(
         default=None, description="Project addition: number of robots per tracking status."
     )
     ready: _OPT_BOOL = Field(
@@ -584,12 +586,12 @@ class ErrorNotice(WireModel):
 
     key: Annotated[
         str,
-        PlainValidator(_v(_text(MAX_KEY_LEN, allow_empty=False))),
+        PlainValidator(as_validator(text_check(MAX_KEY_LEN, allow_empty=False))),
         WithJsonSchema({"type": "string", "minLength": 1, "maxLength": MAX_KEY_LEN}),
     ] = Field(description="Key expression of the rejected message.")
     error: Annotated[
         str,
-        PlainValidator(_v(_text(MAX_TEXT_LEN, allow_empty=False))),
+        PlainValidator(as_validator(text_check(MAX_TEXT_LEN, allow_empty=False))),
         WithJsonSchema({"type": "string", "minLength": 1, "maxLength": MAX_TEXT_LEN}),
     ] = Field(description="Why it was rejected.")
 

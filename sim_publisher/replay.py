@@ -370,7 +370,7 @@ def main(
                 dynamic_ncols=True,
             )
             with bar:
-                sent = _publish(session, options, scans, stop, poses, bar, seen)
+                sent = publish_log(session, options, scans, stop, poses, bar, seen)
         finally:
             client.close()
     el = max(time.monotonic() - t0, 1e-9)
@@ -436,7 +436,7 @@ def _configure(
     )
 
 
-def _publish(
+def publish_log(
     session: zenoh.Session,
     options: ReplayOptions,
     scans: Iterator[LogScan],

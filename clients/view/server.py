@@ -76,7 +76,7 @@ def static_dir() -> Path:
 
 
 @dataclass(eq=False)
-class _Page:
+class Page:
     """One connected page: messages it must get in order, then the newest frame."""
 
     ws: web.WebSocketResponse
@@ -110,7 +110,7 @@ class ViewServer:
         self.prefix = keys.validate_prefix(prefix)
         self.rate_hz = float(rate_hz)
         self.state = state or ViewState(self.prefix)
-        self.pages: set[_Page] = set()
+        self.pages: set[Page] = set()
         self.frames = 0
         self._last_key = -1e9
         self._maps_version_sent = -1
@@ -306,7 +306,7 @@ class ViewServer:
         # no per-message deflate: on a local link it only costs CPU at both ends
         ws = web.WebSocketResponse(heartbeat=20.0, max_msg_size=MAX_CLIENT_MSG, compress=False)
         await ws.prepare(request)
-        page = _Page(ws)
+        page = Page(ws)
         # Built and registered without an await in between: the snapshot holds every path
         # point up to the last tick, the next frame's trails continue from there.
         snapshot = self.state.frame(time.time(), full=True, with_scan=lambda _r: False)
@@ -332,7 +332,7 @@ class ViewServer:
                 await sender
         return ws
 
-    async def _send_loop(self, page: _Page) -> None:
+    async def _send_loop(self, page: Page) -> None:
         with contextlib.suppress(ConnectionError, RuntimeError):
             while not page.ws.closed:
                 await page.wake.wait()

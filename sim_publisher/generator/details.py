@@ -18,7 +18,7 @@ import shapely
 from shapely.geometry import Polygon, box
 
 from sim_publisher.generator.layout import Layout, Room, WallDetail
-from sim_publisher.generator.layout.walls import _on_boundary
+from sim_publisher.generator.layout.walls import on_boundary
 
 
 def _face_box(room: Room, k: int, s: float, along: float, depth: float) -> Polygon:
@@ -81,7 +81,7 @@ def wall_details(lay: Layout, rng: np.random.Generator) -> list[WallDetail]:
                 if ok(g, room):
                     out.append(WallDetail("pilaster", g, float(d), True))
                     taken.append(g)
-        outer = [k for k in range(4) if _on_boundary(*room.rect.side(k)[:2], W, H)]
+        outer = [k for k in range(4) if on_boundary(*room.rect.side(k)[:2], W, H)]
         if outer and rng.random() < 0.2 and lay.t_out >= 0.15:
             k = outer[int(rng.integers(len(outer)))]
             lo, hi = along(room, k)
@@ -102,7 +102,7 @@ def wall_details(lay: Layout, rng: np.random.Generator) -> list[WallDetail]:
         wid = rng.uniform(0.3, 0.6)
         for room in lay.rooms:
             for k in range(4):
-                if not _on_boundary(*room.rect.side(k)[:2], W, H):
+                if not on_boundary(*room.rect.side(k)[:2], W, H):
                     continue
                 lo, hi = along(room, k)
                 first = math.ceil((lo + 0.5) / spacing) * spacing

@@ -27,7 +27,7 @@ from shapely.prepared import prep
 from service.core import numeric
 from sim_publisher.generator.grid import Grid, main_component_share
 from sim_publisher.generator.layout import Layout, Rect
-from sim_publisher.generator.layout.walls import _line_key
+from sim_publisher.generator.layout.walls import line_key
 
 #: Clearance (m) the free space of a room keeps connected after every placement.
 NAV_RADIUS = 0.3
@@ -465,7 +465,7 @@ def _corridor_inner(lay: Layout, r: Rect) -> tuple[float, float, float, float]:
         ext = lay.height if axis == 0 else lay.width
         if abs(c) < 1e-6 or abs(c - ext) < 1e-6:
             return lay.t_out
-        return lay.thickness.get(_line_key(axis, c), 0.0) / 2.0
+        return lay.thickness.get(line_key(axis, c), 0.0) / 2.0
 
     return (r.x0 + half(1, r.x0), r.y0 + half(0, r.y0), r.x1 - half(1, r.x1), r.y1 - half(0, r.y1))
 

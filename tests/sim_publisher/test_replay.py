@@ -21,11 +21,11 @@ from sim_publisher.networked import GLOBAL_OPTIONS, zenoh_config_from_args
 from sim_publisher.replay import (
     Collected,
     ReplayOptions,
-    _publish,
     accuracy,
     initial_pose_for,
     open_replay,
     options_from_args,
+    publish_log,
     scan_message,
     summary_text,
     truth_message,
@@ -304,7 +304,7 @@ def test_publish_paces_by_log_stamps(speed: float | None) -> None:
     bar = _Bar()
     seen = _seen()
     t0 = time.monotonic()
-    sent = _publish(session, opts, iter(scans), threading.Event(), None, bar, seen)  # type: ignore[arg-type]
+    sent = publish_log(session, opts, iter(scans), threading.Event(), None, bar, seen)  # type: ignore[arg-type]
     assert bar.n == 12 and sorted(seen.truth) == [s.index for s in scans if s.reference_ok]
     el = time.monotonic() - t0
     assert sent == 12
@@ -327,7 +327,7 @@ def test_publish_without_odometry() -> None:
     scans = _scans(limit=3)
     opts = ReplayOptions(log=BAG, robot="fr", map_id="m", speed=None, odom=False, progress=False)
     session = _Session()
-    _publish(session, opts, iter(scans), threading.Event(), None, _Bar(), _seen())  # type: ignore[arg-type]
+    publish_log(session, opts, iter(scans), threading.Event(), None, _Bar(), _seen())  # type: ignore[arg-type]
     sent = [decode(Scan, p) for _, k, p in session.log if k.endswith("/fr/scan")]
     assert len(sent) == 3 and all(m.odom is None for m in sent)
 

@@ -24,7 +24,7 @@ from service.core.kernels import TWO_PI, njit, wrap
 def angular_intervals(points: np.ndarray, offsets: np.ndarray, viewpoint: np.ndarray) -> np.ndarray:
     """Kernel of :func:`service.core.shapes.matching.map_order`: per polyline ``f`` (rows
     ``offsets[f] .. offsets[f + 1] - 1`` of ``points``) the ``(start, span)`` of its bearings
-    seen from ``viewpoint`` ``[x, y, theta]``, exactly as ``matching._angular_interval``."""
+    seen from ``viewpoint`` ``[x, y, theta]``, exactly as ``matching.angular_interval``."""
     F = offsets.shape[0] - 1
     out = np.empty((F, 2))
     vx = viewpoint[0]

@@ -58,7 +58,7 @@ _TWO_PI = 2.0 * math.pi
 # --------------------------------------------------------------------------------------------
 
 
-def _angular_interval(points: np.ndarray, viewpoint: np.ndarray) -> tuple[float, float]:
+def angular_interval(points: np.ndarray, viewpoint: np.ndarray) -> tuple[float, float]:
     """``(start, span)`` (rad) of the bearings of ``points`` seen from ``viewpoint`` (pose),
     relative to its heading; ``start`` in (-pi, pi], span >= 0, following the point order."""
     d = points - viewpoint[:2]
@@ -97,7 +97,7 @@ def penalty_R(  # noqa: N802 (the paper names it R)
     """
     vp = np.zeros(3) if viewpoint is None else np.asarray(viewpoint, dtype=np.float64)
     pts = np.asarray(points, dtype=np.float64)
-    start, span = _angular_interval(pts, vp)
+    start, span = angular_interval(pts, vp)
     if fov is not None:
         span = _overlap(start, span, fov[0], fov[1])
     return weight * span
@@ -181,7 +181,7 @@ def _map_order_arrays(Q: Configuration, estimate: np.ndarray) -> tuple[np.ndarra
         pts, off = stacked_points(Q)
         arr = matching_kernels.angular_intervals(pts, off, np.asarray(estimate, dtype=np.float64))
     else:
-        arr = np.array([_angular_interval(f.points, estimate) for f in Q.features])
+        arr = np.array([angular_interval(f.points, estimate) for f in Q.features])
     mids = wrap_angle(arr[:, 0] + 0.5 * arr[:, 1])
     return np.argsort(np.atleast_1d(mids), kind="stable"), arr
 

@@ -11,9 +11,14 @@ from __future__ import annotations
 import numpy as np
 
 from service.errors import InvalidWorld
-from sim_publisher.generator.layout.geometry import _LAYOUT_FUNCS, _block_rooms
+from sim_publisher.generator.layout.geometry import LAYOUT_FUNCS, block_rooms
 from sim_publisher.generator.layout.types import MIN_DEPTH, Layout, Rect, Room
-from sim_publisher.generator.layout.walls import _doors, _inner, _thicknesses, _wall_core
+from sim_publisher.generator.layout.walls import (
+    inner_rect,
+    place_doors,
+    wall_core,
+    wall_thicknesses,
+)
 from sim_publisher.generator.params import TYPE_SPECS
 
 
@@ -32,7 +37,7 @@ def build_layout(
     spec = TYPE_SPECS[building_type]
     transpose = W > H
     Wc, Hc = (H, W) if transpose else (W, H)
-    corridors, hall, blocks, graph = _LAYOUT_FUNCS[layout](Wc, Hc, spec, rng)
+    corridors, hall, blocks, graph = LAYOUT_FUNCS[layout](Wc, Hc, spec, rng)
     for b in blocks + corridors:
         if b.w < MIN_DEPTH - 1e-6 or b.h < MIN_DEPTH - 1e-6:
             if b in corridors and min(b.w, b.h) >= 1.5:
@@ -51,15 +56,15 @@ def build_layout(
         graph = [g[:, ::-1].copy() for g in graph]
     rects: list[Rect] = []
     for b in blocks:
-        rects.extend(_block_rooms(b, corridors, spec, rng))
+        rects.extend(block_rooms(b, corridors, spec, rng))
     kinds, weights = zip(*spec.rooms, strict=True)
     p = np.asarray(weights) / np.sum(weights)
     rooms = [Room(i, r, str(kinds[rng.choice(len(kinds), p=p)])) for i, r in enumerate(rects)]
-    thickness, t_out = _thicknesses(rooms, corridors, W, H, wall_bounds, rng)
+    thickness, t_out = wall_thicknesses(rooms, corridors, W, H, wall_bounds, rng)
     for room in rooms:
-        room.inner = _inner(room.rect, thickness, t_out, W, H)
-    doors = _doors(rooms, corridors, thickness, spec, door_bounds, rng)
-    core = _wall_core(rooms, thickness, t_out, W, H)
+        room.inner = inner_rect(room.rect, thickness, t_out, W, H)
+    doors = place_doors(rooms, corridors, thickness, spec, door_bounds, rng)
+    core = wall_core(rooms, thickness, t_out, W, H)
     lay = Layout(
         W,
         H,

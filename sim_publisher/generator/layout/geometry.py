@@ -1,9 +1,9 @@
 """Corridor and room geometry of a layout.
 
 The corridor shapes (``_straight``, ``_l_shape``, ``_ring``, ``_atrium``, by name in
-``_LAYOUT_FUNCS``) draw, in the canonical frame (short side along x), the corridors (or hall),
-the blocks left for rooms and the route graph; ``_block_rooms`` tiles a block (already in the
-map frame) with rooms, its cuts from :func:`split_length`. ``_contacts`` finds where rectangles
+``LAYOUT_FUNCS``) draw, in the canonical frame (short side along x), the corridors (or hall),
+the blocks left for rooms and the route graph; ``block_rooms`` tiles a block (already in the
+map frame) with rooms, its cuts from :func:`split_length`. ``side_contacts`` finds where rectangles
 touch (also used for doors and wall thicknesses, :mod:`.walls`).
 """
 
@@ -13,12 +13,12 @@ import math
 
 import numpy as np
 
-from sim_publisher.generator.layout.types import _EPS, MIN_DEPTH, Rect
+from sim_publisher.generator.layout.types import EPS, MIN_DEPTH, Rect
 from sim_publisher.generator.params import TypeSpec
 
 
 # --------------------------------------------------------------------------- helpers
-def _u(rng: np.random.Generator, lo_hi: tuple[float, float]) -> float:
+def uniform_in(rng: np.random.Generator, lo_hi: tuple[float, float]) -> float:
     return float(rng.uniform(lo_hi[0], lo_hi[1]))
 
 
@@ -35,10 +35,10 @@ def split_length(
 
 def _overlap(a0: float, a1: float, b0: float, b1: float) -> tuple[float, float] | None:
     lo, hi = max(a0, b0), min(a1, b1)
-    return (lo, hi) if hi - lo > _EPS else None
+    return (lo, hi) if hi - lo > EPS else None
 
 
-def _contacts(r: Rect, others: list[Rect]) -> list[tuple[int, float, float, int]]:
+def side_contacts(r: Rect, others: list[Rect]) -> list[tuple[int, float, float, int]]:
     """Where ``r``'s sides touch the opposite sides of ``others``: ``(side, lo, hi, j)``."""
     out = []
     for k in range(4):
@@ -46,7 +46,7 @@ def _contacts(r: Rect, others: list[Rect]) -> list[tuple[int, float, float, int]
         opp = k ^ 1
         for j, o in enumerate(others):
             oaxis, oc, olo, ohi = o.side(opp)
-            if oaxis == axis and abs(oc - c) < _EPS:
+            if oaxis == axis and abs(oc - c) < EPS:
                 ov = _overlap(lo, hi, olo, ohi)
                 if ov:
                     out.append((k, ov[0], ov[1], j))
@@ -55,17 +55,17 @@ def _contacts(r: Rect, others: list[Rect]) -> list[tuple[int, float, float, int]
 
 # --------------------------------------------------------------------------- layouts
 def _straight(W, H, spec, rng):
-    c = _u(rng, spec.corridor)
+    c = uniform_in(rng, spec.corridor)
     avail = W - c
     a = float(np.clip(avail * rng.uniform(0.35, 0.65), MIN_DEPTH, avail - MIN_DEPTH))
     y0, y1, blocks = 0.0, H, []
     dmax = min(spec.room_depth[1], 6.5)
     if H >= 14.0 and rng.random() < 0.5:
-        e = float(np.clip(_u(rng, spec.room_depth), MIN_DEPTH + 0.4, min(dmax, 0.3 * H)))
+        e = float(np.clip(uniform_in(rng, spec.room_depth), MIN_DEPTH + 0.4, min(dmax, 0.3 * H)))
         blocks.append(Rect(0.0, H - e, W, H))
         y1 = H - e
     if H >= 20.0 and rng.random() < 0.3:
-        e = float(np.clip(_u(rng, spec.room_depth), MIN_DEPTH + 0.4, min(dmax, 0.25 * H)))
+        e = float(np.clip(uniform_in(rng, spec.room_depth), MIN_DEPTH + 0.4, min(dmax, 0.25 * H)))
         blocks.append(Rect(0.0, 0.0, W, e))
         y0 = e
     corridors = [Rect(a, y0, a + c, y1)]
@@ -76,14 +76,14 @@ def _straight(W, H, spec, rng):
 
 
 def _l_shape(W, H, spec, rng):
-    c = _u(rng, spec.corridor)
-    a = float(np.clip(_u(rng, spec.room_depth), MIN_DEPTH, max(MIN_DEPTH, 0.4 * W)))
+    c = uniform_in(rng, spec.corridor)
+    a = float(np.clip(uniform_in(rng, spec.room_depth), MIN_DEPTH, max(MIN_DEPTH, 0.4 * W)))
     a = min(a, W - c - MIN_DEPTH)
-    yb = float(np.clip(_u(rng, spec.room_depth), MIN_DEPTH, max(MIN_DEPTH, 0.35 * H)))
+    yb = float(np.clip(uniform_in(rng, spec.room_depth), MIN_DEPTH, max(MIN_DEPTH, 0.35 * H)))
     top = H
     blocks = []
     if H - yb - c >= 2 * MIN_DEPTH + 4.0 and rng.random() < 0.5:
-        e = float(np.clip(_u(rng, spec.room_depth), MIN_DEPTH + 0.4, 0.25 * H))
+        e = float(np.clip(uniform_in(rng, spec.room_depth), MIN_DEPTH + 0.4, 0.25 * H))
         top = H - e
         blocks.append(Rect(a, top, W, H))
     corridors = [Rect(a, yb, a + c, top), Rect(a, yb, W, yb + c)]
@@ -119,7 +119,7 @@ def _loop(x0, y0, x1, y1) -> np.ndarray:
 
 
 def _ring(W, H, spec, rng):
-    c = _u(rng, spec.corridor)
+    c = uniform_in(rng, spec.corridor)
     core_min = 3.2
     if W - 2 * c - core_min < 2 * MIN_DEPTH:
         c = max(1.8, (W - core_min - 2 * MIN_DEPTH) / 2.0)
@@ -143,16 +143,16 @@ def _atrium(W, H, spec, rng):
     return [hall], [True], _outer_blocks(W, H, dl, dr, db, dt), graph
 
 
-_LAYOUT_FUNCS = {"straight": _straight, "L": _l_shape, "ring": _ring, "atrium": _atrium}
+LAYOUT_FUNCS = {"straight": _straight, "L": _l_shape, "ring": _ring, "atrium": _atrium}
 
 
 # --------------------------------------------------------------------------- rooms
-def _block_rooms(block: Rect, spaces: list[Rect], spec: TypeSpec, rng) -> list[Rect]:
+def block_rooms(block: Rect, spaces: list[Rect], spec: TypeSpec, rng) -> list[Rect]:
     """Tile a block with rooms: rows parallel to its side with the longest corridor contact
     (deep blocks get several rows, the back ones reached through the front ones); all rows
     share the same cuts along the side, and neighbouring cells of a row may merge."""
     contact = np.zeros(4)
-    for k, lo, hi, _ in _contacts(block, spaces):
+    for k, lo, hi, _ in side_contacts(block, spaces):
         contact[k] += hi - lo
     if contact.max() <= 0.0:
         contact = np.array([block.h, block.h, block.w, block.w])

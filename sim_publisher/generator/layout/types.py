@@ -10,7 +10,7 @@ import numpy as np
 import shapely
 from shapely.geometry import Polygon, box
 
-_EPS = 1e-6
+EPS = 1e-6
 #: Wall stub (m) kept between a door gap and the corner of the wall it is cut into.
 JAMB_MIN = 0.3
 #: Smallest room depth (m) any layout leaves for a row of rooms.
@@ -117,7 +117,7 @@ class Door:
         return box(cx - d, cy - a, cx + d, cy + a)
 
 
-def _door(index, center, axis, width, thickness, room, other, normal) -> Door:
+def make_door(index, center, axis, width, thickness, room, other, normal) -> Door:
     return Door(
         index,
         np.asarray(center, float),

@@ -1,7 +1,7 @@
-"""Walls and doors of a layout: one thickness per wall line (``_thicknesses``, keyed by
-``_line_key``), the rooms' inner faces (``_inner``), the doors (``_doors``: every room
+"""Walls and doors of a layout: one thickness per wall line (``wall_thicknesses``, keyed by
+``line_key``), the rooms' inner faces (``inner_rect``), the doors (``place_doors``: every room
 reachable, each door's width drawn, its slot kept clear of the other doors on its wall line)
-and the wall core (``_wall_core``).
+and the wall core (``wall_core``).
 
 Walls are built as the union of a band per room edge (its line's thickness), a post at every
 room corner (the intersection of the two bands) and the outer frame; the door gaps are cut out
@@ -15,18 +15,18 @@ import shapely
 from shapely.geometry import box
 
 from service.errors import InvalidWorld
-from sim_publisher.generator.layout.geometry import _contacts, _u
-from sim_publisher.generator.layout.types import _EPS, JAMB_MIN, Door, Rect, Room, _door
+from sim_publisher.generator.layout.geometry import side_contacts, uniform_in
+from sim_publisher.generator.layout.types import EPS, JAMB_MIN, Door, Rect, Room, make_door
 from sim_publisher.generator.params import TypeSpec
 
 
-def _line_key(axis: int, c: float) -> tuple[int, float]:
+def line_key(axis: int, c: float) -> tuple[int, float]:
     return axis, round(c, 6)
 
 
-def _on_boundary(axis: int, c: float, W: float, H: float) -> bool:
+def on_boundary(axis: int, c: float, W: float, H: float) -> bool:
     ext = H if axis == 0 else W
-    return abs(c) < _EPS or abs(c - ext) < _EPS
+    return abs(c) < EPS or abs(c - ext) < EPS
 
 
 def _door_slot(lo, hi, width, used, rng, margin) -> float | None:
@@ -47,24 +47,24 @@ def _door_width(spec: TypeSpec, bounds: tuple[float, float], rng) -> float:
     elif rng.random() < 0.08:
         w = rng.uniform(0.8, 0.86)
     else:
-        w = _u(rng, spec.door)
+        w = uniform_in(rng, spec.door)
     return float(np.clip(w, bounds[0], bounds[1]))
 
 
-def _thicknesses(rooms, corridors, W, H, bounds, rng):
+def wall_thicknesses(rooms, corridors, W, H, bounds, rng):
     lo, hi = bounds
     t_out = float(rng.uniform(lo + 0.5 * (hi - lo), hi))
     corridor_lines = set()
     for room in rooms:
-        for k, *_ in _contacts(room.rect, corridors):
+        for k, *_ in side_contacts(room.rect, corridors):
             axis, c, _, _ = room.rect.side(k)
-            corridor_lines.add(_line_key(axis, c))
+            corridor_lines.add(line_key(axis, c))
     thickness: dict[tuple[int, float], float] = {}
     for room in rooms:
         for k in range(4):
             axis, c, _, _ = room.rect.side(k)
-            key = _line_key(axis, c)
-            if key in thickness or _on_boundary(axis, c, W, H):
+            key = line_key(axis, c)
+            if key in thickness or on_boundary(axis, c, W, H):
                 continue
             if key in corridor_lines:
                 t = rng.uniform(lo + 0.2 * (hi - lo), lo + 0.8 * (hi - lo))
@@ -75,12 +75,12 @@ def _thicknesses(rooms, corridors, W, H, bounds, rng):
 
 
 def _half(axis, c, thickness, t_out, W, H) -> float:
-    if _on_boundary(axis, c, W, H):
+    if on_boundary(axis, c, W, H):
         return t_out
-    return thickness[_line_key(axis, c)] / 2.0
+    return thickness[line_key(axis, c)] / 2.0
 
 
-def _inner(r: Rect, thickness, t_out, W, H) -> Rect:
+def inner_rect(r: Rect, thickness, t_out, W, H) -> Rect:
     return Rect(
         r.x0 + _half(1, r.x0, thickness, t_out, W, H),
         r.y0 + _half(0, r.y0, thickness, t_out, W, H),
@@ -89,7 +89,7 @@ def _inner(r: Rect, thickness, t_out, W, H) -> Rect:
     )
 
 
-def _doors(rooms, corridors, thickness, spec, bounds, rng) -> list[Door]:
+def place_doors(rooms, corridors, thickness, spec, bounds, rng) -> list[Door]:
     doors: list[Door] = []
     used: dict[tuple[int, float], list[tuple[float, float]]] = {}
     rects = [r.rect for r in rooms]
@@ -98,7 +98,7 @@ def _doors(rooms, corridors, thickness, spec, bounds, rng) -> list[Door]:
 
     def add(room: Room, k: int, lo: float, hi: float, other: int) -> bool:
         axis, c, _, _ = room.rect.side(k)
-        key = _line_key(axis, c)
+        key = line_key(axis, c)
         w = _door_width(spec, bounds, rng)
         s = None
         while s is None and w >= bounds[0] - 1e-9:
@@ -111,14 +111,14 @@ def _doors(rooms, corridors, thickness, spec, bounds, rng) -> list[Door]:
         center = (s, c) if axis == 0 else (c, s)
         sign = 1.0 if k in (0, 2) else -1.0  # normal into the room
         normal = (0.0, sign) if axis == 0 else (sign, 0.0)
-        d = _door(len(doors), center, axis, w, thickness[key], room.index, other, normal)
+        d = make_door(len(doors), center, axis, w, thickness[key], room.index, other, normal)
         doors.append(d)
         room.doors.append(d.index)
         return True
 
     connected = np.zeros(len(rooms), bool)
     for room in rooms:
-        cont = _contacts(room.rect, corridors)
+        cont = side_contacts(room.rect, corridors)
         if not cont:
             continue
         by_side: dict[int, list[tuple[float, float]]] = {}
@@ -129,7 +129,7 @@ def _doors(rooms, corridors, thickness, spec, bounds, rng) -> list[Door]:
             ivs.sort()
             cur = list(ivs[0])
             for lo, hi in ivs[1:]:
-                if lo <= cur[1] + _EPS:
+                if lo <= cur[1] + EPS:
                     cur[1] = max(cur[1], hi)
                 else:
                     merged.append((k, *cur))
@@ -144,7 +144,7 @@ def _doors(rooms, corridors, thickness, spec, bounds, rng) -> list[Door]:
                 add(room, k, lo, hi, -1)
     adj: list[list[tuple[int, int, float, float]]] = [[] for _ in rooms]
     for room in rooms:
-        for k, lo, hi, j in _contacts(room.rect, rects):
+        for k, lo, hi, j in side_contacts(room.rect, rects):
             if j != room.index:
                 adj[room.index].append((j, k, lo, hi))
     changed = True
@@ -171,17 +171,17 @@ def _doors(rooms, corridors, thickness, spec, bounds, rng) -> list[Door]:
     return doors
 
 
-def _wall_core(rooms, thickness, t_out, W, H):
+def wall_core(rooms, thickness, t_out, W, H):
     parts = [box(0, 0, W, H).difference(box(t_out, t_out, W - t_out, H - t_out))]
     for room in rooms:
         r = room.rect
         half = {}
         for k in range(4):
             axis, c, lo, hi = r.side(k)
-            if _on_boundary(axis, c, W, H):
+            if on_boundary(axis, c, W, H):
                 half[k] = None
                 continue
-            t2 = thickness[_line_key(axis, c)] / 2.0
+            t2 = thickness[line_key(axis, c)] / 2.0
             half[k] = t2
             if axis == 0:
                 parts.append(box(lo, c - t2, hi, c + t2))

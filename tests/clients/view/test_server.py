@@ -223,13 +223,13 @@ class _Socket:
 
 
 def test_frames_are_deltas_with_a_key_frame_a_second_and_a_lagging_page_resyncs() -> None:
-    from clients.view.server import KEYFRAME_S, MAX_BEHIND, ViewServer, _Page
+    from clients.view.server import KEYFRAME_S, MAX_BEHIND, Page, ViewServer
 
     server = ViewServer(session=None, rate_hz=RATE)  # tick() needs no session
     st = server.state
     for rid in ("r1", "r2"):
         st.ingest(f"{P}/robots/{rid}/pose", False, _pose(rid, 0), None, 1000.0)
-    page = _Page(_Socket())
+    page = Page(_Socket())
     server.pages.add(page)
     first = json.loads(server.tick(1000.0))
     assert first["key"] and len(first["robots"]) == 2

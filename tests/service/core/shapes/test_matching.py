@@ -19,7 +19,7 @@ from service.core.pose import invert, pose_from_matches, transform_points
 from service.core.shapes import matching, order_dp, shape_cost, two_step
 from service.core.shapes.configuration import Configuration, Feature
 from service.core.shapes.matching import (
-    _angular_interval,
+    angular_interval,
     induced_alignment,
     match_configurations,
     match_with_cost,
@@ -157,7 +157,7 @@ def _dense(vertices: np.ndarray, step: float = 0.02) -> np.ndarray:
 def _feature(vertices: list[list[float]], segments: bool) -> Feature:
     v = np.array(vertices, dtype=float)
     pts = _dense(v)
-    start, span = _angular_interval(pts, np.zeros(3))
+    start, span = angular_interval(pts, np.zeros(3))
     segs = np.hstack([v[:-1], v[1:]]) if segments else None
     return Feature(
         vertices=v,
