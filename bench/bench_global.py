@@ -21,7 +21,8 @@ Drive trials (``--drive``): global localisation WHILE THE ROBOT DRIVES
 -------------------------------------------------------------------------------
 ``python -m bench.bench_global --drive [--groups office,worlds,real] [--starts 200]
 [--worlds 8] [--real-starts 40] [--logs intel,fr079,mit-csail] [--data DIR] [--jobs 2]
-[--quick N] [--stride1 1] [--seed 1] [--cache build/bench_global/index] [--out docs/global]``
+[--quick N] [--stride1 1] [--seed 1] [--cache build/bench_global/index] [--out build/bench_global]
+[--results docs/results]``
 
 A trial picks a random start scan on a tour, creates ``create_localizer("shape", map, None,
 search_budget_ms=--budget-ms)`` (no initial pose; the service's default budget of 50 reference
@@ -107,8 +108,9 @@ free cores; ``--starts 100`` ~2700 CPU s; ``--stride1 4`` saves ~3/4 of setup 1'
 Work is spread over ``--jobs`` processes (spawned; one trial per task). Each map's view index
 is first made ready once (built, or loaded from ``--cache``, git-ignored ``build/``) by one task
 per map, then every process loads it from that cache once and keeps it in memory for all its
-trials. Writes ``docs/global/drive.md`` (tables, command, commit, date, load) and
-``docs/global/drive.csv`` (one row per trial) under ``--out``.
+trials. Writes ``drive.md`` (tables, command, commit, date, load) and ``drive.csv`` (one row
+per trial) under ``--out`` (git-ignored ``build/bench_global`` unless given), and with
+``--results`` the results page ``drive.md`` there.
 
 Code: this file holds the command line (:func:`main`) and the single-scan benchmark above;
 the drive trials live in ``global_drive.py`` (maps, tours, start choice, scoring),
@@ -358,7 +360,7 @@ def main(argv: list[str] | None = None) -> int:
         default=Path(__file__).resolve().parents[1] / "build" / "bench_global" / "index",
     )
     drive.add_argument(
-        "--out", type=Path, default=Path(__file__).resolve().parents[1] / "docs" / "global"
+        "--out", type=Path, default=Path(__file__).resolve().parents[1] / "build" / "bench_global"
     )
     args = ap.parse_args(argv)
     if args.drive:

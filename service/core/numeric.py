@@ -241,6 +241,16 @@ def inv(a: np.ndarray) -> np.ndarray:
     return solve(a, np.eye(a.shape[-1]))
 
 
+def det3(m: np.ndarray) -> float:
+    """Determinant of a 3x3 matrix by cofactors along the first row (``np.linalg.det`` goes to
+    LAPACK, whose kernels differ by CPU)."""
+    return float(
+        m[0, 0] * (m[1, 1] * m[2, 2] - m[1, 2] * m[2, 1])
+        - m[0, 1] * (m[1, 0] * m[2, 2] - m[1, 2] * m[2, 0])
+        + m[0, 2] * (m[1, 0] * m[2, 1] - m[1, 1] * m[2, 0])
+    )
+
+
 def eigh_sym2(m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Eigenvalues (ascending) and unit eigenvectors (columns) of a symmetric 2x2 matrix, in
     closed form (``np.linalg.eigh`` up to the eigenvectors' signs)."""

@@ -49,7 +49,7 @@ class Prior:
         uniform = math.log(max(self.kidnap, 1e-300)) - math.log(max(self.cells, 1.0))
         if self.mean is None or self.cov is None:
             return uniform
-        det = max(_det3(self.cov), 1e-300)
+        det = max(numeric.det3(self.cov), 1e-300)
         m2 = mahalanobis2(pose, self.mean, self.cov)
         density = math.exp(-0.5 * m2) / math.sqrt((2.0 * math.pi) ** 3 * det)
         mass = min(1.0, density * CELL_VOLUME)
@@ -68,15 +68,6 @@ def mahalanobis2(pose: np.ndarray, mean: np.ndarray, cov: np.ndarray) -> float:
     e = np.asarray(pose, dtype=np.float64) - mean
     e[2] = wrap_angle(float(e[2]))
     return float(numeric.quadratic(e, numeric.inv(cov)))
-
-
-def _det3(m: np.ndarray) -> float:
-    """Determinant of a 3x3 matrix (cofactors along the first row)."""
-    return float(
-        m[0, 0] * (m[1, 1] * m[2, 2] - m[1, 2] * m[2, 1])
-        - m[0, 1] * (m[1, 0] * m[2, 2] - m[1, 2] * m[2, 0])
-        + m[0, 2] * (m[1, 0] * m[2, 1] - m[1, 1] * m[2, 0])
-    )
 
 
 @dataclass(frozen=True)

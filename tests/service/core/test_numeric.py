@@ -62,6 +62,9 @@ def test_products_and_small_solves_agree_with_numpy_to_rounding() -> None:
         numeric.solve(np.zeros((3, 3)), np.ones(3))
     with pytest.raises(np.linalg.LinAlgError):
         numeric.inv(np.array([[1.0, 2.0], [2.0, 4.0]]))
+    for m3 in (m, stack[0], np.diag([4.0, 0.25, 0.01])):
+        assert math.isclose(numeric.det3(m3), float(np.linalg.det(m3)), rel_tol=1e-12)
+    assert numeric.det3(np.array([[1.0, 2.0, 3.0], [2.0, 4.0, 6.0], [0.0, 1.0, 5.0]])) == 0.0
 
 
 @pytest.mark.parametrize(
