@@ -98,6 +98,10 @@ Definitions:
 - percentiles of travel and CPU to fix are over ALL trials of a row, a trial without a correct
   fix counting as infinite ("n/f": the percentile falls on such trials).
 - s / trial: mean wall time of a trial in its worker (the machine's load is in the output).
+- plan share (a second table): found within the limit / trials split by the trial's mean plan
+  share (``bench/plan_share.py``), and each trial not fixed within the limit with the travel
+  from which the map holds (``global_drive.holds_from``) and the travel to its fix: a trial
+  that starts where the map does not show what the robot sees is limited by the map.
 
 Cost (measured at commit 312191d, CPU s per trial): setup 1 ~3 (911 scans tracked at ~3 ms;
 the fix itself ~0.3), setup 2 ~2-4, real logs ~25 on average (a trial that never fixes

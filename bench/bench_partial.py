@@ -37,7 +37,7 @@ scan in simulation. Columns:
 - ``tracking`` / ``dead reckoning`` / ``lost``: shares of scored scans by the published
   status (``dead reckoning``: the optional state field, where the localiser has one);
 - ``map holds``: share of scored scans whose returns the map explains at the true pose
-  (plan share >= :data:`HOLDS_SHARE`, ``bench/plan_share.py``, with the partial map);
+  (plan share >= ``bench.plan_share.HOLDS_SHARE``, with the partial map);
 - re-fix: each time the map holds again (a scored scan where it holds after at least
   :data:`GAP_M` metres of travel where it did not), the odometry travel from there to the
   first scan published ``tracking`` within 0.5 m (0 when it already is); ``p50 / max`` over
@@ -82,8 +82,6 @@ START_KEEP_M = 4.0
 #: Another day: furniture deleted / moved with these probabilities.
 DELETE_P = 0.3
 MOVE_P = 0.3
-#: The map holds at a scan when at least this share of its returns lies within 0.3 m of it.
-HOLDS_SHARE = 0.5
 #: A re-fix event needs at least this much travel (m) where the map did not hold before it.
 GAP_M = 1.0
 #: The acceptance's re-fix distance (m).
@@ -229,7 +227,7 @@ def _feed(loc: object, scans: object, n: int, odom: list) -> tuple[np.ndarray, l
 
 def run_case(case: Case, data: str, budget: float, seed: int, cache: str) -> dict[str, object]:
     """Run one case; returns its table row (and writes its per-scan arrays to ``cache``)."""
-    from bench.plan_share import PlanShare
+    from bench.plan_share import HOLDS_SHARE, PlanShare
     from service.core.factory import create_localizer
 
     t0 = time.perf_counter()

@@ -21,6 +21,7 @@ from typing import Any
 
 import numpy as np
 
+from bench.plan_share import HOLDS_SHARE
 from service.core.factory import create_localizer
 from service.core.types import MapData, wrap_angle
 from sim_publisher.scenario import make_setup
@@ -185,6 +186,8 @@ class DriveTrial:
     #: mean share of the trial's returns on a mapped wall at the reference pose
     #: (:mod:`plan_share`; NaN without references)
     plan_share: float = math.nan
+    #: travel (m) from which the map holds (:func:`holds_from`; inf: never; NaN: no references)
+    holds_from_m: float = math.nan
     search_ms: list[float] = field(default_factory=list, repr=False)
 
 
@@ -261,6 +264,25 @@ def spread(total: int, parts: int) -> list[int]:
         return []
     q, r = divmod(total, parts)
     return [q + (k < r) for k in range(parts)]
+
+
+#: The map holds from the first of this many scored scans in a row where it holds
+#: (:data:`bench.plan_share.HOLDS_SHARE`): one scan's share is noisy (a doorway, a person).
+HOLDS_RUN = 3
+
+
+def holds_from(travel: Sequence[float], shares: Sequence[float]) -> float:
+    """The travel (m) of the first of :data:`HOLDS_RUN` scored scans in a row whose plan share
+    (``shares``, one per scored scan at ``travel``) is at least :data:`HOLDS_SHARE`: where the
+    map starts to show what the robot sees. ``inf`` if it never does, NaN without scans."""
+    if len(shares) == 0:
+        return math.nan
+    run = 0
+    for i, share in enumerate(shares):
+        run = run + 1 if share >= HOLDS_SHARE else 0
+        if run == HOLDS_RUN:
+            return float(travel[i - HOLDS_RUN + 1])
+    return math.inf
 
 
 def fix_ok(pose: np.ndarray, truth: np.ndarray) -> bool:

@@ -26,6 +26,7 @@ from bench.global_drive import (
     FIX_DEG,
     FIX_DIST,
     GROUPS,
+    HOLDS_RUN,
     REAL_LOGS,
     DriveMap,
     DriveSource,
@@ -38,6 +39,7 @@ from bench.global_drive import (
     drive_source,
     fed_scans,
     fix_ok,
+    holds_from,
     hypotheses_of,
     load_average,
     map_stride,
@@ -53,7 +55,7 @@ from bench.global_drive_tables import (
     share_table,
     write_drive_csv,
 )
-from bench.plan_share import PlanShare
+from bench.plan_share import HOLDS_SHARE, PlanShare
 from bench.results import publish
 from service.core.factory import create_localizer
 from service.core.types import wrap_angle
@@ -145,6 +147,7 @@ def run_drive_trial(task: DriveTask) -> DriveTrial:
     hyps: list[float] = []
     flags: list[bool] = []
     shares: list[float] = []
+    share_travel: list[float] = []
     plan = plan_share_of(m, src)
     prev = "initializing"
     t_start = time.perf_counter()
@@ -166,6 +169,7 @@ def run_drive_trial(task: DriveTask) -> DriveTrial:
         scored = bool(np.all(np.isfinite(t)))
         if scored:
             shares.append(plan.scan_share(t, r, a))
+            share_travel.append(travel[-1])
         close.append(fix_ok(est.pose, t) if scored else None)
         after.append(bool(src.after(i, est.pose)) if scored else None)
         flags.append(searching)
@@ -234,6 +238,7 @@ def run_drive_trial(task: DriveTask) -> DriveTrial:
         hyp_scans=len(hyps),
         wall_s=wall,
         plan_share=float(np.nanmean(shares)) if np.any(np.isfinite(shares)) else math.nan,
+        holds_from_m=holds_from(share_travel, shares),
         search_ms=search_ms,
     )
 
@@ -421,7 +426,10 @@ def drive_main(args: argparse.Namespace, argv: Sequence[str]) -> int:
         "Found <= limit / trials by the trial's plan share (`bench/plan_share.py`): the mean "
         "share of its returns within 0.3 m of a mapped wall at the reference pose. Below "
         f"{SHARE_SPLIT} the map shows less than half of what the robot sees (a hall drawn as "
-        "its outline on a floor plan): a limit of the map rather than of the localiser.",
+        "its outline on a floor plan): a limit of the map rather than of the localiser. "
+        "Each trial not fixed within the limit is listed by its start scan with the travel "
+        f"from which the map holds (the first of {HOLDS_RUN} referenced scans in a row with a "
+        f"share of at least {HOLDS_SHARE}) and the travel to its fix.",
         "",
         shares,
     ]

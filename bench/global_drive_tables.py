@@ -20,14 +20,30 @@ from bench.global_drive import HELD_OUT_FIRST_SEED, DriveMap, DriveTrial
 DRIVE_FIELDS_SKIP = ("search_ms",)
 #: share_table's split of the trials by plan share (:mod:`plan_share`)
 SHARE_SPLIT = 0.5
+#: share_table lists at most this many trials not fixed within the limit per map
+MISSES_SHOWN = 6
+
+
+def _miss(t: DriveTrial) -> str:
+    """A trial not fixed within its limit: where the map starts to hold / where it was fixed
+    (m of travel; ``never``: not within the trial)."""
+
+    def m(x: float) -> str:
+        return "never" if math.isinf(x) else ("–" if math.isnan(x) else f"{x:.1f}")
+
+    fixed = m(t.fix_travel_m) if t.found else "never"
+    return f"{t.start}: {m(t.holds_from_m)} / {fixed}"
 
 
 def share_table(trials: Sequence[DriveTrial], maps: Sequence[DriveMap]) -> str:
     """Found within the limit / trials, split by the trial's plan share (:mod:`plan_share`)
-    below or at least ``SHARE_SPLIT``, per map row of :func:`drive_table`."""
+    below or at least ``SHARE_SPLIT``, per map row of :func:`drive_table`; and each trial not
+    fixed within its limit: its start scan, the travel from which the map holds
+    (:func:`global_drive.holds_from`) and the travel to its fix."""
     lines = [
-        f"| map | plan share < {SHARE_SPLIT} | plan share >= {SHARE_SPLIT} |",
-        "|---|---|---|",
+        f"| map | plan share < {SHARE_SPLIT} | plan share >= {SHARE_SPLIT} "
+        "| not fixed within the limit: start: map holds from / fixed at (m) |",
+        "|---|---|---|---|",
     ]
     for m, ts in table_groups(trials, maps):
         cells = []
@@ -37,6 +53,10 @@ def share_table(trials: Sequence[DriveTrial], maps: Sequence[DriveMap]) -> str:
             ]
             ok = sum(t.within_limit for t in sel)
             cells.append(f"{ok}/{len(sel)}" if sel else "–")
+        misses = [t for t in sorted(ts, key=lambda t: t.start) if not t.within_limit]
+        cells.append("; ".join(_miss(t) for t in misses[:MISSES_SHOWN]) or "–")
+        if len(misses) > MISSES_SHOWN:
+            cells[-1] += f"; {len(misses) - MISSES_SHOWN} more"
         name = f"{m.group} {m.world if m.group != 'worlds' else 'worlds'} {m.kind}"
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"

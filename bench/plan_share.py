@@ -21,6 +21,10 @@ import numpy as np
 from service.core.sensor.mapmodel import MapModel
 from service.core.types import MapData
 
+#: The map holds at a scan when at least this share of its returns lies within the tolerance
+#: (0.3 m) of a mapped wall: the map shows most of what the robot sees.
+HOLDS_SHARE = 0.5
+
 
 class PlanShare:
     """The plan-share test of one map: the map's own nearest-wall query

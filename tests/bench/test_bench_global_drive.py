@@ -147,13 +147,26 @@ def test_share_table_splits_found_trials_by_plan_share(bg) -> None:
     base = dict.fromkeys(names, 0)
     base.update(group="real", world="fr079", map="schematic", setup="", room="")
 
-    def trial(share: float, within: bool) -> object:
-        return bg.DriveTrial(**{**base, "plan_share": share, "within_limit": within})
+    def trial(share: float, within: bool, **kw: object) -> object:
+        return bg.DriveTrial(**{**base, "plan_share": share, "within_limit": within, **kw})
 
-    ts = [trial(0.3, False), trial(0.4, True), trial(0.7, True), trial(0.9, True)]
+    ts = [trial(0.3, False, start=1713, holds_from_m=16.04, found=True, fix_travel_m=19.0)]
+    ts += [trial(0.4, True), trial(0.7, True), trial(0.9, True)]
+    ts.append(trial(0.2, False, start=1715, holds_from_m=math.inf, found=False))
     ts.append(trial(float("nan"), True))  # no reference: in neither column
     row = bg.share_table(ts, [m]).splitlines()[2]
-    assert row == "| real fr079 schematic | 1/2 | 2/2 |"
+    assert row == "| real fr079 schematic | 1/3 | 2/2 | 1713: 16.0 / 19.0; 1715: never / never |"
+
+
+def test_the_map_holds_from_the_first_of_three_holding_scans_in_a_row() -> None:
+    gd = importlib.import_module("bench.global_drive")
+    travel = [0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0]
+    # a doorway at 0 m and two scans at 2-3 m hold, not three in a row; from 5 m it holds
+    shares = [0.6, 0.1, 0.5, 0.7, 0.2, 0.55, 0.8, 0.9]
+    assert gd.holds_from(travel, shares) == 5.0
+    assert gd.holds_from(travel[:7], shares[:7]) == math.inf  # two in a row only
+    assert gd.holds_from([0.0, 0.4, 0.9], [0.5, 0.5, 0.5]) == 0.0
+    assert math.isnan(gd.holds_from([], []))
 
 
 def test_clutter_names_the_same_buildings_and_starts_with_more_furniture(bg) -> None:
