@@ -221,11 +221,14 @@ def _tracking(ctx: Context, s: Tracking, scan: Scan) -> tuple[State, Estimate]:
         s.ref, s.cov, s.strikes, s.broken = est.pose.copy(), fit_cov(est), 0, False
         return s, est
     # a poorly explained scan contradicts the pose (a kidnap) after a break of the scan-to-scan
-    # fit (the scans after a kidnap match each other again), else only if rejected, scoring
-    # low, with beams through drawn walls (moved furniture lets beams through on a good fit)
+    # fit (the scans after a kidnap match each other again), else only if rejected with beams
+    # through drawn walls (moved furniture lets beams through on a good fit), scoring low
+    # unless a laser odometry carries the pose: measured from the same scans, it can turn a
+    # symmetric room's scan wrong as smoothly as right, and nothing else vouches for it
     low = est.score < g.collapse_score
     s.broken = (s.broken or o.broken) and low
-    contradicted = slid or s.broken or (rejected and low and _contradicts(ctx, scan, est.pose))
+    doubted = low or scan.from_scans
+    contradicted = slid or s.broken or (rejected and doubted and _contradicts(ctx, scan, est.pose))
     s.strikes = s.strikes + 1 if contradicted else 0
     if s.strikes >= ctx.config.lost_after:
         est.extras["contradicted"] = 1.0
