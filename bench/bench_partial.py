@@ -61,6 +61,7 @@ import time
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
@@ -286,16 +287,24 @@ def run_case(case: Case, data: str, budget: float, seed: int, cache: str) -> dic
     return row
 
 
+class Refix(NamedTuple):
+    """A re-fix event: the scan where the map holds again, the travel (m) from there to a
+    correct ``tracking`` pose (``inf``: never) and the part of it where the map holds."""
+
+    scan: int
+    travel: float
+    holding: float
+
+
 def refix_events(
     good: np.ndarray, scored: np.ndarray, holds: np.ndarray, travel: np.ndarray
-) -> list[tuple[float, float]]:
+) -> list[Refix]:
     """Per scored scan where the map holds again after at least :data:`GAP_M` of travel where
-    it did not (module docstring): the travel (m) from there to a correct ``tracking`` pose
-    (``inf``: never), and the part of it over scans where the map holds."""
+    it did not (module docstring), its :class:`Refix`."""
     idx = np.flatnonzero(scored)
     steps = np.diff(travel[idx], prepend=travel[idx[0]]) if len(idx) else np.zeros(0)
     holding = np.cumsum(np.where(holds[idx], steps, 0.0))
-    out: list[tuple[float, float]] = []
+    out: list[Refix] = []
     gap_from: float | None = None
     for k, i in enumerate(idx):
         if not holds[i]:
@@ -306,9 +315,11 @@ def refix_events(
             later = np.flatnonzero(good[idx[k:]])
             if len(later):
                 j = k + int(later[0])
-                out.append((float(travel[idx[j]] - travel[i]), float(holding[j] - holding[k])))
+                out.append(
+                    Refix(int(i), float(travel[idx[j]] - travel[i]), float(holding[j] - holding[k]))
+                )
             else:
-                out.append((float("inf"), float(holding[-1] - holding[k])))
+                out.append(Refix(int(i), float("inf"), float(holding[-1] - holding[k])))
         gap_from = None
     return out
 
@@ -332,8 +343,8 @@ def summarise(
     ns = max(int(s.sum()), 1)
     wrong = int((s & trk & (err > WRONG_M)).sum())
     events = refix_events(good, scored, holds, travel)
-    ev = np.array([e[0] for e in events])
-    on_map = np.array([e[1] for e in events])
+    ev = np.array([e.travel for e in events])
+    on_map = np.array([e.holding for e in events])
     fin = ev[np.isfinite(ev)]
     return {
         "scored": int(s.sum()),
@@ -351,6 +362,7 @@ def summarise(
         "refix_late_holding": int((on_map > REFIX_M).sum()),
         "refix_never": int((~np.isfinite(ev)).sum()),
         "fin_max": float(fin.max()) if len(fin) else float("nan"),
+        "late": [tuple(e) for e in events if e.holding > REFIX_M],
     }
 
 
@@ -389,6 +401,21 @@ def table(rows: list[dict[str, object]]) -> str:
             f"({r['refix_never']}) | {r['refix_late_holding']} |"
         )
     return head + "\n".join(lines) + "\n"
+
+
+def late_list(rows: list[dict[str, object]]) -> str:
+    """Each re-fix taking more than :data:`REFIX_M` of travel where the map holds, by map: the
+    scan where the map holds again and the travel to the re-fix, in all and where it holds."""
+    out = []
+    for r in rows:
+        late = r.get("late") or []
+        if late:
+            items = "; ".join(
+                f"scan {scan}: {_m(a)} / {_m(h)} m"
+                for scan, a, h in late  # type: ignore[union-attr]
+            )
+            out.append(f"- {r['case']}: {items}")
+    return "\n".join(out or ["- none"]) + "\n"
 
 
 def pooled(rows: list[dict[str, object]]) -> str:
@@ -494,6 +521,8 @@ def main(argv: list[str] | None = None) -> int:
         + table(rows)
         + "\nPooled by scored scans:\n\n"
         + pooled(rows)
+        + f"\nRe-fixes taking more than {REFIX_M:g} m of travel where the map holds (the scan "
+        "where it holds again: travel to the re-fix in all / where it holds):\n\n" + late_list(rows)
     )
     print(text)
     args.out.mkdir(parents=True, exist_ok=True)

@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 
-from bench.bench_partial import refix_events
+from bench.bench_partial import Refix, late_list, refix_events, summarise
 
 
 def test_refix_counts_all_travel_and_the_travel_where_the_map_holds() -> None:
@@ -18,14 +18,15 @@ def test_refix_counts_all_travel_and_the_travel_where_the_map_holds() -> None:
     good[17] = True
     travel = np.arange(holds.size, dtype=float)
     events = refix_events(good, np.ones(holds.size, dtype=bool), holds, travel)
-    assert events == [(13.0, 3.0), (2.0, 2.0)]
+    assert events == [Refix(4, 13.0, 3.0), Refix(15, 2.0, 2.0)]
 
 
 def test_a_never_refixed_event_is_infinite_with_its_travel_where_the_map_held() -> None:
     holds = np.array([True, False, False, True, True, False])
     good = np.array([True, False, False, False, False, False])
     events = refix_events(good, np.ones(6, dtype=bool), holds, np.arange(6.0))
-    assert len(events) == 1 and math.isinf(events[0][0]) and events[0][1] == 1.0
+    assert len(events) == 1 and events[0].scan == 3
+    assert math.isinf(events[0].travel) and events[0].holding == 1.0
 
 
 def test_unscored_scans_are_skipped() -> None:
@@ -33,4 +34,21 @@ def test_unscored_scans_are_skipped() -> None:
     scored = np.array([True, True, True, False, True])
     good = np.array([True, False, False, True, True])
     events = refix_events(good, scored, holds, np.arange(5.0))
-    assert events == [(0.0, 0.0)]
+    assert events == [Refix(4, 0.0, 0.0)]
+
+
+def test_the_page_lists_each_refix_beyond_5_m_where_the_map_holds() -> None:
+    # the map holds at scan 1, not for 3 m, then from scan 5 on; the first correct tracking
+    # pose 6 scans later: 6 m, all of it where the map holds
+    n = 14
+    holds = np.array([True] * 2 + [False] * 3 + [True] * (n - 5))
+    scored = np.ones(n, dtype=bool)
+    truth = np.zeros((n, 3))
+    poses = np.zeros((n, 3))
+    poses[2:11, 0] = 2.0  # off while lost
+    status = ["tracking"] * 2 + ["lost"] * 9 + ["tracking"] * 3
+    row = summarise(poses, truth, scored, holds, np.arange(float(n)), status, status)
+    assert row["late"] == [(5, 6.0, 6.0)] and row["refix_late_holding"] == 1
+    text = late_list([{**row, "case": "intel partial"}, {"case": "building 0", "late": []}])
+    assert text == "- intel partial: scan 5: 6.0 / 6.0 m\n"
+    assert late_list([{"case": "building 0", "late": []}]) == "- none\n"
