@@ -27,12 +27,8 @@ MISSES_SHOWN = 6
 def _miss(t: DriveTrial) -> str:
     """A trial not fixed within its limit: where the map starts to hold / where it was fixed
     (m of travel; ``never``: not within the trial)."""
-
-    def m(x: float) -> str:
-        return "never" if math.isinf(x) else ("–" if math.isnan(x) else f"{x:.1f}")
-
-    fixed = m(t.fix_travel_m) if t.found else "never"
-    return f"{t.start}: {m(t.holds_from_m)} / {fixed}"
+    fixed = _cell(t.fix_travel_m, ".1f", "never") if t.found else "never"
+    return f"{t.start}: {_cell(t.holds_from_m, '.1f', 'never')} / {fixed}"
 
 
 def share_table(trials: Sequence[DriveTrial], maps: Sequence[DriveMap]) -> str:
