@@ -1,6 +1,6 @@
 """The decision's threshold from the false-fix rate on the tuning split.
 
-``python -m bench.calibrate_llr DIR [DIR ...] [--out docs/results/llr-threshold.md]``
+``python -m bench.calibrate_llr DIR [DIR ...] [--results docs/results]``
 
 Reads the per-trial tables that ``python -m bench.bench_global --drive --calibrate DIR`` writes
 (tuning maps only: the office, generated buildings below 1000, the logs intel and fr079): for
@@ -16,7 +16,9 @@ catch some of them.)
 Per map kind it prints, for a grid of thresholds, the false fixes, the trials fixed within
 the travel limit and the median travel to the fix, and the smallest threshold with no false
 fix; the preset's ``fix_llr`` is that threshold times :data:`SAFETY` (the held-out maps are not
-the tuning maps).
+the tuning maps). With ``--results`` it writes ``llr-threshold.md`` there, naming the command
+and commit that wrote the tables (the directory's ``command.txt``) and each preset's
+``fix_llr``.
 """
 
 from __future__ import annotations
@@ -26,6 +28,10 @@ import sys
 from pathlib import Path
 
 import numpy as np
+
+from bench.global_drive_run import COMMAND_FILE
+from bench.results import publish
+from service.core.reloc.config import GlobalConfig
 
 #: The preset's threshold is the smallest one without a false fix on the tuning split times
 #: this: a margin for maps the tuning split has not seen.
@@ -61,16 +67,43 @@ def limit_of(name: str, kind: str) -> float:
     return 15.0 if kind == "schematic" or name.startswith("real") else 5.0
 
 
+def source(dirs: list[Path]) -> list[str]:
+    """Each directory's command and commit (``command.txt``), as lines of the page."""
+    out = []
+    for d in dirs:
+        f = d / COMMAND_FILE
+        if f.is_file():
+            cmd, _, rev = f.read_text(encoding="utf-8").partition("\n")
+            out.append(f"- `{cmd.strip()}` at commit {rev.strip() or 'unknown'}")
+        else:
+            out.append(f"- {d} (no {COMMAND_FILE}: the command is not known)")
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("dirs", nargs="+", type=Path)
-    ap.add_argument("--out", type=Path, default=None)
+    ap.add_argument("--results", type=Path, default=None, help="write llr-threshold.md here")
     args = ap.parse_args(argv)
     data = load(args.dirs)
-    lines = ["# The decision's threshold from the tuning split", ""]
+    lines = [
+        "# The decision's threshold from the tuning split",
+        "",
+        "Per-trial tables written by (`--calibrate`: the decision never fixes):",
+        "",
+        *source(args.dirs),
+        "",
+        "At a threshold T the first scan whose leader was checked and reaches T counts as the "
+        "fix, false when the leader is more than 0.5 m or 10 degrees off. On floor plans the "
+        "preset then tracks the winner for `probation_travel` metres before the fix, which "
+        "this count does not model: it counts more false fixes than the localiser makes. "
+        "Definitions: `bench/calibrate_llr.py`.",
+        "",
+    ]
     for kind, trials in data.items():
         if not trials:
             continue
+        preset = GlobalConfig.for_kind(kind)
         lines += [
             f"## {kind} ({len(trials)} tuning trials)",
             "",
@@ -88,11 +121,15 @@ def main(argv: list[str] | None = None) -> int:
             if wrong == 0 and best is None:
                 best = t
         pick = "none" if best is None else f"{best:g} x {SAFETY} = {best * SAFETY:g}"
-        lines += ["", f"Smallest threshold without a false fix: {pick}.", ""]
+        lines += [
+            "",
+            f"Smallest threshold without a false fix: {pick}. The preset's `fix_llr`: "
+            f"{preset.fix_llr:g}, probation {preset.probation_travel:g} m.",
+            "",
+        ]
     text = "\n".join(lines) + "\n"
     print(text)
-    if args.out:
-        args.out.write_text(text, encoding="utf-8")
+    publish(args.results, "llr-threshold", text, ["bench.calibrate_llr", *(argv or sys.argv[1:])])
     return 0
 
 

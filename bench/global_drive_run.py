@@ -123,6 +123,8 @@ def _warm(m: DriveMap, src: DriveSource, cache: str) -> None:
 #: A calibration trial ends once the true place's LLR reaches this (nats): below it, the trial
 #: shows what every threshold does.
 CALIBRATE_STOP = 80.0
+#: The file in a calibration directory naming the command and commit that wrote its tables.
+COMMAND_FILE = "command.txt"
 
 
 def run_drive_trial(task: DriveTask) -> DriveTrial:
@@ -340,6 +342,10 @@ def drive_main(args: argparse.Namespace, argv: Sequence[str]) -> int:
         ]
     for n in notes:
         print(n)
+    if args.calibrate:
+        # the threshold's page (bench/calibrate_llr.py) names the run its tables come from
+        Path(args.calibrate).mkdir(parents=True, exist_ok=True)
+        (Path(args.calibrate) / COMMAND_FILE).write_text(f"{command}\n{commit}\n", encoding="utf-8")
 
     # 3. trials: grouped by map, so that each process loads each index once; the longest
     # (real logs, then floor plans) first, so that both processes finish together

@@ -1,0 +1,43 @@
+"""The decision threshold's calibration page (bench/calibrate_llr.py)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from bench.calibrate_llr import main, outcome
+from bench.global_drive_run import COMMAND_FILE
+
+
+def _rows(*rows: tuple[float, float, float, float, float, float]) -> np.ndarray:
+    return np.asarray(rows, dtype=np.float64)
+
+
+def test_a_checked_wrong_leader_at_the_threshold_is_a_false_fix() -> None:
+    # travel, llr, error m, heading error rad, checked, found
+    rows = _rows((1.0, 12.0, 9.0, 1.5, 1.0, 1.0), (2.0, 30.0, 0.1, 0.0, 1.0, 1.0))
+    assert outcome(rows, 10.0) == ("wrong", 1.0)
+    assert outcome(rows, 20.0) == ("right", 2.0)
+    assert outcome(rows, 40.0)[0] == "none"
+    unchecked = _rows((1.0, 12.0, 9.0, 1.5, 0.0, 1.0), (2.0, 30.0, 0.1, 0.0, 1.0, 1.0))
+    assert outcome(unchecked, 10.0) == ("right", 2.0)
+
+
+def test_the_page_names_the_run_and_the_presets(tmp_path: Path) -> None:
+    tables = tmp_path / "tables"
+    tables.mkdir()
+    (tables / COMMAND_FILE).write_text("python -m bench.bench_global --drive\nabc1234\n")
+    # one tuning floor-plan drive that leads a wrong place at 12 nats, the true one at 30;
+    # a held-out world's table is never read
+    np.save(tables / "real_intel_schematic_7.npy", _rows((1.0, 12.0, 9.0, 1.5, 1.0, 1.0)))
+    np.save(tables / "worlds_1003_schematic_1.npy", _rows((1.0, 99.0, 9.0, 1.5, 1.0, 1.0)))
+    results = tmp_path / "results"
+    assert main([str(tables), "--results", str(results)]) == 0
+    page = (results / "llr-threshold.md").read_text()
+    assert "`python -m bench.bench_global --drive` at commit abc1234" in page
+    assert "## schematic (1 tuning trials)" in page
+    assert "| 10 | 1 | 0/1 |" in page and "| 15 | 0 | 0/1 |" in page
+    assert "Smallest threshold without a false fix: 15 x 1.25 = 18.75." in page
+    assert "The preset's `fix_llr`: 25, probation 2 m." in page
+    assert "## metric" not in page
