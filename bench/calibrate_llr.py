@@ -13,12 +13,12 @@ false fix when the leader is more than 0.5 m or 10 degrees off. (Counting every 
 as a false fix is conservative: the tracker's confirmation and a floor plan's probation
 catch some of them.)
 
-Per map kind it prints, for a grid of thresholds, the false fixes, the trials fixed within
-the travel limit and the median travel to the fix, and the smallest threshold with no false
-fix; the preset's ``fix_llr`` is that threshold times :data:`SAFETY` (the held-out maps are not
-the tuning maps). With ``--results`` it writes ``llr-threshold.md`` there, naming the command
-and commit that wrote the tables (the directory's ``command.txt``) and each preset's
-``fix_llr``.
+Per map kind it prints, for a grid of thresholds, the false fixes, the trials fixed within the
+travel limit and the median travel to the fix, and the smallest threshold with no false fix;
+the rule for a preset's ``fix_llr`` is that threshold times :data:`SAFETY` (the held-out maps
+are not the tuning maps; docs/decisions/0019 says where a preset departs from it). With
+``--results`` it writes ``llr-threshold.md`` there, naming the command and commit that wrote
+the tables (the directory's ``command.txt``) and each preset's ``fix_llr``.
 """
 
 from __future__ import annotations

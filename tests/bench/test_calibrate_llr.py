@@ -28,7 +28,7 @@ def test_the_page_names_the_run_and_the_presets(tmp_path: Path) -> None:
     tables = tmp_path / "tables"
     tables.mkdir()
     (tables / COMMAND_FILE).write_text("python -m bench.bench_global --drive\nabc1234\n")
-    # one tuning floor-plan drive that leads a wrong place at 12 nats, the true one at 30;
+    # one tuning floor-plan drive that leads a wrong place at 12 nats and never the true one;
     # a held-out world's table is never read
     np.save(tables / "real_intel_schematic_7.npy", _rows((1.0, 12.0, 9.0, 1.5, 1.0, 1.0)))
     np.save(tables / "worlds_1003_schematic_1.npy", _rows((1.0, 99.0, 9.0, 1.5, 1.0, 1.0)))
