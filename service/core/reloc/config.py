@@ -134,6 +134,11 @@ class GlobalConfig(Settings):
         description="Without odometry, a rejected scan scoring below this fits the map nowhere "
         "near the pose and ends the track. Schematic: 0.45.",
     )
+    relock_support: PositiveShare = Field(
+        0.5,
+        description="A relock's fit from the window search's distinct peak is good explaining "
+        "this share (good_support if lower): half the scan explained is a map that holds.",
+    )
     relock_scans: AtLeastOne = Field(
         3, description="Scans in a row explained well that end dead reckoning (relock)."
     )

@@ -13,11 +13,17 @@ from typing import Protocol
 
 import numpy as np
 
-from service.core.pose import propagate, sigma_xy
+from service.core.pose import compose, invert, propagate, sigma_xy
 from service.core.reloc import drive as dr
 from service.core.reloc.config import GlobalConfig
 from service.core.reloc.decision import CELL_VOLUME, Prior, Verdict, decide, mahalanobis2
-from service.core.reloc.global_search import Hypothesis, advance, search_steps, self_similar_steps
+from service.core.reloc.global_search import (
+    Hypothesis,
+    advance,
+    distinct,
+    search_steps,
+    self_similar_steps,
+)
 from service.core.reloc.view_index import ViewIndex
 from service.core.reloc.view_index.viewpoints import SPACING
 from service.core.shapes.configuration import Configuration, scan_configuration
@@ -53,6 +59,9 @@ CONFIRM_ANGLE = 0.1
 CONFIRM_SIGMA = 0.05
 #: Sigmas of the dead-reckoned reference a poorly explained fit may stray from it.
 GATE_SIGMAS = 3.0
+#: A window search's peak is distinct when every place half a metre from it scores at most
+#: 1 - this of it: a corridor's length scores alike (0.0-0.05), a room 0.35-0.45.
+DISTINCT_PEAK = 0.3
 #: With the odometry prior off, an odometry turn larger than this (rad) still moves the
 #: tracker's pose first (the tracker follows turns up to 1.3 rad).
 ODOM_TURN_ASSIST = 1.0
@@ -272,22 +281,40 @@ def _dead_estimate(d: DeadReckoning, est: Estimate) -> Estimate:
 def _relock(
     ctx: Context, pose: np.ndarray, cov: np.ndarray, scan: Scan
 ) -> tuple[Estimate, np.ndarray, np.ndarray, bool]:
-    """The tracker run from the dead-reckoned ``pose`` / ``cov``: its fit (kept), the pose (the
-    fit's if good) and covariance after this scan, and whether the fit is good: accepted,
-    explaining ``good_support``, within :data:`GATE_SIGMAS`."""
-    o = scan.odom
+    """The tracker run from the dead-reckoned ``pose`` / ``cov``: its fit, the pose (the fit's
+    if good) and covariance after this scan, and whether the fit is good: accepted, explaining
+    ``good_support``, within :data:`GATE_SIGMAS`. Else the tracker runs from the peak of the
+    sensor model's window search over the gate if it is :data:`DISTINCT_PEAK`, and then needs
+    ``relock_support``: the odometry drifts past the fit's half-metre reach long before it
+    leaves the gate, and a distinct peak is the rest of the evidence."""
+    o, g = scan.odom, ctx.gconfig
     assert o.delta is not None
-    ctx.tracker.reset(pose, o.previous)
+    start, (pose, cov) = pose, propagate(pose, cov, o.delta, o.noise(ctx.config.motion))
+    est, good = _relock_fit(ctx, scan, start, pose, cov, g.good_support)
+    if not good:
+        half = GATE_SIGMAS * sigma_xy(cov), GATE_SIGMAS * math.sqrt(max(float(cov[2, 2]), 0.0))
+        peak = ctx.tracker.window(scan.ranges, scan.angles, pose, *half)
+        if peak is not None and peak.distinct >= DISTINCT_PEAK:
+            start = compose(peak.pose, invert(o.delta))
+            support = min(g.good_support, g.relock_support)
+            again, good = _relock_fit(ctx, scan, start, pose, cov, support)
+            est = again if good else est  # the tracker's state then is unused: reset next scan
+    return est, est.pose.copy() if good else pose, cov, good
+
+
+def _relock_fit(
+    ctx: Context, scan: Scan, start: np.ndarray, pose: np.ndarray, cov: np.ndarray, support: float
+) -> tuple[Estimate, bool]:
+    ctx.tracker.reset(start, scan.odom.previous)
     est = _fit(ctx, scan)
     est.ambiguity = None
-    pose, cov = propagate(pose, cov, o.delta, o.noise(ctx.config.motion))
     good = (
         "rejected" not in est.extras
         and est.status == "tracking"
-        and (est.explained or 0.0) >= ctx.gconfig.good_support
+        and (est.explained or 0.0) >= support
         and mahalanobis2(est.pose, pose, cov + FIX_COV) <= GATE_SIGMAS**2
     )
-    return est, est.pose.copy() if good else pose, cov, good
+    return est, good
 
 
 def _dead_reckoning(ctx: Context, d: DeadReckoning, scan: Scan) -> tuple[State, Estimate]:
@@ -394,6 +421,7 @@ def _searching(ctx: Context, s: Searching, scan: Scan) -> tuple[State, Estimate]
     g = ctx.gconfig
     o = scan.odom
     drv = s.drive
+    relocked: Estimate | None = None
     if o.delta is not None:
         drv.move(o.delta, o.step)
         if s.prior.mean is not None and s.prior.cov is not None and scan.odometry:
@@ -401,9 +429,7 @@ def _searching(ctx: Context, s: Searching, scan: Scan) -> tuple[State, Estimate]
             est, mean, cov, good = _relock(ctx, s.prior.mean, s.prior.cov, scan)
             s.prior = dataclasses.replace(s.prior, mean=mean, cov=cov)
             s.relock = s.relock + 1 if good else 0
-            if s.relock >= g.relock_scans:
-                est.extras["relocked"] = 1.0
-                return Tracking(est.pose.copy(), fit_cov(est)), est
+            relocked = est if s.relock >= g.relock_scans else None
         else:
             s.prior = s.prior.moved(o.delta, o.noise(ctx.config.motion))
     elif s.prior.mean is not None and s.prior.cov is not None:
@@ -413,6 +439,14 @@ def _searching(ctx: Context, s: Searching, scan: Scan) -> tuple[State, Estimate]
     spent, found, (rs, as_, P) = _search_work(ctx, drv, s.prior, scan)
     verdict = _decide(ctx, drv, s.prior)
     lead = verdict.leader
+    ctx.work_ms = spent
+    # a relock stands unless the search's leader is, more likely than not, another place (a
+    # robot carried into a corridor like the one it left)
+    if relocked is not None and not (
+        lead is not None and verdict.llr > 0.0 and distinct(lead.pose, relocked.pose)
+    ):
+        relocked.extras["relocked"] = 1.0
+        return Tracking(relocked.pose.copy(), fit_cov(relocked)), relocked
     extras: dict[str, float] = {
         "hypotheses": float(len(drv.tracks)),
         "llr": max(-99.0, min(verdict.llr, 99.0)),
@@ -431,7 +465,6 @@ def _searching(ctx: Context, s: Searching, scan: Scan) -> tuple[State, Estimate]
         tg = g.model_copy(update=twin)
         steps = self_similar_steps(ctx.index, lead.hyp, rs, as_, P, ctx.config, tg)
         drv.twin = dr.Job(steps, None if o.reading is None else o.reading.copy(), track=lead)
-    ctx.work_ms = spent
     if lead is not None and verdict.llr >= g.fix_llr and lead.checked:
         ctx.work_ms += CONFIRM_MS
         est = _confirm(ctx, drv, lead, scan)

@@ -15,6 +15,8 @@ Two families of measurements, cheap and exact:
 * **points on the distance field** -- :meth:`~SensorModel.support` (share of points within a
   tolerance of a wall), :meth:`~SensorModel.field_score` (mean ``exp(-d² / 2 s²)``),
   :meth:`~SensorModel.polish` (a local grid search maximising that score),
+  :meth:`~SensorModel.window` (a correlative search of that score over a whole window, and
+  how distinct its peak is),
   :meth:`~SensorModel.crossings` (beams marched on the field: the share that passes through a
   drawn wall);
 * **beams by ray casting** -- :meth:`~SensorModel.beams` classifies each beam of a scan from a
@@ -52,6 +54,40 @@ FIELD_CAP = 10.0
 MARCH_STEPS = 200
 #: Scales (m, rad) of the polish's motion prior (:meth:`SensorModel.polish`).
 PRIOR_XY, PRIOR_TH = 0.1, 0.04
+#: Finest steps (m, rad) of :meth:`SensorModel.window`'s grid: the first polish stage's reach
+#: (+-0.1 m, +-0.04 rad) covers two of them, so no peak falls between the grid and the polish.
+WINDOW_STEP_XY, WINDOW_STEP_TH = 0.1, 0.02
+#: Offsets per axis of :meth:`SensorModel.window`'s grid at most (its steps grow beyond): a
+#: window of 41 x 41 positions x 11 headings scores in ~3 ms at WINDOW_POINTS points.
+WINDOW_CELLS_XY, WINDOW_CELLS_TH = 41, 11
+#: The window's half-widths (m, rad) at least (smaller adds nothing to a fit from its centre)
+#: and at most (beyond, the grid coarsens past the polish's reach: a search's job).
+WINDOW_MIN_XY, WINDOW_MIN_TH = 0.3, 0.02
+WINDOW_MAX_XY, WINDOW_MAX_TH = 2.0, 0.2
+#: Points the window scores (evenly chosen): the field score of 180 is as sharp as of all.
+WINDOW_POINTS = 180
+#: Grid cells the window polishes (a coarse grid's best may not polish best).
+WINDOW_POLISH = 5
+#: A place this far (m) from the window's peak is another place: a precise fit from the peak
+#: reaches half a metre (its first association distance).
+WINDOW_SEPARATION = 0.5
+
+
+@dataclass(frozen=True)
+class WindowPeak:
+    """:meth:`SensorModel.window`'s result: the polished best ``pose`` and its ``score``; ``grid``
+    the best grid score and ``runner_up`` the best grid score farther than the separation from
+    it (0 when none is): how distinct the peak is."""
+
+    pose: np.ndarray
+    score: float
+    grid: float
+    runner_up: float
+
+    @property
+    def distinct(self) -> float:
+        """``1 - runner_up / grid`` (0: an equal place elsewhere in the window)."""
+        return 0.0 if self.grid <= 0.0 else 1.0 - self.runner_up / self.grid
 
 
 @dataclass(frozen=True)
@@ -312,6 +348,47 @@ class SensorModel:
             out = cand[rows, best]
         out[:, 2] = wrap_angle(out[:, 2])
         return out, best_score
+
+    def window(
+        self, center: np.ndarray, half_xy: float, half_th: float, pts: np.ndarray
+    ) -> WindowPeak | None:
+        """Correlative search (Olson's; Cartographer's real-time matcher) of robot-frame ``pts``
+        (:data:`WINDOW_POINTS` of them) over every pose within ``+-half_xy`` m and ``+-half_th``
+        rad of ``center`` (clamped to :data:`WINDOW_MIN_XY` ... :data:`WINDOW_MAX_XY`, likewise
+        for the heading): the :meth:`field_score` (s = the grid's step) on a grid of
+        :data:`WINDOW_STEP_XY` / :data:`WINDOW_STEP_TH`, coarser where an axis would need more
+        than :data:`WINDOW_CELLS_XY` / :data:`WINDOW_CELLS_TH` offsets, the best
+        :data:`WINDOW_POLISH` cells polished (s = 0.05 m). Unlike a fit from ``center`` it
+        finds a place anywhere in the window, and says how well the best place at least
+        :data:`WINDOW_SEPARATION` away scores (a corridor's length scores alike). ``None``
+        without points."""
+        pts = np.ascontiguousarray(pts, dtype=np.float64).reshape(-1, 2)
+        if len(pts) == 0:
+            return None
+        pts = pts[subsample(np.arange(len(pts)), WINDOW_POINTS)]
+        c = np.asarray(center, dtype=np.float64).reshape(3)
+        half_xy = min(max(half_xy, WINDOW_MIN_XY), WINDOW_MAX_XY)
+        half_th = min(max(half_th, WINDOW_MIN_TH), WINDOW_MAX_TH)
+        step = max(WINDOW_STEP_XY, 2.0 * half_xy / (WINDOW_CELLS_XY - 1))
+        step_th = max(WINDOW_STEP_TH, 2.0 * half_th / (WINDOW_CELLS_TH - 1))
+        xs = np.arange(-int(half_xy / step + 1e-9), int(half_xy / step + 1e-9) + 1) * step
+        ths = np.arange(-int(half_th / step_th + 1e-9), int(half_th / step_th + 1e-9) + 1)
+        ths = ths * step_th
+        dx, dy, dth = np.meshgrid(xs, xs, ths, indexing="ij")
+        cand = c[None, :] + np.column_stack([dx.ravel(), dy.ravel(), dth.ravel()])
+        if kernels.HAVE_NUMBA:
+            table, outside = self.score_table(step)
+            args = (*self._field_args(), c[None, :].copy(), xs, xs, ths, pts)
+            score = search_kernels.grid_scores(table, outside, *args)[0]
+        else:
+            score = self.field_score(cand, pts, step)
+        k = int(np.argmax(score))
+        far = np.hypot(cand[:, 0] - cand[k, 0], cand[:, 1] - cand[k, 1]) > WINDOW_SEPARATION
+        runner_up = float(score[far].max()) if far.any() else 0.0
+        top = np.argsort(-score, kind="stable")[:WINDOW_POLISH]
+        poses, polished = self.polish(cand[top], pts, 0.05)
+        b = int(np.argmax(polished))
+        return WindowPeak(poses[b], float(polished[b]), float(score[k]), runner_up)
 
     def crossings(
         self, poses: np.ndarray, ranges: np.ndarray, angles: np.ndarray, margin: float

@@ -36,7 +36,7 @@ from service.core import numeric
 from service.core.pose import compose
 from service.core.sensor.mapmodel import MapModel
 from service.core.sensor.refine import Refined, refine_pose, scan_normals
-from service.core.sensor.scoring import SensorModel, sensor_model
+from service.core.sensor.scoring import SensorModel, WindowPeak, sensor_model
 from service.core.shapes.configuration import (
     Configuration,
     MapViewCache,
@@ -273,6 +273,15 @@ class ShapeLocalizer:
         m = cfg.violation_margin if margin is None else margin
         through = self.sensor.through(np.asarray(poses), rs, ang, m, cfg.view_max_range)
         return [float(v) for v in through]
+
+    def window(
+        self, r: np.ndarray, a: np.ndarray, center: np.ndarray, half_xy: float, half_th: float
+    ) -> WindowPeak | None:
+        """The sensor model's window search (:meth:`SensorModel.window`) of the scan's valid
+        returns within ``fit_max_range`` around ``center``."""
+        ok = np.isfinite(r) & (r > 0.0) & (r <= self.config.fit_max_range)
+        pts = np.column_stack([r[ok] * np.cos(a[ok]), r[ok] * np.sin(a[ok])])
+        return self.sensor.window(center, half_xy, half_th, pts)
 
     def _always_doubtful(self, pred: Prediction) -> bool:
         """The shape matching runs whatever the prior's fit: set so, or no odometry."""

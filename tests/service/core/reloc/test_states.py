@@ -1,6 +1,7 @@
 """Relocalisation's state machine (service/core/reloc/states.py) on a small synthetic room:
-tracking -> dead reckoning where the map explains nothing -> tracking again where it does; a
-robot without odometry searches with the last pose as its prior; a localiser pickled in any
+tracking -> dead reckoning where the map explains nothing -> tracking again where it does,
+also once the odometry drifted past the tracker fit's reach (the window search); a robot
+without odometry searches with the last pose as its prior; a localiser pickled in any
 state goes on; a pose a laser odometry turned wrong is not bridged as `tracking`."""
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ from service.core.reloc import states as st
 from service.core.reloc.global_localization import GlobalShapeLocalizer
 from service.core.sensor.raycast import RayCaster
 from service.core.tracking.laser_odometry import LaserOdometryLocalizer
+from service.core.tracking.shape_config import ShapeConfig
 from service.core.types import MapData
 
 
@@ -125,3 +127,59 @@ def test_a_pose_the_laser_odometry_turned_wrong_is_contradicted_not_bridged() ->
     assert "lost" in status
     assert status[-1] == "tracking"
     assert max(off) < 0.5
+
+
+def _drifting_drive(
+    clutter: list[np.ndarray], relock_support: float
+) -> tuple[list[np.ndarray], list]:
+    """The room's drive along y = 2.4 with the odometry drifting 0.9 m along x while the
+    scans show nothing (scans 10-39), in a world with ``clutter`` the map lacks; the truth and
+    the estimates."""
+    poses = [np.array([1.0 + 0.05 * k, 2.4, 0.0]) for k in range(50)]
+    drift = [0.03 * min(max(k - 10, 0), 30) for k in range(50)]
+    odom = [p + np.array([d, 0.0, 0.0]) for p, d in zip(poses, drift, strict=True)]
+    room = _room()
+    caster = RayCaster(MapData.from_lists("now", "metric", [*room.polylines, *clutter]).segments())
+    cfg = ShapeConfig.for_kind("metric")
+    cfg = cfg.model_copy(
+        update={"motion": cfg.motion.model_copy(update={"alpha_trans_trans": 1.0})}
+    )
+    loc = create_localizer("shape", room, poses[0], cfg)
+    loc.gconfig = loc.gconfig.model_copy(update={"relock_support": relock_support})
+    out = []
+    for k, (p, o) in enumerate(zip(poses, odom, strict=True)):
+        r = caster.cast(p, ANGLES, 15.0) + np.random.default_rng(k).normal(0.0, 0.01, len(ANGLES))
+        out.append(loc.update(r if k < 10 or k >= 40 else np.full(len(ANGLES), np.nan), ANGLES, o))
+    return poses, out
+
+
+def test_dead_reckoning_relocks_from_the_window_search_past_the_fits_reach() -> None:
+    """The odometry drifts 0.9 m along the room while the scans show nothing: back where the
+    map explains them, the dead-reckoned pose lies beyond the tracker fit's half-metre reach
+    but inside its gate; the window search over the gate finds the place, and the robot
+    tracks again after relock_scans, at the truth."""
+    poses, out = _drifting_drive([], 0.5)
+    off = np.hypot(*(out[39].pose[:2] - poses[39][:2]))
+    sigma = float(np.sqrt(out[39].covariance.reshape(3, 3)[0, 0]))
+    assert 0.6 < off < st.GATE_SIGMAS * sigma, (off, sigma)  # past the fit, inside the gate
+    states = [e.state for e in out]
+    back = states.index("tracking", 40)
+    assert back <= 40 + 3  # relock_scans
+    assert out[back].extras.get("relocked") == 1.0
+    assert all(s == "tracking" for s in states[back:])
+    assert np.hypot(*(out[-1].pose[:2] - poses[-1][:2])) < 0.05
+
+
+def test_a_window_relock_needs_relock_support_of_the_scan_explained() -> None:
+    """Furniture the map lacks fills a third of the scan where the map returns: from the
+    window's distinct peak the fit explains 0.6-0.7 of it, enough for relock_support (0.5)
+    but not for good_support (0.7), which a fit from the dead-reckoned mean would need."""
+    clutter = [_ring(3.0, 0.2, 5.8, 1.9), _ring(4.0, 2.9, 5.8, 3.8)]
+    poses, out = _drifting_drive(clutter, 0.5)
+    states = [e.state for e in out]
+    back = states.index("tracking", 40)
+    assert back <= 40 + 3
+    assert all(0.5 <= (e.explained or 0.0) < 0.7 for e in out[40 : back + 1])
+    assert np.hypot(*(out[back].pose[:2] - poses[back][:2])) < 0.05
+    _, strict = _drifting_drive(clutter, 0.7)
+    assert "tracking" not in [e.state for e in strict[40 : back + 1]]

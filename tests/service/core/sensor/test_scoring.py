@@ -9,6 +9,7 @@ from service.core.reloc import global_search as gs
 from service.core.reloc.config import GlobalConfig
 from service.core.reloc.drive import RESCORE_PRIOR
 from service.core.reloc.global_localization import load_or_build_index
+from service.core.reloc.states import DISTINCT_PEAK
 from service.core.sensor.raycast import RayCaster
 from service.core.sensor.scoring import BeamModel, beam_fractions
 from service.core.shapes.configuration import scan_configuration
@@ -138,3 +139,39 @@ def test_the_polish_with_a_prior_holds_a_pose_to_it_along_a_corridor() -> None:
     for y in (1.12, 0.88):
         fixed, _ = sensor.polish(np.array([[10.0, y, 0.0]]), pts, 0.05, prior=0.02)
         assert abs(fixed[0, 1] - 1.0) <= sensor.resolution + 1e-9, fixed
+
+
+def test_the_window_search_finds_a_place_past_a_fits_reach_and_says_how_distinct() -> None:
+    """In a room the window search over +-2 m finds a pose 1.3 m and 0.1 rad from its centre
+    to the field's cell, and no other place in the window scores near it; in a long corridor
+    (only its parallel walls in view) every place along the axis scores alike: not distinct."""
+    from service.core.sensor.scoring import sensor_model
+
+    room = MapData.from_lists("room", "metric", [ROOM, CABINET])
+    truth = np.array([6.0, 3.0, 0.4])
+    angles = np.linspace(-np.pi, np.pi, 360, endpoint=False)
+    r = RayCaster(room.segments()).cast(truth, angles, 15.0)
+    pts = np.column_stack([r * np.cos(angles), r * np.sin(angles)])
+    sensor = sensor_model(room)
+    centre = truth + np.array([1.0, -0.83, 0.1])
+    peak = sensor.window(centre, 2.0, 0.2, pts)
+    assert peak is not None
+    assert np.hypot(*(peak.pose[:2] - truth[:2])) <= sensor.resolution
+    assert abs(peak.pose[2] - truth[2]) < 0.01
+    assert peak.distinct > DISTINCT_PEAK, peak
+
+    corridor = MapData.from_lists(
+        "corridor", "metric", [[[0.0, 0.0], [40.0, 0.0], [40.0, 2.0], [0.0, 2.0], [0.0, 0.0]]]
+    )
+    wall = np.linspace(-5.0, 5.0, 101)
+    side = np.vstack(
+        [
+            np.column_stack([wall, np.full_like(wall, -1.0)]),
+            np.column_stack([wall, np.full_like(wall, 1.0)]),
+        ]
+    )
+    along = sensor_model(corridor).window(np.array([20.0, 1.2, 0.0]), 2.0, 0.1, side)
+    assert along is not None
+    assert abs(along.pose[1] - 1.0) <= 0.05  # across the corridor the walls still tell
+    assert along.distinct < 0.05, along
+    assert sensor.window(centre, 2.0, 0.2, np.zeros((0, 2))) is None
