@@ -15,15 +15,9 @@ import numpy as np
 
 from service.core.pose import compose, invert, propagate, sigma_xy
 from service.core.reloc import drive as dr
+from service.core.reloc import global_search as gs
 from service.core.reloc.config import GlobalConfig
 from service.core.reloc.decision import CELL_VOLUME, Prior, Verdict, decide, mahalanobis2
-from service.core.reloc.global_search import (
-    Hypothesis,
-    advance,
-    distinct,
-    search_steps,
-    self_similar_steps,
-)
 from service.core.reloc.view_index import ViewIndex
 from service.core.reloc.view_index.viewpoints import SPACING
 from service.core.shapes.configuration import Configuration, scan_configuration
@@ -262,7 +256,7 @@ def _lost(ctx: Context, pose: np.ndarray, cov: np.ndarray | None) -> Searching:
         grow = (HELD_GROWTH * max(step_m, 0.05)) ** 2
         cov = np.diag([grow, grow, math.pi**2])
     pose = np.asarray(pose, dtype=np.float64).copy()
-    held = dr.Track(pose.copy(), Hypothesis(pose=pose.copy(), cost=0.05))
+    held = dr.Track(pose.copy(), gs.Hypothesis(pose=pose.copy(), cost=0.05))
     prior = Prior(pose, cov.copy(), ctx.gconfig.kidnap_weight, 0.0)
     return Searching(dr.Drive(tracks=[held], speed=speed), prior, "lost")
 
@@ -378,7 +372,7 @@ def _search_work(
     search_limit = budget - evidence if math.isfinite(budget) else budget
     found = -1
     if drv.twin is not None:
-        spent, done, twin = advance(drv.twin.steps, spent, search_limit)
+        spent, done, twin = gs.advance(drv.twin.steps, spent, search_limit)
         if done:
             job, drv.twin = drv.twin, None
             if job.track is not None:
@@ -389,9 +383,9 @@ def _search_work(
     if drv.twin is None and spent < search_limit:
         if drv.job is None:
             seeds = _seeds(drv, prior, o.reading is not None)
-            steps = search_steps(ctx.index, rs, as_, ctx.config, g, seeds=seeds, P=P)
+            steps = gs.search_steps(ctx.index, rs, as_, ctx.config, g, seeds=seeds, P=P)
             drv.job = dr.Job(steps, None if o.reading is None else o.reading.copy(), frame=frame)
-        spent, done, res = advance(drv.job.steps, spent, search_limit)
+        spent, done, res = gs.advance(drv.job.steps, spent, search_limit)
         if done:
             move = dr.odometry_move(drv.job.odom, o.reading)
             searched = drv.job.frame
@@ -443,7 +437,7 @@ def _searching(ctx: Context, s: Searching, scan: Scan) -> tuple[State, Estimate]
     # a relock stands unless the search's leader is, more likely than not, another place (a
     # robot carried into a corridor like the one it left)
     if relocked is not None and not (
-        lead is not None and verdict.llr > 0.0 and distinct(lead.pose, relocked.pose)
+        lead is not None and verdict.llr > 0.0 and gs.distinct(lead.pose, relocked.pose)
     ):
         relocked.extras["relocked"] = 1.0
         return Tracking(relocked.pose.copy(), fit_cov(relocked)), relocked
@@ -463,7 +457,7 @@ def _searching(ctx: Context, s: Searching, scan: Scan) -> tuple[State, Estimate]
             "refine_top": min(g.refine_top, TWIN_REFINE_TOP),
         }
         tg = g.model_copy(update=twin)
-        steps = self_similar_steps(ctx.index, lead.hyp, rs, as_, P, ctx.config, tg)
+        steps = gs.self_similar_steps(ctx.index, lead.hyp, rs, as_, P, ctx.config, tg)
         drv.twin = dr.Job(steps, None if o.reading is None else o.reading.copy(), track=lead)
     if lead is not None and verdict.llr >= g.fix_llr and lead.checked:
         ctx.work_ms += CONFIRM_MS
