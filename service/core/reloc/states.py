@@ -118,13 +118,15 @@ class DeadReckoning:
 class Searching:
     """The search over a ``drive``: ``prior`` where the robot may be (default uniform), the
     ``status`` published (``initializing`` before any fix, ``lost`` after one); ``relock`` as
-    :class:`DeadReckoning`'s, from a dead-reckoned prior's mean."""
+    :class:`DeadReckoning`'s, from a dead-reckoned prior's mean (``weak``: one of those fits
+    explained less than ``good_support``)."""
 
     drive: dr.Drive = field(default_factory=dr.Drive)
     prior: Prior = field(default_factory=lambda: Prior(None, None, 1.0, 1.0))
     status: Status = "initializing"
     relock: int = 0
     name: str = "searching"
+    weak: bool = False
 
 
 @dataclass
@@ -423,6 +425,8 @@ def _searching(ctx: Context, s: Searching, scan: Scan) -> tuple[State, Estimate]
             est, mean, cov, good = _relock(ctx, s.prior.mean, s.prior.cov, scan)
             s.prior = dataclasses.replace(s.prior, mean=mean, cov=cov)
             s.relock = s.relock + 1 if good else 0
+            weak = (est.explained or 0.0) < g.good_support
+            s.weak = good and (weak or (s.weak and s.relock > 1))
             relocked = est if s.relock >= g.relock_scans else None
         else:
             s.prior = s.prior.moved(o.delta, o.noise(ctx.config.motion))
@@ -434,10 +438,12 @@ def _searching(ctx: Context, s: Searching, scan: Scan) -> tuple[State, Estimate]
     verdict = _decide(ctx, drv, s.prior)
     lead = verdict.leader
     ctx.work_ms = spent
-    # a relock stands unless the search's leader is, more likely than not, another place (a
-    # robot carried into a corridor like the one it left)
+    # a relock on fits the map explained less than good_support waits while the search's
+    # leader is, more likely than not, another place (a robot carried into a corridor like
+    # the one it left)
+    elsewhere = lead is not None and verdict.llr > 0.0
     if relocked is not None and not (
-        lead is not None and verdict.llr > 0.0 and gs.distinct(lead.pose, relocked.pose)
+        s.weak and elsewhere and gs.distinct(lead.pose, relocked.pose)  # type: ignore[union-attr]
     ):
         relocked.extras["relocked"] = 1.0
         return Tracking(relocked.pose.copy(), fit_cov(relocked)), relocked
