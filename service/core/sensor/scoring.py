@@ -58,7 +58,7 @@ PRIOR_XY, PRIOR_TH = 0.1, 0.04
 #: (+-0.1 m, +-0.04 rad) covers two of them, so no peak falls between the grid and the polish.
 WINDOW_STEP_XY, WINDOW_STEP_TH = 0.1, 0.02
 #: Offsets per axis of :meth:`SensorModel.window`'s grid at most (its steps grow beyond): a
-#: window of 41 x 41 positions x 11 headings scores in ~3 ms at WINDOW_POINTS points.
+#: window of 41 x 41 positions x 11 headings scores in ~10 ms at WINDOW_POINTS points.
 WINDOW_CELLS_XY, WINDOW_CELLS_TH = 41, 11
 #: The window's half-widths (m, rad) at least (smaller adds nothing to a fit from its centre)
 #: and at most (beyond, the grid coarsens past the polish's reach: a search's job).
