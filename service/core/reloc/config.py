@@ -134,6 +134,11 @@ class GlobalConfig(Settings):
         description="Without odometry, a rejected scan scoring below this fits the map nowhere "
         "near the pose and ends the track. Schematic: 0.45.",
     )
+    relock_window: bool = Field(
+        True,
+        description="Dead reckoning relocks from a window search over its gate too. Schematic: "
+        "off (a held-out building's floor plan relocked 0.5 m+ off on a room drawn alike).",
+    )
     relock_support: PositiveShare = Field(
         0.5,
         description="A relock's fit from the window search's distinct peak is good explaining "
@@ -182,5 +187,6 @@ class GlobalConfig(Settings):
                 null_slope=0.05,
                 collapse_score=0.45,
                 scan_odometry_violation=0.15,
+                relock_window=False,
             )
         raise LocalizationError(f"unknown map kind {kind!r}; expected metric or schematic")

@@ -287,7 +287,7 @@ def _relock(
     assert o.delta is not None
     start, (pose, cov) = pose, propagate(pose, cov, o.delta, o.noise(ctx.config.motion))
     est, good = _relock_fit(ctx, scan, start, pose, cov, g.good_support)
-    if not good:
+    if not good and g.relock_window:
         half = GATE_SIGMAS * sigma_xy(cov), GATE_SIGMAS * math.sqrt(max(float(cov[2, 2]), 0.0))
         peak = ctx.tracker.window(scan.ranges, scan.angles, pose, *half)
         if peak is not None and peak.distinct >= DISTINCT_PEAK:
