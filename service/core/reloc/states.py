@@ -428,6 +428,9 @@ def _searching(ctx: Context, s: Searching, scan: Scan) -> tuple[State, Estimate]
             weak = (est.explained or 0.0) < g.good_support
             s.weak = good and (weak or (s.weak and s.relock > 1))
             relocked = est if s.relock >= g.relock_scans else None
+            if relocked is not None and not s.weak:  # nothing to wait for: no search work
+                relocked.extras["relocked"] = 1.0
+                return Tracking(relocked.pose.copy(), fit_cov(relocked)), relocked
         else:
             s.prior = s.prior.moved(o.delta, o.noise(ctx.config.motion))
     elif s.prior.mean is not None and s.prior.cov is not None:
@@ -443,7 +446,7 @@ def _searching(ctx: Context, s: Searching, scan: Scan) -> tuple[State, Estimate]
     # the one it left)
     elsewhere = lead is not None and verdict.llr > 0.0
     if relocked is not None and not (
-        s.weak and elsewhere and gs.distinct(lead.pose, relocked.pose)  # type: ignore[union-attr]
+        elsewhere and gs.distinct(lead.pose, relocked.pose)  # type: ignore[union-attr]
     ):
         relocked.extras["relocked"] = 1.0
         return Tracking(relocked.pose.copy(), fit_cov(relocked)), relocked
