@@ -156,8 +156,9 @@ from bench.global_drive import (
 )
 from bench.global_drive_run import drive_main
 from bench.global_drive_tables import pct_inf, share_table
+from service.adapters.maps.index_files import IndexFiles
 from service.core.factory import create_localizer
-from service.core.reloc import global_localization as gl
+from service.core.reloc import view_index as vi
 from service.core.types import wrap_angle
 from sim_publisher.office import office_metric_map, office_schematic_map, office_world
 from sim_publisher.publisher import random_free_poses
@@ -201,13 +202,13 @@ MAPS = {"metric": (office_metric_map, 1), "schematic": (office_schematic_map, 2)
 def precompute(name: str, cache: Path) -> tuple[float, float, int, int]:
     """(cold build s, cached load s, viewpoints, units) of one map."""
     md = MAPS[name][0]()
-    gl.clear_memory_cache()
+    vi.clear_memory_cache()
     t0 = time.perf_counter()
-    idx = gl.load_or_build_index(md, cache_dir=cache)
+    idx = vi.load_or_build_index(md, store=IndexFiles(cache))
     cold = time.perf_counter() - t0
-    gl.clear_memory_cache()
+    vi.clear_memory_cache()
     t0 = time.perf_counter()
-    gl.load_or_build_index(md, cache_dir=cache)
+    vi.load_or_build_index(md, store=IndexFiles(cache))
     warm = time.perf_counter() - t0
     return cold, warm, len(idx.viewpoints), len(idx)
 

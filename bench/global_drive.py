@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 
 from bench.plan_share import HOLDS_SHARE
+from service.adapters.maps.index_files import IndexFiles
 from service.core.factory import create_localizer
 from service.core.types import MapData, wrap_angle
 from sim_publisher.scenario import make_setup
@@ -413,11 +414,10 @@ def drive_source(m: DriveMap, data: Path, stride: int = 1) -> DriveSource:
 
 
 def drive_localizer(md: MapData, cache: str | None, budget: float | None = None) -> Any:
-    """``create_localizer("shape", md, None)``, with the index cache dir and the per-scan
-    search budget (reference ms; ``None``: a whole search per scan)."""
-    return create_localizer(
-        "shape", md, None, cache_dir=Path(cache) if cache else None, search_budget_ms=budget
-    )
+    """``create_localizer("shape", md, None)``, with the directory of the view index files and
+    the per-scan search budget (reference ms; ``None``: a whole search per scan)."""
+    store = IndexFiles(Path(cache)) if cache else None
+    return create_localizer("shape", md, None, index_store=store, search_budget_ms=budget)
 
 
 def parse_worlds(text: str) -> list[int]:

@@ -3,13 +3,15 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
-from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from service.core.types import METHODS, Localizer, MapData
 from service.errors import LocalizationError
+
+if TYPE_CHECKING:
+    from service.core.reloc.view_index import IndexStore
 
 
 def create_localizer(
@@ -18,7 +20,7 @@ def create_localizer(
     initial_pose: np.ndarray | None,
     config: Any | None = None,
     *,
-    cache_dir: Path | None = None,
+    index_store: IndexStore | None = None,
     search_budget_ms: float | None = None,
     laser_offset: Sequence[float] | np.ndarray | None = None,
     laser_odometry: bool | None = None,
@@ -37,9 +39,10 @@ def create_localizer(
     tracker's :class:`~service.core.tracking.shape_config.ShapeConfig` alone.
 
     ``shape`` returns a :class:`service.core.reloc.global_localization.GlobalShapeLocalizer`: the
-    shape tracker plus global search when the pose is unknown or lost. ``cache_dir`` is where
-    its per-map view index is cached across restarts (``None``: built in memory on the first
-    global search). ``search_budget_ms`` spreads its global search over scans within that
+    shape tracker plus global search when the pose is unknown or lost. ``index_store`` is where
+    its per-map view index is kept across restarts (the service's: files,
+    :class:`service.adapters.maps.index_files.IndexFiles`; ``None``: built in memory on the
+    first global search). ``search_budget_ms`` spreads its global search over scans within that
     per-scan work budget (``GlobalConfig.search_budget_ms``; ``None``: a whole search per
     scan).
 
@@ -60,7 +63,7 @@ def create_localizer(
             offset = None  # the laser is the origin: the method's localiser itself
         elif initial_pose is not None:
             start = to_laser(np.asarray(initial_pose, dtype=np.float64), offset)
-    loc = _method_localizer(method, map_data, start, config, cache_dir, search_budget_ms)
+    loc = _method_localizer(method, map_data, start, config, index_store, search_budget_ms)
     if laser_odometry or (laser_odometry is None and method == "shape"):
         from service.core.tracking.laser_odometry import with_laser_odometry
 
@@ -77,7 +80,7 @@ def _method_localizer(
     map_data: MapData,
     initial_pose: np.ndarray | None,
     config: Any | None,
-    cache_dir: Path | None,
+    index_store: IndexStore | None,
     search_budget_ms: float | None,
 ) -> Localizer:
     if method == "shape":
@@ -91,7 +94,9 @@ def _method_localizer(
             g = GlobalConfig.for_kind(map_data.kind)
         if search_budget_ms is not None:
             g = g.model_copy(update={"search_budget_ms": float(search_budget_ms)})
-        return GlobalShapeLocalizer(map_data, initial_pose, config, gconfig=g, cache_dir=cache_dir)
+        return GlobalShapeLocalizer(
+            map_data, initial_pose, config, gconfig=g, index_store=index_store
+        )
     if method == "icp":
         from service.core.baselines.icp import ICPLocalizer
 

@@ -25,11 +25,14 @@ from __future__ import annotations
 
 import logging
 import time
-from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from service.core.types import MapData
+
+if TYPE_CHECKING:
+    from service.core.reloc.view_index import IndexStore
 
 log = logging.getLogger("shapeloc.service.worker")
 
@@ -121,16 +124,14 @@ def prepare_map(md: MapData) -> float:
     return time.perf_counter() - t0
 
 
-def build_index(md: MapData, cache_dir: Path | None) -> float:
-    """Build (or load) ``md``'s view index of global localisation into ``cache_dir`` (the
-    on-disk cache every worker reads), with the shape method's default configuration for the
+def build_index(md: MapData, store: IndexStore | None) -> float:
+    """Build (or load) ``md``'s view index of global localisation into ``store`` (the files
+    every worker reads), with the shape method's default configuration for the
     map's kind; returns the seconds taken. Raises on failure (the caller reports it)."""
     from service.core.reloc.config import GlobalConfig
     from service.core.reloc.global_localization import load_or_build_index
     from service.core.tracking.shape_config import ShapeConfig
 
     t0 = time.perf_counter()
-    load_or_build_index(
-        md, ShapeConfig.for_kind(md.kind), GlobalConfig.for_kind(md.kind), cache_dir
-    )
+    load_or_build_index(md, ShapeConfig.for_kind(md.kind), GlobalConfig.for_kind(md.kind), store)
     return time.perf_counter() - t0

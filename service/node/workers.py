@@ -60,6 +60,7 @@ from typing import Any
 
 import numpy as np
 
+from service.adapters.maps.index_files import IndexFiles
 from service.core.factory import create_localizer
 from service.core.types import Localizer, MapData, wrap_angle
 from service.errors import LocalizationError, ServiceTimeout, ShapelocError
@@ -135,7 +136,8 @@ class WorkerCore:
         #: each map's model, shared by its robots' trackers (kept while the map is stored)
         self.models: dict[str, Any] = {}
         self.robots: dict[str, _Robot] = {}
-        self.cache_dir = cache_dir  # per-map view index cache of global localisation
+        #: the view indexes of global localisation, one file per map
+        self.index_store = None if cache_dir is None else IndexFiles(cache_dir)
         #: per-scan work of a global search while the robot is alone on this worker; half of
         #: it while other robots share the worker (ServiceSettings.search_budget_ms)
         self.search_budget_ms = search_budget_ms
@@ -172,7 +174,7 @@ class WorkerCore:
                 md = self.maps.get(req[1])
                 if md is None:
                     return ("err", f"map {req[1]!r} is not stored in this worker")
-                return ("ok", build_index(md, self.cache_dir))
+                return ("ok", build_index(md, self.index_store))
             return ("err", f"unknown worker request {kind!r}")
         except ShapelocError as e:
             return ("err", str(e))
@@ -268,7 +270,7 @@ class WorkerCore:
             method,
             md,
             start,
-            cache_dir=self.cache_dir,
+            index_store=self.index_store,
             search_budget_ms=self.search_budget_ms,
             laser_offset=laser_offset,
         )

@@ -5,14 +5,13 @@ one :func:`.states.step`. REP 103, metres and radians; poses ``[x, y, theta]`` i
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from service.core.reloc import states as st
 from service.core.reloc.config import GlobalConfig
-from service.core.reloc.view_index import ViewIndex, load_or_build_index
+from service.core.reloc.view_index import IndexStore, ViewIndex, load_or_build_index
 from service.core.tracking.localizer import ShapeConfig, ShapeLocalizer
 from service.core.tracking.motion import check_pose3
 from service.core.tracking.scan_odometry import Odometry
@@ -25,8 +24,9 @@ __all__ = ["GlobalConfig", "GlobalShapeLocalizer", "ShapeConfig", "load_or_build
 class GlobalShapeLocalizer:
     """Shape-based localisation with relocalisation (a :class:`service.core.types.Localizer`,
     method ``shape``). ``initial_pose`` ``None``: unknown (global localisation); ``config`` and
-    ``gconfig`` default to the map kind's presets; ``cache_dir``: where the map's
-    :class:`ViewIndex` is cached (``None``: in memory), built on the first scan that searches.
+    ``gconfig`` default to the map kind's presets; ``index_store``: where the map's
+    :class:`ViewIndex` is kept between runs (``None``: in memory only), loaded or built on the
+    first scan that searches.
     Each estimate carries its state (:class:`.states.State`'s ``name``)."""
 
     method = "shape"
@@ -38,14 +38,14 @@ class GlobalShapeLocalizer:
         config: ShapeConfig | None = None,
         *,
         gconfig: GlobalConfig | None = None,
-        cache_dir: Path | None = None,
+        index_store: IndexStore | None = None,
     ) -> None:
         if config is not None and not isinstance(config, ShapeConfig):
             raise LocalizationError(f"config must be a ShapeConfig, got {type(config).__name__}")
         self.map_data = map_data
         self.config = config or ShapeConfig.for_kind(map_data.kind)
         self.gconfig = gconfig or GlobalConfig.for_kind(map_data.kind)
-        self.cache_dir = None if cache_dir is None else Path(cache_dir)
+        self.index_store = index_store
         self.tracker = ShapeLocalizer(map_data, initial_pose, self.config)
         self.odometry = Odometry(self.config.motion)
         self._index: ViewIndex | None = None
@@ -60,14 +60,17 @@ class GlobalShapeLocalizer:
     def __setstate__(self, state: dict[str, Any]) -> None:
         if "state" not in state:
             state = _from_earlier(state)
-        self.__dict__.update(state)
+        # an earlier version kept the directory of its index files: the index is then
+        # shared from this process' memory or built there
+        state.pop("cache_dir", None)
+        self.__dict__.update({"index_store": None, **state})
 
     @property
     def index(self) -> ViewIndex:
         """The map's view index (loaded or built on first use)."""
         if self._index is None:
             self._index = load_or_build_index(
-                self.map_data, self.config, self.gconfig, self.cache_dir
+                self.map_data, self.config, self.gconfig, self.index_store
             )
         return self._index
 
@@ -134,7 +137,7 @@ def _from_earlier(old: dict[str, Any]) -> dict[str, Any]:
     """The state of a localiser pickled by an earlier version (one class with a search
     mode): its tracker, map and settings are kept; a robot that was tracking goes on
     tracking from its pose, one that was searching starts a new search."""
-    new = {k: old[k] for k in ("map_data", "config", "cache_dir", "tracker") if k in old}
+    new = {k: old[k] for k in ("map_data", "config", "tracker") if k in old}
     g = GlobalConfig.for_kind(new["map_data"].kind)
     budget = getattr(old.get("gconfig"), "search_budget_ms", None)
     if budget is not None:

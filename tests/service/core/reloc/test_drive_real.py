@@ -29,13 +29,11 @@ EXCERPTS = {
 
 
 @pytest.mark.parametrize("excerpt", sorted(EXCERPTS))
-def test_a_drive_from_an_unknown_pose_is_never_published_at_a_wrong_place(
-    excerpt: str, tmp_path: Path
-) -> None:
+def test_a_drive_from_an_unknown_pose_is_never_published_at_a_wrong_place(excerpt: str) -> None:
     log, fixed = EXCERPTS[excerpt]
     md = load_map_file(DATA / f"{log}.schematic.geojson", kind="schematic")
     z = np.load(DATA / f"{excerpt}.npz")
-    loc = create_localizer("shape", md, None, cache_dir=tmp_path, search_budget_ms=50.0)
+    loc = create_localizer("shape", md, None, search_budget_ms=50.0)
     fixes = []
     for i in range(len(z["ranges"])):
         est = loc.update(z["ranges"][i], z["angles"][i], z["odom"][i])

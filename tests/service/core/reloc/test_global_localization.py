@@ -1,10 +1,7 @@
-"""Global localisation: viewpoints, the cached view index, global search on the office maps,
+"""Global localisation: viewpoints, the view index, global search on the office maps,
 ambiguity on a symmetric room, the kidnapped robot and dead reckoning (in process)."""
 
 from __future__ import annotations
-
-import logging
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -15,7 +12,6 @@ from service.core.reloc import global_localization as gl
 from service.core.reloc import states as st
 from service.core.reloc import view_index as vi
 from service.core.reloc.global_search import run_steps, search_steps, self_similar_steps, verify
-from service.core.reloc.view_index import cache as view_index_cache
 from service.core.shapes.configuration import scan_configuration
 from service.core.types import MapData, wrap_angle
 from sim_publisher.laser import LaserSimulator
@@ -74,69 +70,6 @@ def test_viewpoints_small_map_enclosed_outside_box_and_alcove() -> None:
     in_box = (vps[:, 0] > 1.5) & (vps[:, 0] < 2.3) & (vps[:, 1] > 1.0) & (vps[:, 1] < 1.8)
     in_pillar = (vps[:, 0] > 4) & (vps[:, 0] < 4.3) & (vps[:, 1] > 2) & (vps[:, 1] < 2.3)
     assert not np.any(in_box | in_pillar)
-
-
-# ------------------------------------------------------------------------- the index cache
-
-
-def test_index_cache_round_trip_invalidation_and_corrupt_file(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
-) -> None:
-    md = _room_map()
-    vi.clear_memory_cache()
-    built = gl.load_or_build_index(md, cache_dir=tmp_path)
-    files = sorted(tmp_path.glob("viewindex-*.npz"))
-    assert len(files) == 1 and files[0].name.startswith("viewindex-room-")
-    assert len(built) > 0 and len(built.viewpoints) > 10
-
-    # a fresh process (memory cleared) loads the file and never builds
-    vi.clear_memory_cache()
-
-    def no_build(*_a: object, **_k: object) -> vi.ViewIndex:
-        raise AssertionError("index rebuilt although a valid cache file exists")
-
-    # load_or_build_index looks build_index up in its own module
-    monkeypatch.setattr(view_index_cache, "build_index", no_build)
-    loaded = gl.load_or_build_index(md, cache_dir=tmp_path)
-    assert loaded.key == built.key
-    saved, back = built.to_arrays(), loaded.to_arrays()
-    assert saved.keys() == back.keys()
-    for name in saved:
-        np.testing.assert_array_equal(back[name], saved[name], err_msg=name)
-    assert loaded.sensor is not None  # the map model is attached, not stored
-    monkeypatch.undo()
-
-    # the map changes (the box moved): new key, rebuilt, the stale file replaced
-    vi.clear_memory_cache()
-    md2 = _room_map(box_at=3.0)
-    changed = gl.load_or_build_index(md2, cache_dir=tmp_path)
-    assert changed.key != built.key
-    files2 = sorted(tmp_path.glob("viewindex-*.npz"))
-    assert len(files2) == 1 and files2[0] != files[0]
-
-    # a corrupt file is rebuilt with a warning, never trusted
-    vi.clear_memory_cache()
-    files2[0].write_bytes(b"PK\x03\x04 this is not an index")
-    with caplog.at_level(logging.WARNING, logger="shapeloc.global"):
-        again = gl.load_or_build_index(md2, cache_dir=tmp_path)
-    assert any("not usable" in r.getMessage() for r in caplog.records)
-    np.testing.assert_array_equal(again.viewpoints, changed.viewpoints)
-    vi.clear_memory_cache()
-    assert vi.load_index(files2[0], changed.key).key == changed.key  # rewritten, valid
-
-
-def test_index_file_with_wrong_key_or_bad_arrays_is_refused(tmp_path: Path) -> None:
-    md = _room_map()
-    idx = vi.build_index(md)
-    path = vi.save_index(idx, tmp_path)
-    with pytest.raises(gl.LocalizationError, match="mismatch"):
-        vi.load_index(path, "0" * 64)
-    arrays = idx.to_arrays()
-    arrays["unit_view"] = arrays["unit_view"] + 10_000  # points past the viewpoints
-    bad = tmp_path / "bad.npz"
-    np.savez(bad, **arrays)
-    with pytest.raises(gl.LocalizationError, match="inconsistent"):
-        vi.load_index(bad, idx.key)
 
 
 # ------------------------------------------------------------------------- global search

@@ -21,17 +21,15 @@ from service.core.tracking.laser_odometry import LaserOdometryLocalizer
 DATA = Path(__file__).resolve().parents[3] / "data" / "real"
 
 
-def _localizer(tmp_path: Path, pose: np.ndarray) -> LaserOdometryLocalizer:
+def _localizer(pose: np.ndarray) -> LaserOdometryLocalizer:
     md = load_map_file(DATA / "fr079.schematic.geojson", kind="schematic")
-    loc = create_localizer("shape", md, pose.copy(), cache_dir=tmp_path)
+    loc = create_localizer("shape", md, pose.copy())
     assert isinstance(loc, LaserOdometryLocalizer)  # the factory default
     assert isinstance(loc.inner, GlobalShapeLocalizer)
     return loc
 
 
-def test_the_odometry_bridges_a_hall_the_floor_plan_draws_as_its_outline(
-    tmp_path: Path,
-) -> None:
+def test_the_odometry_bridges_a_hall_the_floor_plan_draws_as_its_outline() -> None:
     """In the east hall the plan explains a quarter to a third of each scan, so the tracker
     rejects scan after scan: the robot dead-reckons and says so (status ``lost``, state
     ``dead_reckoning``, a covariance that grows), and the odometry holds the pose within
@@ -41,7 +39,7 @@ def test_the_odometry_bridges_a_hall_the_floor_plan_draws_as_its_outline(
     dead-reckoned pose as its prior and publishes that pose, lost, until a place is more
     probable."""
     z = np.load(DATA / "fr079.4100-4199.npz")
-    loc = _localizer(tmp_path, z["reference"][0])
+    loc = _localizer(z["reference"][0])
     states, errors, sigmas = [], [], []
     for i in range(len(z["ranges"])):
         est = loc.update(z["ranges"][i], z["angles"][i], z["odom"][i])
@@ -61,7 +59,7 @@ def test_the_odometry_bridges_a_hall_the_floor_plan_draws_as_its_outline(
 
 
 @pytest.mark.parametrize("at", [20, 90])
-def test_a_kidnapped_robot_is_still_lost_within_three_scans(tmp_path: Path, at: int) -> None:
+def test_a_kidnapped_robot_is_still_lost_within_three_scans(at: int) -> None:
     """Followed into the hall for ``at`` scans (tracked, or dead-reckoned where the plan shows
     only the hall's outline), the robot is carried to the small room at the west end (about
     30 m away) while its odometry reports the room's drive as if it went on from the hall.
@@ -72,7 +70,7 @@ def test_a_kidnapped_robot_is_still_lost_within_three_scans(tmp_path: Path, at: 
     0.5 m off."""
     z = np.load(DATA / "fr079.4100-4199.npz")
     w = np.load(DATA / "fr079.1174-1329.npz")
-    loc = _localizer(tmp_path, z["reference"][0])
+    loc = _localizer(z["reference"][0])
     for i in range(at):
         est = loc.update(z["ranges"][i], z["angles"][i], z["odom"][i])
         assert np.hypot(*(est.pose[:2] - z["reference"][i][:2])) < 0.3, i
@@ -87,12 +85,12 @@ def test_a_kidnapped_robot_is_still_lost_within_three_scans(tmp_path: Path, at: 
     assert "searching" in states[:3], states
 
 
-def test_a_state_saved_before_the_break_flag_existed_still_loads(tmp_path: Path) -> None:
+def test_a_state_saved_before_the_break_flag_existed_still_loads() -> None:
     """A robot's localiser persisted by an earlier version (its tracking state without the
     ``broken`` flag) is restored and tracks on: the flag falls back to its class default (no
     break seen)."""
     z = np.load(DATA / "fr079.4100-4199.npz")
-    loc = _localizer(tmp_path, z["reference"][0])
+    loc = _localizer(z["reference"][0])
     for i in range(5):
         loc.update(z["ranges"][i], z["angles"][i], z["odom"][i])
     assert isinstance(loc.state, Tracking)
