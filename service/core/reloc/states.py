@@ -470,7 +470,7 @@ def _searching(ctx: Context, s: Searching, scan: Scan) -> tuple[State, Estimate]
         drv.twin = dr.Job(steps, None if o.reading is None else o.reading.copy(), track=lead)
     if lead is not None and verdict.llr >= g.fix_llr and lead.checked:
         ctx.work_ms += CONFIRM_MS
-        est = _confirm(ctx, drv, lead, scan)
+        est = confirm(ctx, drv, lead, scan)
         if est is not None:
             est.ambiguity = verdict.ambiguity
             est.extras.update(extras)
@@ -521,20 +521,25 @@ def _guess(
     )
 
 
-def _confirm(ctx: Context, drv: dr.Drive, lead: dr.Track, scan: Scan) -> Estimate | None:
+def confirm(ctx: Context, drv: dr.Drive, lead: dr.Track, scan: Scan) -> Estimate | None:
     """The tracker's fit from the winner if it accepts the scan within :data:`CONFIRM_DISTANCE`
-    / :data:`CONFIRM_ANGLE` / :data:`CONFIRM_SIGMA` of it, else ``None``."""
+    / :data:`CONFIRM_ANGLE` / :data:`CONFIRM_SIGMA` of it, else ``None``. Where no probation
+    follows, the fit must also explain ``relock_support`` of the scan, as a relock's: a map
+    that does not hold there leaves a place that only resembles the robot's."""
+    g = ctx.gconfig
+    need = 0.0 if g.probation_travel > 0.0 else min(g.good_support, g.relock_support)
     ctx.tracker.reset(lead.pose, scan.odom.reading)
     if drv.speed is not None:
         ctx.tracker.set_speed(drv.speed)
     est = _fit(ctx, scan)
+    holds = (est.explained or 0.0) >= need
     close = (
         np.hypot(*(est.pose[:2] - lead.pose[:2])) <= CONFIRM_DISTANCE
         and abs(float(wrap_angle(est.pose[2] - lead.pose[2]))) <= CONFIRM_ANGLE
         and est.covariance is not None
         and sigma_xy(np.asarray(est.covariance).reshape(3, 3)) <= CONFIRM_SIGMA
     )
-    if est.status == "tracking" and "rejected" not in est.extras and close:
+    if est.status == "tracking" and "rejected" not in est.extras and close and holds:
         return est
     ctx.tracker.reset(None)
     return None
