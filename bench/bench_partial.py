@@ -1,7 +1,8 @@
 """Where the map does not match the building: partial maps and maps from another day.
 
-``python -m bench.bench_partial [--logs intel,fr079,mit-csail] [--worlds 0-7,1000-1007]
-[--jobs 2] [--budget-ms 50] [--data /work/shared/data/real] [--out docs/results]``
+``python -m bench.bench_partial [--logs intel,fr079,mit-csail] [--seeds 1,2,3]
+[--worlds 0-7,1000-1007] [--jobs 2] [--budget-ms 50] [--data /work/shared/data/real]
+[--out docs/results]``
 
 READS /work/shared (the real logs, as ``bench/bench_real.py``); the generated buildings need
 nothing outside the repository. intel, fr079 and buildings 0-999 are the TUNING split;
@@ -10,8 +11,9 @@ mit-csail and buildings >= 1000 are HELD OUT (marked so; nothing is tuned on the
 Maps (one table row each; the rule is seeded and deterministic):
 
 - **partial** (real logs): the committed metric map ``docs/real/maps/{log}.geojson`` with whole
-  corridor stretches removed. A stretch is the robot's reference path over
-  :data:`STRETCH_M` metres of odometry travel from a start scan drawn uniformly
+  corridor stretches removed, one map per ``--seeds`` seed (each draw removes other
+  corridors: one draw alone is one building's story). A stretch is the robot's reference
+  path over :data:`STRETCH_M` metres of odometry travel from a start scan drawn uniformly
   (``numpy.random.default_rng([seed, log number])``) among the flag-1 scans; everything of
   the map within :data:`STRETCH_WIDTH_M` of that piece of path is removed (both walls of the
   corridor and the door jambs along it). Stretches are drawn until at least
@@ -98,10 +100,13 @@ class Case:
     kind: str  # "partial" | "another-day"
     name: str  # log name or building seed
     held_out: bool
+    seed: int = 0  # the draw of a partial map's stretches
 
     @property
     def label(self) -> str:
-        what = f"{self.name} partial" if self.kind == "partial" else f"building {self.name}"
+        what = f"building {self.name}"
+        if self.kind == "partial":
+            what = f"{self.name} partial, seed {self.seed}"
         return what + (" (HELD-OUT)" if self.held_out else "")
 
 
@@ -226,7 +231,7 @@ def _feed(loc: object, scans: object, n: int, odom: list) -> tuple[np.ndarray, l
     return poses, status, states
 
 
-def run_case(case: Case, data: str, budget: float, seed: int, cache: str) -> dict[str, object]:
+def run_case(case: Case, data: str, budget: float, cache: str) -> dict[str, object]:
     """Run one case; returns its table row (and writes its per-scan arrays to ``cache``)."""
     from bench.plan_share import HOLDS_SHARE, PlanShare
     from service.core.factory import create_localizer
@@ -238,7 +243,7 @@ def run_case(case: Case, data: str, budget: float, seed: int, cache: str) -> dic
 
         log = load_log(Path(data), case.name, None)
         travel = _travel(log.odom)
-        md, removed, stretches = partial_map(case.name, log.reference, log.ok, travel, seed)
+        md, removed, stretches = partial_map(case.name, log.reference, log.ok, travel, case.seed)
         info = {"removed": removed, "stretches": stretches}
         truth = log.reference
         scored = log.ok.copy()
@@ -269,7 +274,7 @@ def run_case(case: Case, data: str, budget: float, seed: int, cache: str) -> dic
     for i in np.flatnonzero(scored):
         r, a = scans(i)
         holds[i] = share.scan_share(truth[i], r, a) >= HOLDS_SHARE
-    tag = f"{case.kind}_{case.name}"
+    tag = f"{case.kind}_{case.name}" + (f"_{case.seed}" if case.kind == "partial" else "")
     Path(cache).mkdir(parents=True, exist_ok=True)
     np.savez_compressed(
         Path(cache) / f"{tag}.npz",
@@ -490,20 +495,21 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--worlds", default="0-7,1000-1007", help="building seeds (a-b or a,b)")
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--budget-ms", type=float, default=50.0)
-    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--seeds", default="1,2,3", help="partial maps: the draws (a-b or a,b)")
     ap.add_argument("--data", type=Path, default=DEFAULT_DATA)
     ap.add_argument("--out", type=Path, default=REPO / "docs" / "results")
     ap.add_argument("--cache", type=Path, default=REPO / "build" / "bench_partial")
     args = ap.parse_args(argv)
     logs = [x for x in args.logs.split(",") if x]
     worlds = parse_worlds(args.worlds)
-    cases = [Case("partial", log, log in HELD_OUT_LOGS) for log in logs]
+    seeds = parse_worlds(args.seeds) if args.seeds else []
+    cases = [Case("partial", log, log in HELD_OUT_LOGS, s) for log in logs for s in seeds]
     cases += [Case("another-day", str(w), w >= HELD_OUT_FIRST_SEED) for w in worlds]
     if logs and not args.data.is_dir():
         raise SystemExit(f"{args.data}: no data directory (the real logs are read from there)")
     load0 = _load()
     t0 = time.perf_counter()
-    jobs = [(c, str(args.data), args.budget_ms, args.seed, str(args.cache)) for c in cases]
+    jobs = [(c, str(args.data), args.budget_ms, str(args.cache)) for c in cases]
     if args.jobs > 1:
         with ProcessPoolExecutor(args.jobs) as ex:
             rows = list(ex.map(_job, jobs))
