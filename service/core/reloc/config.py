@@ -142,8 +142,8 @@ class GlobalConfig(Settings):
     relock_support: PositiveShare = Field(
         0.5,
         description="A relock's fit from the window search's distinct peak is good explaining "
-        "this share (good_support if lower), and a search's fix no probation follows needs "
-        "it too: half the scan explained is a map that holds.",
+        "this share (good_support if lower), as does a search's fix without probation_travel: "
+        "half the scan explained is a map that holds.",
     )
     relock_scans: AtLeastOne = Field(
         3, description="Scans in a row explained well that end dead reckoning (relock)."

@@ -523,9 +523,9 @@ def _guess(
 
 def confirm(ctx: Context, drv: dr.Drive, lead: dr.Track, scan: Scan) -> Estimate | None:
     """The tracker's fit from the winner if it accepts the scan within :data:`CONFIRM_DISTANCE`
-    / :data:`CONFIRM_ANGLE` / :data:`CONFIRM_SIGMA` of it, else ``None``. Where no probation
-    follows, the fit must also explain ``relock_support`` of the scan, as a relock's: a map
-    that does not hold there leaves a place that only resembles the robot's."""
+    / :data:`CONFIRM_ANGLE` / :data:`CONFIRM_SIGMA` of it, else ``None``. Unless the preset
+    puts fixes on probation (floor plans), the fit must also explain ``relock_support`` of
+    the scan, as a relock's: a map that does not hold there leaves a look-alike place."""
     g = ctx.gconfig
     need = 0.0 if g.probation_travel > 0.0 else min(g.good_support, g.relock_support)
     ctx.tracker.reset(lead.pose, scan.odom.reading)
