@@ -444,9 +444,8 @@ def _searching(ctx: Context, s: Searching, scan: Scan) -> tuple[State, Estimate]
     # a relock on fits the map explained less than good_support waits while the search's
     # leader is, more likely than not, another place (a robot carried into a corridor like
     # the one it left)
-    elsewhere = lead is not None and verdict.llr > 0.0
     if relocked is not None and not (
-        elsewhere and gs.distinct(lead.pose, relocked.pose)  # type: ignore[union-attr]
+        lead is not None and verdict.llr > 0.0 and gs.distinct(lead.pose, relocked.pose)
     ):
         relocked.extras["relocked"] = 1.0
         return Tracking(relocked.pose.copy(), fit_cov(relocked)), relocked
