@@ -6,7 +6,14 @@ import math
 
 import numpy as np
 
-from bench.bench_partial import Refix, late_list, refix_events, summarise
+from bench.bench_partial import (
+    Refix,
+    late_list,
+    refix_events,
+    summarise,
+    wrong_episodes,
+    wrong_list,
+)
 
 
 def test_refix_counts_all_travel_and_the_travel_where_the_map_holds() -> None:
@@ -52,3 +59,21 @@ def test_the_page_lists_each_refix_beyond_5_m_where_the_map_holds() -> None:
     text = late_list([{**row, "case": "intel partial"}, {"case": "building 0", "late": []}])
     assert text == "- intel partial: scan 5: 6.0 / 6.0 m\n"
     assert late_list([{"case": "building 0", "late": []}]) == "- none\n"
+
+
+def test_confident_wrong_scans_are_listed_by_episode() -> None:
+    # scored scans 0-9; scan 4 unscored: scans 3 and 5 are one episode; a lost scan ends one
+    err = np.array([0.1, 0.7, 0.9, 20.0, 0.0, 19.5, 0.2, 0.6, 0.6, 3.0])
+    tracking = np.array([True] * 8 + [False, True])
+    scored = np.ones(10, dtype=bool)
+    scored[4] = False
+    assert wrong_episodes(err, tracking, scored) == [
+        (1, 4, 0.7, 20.0),
+        (7, 1, 0.6, 0.6),
+        (9, 1, 3.0, 3.0),
+    ]
+    rows = [{"case": "intel partial, seed 5", "wrong_runs": [(1, 4, 0.7, 20.0), (9, 1, 3.0, 3.0)]}]
+    assert wrong_list(rows) == (
+        "- intel partial, seed 5: scan 1: 4 scans, 0.7-20.0 m; scan 9: 1 scan, 3.0-3.0 m\n"
+    )
+    assert wrong_list([{"case": "building 0", "wrong_runs": []}]) == "- none\n"
