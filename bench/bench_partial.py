@@ -65,6 +65,7 @@ import platform
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -433,34 +434,30 @@ def table(rows: list[dict[str, object]]) -> str:
     return head + "\n".join(lines) + "\n"
 
 
+def _by_map(rows: list[dict[str, object]], key: str, item: Callable[[tuple], str]) -> str:
+    """A bullet per map listing its ``key`` entries, each rendered by ``item``."""
+    out = [
+        f"- {r['case']}: " + "; ".join(item(x) for x in r[key])  # type: ignore[union-attr]
+        for r in rows
+        if r.get(key)
+    ]
+    return "\n".join(out or ["- none"]) + "\n"
+
+
 def late_list(rows: list[dict[str, object]]) -> str:
     """Each re-fix taking more than :data:`REFIX_M` of travel where the map holds, by map: the
     scan where the map holds again and the travel to the re-fix, in all and where it holds."""
-    out = []
-    for r in rows:
-        late = r.get("late") or []
-        if late:
-            items = "; ".join(
-                f"scan {scan}: {_m(a)} / {_m(h)} m"
-                for scan, a, h in late  # type: ignore[union-attr]
-            )
-            out.append(f"- {r['case']}: {items}")
-    return "\n".join(out or ["- none"]) + "\n"
+    return _by_map(rows, "late", lambda e: f"scan {e[0]}: {_m(e[1])} / {_m(e[2])} m")
 
 
 def wrong_list(rows: list[dict[str, object]]) -> str:
     """Each episode of confident-wrong scans, by map: its first scan, how many scored scans
     and how far off (m)."""
-    out = []
-    for r in rows:
-        runs = r.get("wrong_runs") or []
-        if runs:
-            items = "; ".join(
-                f"scan {a}: {n} scan{'s' if n > 1 else ''}, {lo:.1f}-{hi:.1f} m"
-                for a, n, lo, hi in runs  # type: ignore[union-attr]
-            )
-            out.append(f"- {r['case']}: {items}")
-    return "\n".join(out or ["- none"]) + "\n"
+    return _by_map(
+        rows,
+        "wrong_runs",
+        lambda w: f"scan {w[0]}: {w[1]} scan{'s' if w[1] > 1 else ''}, {w[2]:.1f}-{w[3]:.1f} m",
+    )
 
 
 def pooled(rows: list[dict[str, object]]) -> str:
