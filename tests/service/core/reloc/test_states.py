@@ -14,6 +14,8 @@ from types import SimpleNamespace
 import numpy as np
 
 from service.core.factory import create_localizer
+from service.core.reloc import drive as dr
+from service.core.reloc import global_search as gs
 from service.core.reloc import states as st
 from service.core.reloc.config import GlobalConfig
 from service.core.reloc.global_localization import GlobalShapeLocalizer
@@ -207,11 +209,8 @@ def test_a_fix_no_probation_follows_needs_the_map_to_hold_where_it_is_made() -> 
     """A search's winner on a map missing the robot's corridor (intel with 31 % of its walls
     removed, tuning) was fixed where the tracker's fit explained 0.36 and 0.44 of the scan:
     `tracking` 19 m and 5 m off. On a metric map, where the fix is final, the confirmation
-    now needs relock_support of the scan explained, as a relock; a floor plan's winner is
-    confirmed as before and its probation decides."""
-    from service.core.reloc import drive as dr
-    from service.core.reloc import global_search as gs
-
+    needs relock_support of the scan explained, as a relock; a floor plan's winner is
+    confirmed without it, and its probation decides."""
     lead = dr.Track(np.array([3.0, 2.0, 0.1]), gs.Hypothesis(np.array([3.0, 2.0, 0.1]), 0.2))
     odom = OdometryStep(np.zeros(3))
     scan = st.Scan(np.full(ANGLES.shape, 2.0), ANGLES, odom, True)
