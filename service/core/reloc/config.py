@@ -90,11 +90,9 @@ class GlobalConfig(Settings):
     fix_llr: Positive = Field(
         25.0,
         description="A hypothesis is fixed once its log-likelihood ratio against the rest reaches "
-        "this (nats), set from the false fixes on the tuning split (docs/results/"
-        "llr-threshold.md, 100 drives). Metric: none from 8 nats (25 kept: an earlier "
-        "80-drive sample had one at 15). Floor plans: one up to 25, none from 30, which the "
-        "2 m probation catches; 37.5 (1.25 x 30) fixes 2 fewer of the held-out floor plan's "
-        "40 drive starts within 15 m (docs/decisions/0019).",
+        "this (nats), set from the false fixes of 100 tuning drives (docs/results/llr-threshold"
+        ".md): metric maps none from 8 (an earlier sample had one at 15), floor plans none from "
+        "30, those below caught by the 2 m probation (docs/decisions/0019).",
     )
     null_cost: Positive = Field(
         0.8,

@@ -14,7 +14,8 @@ only lower the LLR) until it is back-scored; on a plain scan (no odometry) from 
 found, which nothing carries it back to, at its own mean (as the leader's, every middling place
 a search found would reset the LLR). The prior (:class:`Prior`) is uniform while nothing is
 known; after a loss, the dead-reckoned pose's Gaussian with ``kidnap_weight`` spread over the
-map, so a place near where the robot should be needs far less evidence than one far away.
+map, so a place near where the robot should be needs far less evidence than one far away, and
+the Gaussian's mass no track holds is the unseen place's (a corridor the map lacks).
 """
 
 from __future__ import annotations
@@ -44,16 +45,20 @@ class Prior:
     kidnap: float
     cells: float
 
-    def log(self, pose: np.ndarray) -> float:
-        """Log prior mass (nats) of the place ``pose`` (a cell of :data:`CELL_VOLUME`)."""
-        uniform = math.log(max(self.kidnap, 1e-300)) - math.log(max(self.cells, 1.0))
+    def gaussian_mass(self, pose: np.ndarray) -> float:
+        """The dead-reckoned Gaussian's mass in the place ``pose`` (0 while uniform)."""
         if self.mean is None or self.cov is None:
-            return uniform
+            return 0.0
         det = max(numeric.det3(self.cov), 1e-300)
-        m2 = mahalanobis2(pose, self.mean, self.cov)
-        density = math.exp(-0.5 * m2) / math.sqrt((2.0 * math.pi) ** 3 * det)
-        mass = min(1.0, density * CELL_VOLUME)
-        return math.log((1.0 - self.kidnap) * mass + math.exp(uniform) + 1e-300)
+        density = math.exp(-0.5 * mahalanobis2(pose, self.mean, self.cov))
+        return min(1.0, density / math.sqrt((2.0 * math.pi) ** 3 * det) * CELL_VOLUME)
+
+    def log(self, pose: np.ndarray | None, held: float = 0.0) -> float:
+        """Log prior mass (nats) of the place ``pose`` (a cell of :data:`CELL_VOLUME`); ``None``:
+        of the places the search has not found, ``held`` the Gaussian's mass the found hold."""
+        mass = self.gaussian_mass(pose) if pose is not None else max(0.0, 1.0 - held)
+        uniform = self.kidnap / max(self.cells, 1.0)
+        return math.log((1.0 - self.kidnap) * mass + uniform + 1e-300)
 
     def moved(self, delta: np.ndarray, noise: np.ndarray) -> Prior:
         """The prior after a robot-frame motion ``delta`` with process noise ``noise``."""
@@ -118,20 +123,17 @@ def decide(
         return total + prior.log(t.pose)
 
     best_e, leader = max(((evidence(t), t) for t in full), key=lambda x: x[0])
-    # the unseen place explains each keyframe as the true place would in the leader's region
-    nulls = leader.null
-    null_ll = sum(
-        unseen if k not in nulls else -EFFECTIVE_BEAMS * (nulls[k] - COST_FLOOR) for k in keys
+    # the unseen place explains each keyframe as the true place would in the leader's region;
+    # its prior: a place's share of the kidnap mass and the Gaussian's mass no track holds
+    null = sum(
+        -EFFECTIVE_BEAMS * (leader.null[k] - COST_FLOOR) if k in leader.null else unseen
+        for k in keys
     )
-    if prior.mean is None:
-        null = null_ll + prior.log(leader.pose)  # uniform: the same prior as any place
-    else:
-        null = null_ll + math.log(max(prior.kidnap, 1e-300)) - math.log(max(prior.cells, 1.0))
+    null += prior.log(None, sum(prior.gaussian_mass(t.pose) for t in tracks))
     rest = [null] + [
         evidence(t, fill=leader)
         for t in tracks
         if t is not leader and distinct(t.pose, leader.pose)
     ]
     top = max(rest)
-    log_rest = top + math.log(sum(math.exp(e - top) for e in rest))
-    return Verdict(leader, best_e - log_rest)
+    return Verdict(leader, best_e - top - math.log(sum(math.exp(e - top) for e in rest)))

@@ -115,8 +115,7 @@ def odometry_move(since: np.ndarray | None, now: np.ndarray | None) -> np.ndarra
 class Drive:
     """The hypotheses over a drive and their evidence: ``tracks``, the window's ``frames``, the
     odometry ``travel`` (m), the pending search ``job`` and ``twin`` check (not pickled), the
-    composite's scans, the known speed before a loss, and every keyframe's key (a track's
-    scores there are kept: evidence that told two places apart is not forgotten)."""
+    composite's scans, the speed before a loss, every keyframe's key (scores there are kept)."""
 
     tracks: list[Track] = field(default_factory=list)
     frames: list[Frame] = field(default_factory=list)

@@ -26,8 +26,7 @@ class GlobalShapeLocalizer:
     method ``shape``). ``initial_pose`` ``None``: unknown (global localisation); ``config`` and
     ``gconfig`` default to the map kind's presets; ``index_store``: where the map's
     :class:`ViewIndex` is kept between runs (``None``: in memory only), loaded or built on the
-    first scan that searches.
-    Each estimate carries its state (:class:`.states.State`'s ``name``)."""
+    first scan that searches. Each estimate carries its state (:class:`.states.State`'s name)."""
 
     method = "shape"
 

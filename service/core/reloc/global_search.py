@@ -289,9 +289,8 @@ def search_steps(
     The :data:`SCAN_UNITS` most complex scan units are compared by S* with every index unit
     at a similar range from its viewpoint; the most similar pairs (:data:`PAIRS_BUDGET`) each
     induce a pose. These and the ``seeds`` (the kept hypotheses) are ranked by support on the
-    distance field; the best ``refine_top`` distinct ones are refined and verified. ``P``:
-    the scan's configuration if already computed.
-    """
+    distance field; the best ``refine_top`` distinct ones are refined and verified. ``P``: the
+    scan's configuration if already computed."""
     sensor = index.sensor
     assert sensor is not None
     r = np.asarray(ranges, dtype=np.float64)
@@ -428,10 +427,9 @@ def self_similar_steps(
     """The map's own twin of ``best`` verified on the real scan, or ``None``, as steps.
 
     A search can miss the true place (furniture hides its walls) and crown a congruent room
-    elsewhere with no close rival. So before a fix the scan the map would give at
-    ``best.pose`` is searched for; every distinct place found is one the map cannot tell from
-    it, verified on the real scan as found and refined on its points (furniture can drag the
-    fit off), whichever is better. Returns the best verified twin."""
+    elsewhere with no close rival. So before a fix the scan the map would give at ``best.pose``
+    is searched for; every distinct place found is one the map cannot tell from it, verified
+    on the real scan as found and refined on its points (furniture drags fits), the better."""
     assert index.sensor is not None
     pred = index.sensor.caster.cast(best.pose, angles, config.view_max_range)
     pred = np.where(np.isfinite(ranges), pred, np.nan)

@@ -226,10 +226,9 @@ def _tracking(ctx: Context, s: Tracking, scan: Scan) -> tuple[State, Estimate]:
         s.ref, s.cov, s.strikes, s.broken = est.pose.copy(), fit_cov(est), 0, False
         return s, est
     # a poorly explained scan contradicts the pose (a kidnap) after a break of the scan-to-scan
-    # fit (the scans after a kidnap match each other again), else only if rejected with beams
-    # through drawn walls (moved furniture lets beams through on a good fit), scoring low
-    # unless a laser odometry carries the pose: measured from the same scans, it can turn a
-    # symmetric room's scan wrong as smoothly as right, and nothing else vouches for it
+    # fit (after a kidnap the scans match each other again), else if rejected with beams through
+    # drawn walls (moved furniture lets beams through a good fit), scoring low unless a laser
+    # odometry carries the pose (it turns a symmetric room's scan wrong as smoothly as right)
     low = est.score < g.collapse_score
     s.broken = (s.broken or o.broken) and low
     doubted = low or scan.from_scans
@@ -279,23 +278,26 @@ def _relock(
 ) -> tuple[Estimate, np.ndarray, np.ndarray, bool]:
     """The tracker run from the dead-reckoned ``pose`` / ``cov``: its fit, the pose (the fit's
     if good) and covariance after this scan, and whether the fit is good: accepted, explaining
-    ``good_support``, within :data:`GATE_SIGMAS`. Else the tracker runs from the peak of the
-    sensor model's window search over the gate if it is :data:`DISTINCT_PEAK`, and then needs
-    ``relock_support``: the odometry drifts past the fit's half-metre reach long before it
-    leaves the gate, and a distinct peak is the rest of the evidence."""
+    ``good_support``, within :data:`GATE_SIGMAS`. Else it runs from the window search's peak
+    over the gate if :data:`DISTINCT_PEAK`, needing ``relock_support``: the odometry drifts past
+    the fit's half-metre reach long before the gate, and a distinct peak is the rest."""
     o, g = scan.odom, ctx.gconfig
     assert o.delta is not None
     start, (pose, cov) = pose, propagate(pose, cov, o.delta, o.noise(ctx.config.motion))
     est, good = _relock_fit(ctx, scan, start, pose, cov, g.good_support)
     if not good and g.relock_window:
-        half = GATE_SIGMAS * sigma_xy(cov), GATE_SIGMAS * math.sqrt(max(float(cov[2, 2]), 0.0))
-        peak = ctx.tracker.window(scan.ranges, scan.angles, pose, *half)
+        peak = ctx.tracker.window(scan.ranges, scan.angles, pose, *_gate(cov))
         if peak is not None and peak.distinct >= DISTINCT_PEAK:
             start = compose(peak.pose, invert(o.delta))
             support = min(g.good_support, g.relock_support)
             again, good = _relock_fit(ctx, scan, start, pose, cov, support)
             est = again if good else est  # the tracker's state then is unused: reset next scan
     return est, est.pose.copy() if good else pose, cov, good
+
+
+def _gate(cov: np.ndarray) -> tuple[float, float]:
+    """Half-widths (m, rad) of the :data:`GATE_SIGMAS` gate of a pose with covariance ``cov``."""
+    return GATE_SIGMAS * sigma_xy(cov), GATE_SIGMAS * math.sqrt(max(float(cov[2, 2]), 0.0))
 
 
 def _relock_fit(
@@ -335,18 +337,22 @@ def _dead_reckoning(ctx: Context, d: DeadReckoning, scan: Scan) -> tuple[State, 
     return d, out
 
 
-def _seeds(drive: dr.Drive, prior: Prior, odometry: bool) -> list[np.ndarray]:
-    """The kept tracks as the next search's seeds, each turned by :data:`SEED_TURNS`, and the
-    prior's mean (all round the circle without odometry: the robot may have turned)."""
-    out = [
-        np.array([t.pose[0], t.pose[1], wrap_angle(t.pose[2] + dth)])
-        for t in drive.tracks
-        for dth in SEED_TURNS
-    ]
-    if prior.mean is not None:
-        turns = SEED_TURNS if odometry else tuple(np.arange(8) * (np.pi / 4))
-        x, y, th = prior.mean
-        out += [np.array([x, y, wrap_angle(th + t)]) for t in turns]
+def search_seeds(ctx: Context, drive: dr.Drive, prior: Prior, scan: Scan) -> list[np.ndarray]:
+    """The kept tracks as the next search's seeds, each turned by :data:`SEED_TURNS`, the
+    prior's mean (all round without odometry: the robot may have turned) and with odometry the
+    window's best place over its gate (a map lacking walls leaves the index no viewpoint there)."""
+
+    def turned(p: np.ndarray, turns: tuple[float, ...]) -> list[np.ndarray]:
+        return [np.array([*p[:2], wrap_angle(p[2] + t)]) for t in turns]
+
+    out = [q for t in drive.tracks for q in turned(t.pose, SEED_TURNS)]
+    odometry = scan.odom.reading is not None
+    if prior.mean is None:
+        return out
+    out += turned(prior.mean, SEED_TURNS if odometry else tuple(np.arange(8) * (np.pi / 4)))
+    if odometry and prior.cov is not None:
+        peak = ctx.tracker.window(scan.ranges, scan.angles, prior.mean, *_gate(prior.cov))
+        out += [] if peak is None else [peak.pose.copy()]
     return out
 
 
@@ -384,7 +390,7 @@ def _search_work(
                 drv.tracks = dr.merge(drv.tracks, [twin], move, 1)
     if drv.twin is None and spent < search_limit:
         if drv.job is None:
-            seeds = _seeds(drv, prior, o.reading is not None)
+            seeds = search_seeds(ctx, drv, prior, scan)
             steps = gs.search_steps(ctx.index, rs, as_, ctx.config, g, seeds=seeds, P=P)
             drv.job = dr.Job(steps, None if o.reading is None else o.reading.copy(), frame=frame)
         spent, done, res = gs.advance(drv.job.steps, spent, search_limit)
@@ -441,9 +447,8 @@ def _searching(ctx: Context, s: Searching, scan: Scan) -> tuple[State, Estimate]
     verdict = _decide(ctx, drv, s.prior)
     lead = verdict.leader
     ctx.work_ms = spent
-    # a relock on fits the map explained less than good_support waits while the search's
-    # leader is, more likely than not, another place (a robot carried into a corridor like
-    # the one it left)
+    # a relock on fits explaining less than good_support waits while the search's leader is,
+    # more likely than not, another place (a robot carried into a corridor like the one it left)
     if relocked is not None and not (
         lead is not None and verdict.llr > 0.0 and gs.distinct(lead.pose, relocked.pose)
     ):
@@ -469,7 +474,7 @@ def _searching(ctx: Context, s: Searching, scan: Scan) -> tuple[State, Estimate]
         drv.twin = dr.Job(steps, None if o.reading is None else o.reading.copy(), track=lead)
     if lead is not None and verdict.llr >= g.fix_llr and lead.checked:
         ctx.work_ms += CONFIRM_MS
-        est = confirm(ctx, drv, lead, scan)
+        est = confirm(ctx, drv, lead, scan, s.prior)
         if est is not None:
             est.ambiguity = verdict.ambiguity
             est.extras.update(extras)
@@ -520,13 +525,19 @@ def _guess(
     )
 
 
-def confirm(ctx: Context, drv: dr.Drive, lead: dr.Track, scan: Scan) -> Estimate | None:
+def confirm(
+    ctx: Context, drv: dr.Drive, lead: dr.Track, scan: Scan, prior: Prior | None = None
+) -> Estimate | None:
     """The tracker's fit from the winner if it accepts the scan within :data:`CONFIRM_DISTANCE`
     / :data:`CONFIRM_ANGLE` / :data:`CONFIRM_SIGMA` of it, else ``None``. Unless the preset
-    puts fixes on probation (floor plans), the fit must also explain ``relock_support`` of
-    the scan, as a relock's: a map that does not hold there leaves a look-alike place."""
+    puts fixes on probation (floor plans), the fit must also explain ``relock_support`` of the
+    scan, as a relock's (a map that does not hold there leaves a look-alike place), and
+    ``good_support`` outside the ``prior``'s gate, where a look-alike is likelier than a kidnap."""
     g = ctx.gconfig
     need = 0.0 if g.probation_travel > 0.0 else min(g.good_support, g.relock_support)
+    if need and prior is not None and prior.mean is not None and prior.cov is not None:
+        far = mahalanobis2(lead.pose, prior.mean, prior.cov + FIX_COV) > GATE_SIGMAS**2
+        need = g.good_support if far else need
     ctx.tracker.reset(lead.pose, scan.odom.reading)
     if drv.speed is not None:
         ctx.tracker.set_speed(drv.speed)
@@ -588,9 +599,7 @@ def _probation(ctx: Context, p: Probation, scan: Scan) -> tuple[State, Estimate]
     verdict = _decide(ctx, drv, p.prior)
     if verdict.leader is p.winner and verdict.llr >= g.fix_llr:
         est.ambiguity = verdict.ambiguity
-        est.extras.update(
-            {"global_fix": 1.0, "probation_passed": 1.0, "llr": min(verdict.llr, 99.0)}
-        )
+        est.extras.update(global_fix=1.0, probation_passed=1.0, llr=min(verdict.llr, 99.0))
         return Tracking(est.pose.copy(), fit_cov(est), since_fix=0), est
     return _fail(ctx, p, {"probation_failed": 1.0, "probation_beaten": 1.0})
 

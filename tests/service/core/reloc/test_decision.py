@@ -13,6 +13,7 @@ from service.core.reloc.config import GlobalConfig
 from service.core.reloc.decision import Prior, decide
 from service.core.reloc.drive import Frame, Track
 from service.core.reloc.global_search import COST_FLOOR, Hypothesis
+from service.core.sensor.scoring import EFFECTIVE_BEAMS
 
 G = GlobalConfig.for_kind("metric")
 
@@ -99,3 +100,24 @@ def test_dead_reckoning_grows_the_covariance_along_the_drive() -> None:
     assert np.allclose(cov, cov.T)
     # the heading's uncertainty swings the position sideways (y) more than along (x)
     assert cov[1, 1] > cov[0, 0] > 1e-4 and cov[2, 2] > 1e-4
+
+
+def test_the_unseen_place_holds_the_dead_reckoned_mass_no_track_holds() -> None:
+    """After a loss in a corridor the map lacks, no search finds the robot where its odometry
+    says it is: the dead-reckoned Gaussian's mass is the unseen place's. A place 20 m off that
+    explains each frame 3 nats better than the unseen place (a look-alike) then needs those
+    odds of a kidnap, not only its frames' 12 nats, which it has with nothing known."""
+    frames, keys = _frames(4)
+    unseen = -EFFECTIVE_BEAMS * (G.null_cost - COST_FLOOR)
+    far = _track(20.0, [unseen + 3.0] * 4)
+    assert decide([far], frames, keys, UNIFORM, G).llr == pytest.approx(12.0)
+    k, cells = G.kidnap_weight, 5000.0
+    prior = Prior(np.zeros(3), np.diag([0.3**2, 0.3**2, 0.1**2]), k, cells)
+    v = decide([far], frames, keys, prior, G)
+    assert v.leader is far
+    assert v.llr == pytest.approx(12.0 + math.log(k / cells) - math.log(1.0 - k + k / cells))
+    assert v.llr < 0.0
+    # the prior's odds are paid once: a longer drive explained as well wins
+    frames, keys = _frames(12)
+    far.ll = {key: unseen + 3.0 for key in keys}
+    assert decide([far], frames, keys, prior, G).llr > v.llr + 20.0
