@@ -15,13 +15,13 @@ found, which nothing carries it back to, at its own mean (as the leader's, every
 a search found would reset the LLR). The prior (:class:`Prior`) is uniform while nothing is
 known; after a loss, the dead-reckoned pose's Gaussian with ``kidnap_weight`` spread over the
 map, so a place near where the robot should be needs far less evidence than one far away, and
-the Gaussian's mass no track holds is the unseen place's (a corridor the map lacks).
+a dead-reckoned Gaussian's mass no track holds is the unseen place's (a corridor the map lacks).
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -36,14 +36,15 @@ from service.core.types import wrap_angle
 
 @dataclass
 class Prior:
-    """Where the robot may be before the scans say: ``mean`` / ``cov`` the dead-reckoned pose
-    (``None``: uniform), ``kidnap`` the share of the mass spread evenly over ``cells``
-    distinct places of the map (its free area x 2 pi over a place's volume)."""
+    """Where the robot may be before the scans say: ``mean`` / ``cov`` the last pose (``None``:
+    uniform), dead-reckoned if ``carried`` (else held, widened by the speed), ``kidnap`` the
+    share of the mass spread evenly over ``cells`` places (free area x 2 pi / a place)."""
 
     mean: np.ndarray | None
     cov: np.ndarray | None
     kidnap: float
     cells: float
+    carried: bool = False
 
     def gaussian_mass(self, pose: np.ndarray) -> float:
         """The dead-reckoned Gaussian's mass in the place ``pose`` (0 while uniform)."""
@@ -65,7 +66,7 @@ class Prior:
         if self.mean is None or self.cov is None:
             return self
         mean, cov = propagate(self.mean, self.cov, delta, noise)
-        return Prior(mean, cov, self.kidnap, self.cells)
+        return replace(self, mean=mean, cov=cov)
 
 
 def mahalanobis2(pose: np.ndarray, mean: np.ndarray, cov: np.ndarray) -> float:
@@ -124,12 +125,13 @@ def decide(
 
     best_e, leader = max(((evidence(t), t) for t in full), key=lambda x: x[0])
     # the unseen place explains each keyframe as the true place would in the leader's region;
-    # its prior: a place's share of the kidnap mass and the Gaussian's mass no track holds
+    # its prior: a place's share of the kidnap mass and the dead-reckoned mass no track holds
     null = sum(
         -EFFECTIVE_BEAMS * (leader.null[k] - COST_FLOOR) if k in leader.null else unseen
         for k in keys
     )
-    null += prior.log(None, sum(prior.gaussian_mass(t.pose) for t in tracks))
+    held = sum(prior.gaussian_mass(t.pose) for t in tracks) if prior.carried else 1.0
+    null += prior.log(None, held)
     rest = [null] + [
         evidence(t, fill=leader)
         for t in tracks

@@ -250,7 +250,7 @@ def _lost(ctx: Context, pose: np.ndarray, cov: np.ndarray | None) -> Searching:
     """A search after the track is lost at ``pose`` (dead-reckoned, ``cov``; without odometry
     the last tracked pose, widened scan by scan): its prior the pose's Gaussian with
     ``kidnap_weight`` spread over the map, its first track the pose (verified a scan ago)."""
-    speed = ctx.tracker.known_speed()
+    speed, carried = ctx.tracker.known_speed(), cov is not None
     ctx.tracker.reset(None)
     if cov is None:
         step_m = 0.0 if speed is None else float(np.hypot(*speed))
@@ -258,7 +258,7 @@ def _lost(ctx: Context, pose: np.ndarray, cov: np.ndarray | None) -> Searching:
         cov = np.diag([grow, grow, math.pi**2])
     pose = np.asarray(pose, dtype=np.float64).copy()
     held = dr.Track(pose.copy(), gs.Hypothesis(pose=pose.copy(), cost=0.05))
-    prior = Prior(pose, cov.copy(), ctx.gconfig.kidnap_weight, 0.0)
+    prior = Prior(pose, cov.copy(), ctx.gconfig.kidnap_weight, 0.0, carried)
     return Searching(dr.Drive(tracks=[held], speed=speed), prior, "lost")
 
 
@@ -286,18 +286,14 @@ def _relock(
     start, (pose, cov) = pose, propagate(pose, cov, o.delta, o.noise(ctx.config.motion))
     est, good = _relock_fit(ctx, scan, start, pose, cov, g.good_support)
     if not good and g.relock_window:
-        peak = ctx.tracker.window(scan.ranges, scan.angles, pose, *_gate(cov))
+        half = GATE_SIGMAS * sigma_xy(cov), GATE_SIGMAS * math.sqrt(max(float(cov[2, 2]), 0.0))
+        peak = ctx.tracker.window(scan.ranges, scan.angles, pose, *half)
         if peak is not None and peak.distinct >= DISTINCT_PEAK:
             start = compose(peak.pose, invert(o.delta))
             support = min(g.good_support, g.relock_support)
             again, good = _relock_fit(ctx, scan, start, pose, cov, support)
             est = again if good else est  # the tracker's state then is unused: reset next scan
     return est, est.pose.copy() if good else pose, cov, good
-
-
-def _gate(cov: np.ndarray) -> tuple[float, float]:
-    """Half-widths (m, rad) of the :data:`GATE_SIGMAS` gate of a pose with covariance ``cov``."""
-    return GATE_SIGMAS * sigma_xy(cov), GATE_SIGMAS * math.sqrt(max(float(cov[2, 2]), 0.0))
 
 
 def _relock_fit(
@@ -350,8 +346,10 @@ def search_seeds(ctx: Context, drive: dr.Drive, prior: Prior, scan: Scan) -> lis
     if prior.mean is None:
         return out
     out += turned(prior.mean, SEED_TURNS if odometry else tuple(np.arange(8) * (np.pi / 4)))
-    if odometry and prior.cov is not None:
-        peak = ctx.tracker.window(scan.ranges, scan.angles, prior.mean, *_gate(prior.cov))
+    if odometry and prior.carried and ctx.gconfig.relock_window and prior.cov is not None:
+        c = prior.cov  # the gate, as a relock's
+        half = GATE_SIGMAS * sigma_xy(c), GATE_SIGMAS * math.sqrt(max(float(c[2, 2]), 0.0))
+        peak = ctx.tracker.window(scan.ranges, scan.angles, prior.mean, *half)
         out += [] if peak is None else [peak.pose.copy()]
     return out
 
@@ -529,13 +527,13 @@ def confirm(
     ctx: Context, drv: dr.Drive, lead: dr.Track, scan: Scan, prior: Prior | None = None
 ) -> Estimate | None:
     """The tracker's fit from the winner if it accepts the scan within :data:`CONFIRM_DISTANCE`
-    / :data:`CONFIRM_ANGLE` / :data:`CONFIRM_SIGMA` of it, else ``None``. Unless the preset
-    puts fixes on probation (floor plans), the fit must also explain ``relock_support`` of the
-    scan, as a relock's (a map that does not hold there leaves a look-alike place), and
-    ``good_support`` outside the ``prior``'s gate, where a look-alike is likelier than a kidnap."""
+    / :data:`CONFIRM_ANGLE` / :data:`CONFIRM_SIGMA` of it, else ``None``. Without a probation
+    (floor plans have one) the fit must explain ``relock_support`` of the scan, as a relock's,
+    and ``good_support`` outside a dead-reckoned ``prior``'s gate (look-alikes, not kidnaps)."""
     g = ctx.gconfig
     need = 0.0 if g.probation_travel > 0.0 else min(g.good_support, g.relock_support)
-    if need and prior is not None and prior.mean is not None and prior.cov is not None:
+    if need and prior is not None and prior.carried and prior.mean is not None:
+        assert prior.cov is not None
         far = mahalanobis2(lead.pose, prior.mean, prior.cov + FIX_COV) > GATE_SIGMAS**2
         need = g.good_support if far else need
     ctx.tracker.reset(lead.pose, scan.odom.reading)

@@ -106,17 +106,21 @@ def test_the_unseen_place_holds_the_dead_reckoned_mass_no_track_holds() -> None:
     """After a loss in a corridor the map lacks, no search finds the robot where its odometry
     says it is: the dead-reckoned Gaussian's mass is the unseen place's. A place 20 m off that
     explains each frame 3 nats better than the unseen place (a look-alike) then needs those
-    odds of a kidnap, not only its frames' 12 nats, which it has with nothing known."""
+    odds of a kidnap, not only its frames' 12 nats, which it has with nothing known or with
+    the last pose held without odometry."""
     frames, keys = _frames(4)
     unseen = -EFFECTIVE_BEAMS * (G.null_cost - COST_FLOOR)
     far = _track(20.0, [unseen + 3.0] * 4)
     assert decide([far], frames, keys, UNIFORM, G).llr == pytest.approx(12.0)
     k, cells = G.kidnap_weight, 5000.0
-    prior = Prior(np.zeros(3), np.diag([0.3**2, 0.3**2, 0.1**2]), k, cells)
+    prior = Prior(np.zeros(3), np.diag([0.3**2, 0.3**2, 0.1**2]), k, cells, carried=True)
     v = decide([far], frames, keys, prior, G)
     assert v.leader is far
     assert v.llr == pytest.approx(12.0 + math.log(k / cells) - math.log(1.0 - k + k / cells))
     assert v.llr < 0.0
+    # a pose held without odometry says less: the unseen place keeps one place's share
+    held = Prior(np.zeros(3), np.diag([0.3**2, 0.3**2, 0.1**2]), k, cells)
+    assert decide([far], frames, keys, held, G).llr == pytest.approx(12.0)
     # the prior's odds are paid once: a longer drive explained as well wins
     frames, keys = _frames(12)
     far.ll = {key: unseen + 3.0 for key in keys}

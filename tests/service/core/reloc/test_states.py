@@ -236,7 +236,7 @@ def test_a_search_after_a_loss_seeds_the_best_place_over_the_dead_reckoned_gate(
     ctx = loc.inner
     scan = st.Scan(_scan(truth, True, 0), ANGLES, OdometryStep(np.zeros(3)), True)
     mean = truth + np.array([1.0, -0.4, 0.05])
-    prior = Prior(mean, np.diag([0.5**2, 0.5**2, 0.05**2]), 0.01, 100.0)
+    prior = Prior(mean, np.diag([0.5**2, 0.5**2, 0.05**2]), 0.01, 100.0, carried=True)
     seeds = st.search_seeds(ctx, dr.Drive(), prior, scan)
     assert min(np.hypot(*(s[:2] - truth[:2])) for s in seeds) < 0.1
     plain = st.Scan(scan.ranges, ANGLES, OdometryStep(None), False)
@@ -248,18 +248,20 @@ def test_a_search_after_a_loss_seeds_the_best_place_over_the_dead_reckoned_gate(
 def test_a_fix_outside_the_dead_reckoned_gate_needs_the_map_to_hold_fully() -> None:
     """After a loss, a winner far outside the dead-reckoned prior's gate is more often a
     look-alike than a kidnap (intel's partial maps: fixes 5.6-20 m off explaining 0.52-0.61 of
-    the scan): on a metric map it needs good_support explained, one inside the gate
-    relock_support. A floor plan's winner goes to probation either way."""
+    the scan): on a metric map it needs good_support explained, one inside the gate (or near
+    a pose held without odometry) relock_support. A floor plan's winner goes to probation."""
     lead = dr.Track(np.array([3.0, 2.0, 0.1]), gs.Hypothesis(np.array([3.0, 2.0, 0.1]), 0.2))
     odom = OdometryStep(np.zeros(3))
     scan = st.Scan(np.full(ANGLES.shape, 2.0), ANGLES, odom, True)
     cov = np.diag([0.2**2, 0.2**2, 0.05**2])
-    near = Prior(np.array([3.2, 2.1, 0.1]), cov, 0.01, 100.0)
-    far = Prior(np.array([9.0, 2.0, 0.1]), cov, 0.01, 100.0)
+    near = Prior(np.array([3.2, 2.1, 0.1]), cov, 0.01, 100.0, carried=True)
+    far = Prior(np.array([9.0, 2.0, 0.1]), cov, 0.01, 100.0, carried=True)
+    held = Prior(np.array([9.0, 2.0, 0.1]), cov, 0.01, 100.0)  # no odometry carried it
     for kind, prior, explained, fixed in [
         ("metric", near, 0.55, True),
         ("metric", far, 0.55, False),
         ("metric", far, 0.75, True),
+        ("metric", held, 0.55, True),
         ("schematic", far, 0.36, True),
     ]:
         g = GlobalConfig.for_kind(kind)
