@@ -37,8 +37,8 @@ from service.core.types import wrap_angle
 @dataclass
 class Prior:
     """Where the robot may be before the scans say: ``mean`` / ``cov`` the last pose (``None``:
-    uniform), dead-reckoned if ``carried`` (else held, widened by the speed), ``kidnap`` the
-    share of the mass spread evenly over ``cells`` places (free area x 2 pi / a place)."""
+    uniform), dead-reckoned by wheel odometry if ``carried``, ``kidnap`` the share of the
+    mass spread evenly over ``cells`` places (free area x 2 pi / a place's volume)."""
 
     mean: np.ndarray | None
     cov: np.ndarray | None
@@ -125,13 +125,13 @@ def decide(
 
     best_e, leader = max(((evidence(t), t) for t in full), key=lambda x: x[0])
     # the unseen place explains each keyframe as the true place would in the leader's region;
-    # its prior: a place's share of the kidnap mass and the dead-reckoned mass no track holds
+    # its prior: a place's kidnap share and, if fixes are final, the dead-reckoned mass left
     null = sum(
         -EFFECTIVE_BEAMS * (leader.null[k] - COST_FLOOR) if k in leader.null else unseen
         for k in keys
     )
-    held = sum(prior.gaussian_mass(t.pose) for t in tracks) if prior.carried else 1.0
-    null += prior.log(None, held)
+    final = prior.carried and not g.probation_travel  # floor plans' probation guards theirs
+    null += prior.log(None, sum(prior.gaussian_mass(t.pose) for t in tracks) if final else 1.0)
     rest = [null] + [
         evidence(t, fill=leader)
         for t in tracks

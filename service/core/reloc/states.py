@@ -209,7 +209,7 @@ def _tracking(ctx: Context, s: Tracking, scan: Scan) -> tuple[State, Estimate]:
         if est.status == "lost" or (rejected and est.score < g.collapse_score):
             # nothing bridges a scan that fits the map nowhere near the pose
             est.extras["collapsed"] = 1.0
-            return _lost(ctx, est.pose, None), est
+            return _lost(ctx, est.pose, None, False), est
         return s, est
     if o.delta is None or s.ref is None or s.cov is None:
         s.ref, s.cov = est.pose.copy(), fit_cov(est)  # the reference starts here
@@ -236,7 +236,7 @@ def _tracking(ctx: Context, s: Tracking, scan: Scan) -> tuple[State, Estimate]:
     s.strikes = s.strikes + 1 if contradicted else 0
     if s.strikes >= ctx.config.lost_after:
         est.extras["contradicted"] = 1.0
-        return _lost(ctx, s.ref, s.cov), est
+        return _lost(ctx, s.ref, s.cov, not scan.from_scans), est
     stray = not rejected and mahalanobis2(est.pose, s.ref, s.cov + FIX_COV) > GATE_SIGMAS**2
     if stray or est.status == "lost" or sigma_xy(s.cov) > g.track_sigma:
         est.extras["stray" if stray else "unexplained"] = 1.0
@@ -246,11 +246,11 @@ def _tracking(ctx: Context, s: Tracking, scan: Scan) -> tuple[State, Estimate]:
     return s, est
 
 
-def _lost(ctx: Context, pose: np.ndarray, cov: np.ndarray | None) -> Searching:
-    """A search after the track is lost at ``pose`` (dead-reckoned, ``cov``; without odometry
-    the last tracked pose, widened scan by scan): its prior the pose's Gaussian with
-    ``kidnap_weight`` spread over the map, its first track the pose (verified a scan ago)."""
-    speed, carried = ctx.tracker.known_speed(), cov is not None
+def _lost(ctx: Context, pose: np.ndarray, cov: np.ndarray | None, carried: bool) -> Searching:
+    """A search after the track is lost at ``pose`` (``cov``: dead-reckoned, by wheel odometry
+    if ``carried``; without odometry the last tracked pose, widened scan by scan): its prior
+    the pose's Gaussian with ``kidnap_weight`` spread over the map, its first track the pose."""
+    speed = ctx.tracker.known_speed()
     ctx.tracker.reset(None)
     if cov is None:
         step_m = 0.0 if speed is None else float(np.hypot(*speed))
@@ -316,7 +316,7 @@ def _dead_reckoning(ctx: Context, d: DeadReckoning, scan: Scan) -> tuple[State, 
     o = scan.odom
     if not scan.odometry or o.delta is None or o.previous is None:
         # the odometry stopped: nothing carries the pose any more
-        return _lost(ctx, d.pose, d.cov), Estimate(d.pose.copy(), "lost", 0.0)
+        return _lost(ctx, d.pose, d.cov, False), Estimate(d.pose.copy(), "lost", 0.0)
     est, d.pose, d.cov, good = _relock(ctx, d.pose, d.cov, scan)
     d.relock = d.relock + 1 if good else 0
     d.broken = (d.broken or o.broken) and est.score < g.collapse_score  # as in Tracking
@@ -329,7 +329,7 @@ def _dead_reckoning(ctx: Context, d: DeadReckoning, scan: Scan) -> tuple[State, 
     if d.strikes >= ctx.config.lost_after or sigma_xy(d.cov) > g.max_dead_reckoning_sigma:
         # a search, the dead-reckoned pose its prior (and still relocked the same way)
         out.extras["contradicted" if d.strikes else "dead_reckoning_expired"] = 1.0
-        return _lost(ctx, d.pose, d.cov), out
+        return _lost(ctx, d.pose, d.cov, not scan.from_scans), out
     return d, out
 
 
