@@ -334,9 +334,9 @@ def _dead_reckoning(ctx: Context, d: DeadReckoning, scan: Scan) -> tuple[State, 
 
 
 def search_seeds(ctx: Context, drive: dr.Drive, prior: Prior, scan: Scan) -> list[np.ndarray]:
-    """The kept tracks as the next search's seeds, each turned by :data:`SEED_TURNS`, the
-    prior's mean (all round without odometry: the robot may have turned) and with odometry the
-    window's best place over its gate (a map lacking walls leaves the index no viewpoint there)."""
+    """The kept tracks as the next search's seeds, each turned by :data:`SEED_TURNS`, the prior's
+    mean (all round without odometry) and, for a wheel-carried prior where relocks use the
+    window, its best place over the gate (a map lacking walls leaves the index no viewpoint)."""
 
     def turned(p: np.ndarray, turns: tuple[float, ...]) -> list[np.ndarray]:
         return [np.array([*p[:2], wrap_angle(p[2] + t)]) for t in turns]
