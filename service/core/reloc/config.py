@@ -78,8 +78,8 @@ class GlobalConfig(Settings):
     # --- the evidence over a drive ------------------------------------------------------------
     evidence_span: Positive = Field(
         6.0,
-        description="The window holds the keyframes of the last this many metres: longer and "
-        "the odometry's drift bends a hypothesis' older poses off the map.",
+        description="The window holds the keyframes of the last this many metres (odometry drift "
+        "bends older poses off the map); a fix outside the dead-reckoned gate is doubted as far.",
     )
     evidence_short_scale: NonNegative = Field(
         0.0,

@@ -8,14 +8,11 @@ The leader, the largest ``E`` among the tracks scored on every frame, wins when
 
     LLR = E_leader - log(sum over the rest of exp(E_a))  >=  fix_llr,
 
-i.e. when the posterior odds of the leader against everything else reach ``exp(fix_llr)``. An
-alternative not yet scored on a keyframe counts as explaining it as well as the leader (it can
-only lower the LLR) until it is back-scored; on a plain scan (no odometry) from before it was
-found, which nothing carries it back to, at its own mean (as the leader's, every middling place
-a search found would reset the LLR). The prior (:class:`Prior`) is uniform while nothing is
-known; after a loss, the dead-reckoned pose's Gaussian with ``kidnap_weight`` spread over the
-map, so a place near where the robot should be needs far less evidence than one far away, and
-a dead-reckoned Gaussian's mass no track holds is the unseen place's (a corridor the map lacks).
+the posterior odds of the leader against everything else. An alternative not yet scored on a
+keyframe counts there as the leader (it can only lower the LLR); on a plain scan from before
+it was found, as its own mean. The prior (:class:`Prior`): uniform while nothing is known;
+after a loss the dead-reckoned Gaussian, ``kidnap_weight`` spread over the map, its mass no
+track holds the unseen place's (a corridor the map lacks).
 """
 
 from __future__ import annotations

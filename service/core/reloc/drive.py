@@ -1,12 +1,11 @@
 """Hypotheses over a drive: the places a search found, followed scan by scan and judged on the
 same frames of the drive.
 
-A place a search finds is good on the scan at hand; a corridor's repeating doors or a room's
-twin can be as good there as the true place while the drive tells them apart. With odometry a
-hypothesis' pose implies where the robot stood on every earlier keyframe, so all are judged on
-the same keyframes, back-scored on those before a search found them (docs/decisions/0017).
-Work is counted in reference ms (:data:`.global_search.WORK_MS`): the same scans give the same
-poses on any machine. Poses ``[x, y, theta]`` in the map frame, odometry in its own.
+A corridor's repeating doors or a room's twin can match a scan as well as the true place;
+the drive tells them apart. With odometry a hypothesis' pose implies where the robot stood on
+every earlier keyframe: all are judged on the same keyframes, back-scored on those before a
+search found them (docs/decisions/0017). Work is in reference ms (:data:`.global_search.
+WORK_MS`): the same scans give the same poses on any machine.
 """
 
 from __future__ import annotations
@@ -33,8 +32,7 @@ from service.core.types import wrap_angle
 TURN_BETWEEN_SCANS = 1.3
 #: Polish stages (step m, step rad) of a track's first keyframe: +-0.43 m / +-10 degrees.
 WIDE_POLISH = ((0.15, 0.06), (0.05, 0.02), (0.015, 0.006))
-#: With odometry a scan becomes a keyframe when the robot has driven this far (m) since the
-#: last one (closer scans repeat its evidence), or turned this much (rad, new walls).
+#: A keyframe every this far (m; closer scans repeat its evidence) or this turn (rad).
 EVIDENCE_SPACING = 0.3
 EVIDENCE_TURN = 0.3
 #: At most this many keyframes in the window (``GlobalConfig.evidence_span``).
@@ -43,16 +41,14 @@ EVIDENCE_FRAMES = 20
 SCAN_WINDOW = 6
 #: A frame's cost is clipped here: one keyframe with a person in view must not outweigh a drive.
 EVIDENCE_CLIP = 1.0
-#: A track this many nats below the leader or the unseen place on 3 frames or more is let go
-#: (a mean cost 0.3 worse over 10 keyframes).
+#: A track this many nats below the leader or the unseen place on 3+ frames is let go.
 EVIDENCE_DROP = 60.0
 #: Weight of the moved pose as the re-scoring polish's prior: without it tracks slide in corridors.
 RESCORE_PRIOR = 0.02
 #: Mean predicted range (m) beyond which the unseen place's cost rises (GlobalConfig.null_slope).
 NULL_REACH = 5.0
-#: With odometry the search matches the last this many scans fused (1: every scan alone) into
-#: this many beams (never finer than the laser's), leaving out scans farther than this (m)
-#: from the newest (their occlusions no longer hold).
+#: With odometry the search matches the last this many scans fused into this many beams,
+#: leaving out scans farther than this (m) from the newest (their occlusions no longer hold).
 COMPOSITE_SCANS = 3
 COMPOSITE_BINS = 720
 COMPOSITE_TRAVEL = 0.5
@@ -401,11 +397,7 @@ def merge(
 
 
 def prune(
-    tracks: list[Track],
-    frames: list[Frame],
-    keys: list[int],
-    leader: Track | None,
-    g: GlobalConfig,
+    tracks: list[Track], frames: list[Frame], keys: list[int], leader: Track | None, g: GlobalConfig
 ) -> list[Track]:
     """The tracks to keep: one trailing the ``leader``, or the unseen place, by
     :data:`EVIDENCE_DROP` nats on at least 3 common frames of ``keys`` goes; of the rest the

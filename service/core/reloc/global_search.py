@@ -182,9 +182,8 @@ def near(a: np.ndarray, b: np.ndarray, dist: float = 0.3, ang: float = 0.15) -> 
     )
 
 
-#: Work model (ms of one core of the reference machine per item): a stand-in for CPU time, so a
-#: budgeted search gives the same poses on any machine and under any load (docs/decisions/0005),
-#: at or above the slowest tuning map's measurement (bench/bench_work_model.py).
+#: Work model (ms of one reference core per item): a budgeted search gives the same poses on any
+#: machine and load (docs/decisions/0005); at or above bench/bench_work_model.py's slowest map.
 WORK_MS = {
     "sstar": 0.0105,  # one S* comparison (shape_distance with an upper bound)
     "induced": 0.045,  # one S*-induced alignment
@@ -424,12 +423,10 @@ def self_similar_steps(
     config: ShapeConfig,
     gconfig: GlobalConfig,
 ) -> Generator[float, None, Hypothesis | None]:
-    """The map's own twin of ``best`` verified on the real scan, or ``None``, as steps.
-
-    A search can miss the true place (furniture hides its walls) and crown a congruent room
-    elsewhere with no close rival. So before a fix the scan the map would give at ``best.pose``
-    is searched for; every distinct place found is one the map cannot tell from it, verified
-    on the real scan as found and refined on its points (furniture drags fits), the better."""
+    """The map's own twin of ``best`` verified on the real scan, or ``None``, as steps: a
+    search can miss the true place (furniture hides its walls) and crown a congruent room. The
+    scan the map gives at ``best.pose`` is searched for; a distinct place found is verified on
+    the real scan as found and refined on its points (furniture drags fits), the better."""
     assert index.sensor is not None
     pred = index.sensor.caster.cast(best.pose, angles, config.view_max_range)
     pred = np.where(np.isfinite(ranges), pred, np.nan)

@@ -25,29 +25,25 @@ from service.core.tracking.localizer import ShapeConfig, ShapeLocalizer
 from service.core.tracking.scan_odometry import OdometryStep
 from service.core.types import Estimate, Status, wrap_angle
 
-#: Heading offsets (rad) under which a kept hypothesis seeds the next search: a robot may turn
-#: that much between two scans, more than the fit recovers.
+#: Heading offsets (rad) a kept hypothesis seeds the next search at (a turn the fit misses).
 SEED_TURNS = (0.0, -0.4, 0.4, -0.8, 0.8)
 #: Work (reference ms) of the tracker's confirmation of a winner: one update from a reset.
 CONFIRM_MS = 20.0
-#: Covariance (m², rad²) of a pose the map has just confirmed, at least: a fit's own says how
-#: well the points pin it, not how far a wrong association moves it (accepted fits differ
-#: from the odometry's step by up to ~5 cm and ~1.5 degrees).
+#: Least covariance (m², rad²) of a pose the map just confirmed: accepted fits differ from the
+#: odometry's step by up to ~5 cm and ~1.5 degrees, more than a fit's own covariance says.
 FIX_COV = np.diag([0.05**2, 0.05**2, 0.03**2])
 #: Without odometry the prior around the last tracked pose widens by this times the robot's
 #: known speed (m per scan, at least 5 cm) per scan; it may turn any amount.
 HELD_GROWTH = 2.0
-#: With a budget, at most this share re-scores the kept hypotheses on the scan and
-#: EVIDENCE_SHARE scores them on the keyframes they lack; the search gets the rest (larger
-#: shares for the tracks fixed fewer robots).
+#: Budget shares re-scoring the kept hypotheses on the scan and scoring them on the keyframes
+#: they lack; the search gets the rest (larger shares for the tracks fixed fewer robots).
 RESCORE_SHARE = 0.3
 EVIDENCE_SHARE = 0.2
 #: At most this shortlist and refine_top in a twin check (it searches the map's own view).
 TWIN_SHORTLIST = 60
 TWIN_REFINE_TOP = 12
-#: The tracker's first fit must lie this close to the winner (m), turned less than this (rad)
-#: and with a position sigma of at most this (m): a corridor's parallel walls verify equally
-#: well further along, and a right fix is pinned to a centimetre.
+#: The tracker's first fit lies this close to the winner (m, rad) with a sigma of at most this
+#: (m): a corridor verifies as well further along; a right fix is pinned to a centimetre.
 CONFIRM_DISTANCE = 0.3
 CONFIRM_ANGLE = 0.1
 CONFIRM_SIGMA = 0.05
@@ -56,8 +52,7 @@ GATE_SIGMAS = 3.0
 #: A window search's peak is distinct when every place half a metre from it scores at most
 #: 1 - this of it: a corridor's length scores alike (0.0-0.05), a room 0.35-0.45.
 DISTINCT_PEAK = 0.3
-#: With the odometry prior off, an odometry turn larger than this (rad) still moves the
-#: tracker's pose first (the tracker follows turns up to 1.3 rad).
+#: With the odometry prior off, a larger odometry turn (rad) still moves the tracker first.
 ODOM_TURN_ASSIST = 1.0
 
 
@@ -90,7 +85,8 @@ class Tracking:
     """The tracker follows. With odometry ``ref`` / ``cov``, carried from the last scan the map
     explained well, gate worse fits (:data:`GATE_SIGMAS`, ``track_sigma``). ``strikes``: scans
     in a row that contradicted the pose; ``broken``: the scan-to-scan fit broke since the last
-    well explained scan; ``since_fix``: scans since a search's fix."""
+    well explained scan; ``since_fix``: scans since a search's fix; ``overruled``: the
+    wheel-carried prior a fix outside its gate overruled, carried ``doubt_m`` metres more."""
 
     ref: np.ndarray | None = None
     cov: np.ndarray | None = None
@@ -98,6 +94,8 @@ class Tracking:
     since_fix: int = 1 << 30
     broken: bool = False
     name: str = "tracking"
+    overruled: Prior | None = None
+    doubt_m: float = 0.0
 
 
 @dataclass
@@ -117,9 +115,8 @@ class DeadReckoning:
 @dataclass
 class Searching:
     """The search over a ``drive``: ``prior`` where the robot may be (default uniform), the
-    ``status`` published (``initializing`` before any fix, ``lost`` after one); ``relock`` as
-    :class:`DeadReckoning`'s, from a dead-reckoned prior's mean (``weak``: one of those fits
-    explained less than ``good_support``)."""
+    ``status`` (``initializing``, ``lost`` after a fix); ``relock`` as :class:`DeadReckoning`'s,
+    from the prior's mean (``weak``: one of those fits explained less than ``good_support``)."""
 
     drive: dr.Drive = field(default_factory=dr.Drive)
     prior: Prior = field(default_factory=lambda: Prior(None, None, 1.0, 1.0))
@@ -131,9 +128,9 @@ class Searching:
 
 @dataclass
 class Probation:
-    """With odometry a winner (``winner``, among the ``drive``'s tracks) is tracked
-    ``probation_travel`` metres (``left`` to go) and fixed if the decision still names it then;
-    ``rejected``: scans in a row that contradicted it; ``ambiguity``: the decision's."""
+    """With odometry a ``winner`` among the ``drive``'s tracks is tracked ``probation_travel``
+    m (``left`` to go), fixed if the decision still names it then; ``rejected``: scans in a row
+    that contradicted it; ``ambiguity``: the decision's."""
 
     drive: dr.Drive
     prior: Prior
@@ -193,13 +190,11 @@ def _tracking(ctx: Context, s: Tracking, scan: Scan) -> tuple[State, Estimate]:
     g = ctx.gconfig
     o = scan.odom
     if o.delta is not None and not scan.odometry and abs(float(o.delta[2])) > ODOM_TURN_ASSIST:
-        # a turn the tracker cannot bridge without its odometry prior (a look-around spin
-        # after the fix): the odometry's heading change moves its pose first
+        # a turn the tracker cannot bridge without its odometry prior (a look-around spin)
         ctx.tracker.predict(o.delta)
     est = _fit(ctx, scan)
     if est.ambiguity is not None:
-        # the tracker's own ambiguity compares step-2 hypotheses that often converge to one
-        # pose: no integrity signal; the published ambiguity is the search's
+        # the tracker's compares step-2 hypotheses that mostly converge: the search's is published
         est.extras["tracker_ambiguity"] = float(est.ambiguity)
     est.ambiguity = None
     s.since_fix += 1
@@ -214,7 +209,11 @@ def _tracking(ctx: Context, s: Tracking, scan: Scan) -> tuple[State, Estimate]:
     if o.delta is None or s.ref is None or s.cov is None:
         s.ref, s.cov = est.pose.copy(), fit_cov(est)  # the reference starts here
         return s, est
-    s.ref, s.cov = propagate(s.ref, s.cov, o.delta, o.noise(ctx.config.motion))
+    noise = o.noise(ctx.config.motion)
+    s.ref, s.cov = propagate(s.ref, s.cov, o.delta, noise)
+    if s.overruled is not None:
+        s.doubt_m -= o.step
+        s.overruled = s.overruled.moved(o.delta, noise) if s.doubt_m > 0.0 else None
     slid = False
     if scan.from_scans and g.scan_odometry_violation < 1.0:
         # an odometry measured from the scans moves a pose that slid along a corridor, or
@@ -225,10 +224,9 @@ def _tracking(ctx: Context, s: Tracking, scan: Scan) -> tuple[State, Estimate]:
     if not slid and not rejected and (est.explained or 0.0) >= g.good_support:
         s.ref, s.cov, s.strikes, s.broken = est.pose.copy(), fit_cov(est), 0, False
         return s, est
-    # a poorly explained scan contradicts the pose (a kidnap) after a break of the scan-to-scan
-    # fit (after a kidnap the scans match each other again), else if rejected with beams through
-    # drawn walls (moved furniture lets beams through a good fit), scoring low unless a laser
-    # odometry carries the pose (it turns a symmetric room's scan wrong as smoothly as right)
+    # a poorly explained scan contradicts the pose after a break of the scan-to-scan fit (a
+    # kidnap), else if rejected with beams through drawn walls (moved furniture lets beams
+    # through a good fit), scoring low unless a laser odometry carries the pose
     low = est.score < g.collapse_score
     s.broken = (s.broken or o.broken) and low
     doubted = low or scan.from_scans
@@ -236,20 +234,29 @@ def _tracking(ctx: Context, s: Tracking, scan: Scan) -> tuple[State, Estimate]:
     s.strikes = s.strikes + 1 if contradicted else 0
     if s.strikes >= ctx.config.lost_after:
         est.extras["contradicted"] = 1.0
-        return _lost(ctx, s.ref, s.cov, not scan.from_scans), est
+        return _lost(ctx, s.ref, s.cov, not scan.from_scans, s.overruled), est
     stray = not rejected and mahalanobis2(est.pose, s.ref, s.cov + FIX_COV) > GATE_SIGMAS**2
     if stray or est.status == "lost" or sigma_xy(s.cov) > g.track_sigma:
         est.extras["stray" if stray else "unexplained"] = 1.0
+        if s.overruled is not None:  # doubted: the search, not a dead-reckoned look-alike
+            return _lost(ctx, s.ref, s.cov, True, s.overruled), est
         ctx.tracker.reset(None)
         dead = DeadReckoning(s.ref.copy(), s.cov.copy(), strikes=s.strikes, broken=s.broken)
         return dead, _dead_estimate(dead, est)
     return s, est
 
 
-def _lost(ctx: Context, pose: np.ndarray, cov: np.ndarray | None, carried: bool) -> Searching:
+def _lost(
+    ctx: Context,
+    pose: np.ndarray,
+    cov: np.ndarray | None,
+    carried: bool,
+    doubted: Prior | None = None,
+) -> Searching:
     """A search after the track is lost at ``pose`` (``cov``: dead-reckoned, by wheel odometry
     if ``carried``; without odometry the last tracked pose, widened scan by scan): its prior
-    the pose's Gaussian with ``kidnap_weight`` spread over the map, its first track the pose."""
+    the pose's Gaussian with ``kidnap_weight`` spread over the map (a ``doubted`` fix's: the
+    prior it overruled, widened to hold the pose), its first track the pose."""
     speed = ctx.tracker.known_speed()
     ctx.tracker.reset(None)
     if cov is None:
@@ -259,6 +266,9 @@ def _lost(ctx: Context, pose: np.ndarray, cov: np.ndarray | None, carried: bool)
     pose = np.asarray(pose, dtype=np.float64).copy()
     held = dr.Track(pose.copy(), gs.Hypothesis(pose=pose.copy(), cost=0.05))
     prior = Prior(pose, cov.copy(), ctx.gconfig.kidnap_weight, 0.0, carried)
+    if doubted is not None and doubted.mean is not None and doubted.cov is not None:
+        d = np.array([*(pose[:2] - doubted.mean[:2]), wrap_angle(float(pose[2] - doubted.mean[2]))])
+        prior = dataclasses.replace(doubted, cov=doubted.cov + np.outer(d, d))
     return Searching(dr.Drive(tracks=[held], speed=speed), prior, "lost")
 
 
@@ -445,8 +455,8 @@ def _searching(ctx: Context, s: Searching, scan: Scan) -> tuple[State, Estimate]
     verdict = _decide(ctx, drv, s.prior)
     lead = verdict.leader
     ctx.work_ms = spent
-    # a relock on fits explaining less than good_support waits while the search's leader is,
-    # more likely than not, another place (a robot carried into a corridor like the one it left)
+    # a relock on fits explaining less than good_support waits while the search's leader is
+    # more likely another place (a robot carried into a corridor like the one it left)
     if relocked is not None and not (
         lead is not None and verdict.llr > 0.0 and gs.distinct(lead.pose, relocked.pose)
     ):
@@ -483,7 +493,10 @@ def _searching(ctx: Context, s: Searching, scan: Scan) -> tuple[State, Estimate]
                 return p, _probation_estimate(p, est)
             est.extras["global_fix"] = 1.0
             ref = est.pose.copy() if scan.odometry else None
-            return Tracking(ref, fit_cov(est), since_fix=0), est
+            t = Tracking(ref, fit_cov(est), since_fix=0)
+            if outside(s.prior, est.pose):  # a look-alike as likely as a kidnap: doubted
+                t.overruled, t.doubt_m = s.prior, g.evidence_span
+            return t, est
         extras["confirm_rejected"] = 1.0
     return s, _guess(s, verdict, extras, g.fix_llr, carried=o.delta is not None)
 
@@ -491,13 +504,10 @@ def _searching(ctx: Context, s: Searching, scan: Scan) -> tuple[State, Estimate]
 def _guess(
     s: Searching, verdict: Verdict, extras: dict[str, float], fix_llr: float, carried: bool = True
 ) -> Estimate:
-    """The pose published while the search goes on: after a loss, while an odometry carries
-    the prior (``carried``), its mean with its covariance until a fix (a leader short of
-    ``fix_llr`` may still be overturned, and the pose should not jump there and back);
-    otherwise the leader, else the best track by cost, else the prior's mean or the origin.
-    Without any odometry the prior's mean stays where the track was lost while the robot
-    drives on (fr079's floor plan, lost scans within 0.5 m: 8 % at the mean, 15 % at the
-    leader)."""
+    """The pose published while searching: while an odometry carries the prior, its mean and
+    covariance until a fix (a leader short of ``fix_llr`` may yet be overturned); otherwise
+    the leader, else the best track by cost, else the prior's mean or the origin (fr079's
+    floor plan without odometry, lost scans within 0.5 m: 8 % at the mean, 15 % leader)."""
     drv, lead = s.drive, verdict.leader
     if carried and s.prior.mean is not None and not verdict.llr >= fix_llr:
         lead = None
@@ -532,10 +542,7 @@ def confirm(
     and ``good_support`` outside a dead-reckoned ``prior``'s gate (look-alikes, not kidnaps)."""
     g = ctx.gconfig
     need = 0.0 if g.probation_travel > 0.0 else min(g.good_support, g.relock_support)
-    if need and prior is not None and prior.carried and prior.mean is not None:
-        assert prior.cov is not None
-        far = mahalanobis2(lead.pose, prior.mean, prior.cov + FIX_COV) > GATE_SIGMAS**2
-        need = g.good_support if far else need
+    need = g.good_support if need and prior is not None and outside(prior, lead.pose) else need
     ctx.tracker.reset(lead.pose, scan.odom.reading)
     if drv.speed is not None:
         ctx.tracker.set_speed(drv.speed)
@@ -551,6 +558,13 @@ def confirm(
         return est
     ctx.tracker.reset(None)
     return None
+
+
+def outside(prior: Prior, pose: np.ndarray) -> bool:
+    """Whether ``pose`` lies outside the :data:`GATE_SIGMAS` gate of a wheel-carried prior."""
+    if not prior.carried or prior.mean is None or prior.cov is None:
+        return False
+    return mahalanobis2(pose, prior.mean, prior.cov + FIX_COV) > GATE_SIGMAS**2
 
 
 def _probation_estimate(p: Probation, est: Estimate) -> Estimate:

@@ -18,7 +18,7 @@ from service.core.reloc import drive as dr
 from service.core.reloc import global_search as gs
 from service.core.reloc import states as st
 from service.core.reloc.config import GlobalConfig
-from service.core.reloc.decision import Prior
+from service.core.reloc.decision import Prior, mahalanobis2
 from service.core.reloc.global_localization import GlobalShapeLocalizer
 from service.core.sensor.raycast import RayCaster
 from service.core.tracking.laser_odometry import LaserOdometryLocalizer
@@ -268,3 +268,37 @@ def test_a_fix_outside_the_dead_reckoned_gate_needs_the_map_to_hold_fully() -> N
         ctx = SimpleNamespace(gconfig=g, tracker=_Confirmation(explained))
         est = st.confirm(ctx, dr.Drive(), lead, scan, prior)  # type: ignore[arg-type]
         assert (est is not None) == fixed, (kind, explained)
+
+
+def test_a_loss_soon_after_a_fix_outside_the_gate_searches_both_places() -> None:
+    """A fix outside the dead-reckoned prior's gate is a look-alike about as often as a
+    correction of drift the prior's sigma understated (intel's partial maps: a corridor 10 m
+    off fixed, lost 2 m later and relocked there from its own pose; and right fixes 1-5 m
+    from the dead-reckoned mean). Lost within evidence_span metres of such a fix, the search's
+    prior is the overruled prior, carried by the odometry and widened to hold the lost pose
+    (its first track); past that, the lost pose's own."""
+    poses = [np.array([1.0 + 0.05 * k, 2.4, 0.0]) for k in range(40)]
+    cov = np.diag([0.3**2, 0.3**2, 0.05**2])
+    for doubt_m in (6.0, 0.1):
+        loc = create_localizer("shape", _room(), poses[0])
+        loc.gconfig = loc.gconfig.model_copy(update={"track_sigma": 0.06})
+        for k in range(5):
+            loc.update(_scan(poses[k], True, k), ANGLES, poses[k])
+        assert isinstance(loc.state, st.Tracking)
+        loc.state.overruled = Prior(np.array([4.5, 1.5, 0.0]), cov, 0.01, 100.0, carried=True)
+        loc.state.doubt_m = doubt_m
+        k = 5
+        while isinstance(loc.state, st.Tracking):
+            est = loc.update(_scan(poses[k], False, k), ANGLES, poses[k])
+            k += 1
+        lost = poses[k - 1]
+        if doubt_m < 1.0:
+            assert isinstance(loc.state, st.DeadReckoning)
+            assert np.hypot(*(loc.state.pose[:2] - lost[:2])) < 0.05
+            continue
+        assert isinstance(loc.state, st.Searching) and est.status == "lost"
+        prior = loc.state.prior
+        assert prior.carried and prior.mean is not None and prior.cov is not None
+        np.testing.assert_allclose(prior.mean[:2], [4.5 + 0.05 * (k - 5), 1.5], atol=0.02)
+        assert mahalanobis2(lost, prior.mean, prior.cov) <= 1.0
+        assert np.hypot(*(loc.state.drive.tracks[0].pose[:2] - lost[:2])) < 0.05
