@@ -27,8 +27,7 @@ from service.core.shapes.configuration import Configuration
 from service.core.tracking.shape_config import ShapeConfig
 from service.core.types import wrap_angle
 
-#: Heading change (rad) a robot may make between two scans without odometry (the tracker's
-#: max_turn): a place found again within ``near``'s distance of a track is that track.
+#: Turn (rad) between two scans without odometry (the tracker's max_turn), for ``merge``.
 TURN_BETWEEN_SCANS = 1.3
 #: Polish stages (step m, step rad) of a track's first keyframe: +-0.43 m / +-10 degrees.
 WIDE_POLISH = ((0.15, 0.06), (0.05, 0.02), (0.015, 0.006))

@@ -422,30 +422,29 @@ def self_similar_steps(
     P: Configuration,
     config: ShapeConfig,
     gconfig: GlobalConfig,
-) -> Generator[float, None, Hypothesis | None]:
-    """The map's own twin of ``best`` verified on the real scan, or ``None``, as steps: a
-    search can miss the true place (furniture hides its walls) and crown a congruent room. The
-    scan the map gives at ``best.pose`` is searched for; a distinct place found is verified on
-    the real scan as found and refined on its points (furniture drags fits), the better."""
+    count: int = 1,
+) -> Generator[float, None, list[Hypothesis]]:
+    """The map's own twins of ``best`` verified on the real scan, the best ``count`` first,
+    as steps: a search can miss the true place (furniture hides its walls) and crown a
+    congruent room. The scan the map gives at ``best.pose`` is searched for; each distinct place
+    found is verified on the real scan as found and refined on its points, the better."""
     assert index.sensor is not None
     pred = index.sensor.caster.cast(best.pose, angles, config.view_max_range)
     pred = np.where(np.isfinite(ranges), pred, np.nan)
     if np.count_nonzero(np.isfinite(pred)) < 10:
-        return None
+        return []
     res = yield from search_steps(index, pred, angles, config, gconfig)
     cands = [h.pose for h in res.hypotheses if distinct(h.pose, best.pose)]
     sp = support_sample(P)
     if not cands or len(sp) == 0:
-        return None
-    out: Hypothesis | None = None
+        return []
+    out: list[Hypothesis] = []
     for i in range(0, len(cands), _CHUNK_REFINE):
         block = np.vstack(cands[i : i + _CHUNK_REFINE])
         refined = refine(index, block, sp, config)
-        for pose in [*block, *refined]:
-            if not distinct(pose, best.pose):
-                continue
-            v = verify(index, pose, ranges, angles, P, config, gconfig)
-            if out is None or v.cost < out.cost:
-                out = v
+        for pair in zip(block, refined, strict=True):
+            found = [verify(index, q, ranges, angles, P, config, gconfig) for q in pair]
+            found = [v for v in found if distinct(v.pose, best.pose)]
+            out += [min(found, key=lambda v: v.cost)] if found else []
         yield len(block) * (refine_ms(index) + 2.0 * verify_ms(index, gconfig))
-    return out
+    return sorted(out, key=lambda v: v.cost)[:count]

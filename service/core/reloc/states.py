@@ -32,16 +32,17 @@ CONFIRM_MS = 20.0
 #: Least covariance (m², rad²) of a pose the map just confirmed: accepted fits differ from the
 #: odometry's step by up to ~5 cm and ~1.5 degrees, more than a fit's own covariance says.
 FIX_COV = np.diag([0.05**2, 0.05**2, 0.03**2])
-#: Without odometry the prior around the last tracked pose widens by this times the robot's
-#: known speed (m per scan, at least 5 cm) per scan; it may turn any amount.
+#: Without odometry the prior widens by this times the known speed (m/scan, >= 5 cm) a scan.
 HELD_GROWTH = 2.0
 #: Budget shares re-scoring the kept hypotheses on the scan and scoring them on the keyframes
 #: they lack; the search gets the rest (larger shares for the tracks fixed fewer robots).
 RESCORE_SHARE = 0.3
 EVIDENCE_SHARE = 0.2
-#: At most this shortlist and refine_top in a twin check (it searches the map's own view).
+#: A twin check (it searches the map's own view): at most this shortlist and refine_top; under
+#: a probation it adds the best this many twins (a plan draws a corridor's look-alikes alike).
 TWIN_SHORTLIST = 60
 TWIN_REFINE_TOP = 12
+TWIN_KEEP = 3
 #: The tracker's first fit lies this close to the winner (m, rad) with a sigma of at most this
 #: (m): a corridor verifies as well further along; a right fix is pinned to a centimetre.
 CONFIRM_DISTANCE = 0.3
@@ -49,8 +50,7 @@ CONFIRM_ANGLE = 0.1
 CONFIRM_SIGMA = 0.05
 #: Sigmas of the dead-reckoned reference a poorly explained fit may stray from it.
 GATE_SIGMAS = 3.0
-#: A window search's peak is distinct when every place half a metre from it scores at most
-#: 1 - this of it: a corridor's length scores alike (0.0-0.05), a room 0.35-0.45.
+#: A window peak is distinct if places 0.5 m off score <= 1 - this of it (corridor 0-.05, room .4).
 DISTINCT_PEAK = 0.3
 #: With the odometry prior off, a larger odometry turn (rad) still moves the tracker first.
 ODOM_TURN_ASSIST = 1.0
@@ -224,9 +224,8 @@ def _tracking(ctx: Context, s: Tracking, scan: Scan) -> tuple[State, Estimate]:
     if not slid and not rejected and (est.explained or 0.0) >= g.good_support:
         s.ref, s.cov, s.strikes, s.broken = est.pose.copy(), fit_cov(est), 0, False
         return s, est
-    # a poorly explained scan contradicts the pose after a break of the scan-to-scan fit (a
-    # kidnap), else if rejected with beams through drawn walls (moved furniture lets beams
-    # through a good fit), scoring low unless a laser odometry carries the pose
+    # a poorly explained scan contradicts the pose after a scan-to-scan break (a kidnap), else
+    # if rejected with beams through drawn walls, scoring low unless laser odometry carries it
     low = est.score < g.collapse_score
     s.broken = (s.broken or o.broken) and low
     doubted = low or scan.from_scans
@@ -382,9 +381,16 @@ def _search_work(
     spent = dr.rescore(
         ctx.index, drv.tracks, rs, as_, P, ctx.config, g, budget * RESCORE_SHARE, frame
     )
-    # the evidence's share is scored after the search, so the places it found this scan are
-    # judged on the window before the decision (unscored, each would count as the leader)
+    # under a probation places found are judged before the search looks for more (unjudged,
+    # each counts as the leader: a final fix keeps that caution, fix_llr was set with it); the
+    # evidence's share follows the search, to judge what it found this scan
     evidence = budget * EVIDENCE_SHARE if o.reading is not None else 0.0
+    frames = dr.window(drv.frames, g)
+    first = g.probation_travel > 0.0 and o.reading is not None
+    if first and any(set(dr.judged(frames)) - t.ll.keys() for t in drv.tracks):
+        spent += dr.backfill(
+            ctx.index, drv.tracks, frames, o.reading, ctx.config, g, budget - spent
+        )
     search_limit = budget - evidence if math.isfinite(budget) else budget
     found = -1
     if drv.twin is not None:
@@ -393,9 +399,8 @@ def _search_work(
             job, drv.twin = drv.twin, None
             if job.track is not None:
                 job.track.checked = True
-            if twin is not None:
-                move = dr.odometry_move(job.odom, o.reading)
-                drv.tracks = dr.merge(drv.tracks, [twin], move, 1)
+            move = dr.odometry_move(job.odom, o.reading)
+            drv.tracks = dr.merge(drv.tracks, twin or [], move, TWIN_KEEP)
     if drv.twin is None and spent < search_limit:
         if drv.job is None:
             seeds = search_seeds(ctx, drv, prior, scan)
@@ -411,7 +416,6 @@ def _search_work(
             drv.job = None
             found = res.candidates
     if o.reading is not None:
-        frames = dr.window(drv.frames, g)
         spent += dr.backfill(ctx.index, drv.tracks, frames, o.reading, ctx.config, g, evidence)
     return spent, found, (rs, as_, P)
 
@@ -473,12 +477,10 @@ def _searching(ctx: Context, s: Searching, scan: Scan) -> tuple[State, Estimate]
         extras["lead_checked"] = float(lead.checked)
         extras["lead_found"] = float(lead.found)
     if lead is not None and not lead.checked and drv.twin is None:
-        twin = {
-            "shortlist": min(g.shortlist, TWIN_SHORTLIST),
-            "refine_top": min(g.refine_top, TWIN_REFINE_TOP),
-        }
-        tg = g.model_copy(update=twin)
-        steps = gs.self_similar_steps(ctx.index, lead.hyp, rs, as_, P, ctx.config, tg)
+        caps = {"shortlist": TWIN_SHORTLIST, "refine_top": TWIN_REFINE_TOP}
+        tg = g.model_copy(update={k: min(getattr(g, k), v) for k, v in caps.items()})
+        n = TWIN_KEEP if g.probation_travel > 0.0 else 1
+        steps = gs.self_similar_steps(ctx.index, lead.hyp, rs, as_, P, ctx.config, tg, n)
         drv.twin = dr.Job(steps, None if o.reading is None else o.reading.copy(), track=lead)
     if lead is not None and verdict.llr >= g.fix_llr and lead.checked:
         ctx.work_ms += CONFIRM_MS

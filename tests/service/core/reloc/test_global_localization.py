@@ -376,14 +376,16 @@ def test_predict_moves_the_tracker_pose_by_a_relative_motion() -> None:
 # ------------------------------------------------------------------------- self-similarity
 
 
-def _twin_rooms() -> MapData:
-    """Two congruent L-shaped rooms 7 m apart (no 180-degree symmetry within a room)."""
+def _twin_rooms(n: int = 2) -> MapData:
+    """``n`` congruent L-shaped rooms 7 m apart (no 180-degree symmetry within a room)."""
     room = np.array([[0, 0], [5, 0], [5, 2], [3, 2], [3, 3.5], [0, 3.5], [0, 0]], dtype=float)
-    return MapData.from_lists("twins", "metric", [room, room + np.array([7.0, 0.0])])
+    return MapData.from_lists(
+        "twins", "metric", [room + np.array([7.0 * k, 0.0]) for k in range(n)]
+    )
 
 
-def test_self_similar_finds_the_congruent_room_from_the_map_alone() -> None:
-    md = _twin_rooms()
+def test_self_similar_finds_every_congruent_room_from_the_map_alone() -> None:
+    md = _twin_rooms(3)
     laser = LaserSimulator(md.segments(), seed=7)
     truth = np.array([1.2, 1.0, 0.3])
     r, a = laser.scan(truth, 0)
@@ -392,10 +394,14 @@ def test_self_similar_finds_the_congruent_room_from_the_map_alone() -> None:
     g = gl.GlobalConfig.for_kind("metric")
     P = scan_configuration(r, a, cfg.extraction())
     best = verify(idx, truth, r, a, P, cfg, g)
-    twin = run_steps(self_similar_steps(idx, best, r, a, P, cfg, g))
-    assert twin is not None
-    assert _found(twin.pose, truth + np.array([7.0, 0.0, 0.0]))
-    assert abs(twin.cost - best.cost) < 0.05  # the scan cannot tell them apart
+    (one,) = run_steps(self_similar_steps(idx, best, r, a, P, cfg, g))
+    twins = run_steps(self_similar_steps(idx, best, r, a, P, cfg, g, count=3))
+    assert [t.cost for t in twins] == sorted(t.cost for t in twins)
+    assert one.cost == twins[0].cost
+    for k in (1, 2):  # each other room, once
+        shifted = truth + np.array([7.0 * k, 0.0, 0.0])
+        assert sum(_found(t.pose, shifted) for t in twins) == 1, [t.pose for t in twins]
+    assert all(abs(t.cost - best.cost) < 0.05 for t in twins[:2])  # the scan cannot tell them apart
 
 
 def test_congruent_rooms_never_give_a_fix() -> None:

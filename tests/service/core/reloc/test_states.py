@@ -302,3 +302,35 @@ def test_a_loss_soon_after_a_fix_outside_the_gate_searches_both_places() -> None
         np.testing.assert_allclose(prior.mean[:2], [4.5 + 0.05 * (k - 5), 1.5], atol=0.02)
         assert mahalanobis2(lost, prior.mean, prior.cov) <= 1.0
         assert np.hypot(*(loc.state.drive.tracks[0].pose[:2] - lost[:2])) < 0.05
+
+
+def test_places_found_are_judged_on_the_window_before_the_search_looks_for_more() -> None:
+    """An unjudged place counts as the leader on the keyframes it lacks, and a budgeted search
+    ends every few scans: were its new places judged only in the evidence's share, the LLR
+    would fall back each time (mit-csail's floor plan: the true place led from 5.8 m and was
+    fixed at 18 m). Where a probation checks fixes, a scan's budget judges them first; where
+    a fix is final, fix_llr was set with that caution, and it stays."""
+    for probation, first in ((2.0, True), (0.0, False)):
+        loc = create_localizer("shape", _room(), None)
+        update = {"fix_llr": 1e6, "search_budget_ms": 50.0, "probation_travel": probation}
+        loc.gconfig = loc.gconfig.model_copy(update=update)
+        poses = [np.array([1.0 + 0.35 * k, 2.4, 0.0]) for k in range(8)]
+        for k in range(7):
+            loc.update(_scan(poses[k], True, k), ANGLES, poses[k])
+        assert isinstance(loc.state, st.Searching)
+        drv = loc.state.drive
+        assert len(dr.window(drv.frames, loc.gconfig)) == 7
+        rng = np.random.default_rng(0)
+        places = [poses[6]] + [
+            np.array([*rng.uniform([0.5, 0.5], [5.5, 2.8]), 0.0]) for _ in range(7)
+        ]
+        drv.tracks = [dr.Track(p.copy(), gs.Hypothesis(p.copy(), 0.5)) for p in places]
+        drv.job = None
+        est = loc.update(_scan(poses[7], True, 7), ANGLES, poses[7])
+        keys = {f.key for f in dr.window(drv.frames, loc.gconfig)}
+        judged = [keys <= t.ll.keys() for t in drv.tracks]
+        assert drv.tracks and all(judged) == first, judged
+        if first:
+            lead = max(drv.tracks, key=lambda t: sum(t.ll.values()))
+            assert np.hypot(*(lead.at[7][:2] - poses[7][:2])) < 0.1  # where it stood this scan
+            assert est.extras["llr"] > 25.0
