@@ -398,16 +398,16 @@ def merge(
 def prune(
     tracks: list[Track], frames: list[Frame], keys: list[int], leader: Track | None, g: GlobalConfig
 ) -> list[Track]:
-    """The tracks to keep: one trailing the ``leader``, or the unseen place, by
-    :data:`EVIDENCE_DROP` nats on at least 3 common frames of ``keys`` goes; of the rest the
-    best ``keep`` judged on the whole window and ``keep`` still being judged, one per place."""
-    null = -EFFECTIVE_BEAMS * (g.null_cost - gs.COST_FLOOR)
+    """The tracks to keep: one trailing the ``leader``, or the unseen place (its cost there, as
+    the decision's), by :data:`EVIDENCE_DROP` nats on at least 3 common frames of ``keys`` goes;
+    of the rest the best ``keep`` judged on the whole window and ``keep`` being judged."""
 
     def dropped(t: Track) -> bool:
-        mine = [t.ll[k] for k in keys if k in t.ll]
+        mine = [k for k in keys if k in t.ll]
         if len(mine) < 3:
             return False
-        if sum(mine) < len(mine) * null - EVIDENCE_DROP:
+        null = sum(-EFFECTIVE_BEAMS * (t.null.get(k, g.null_cost) - gs.COST_FLOOR) for k in mine)
+        if sum(t.ll[k] for k in mine) < null - EVIDENCE_DROP:
             return True
         if leader is None or t is leader:
             return False

@@ -1,5 +1,6 @@
 """The tracks a drive lets go (service.core.reloc.drive.prune): a track trailing the leader by
-evidence_drop nats on the frames both were scored on goes, one closer stays."""
+evidence_drop nats on the frames both were scored on goes, one closer stays; one trailing the
+unseen place by as much goes, the unseen place weighed as the decision weighs it."""
 
 from __future__ import annotations
 
@@ -30,3 +31,23 @@ def test_a_track_trailing_the_leader_by_evidence_drop_in_all_goes() -> None:
     assert EVIDENCE_DROP == 60.0
     assert leader in kept and close in kept
     assert behind not in kept
+
+
+def test_a_track_trailing_the_unseen_place_goes_as_the_decision_weighs_it() -> None:
+    """The unseen place's cost on a frame rises where the map's walls stand far (null_slope):
+    the true place explains less there. A track is let go only if it trails the unseen place
+    so weighed, as in the decision, not the flat null_cost (mit-csail's floor plan: the true
+    place, found after 6 m, went on its first scan over the window)."""
+    g = GlobalConfig.for_kind("schematic")
+    assert g.null_cost == 0.7 and g.null_slope > 0.0
+    n = 12
+    empty = np.zeros(0)
+    frames = [Frame(k, empty, empty, np.zeros((0, 2)), np.zeros(3), 0.3 * k) for k in range(n)]
+    keys = list(range(n))
+    # 19 nats a frame (the clip): 228 in all, 72 below the flat unseen place (13 a frame)
+    far, near = _track(0.0, -19.0, n), _track(5.0, -19.0, n)
+    far.null = {k: 0.9 for k in keys}  # far walls: the unseen place at 17 a frame, 204 in all
+    near.null = {k: 0.7 for k in keys}
+    kept = prune([far, near], frames, keys, None, g)
+    assert far in kept
+    assert near not in kept
