@@ -443,8 +443,8 @@ def self_similar_steps(
         block = np.vstack(cands[i : i + _CHUNK_REFINE])
         refined = refine(index, block, sp, config)
         for pair in zip(block, refined, strict=True):
-            found = [verify(index, q, ranges, angles, P, config, gconfig) for q in pair]
-            found = [v for v in found if distinct(v.pose, best.pose)]
+            kept = [q for q in pair if distinct(q, best.pose)]
+            found = [verify(index, q, ranges, angles, P, config, gconfig) for q in kept]
             out += [min(found, key=lambda v: v.cost)] if found else []
         yield len(block) * (refine_ms(index) + 2.0 * verify_ms(index, gconfig))
     return sorted(out, key=lambda v: v.cost)[:count]
