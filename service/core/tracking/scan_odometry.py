@@ -271,6 +271,10 @@ class ScanOdometry:
     previous scan is forgotten. Picklable.
     """
 
+    #: the turn (rad) the last fit took out of its raw increment (0: none); a class default,
+    #: so a state pickled before it was kept loads
+    owed: float = 0.0
+
     def __init__(self, config: ScanOdometryConfig, motion: MotionConfig) -> None:
         self.config = config
         self.motion = motion
@@ -284,7 +288,6 @@ class ScanOdometry:
         #: (``None``: the increment was not replaced); a motion model passed it knows its
         #: increment from there is scan-matched (``MotionConfig.matched_turn_noise``)
         self.matched_from: np.ndarray | None = None
-        #: the turn (rad) the last fit took out of its raw increment (0: none)
         self.owed = 0.0
 
     @property
