@@ -121,10 +121,16 @@ def decide(
         return total + prior.log(t.pose)
 
     best_e, leader = max(((evidence(t), t) for t in full), key=lambda x: x[0])
-    # the unseen place explains each keyframe as the true place would in the leader's region;
-    # its prior: a place's kidnap share and, if fixes are final, the dead-reckoned mass left
+    # the unseen place explains each keyframe of the window as the true place would in the
+    # leader's region, and one that left it as the leader did: what the search has not found
+    # is judged on what it could be found on now (a corridor the map lacks, driven before the
+    # map held again, is no evidence for a place elsewhere); its prior: a place's kidnap share
+    # and, if fixes are final, the dead-reckoned mass left
+    recent = {f.key for f in frames}
     null = sum(
-        -EFFECTIVE_BEAMS * (leader.null[k] - COST_FLOOR) if k in leader.null else unseen
+        (-EFFECTIVE_BEAMS * (leader.null[k] - COST_FLOOR) if k in leader.null else unseen)
+        if k in recent or k not in leader.ll
+        else leader.ll[k]
         for k in keys
     )
     final = prior.carried and not g.probation_travel  # floor plans' probation guards theirs

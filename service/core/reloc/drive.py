@@ -398,16 +398,20 @@ def merge(
 def prune(
     tracks: list[Track], frames: list[Frame], keys: list[int], leader: Track | None, g: GlobalConfig
 ) -> list[Track]:
-    """The tracks to keep: one trailing the ``leader``, or the unseen place (its cost there, as
-    the decision's), by :data:`EVIDENCE_DROP` nats on at least 3 common frames of ``keys`` goes;
+    """The tracks to keep: one trailing the ``leader`` on at least 3 common frames of ``keys``,
+    or the unseen place on 3 of the window's (its cost there, as the decision's), by
+    :data:`EVIDENCE_DROP` nats goes;
     of the rest the best ``keep`` judged on the whole window and ``keep`` being judged."""
+
+    recent = {f.key for f in frames}
 
     def dropped(t: Track) -> bool:
         mine = [k for k in keys if k in t.ll]
         if len(mine) < 3:
             return False
-        null = sum(-EFFECTIVE_BEAMS * (t.null.get(k, g.null_cost) - gs.COST_FLOOR) for k in mine)
-        if sum(t.ll[k] for k in mine) < null - EVIDENCE_DROP:
+        now = [k for k in mine if k in recent]  # the unseen place is judged on the window
+        null = sum(-EFFECTIVE_BEAMS * (t.null.get(k, g.null_cost) - gs.COST_FLOOR) for k in now)
+        if len(now) >= 3 and sum(t.ll[k] for k in now) < null - EVIDENCE_DROP:
             return True
         if leader is None or t is leader:
             return False

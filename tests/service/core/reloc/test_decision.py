@@ -125,3 +125,20 @@ def test_the_unseen_place_holds_the_dead_reckoned_mass_no_track_holds() -> None:
     frames, keys = _frames(12)
     far.ll = {key: unseen + 3.0 for key in keys}
     assert decide([far], frames, keys, prior, G).llr > v.llr + 20.0
+
+
+def test_the_unseen_place_is_judged_on_the_window_and_places_on_the_whole_drive() -> None:
+    """A robot that drove 6 keyframes through a corridor the map lacks, then back where it holds:
+    the true place found early explains those frames 4 nats each worse than the unseen place,
+    the window's 3 better. The unseen place (what the search has not found) is judged on the
+    window, so the corridor is no evidence against the place; a place elsewhere that explains
+    the corridor better still wins on the whole drive."""
+    frames, keys = _frames(10)
+    window = frames[6:]
+    unseen = -EFFECTIVE_BEAMS * (G.null_cost - COST_FLOOR)
+    early = _track(0.0, [unseen - 4.0] * 6 + [unseen + 3.0] * 4)
+    assert decide([early], window, keys, UNIFORM, G).llr == pytest.approx(12.0)
+    other = _track(20.0, [unseen - 1.0] * 6 + [unseen + 3.0] * 4)
+    v = decide([early, other], window, keys, UNIFORM, G)
+    assert v.leader is other
+    assert v.llr == pytest.approx(-math.log(math.exp(-18.0) + math.exp(-12.0)))
