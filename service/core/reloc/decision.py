@@ -3,8 +3,9 @@ the rest, over the drive's frames, with a prior.
 
 A hypothesis' evidence is ``E_h = sum_k L_h,k + log pi(h)``: its log-likelihoods (nats) on the
 drive's frames (:mod:`.drive`) and its prior. The *rest* are the distinct alternatives and the
-*unseen place* (what the search has not found), which explains every frame at ``null_cost``.
-The leader, the largest ``E`` among the tracks scored on every frame, wins when
+*unseen place* (what the search has not found), which explains every frame of the window at
+``null_cost`` and counts as the leader on a keyframe that left it. The leader, the largest
+``E`` among the tracks scored on every frame, wins when
 
     LLR = E_leader - log(sum over the rest of exp(E_a))  >=  fix_llr,
 
@@ -121,17 +122,12 @@ def decide(
         return total + prior.log(t.pose)
 
     best_e, leader = max(((evidence(t), t) for t in full), key=lambda x: x[0])
-    # the unseen place explains each keyframe of the window as the true place would in the
-    # leader's region, and one that left it as the leader did: what the search has not found
-    # is judged on what it could be found on now (a corridor the map lacks, driven before the
-    # map held again, is no evidence for a place elsewhere); its prior: a place's kidnap share
-    # and, if fixes are final, the dead-reckoned mass left
-    recent = {f.key for f in frames}
+    # the unseen place: on the window as the true place in the leader's region, before it as the
+    # leader (a corridor the map lacks is no evidence for a place elsewhere); its prior: a place's
+    # kidnap share and, if fixes are final, the dead-reckoned mass left
+    gone = {k: leader.ll[k] for k in set(leader.ll) - {f.key for f in frames}}
     null = sum(
-        (-EFFECTIVE_BEAMS * (leader.null[k] - COST_FLOOR) if k in leader.null else unseen)
-        if k in recent or k not in leader.ll
-        else leader.ll[k]
-        for k in keys
+        gone.get(k, -EFFECTIVE_BEAMS * (leader.null.get(k, g.null_cost) - COST_FLOOR)) for k in keys
     )
     final = prior.carried and not g.probation_travel  # floor plans' probation guards theirs
     null += prior.log(None, sum(prior.gaussian_mass(t.pose) for t in tracks) if final else 1.0)

@@ -343,8 +343,7 @@ def backfill(
             pose = polished[0]
             cost, null = frame_cost(index, pose, f, config, g)
             if not t.ll:
-                # a track's first keyframe: also a wide polish and the pose as given, so a
-                # hypothesis some degrees off converges before it is judged
+                # a first keyframe: a wide polish and the pose as given (a place degrees off)
                 wide, _ = index.sensor.polish(start[None, :], f.points, gs.FINE_SCALE, WIDE_POLISH)
                 for alt in (wide[0], start):
                     c, n = frame_cost(index, alt, f, config, g)
@@ -398,11 +397,9 @@ def merge(
 def prune(
     tracks: list[Track], frames: list[Frame], keys: list[int], leader: Track | None, g: GlobalConfig
 ) -> list[Track]:
-    """The tracks to keep: one trailing the ``leader`` on at least 3 common frames of ``keys``,
-    or the unseen place on 3 of the window's (its cost there, as the decision's), by
-    :data:`EVIDENCE_DROP` nats goes;
-    of the rest the best ``keep`` judged on the whole window and ``keep`` being judged."""
-
+    """The tracks to keep: one trailing the ``leader`` on 3+ common frames of ``keys``, or the
+    unseen place on 3+ of the window's (its cost there, as the decision's), by EVIDENCE_DROP
+    nats goes; of the rest the best ``keep`` judged on the whole window, ``keep`` being judged."""
     recent = {f.key for f in frames}
 
     def dropped(t: Track) -> bool:

@@ -59,8 +59,7 @@ class GlobalShapeLocalizer:
     def __setstate__(self, state: dict[str, Any]) -> None:
         if "state" not in state:
             state = _from_earlier(state)
-        # an earlier version kept the directory of its index files: the index is then
-        # shared from this process' memory or built there
+        # an earlier version kept its index files' directory: the index is shared or built here
         state.pop("cache_dir", None)
         self.__dict__.update({"index_store": None, **state})
 

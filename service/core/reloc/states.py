@@ -459,8 +459,7 @@ def _searching(ctx: Context, s: Searching, scan: Scan) -> tuple[State, Estimate]
     verdict = _decide(ctx, drv, s.prior)
     lead = verdict.leader
     ctx.work_ms = spent
-    # a relock on fits explaining less than good_support waits while the search's leader is
-    # more likely another place (a robot carried into a corridor like the one it left)
+    # a weak relock waits while the search leads elsewhere (carried into a corridor like its own)
     if relocked is not None and not (
         lead is not None and verdict.llr > 0.0 and gs.distinct(lead.pose, relocked.pose)
     ):
@@ -594,8 +593,7 @@ def _probation(ctx: Context, p: Probation, scan: Scan) -> tuple[State, Estimate]
         drv.move(o.delta, o.step)
         p.prior = p.prior.moved(o.delta, o.noise(ctx.config.motion))
         p.winner.pose = est.pose.copy()
-        # the travel counts on motion the scans confirm: an increment the scan-to-scan fit
-        # could not match is the raw odometry's, and the tracker follows it
+        # the travel counts on motion the scans confirm (a failed scan-to-scan fit: raw odometry)
         p.left = g.probation_travel if o.broken else p.left - o.step
         drv.observe(scan.ranges, scan.angles, o.reading, g)
         frames = dr.window(drv.frames, g)
