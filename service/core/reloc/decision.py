@@ -125,7 +125,8 @@ def decide(
     # the unseen place: on the window as the true place in the leader's region, before it as the
     # leader (a corridor the map lacks is no evidence for a place elsewhere); its prior: a place's
     # kidnap share and, if fixes are final, the dead-reckoned mass left
-    gone = {k: leader.ll[k] for k in set(leader.ll) - {f.key for f in frames}}
+    lost = prior.mean is not None
+    gone = {k: leader.ll[k] for k in set(leader.ll) - {f.key for f in frames}} if lost else {}
     null = sum(
         gone.get(k, -EFFECTIVE_BEAMS * (leader.null.get(k, g.null_cost) - COST_FLOOR)) for k in keys
     )

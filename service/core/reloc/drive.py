@@ -395,12 +395,17 @@ def merge(
 
 
 def prune(
-    tracks: list[Track], frames: list[Frame], keys: list[int], leader: Track | None, g: GlobalConfig
+    tracks: list[Track],
+    frames: list[Frame],
+    keys: list[int],
+    leader: Track | None,
+    g: GlobalConfig,
+    lost: bool = False,
 ) -> list[Track]:
     """The tracks to keep: one trailing the ``leader`` on 3+ common frames of ``keys``, or the
     unseen place on 3+ of the window's (its cost there, as the decision's), by EVIDENCE_DROP
     nats goes; of the rest the best ``keep`` judged on the whole window, ``keep`` being judged."""
-    recent = {f.key for f in frames}
+    recent = {f.key for f in frames} if lost else set(keys)
 
     def dropped(t: Track) -> bool:
         mine = [k for k in keys if k in t.ll]

@@ -427,7 +427,7 @@ def _decide(ctx: Context, drv: dr.Drive, prior: Prior) -> Verdict:
         prior.cells = max(1.0, len(ctx.index.viewpoints) * SPACING**2 * 2.0 * math.pi / CELL_VOLUME)
     keys = drv.evidence_keys(g)
     verdict = decide(drv.tracks, frames, keys, prior, g)
-    drv.tracks = dr.prune(drv.tracks, frames, keys, verdict.leader, g)
+    drv.tracks = dr.prune(drv.tracks, frames, keys, verdict.leader, g, prior.mean is not None)
     return verdict
 
 

@@ -127,18 +127,25 @@ def test_the_unseen_place_holds_the_dead_reckoned_mass_no_track_holds() -> None:
     assert decide([far], frames, keys, prior, G).llr > v.llr + 20.0
 
 
-def test_the_unseen_place_is_judged_on_the_window_and_places_on_the_whole_drive() -> None:
-    """A robot that drove 6 keyframes through a corridor the map lacks, then back where it holds:
-    the true place found early explains those frames 4 nats each worse than the unseen place,
-    the window's 3 better. The unseen place (what the search has not found) is judged on the
-    window, so the corridor is no evidence against the place; a place elsewhere that explains
-    the corridor better still wins on the whole drive."""
+def test_after_a_loss_the_unseen_place_is_judged_on_the_window_places_on_the_whole_drive() -> None:
+    """A robot lost in a corridor the map lacks drove 6 keyframes there, then back where it
+    holds: the true place found early explains those frames 4 nats each worse than the unseen
+    place, the window's 3 better. After a loss the unseen place (what the search has not found)
+    is judged on the window, so the corridor is no evidence against the place; a place
+    elsewhere that explains the corridor better still wins on the whole drive. A first search
+    (nothing known) weighs the unseen place on the whole drive."""
     frames, keys = _frames(10)
     window = frames[6:]
     unseen = -EFFECTIVE_BEAMS * (G.null_cost - COST_FLOOR)
     early = _track(0.0, [unseen - 4.0] * 6 + [unseen + 3.0] * 4)
-    assert decide([early], window, keys, UNIFORM, G).llr == pytest.approx(12.0)
+    assert decide([early], window, keys, UNIFORM, G).llr == pytest.approx(-12.0)
+    lost = Prior(np.zeros(3), np.diag([4.0, 4.0, 1.0]), G.kidnap_weight, 5000.0)
+    odds = lost.log(early.pose) - lost.log(None, 1.0)
+    assert decide([early], window, keys, lost, G).llr == pytest.approx(12.0 + odds)
     other = _track(20.0, [unseen - 1.0] * 6 + [unseen + 3.0] * 4)
-    v = decide([early, other], window, keys, UNIFORM, G)
+    v = decide([early, other], window, keys, lost, G)
     assert v.leader is other
-    assert v.llr == pytest.approx(-math.log(math.exp(-18.0) + math.exp(-12.0)))
+    e_other = 6 * (unseen - 1.0) + 4 * (unseen + 3.0) + lost.log(other.pose)
+    e_early = 6 * (unseen - 4.0) + 4 * (unseen + 3.0) + lost.log(early.pose)
+    e_null = 6 * (unseen - 1.0) + 4 * unseen + lost.log(None, 1.0)
+    assert v.llr == pytest.approx(e_other - math.log(math.exp(e_early) + math.exp(e_null)))

@@ -53,11 +53,11 @@ def test_a_track_trailing_the_unseen_place_goes_as_the_decision_weighs_it() -> N
     assert near not in kept
 
 
-def test_the_unseen_place_lets_go_of_a_track_on_the_window_only() -> None:
-    """A track that followed the robot through a corridor the map lacks (16 keyframes at the
-    clip, 6 nats a frame below the unseen place, 96 in all) and explains the window's 4 better
-    (4 nats a frame above) is kept, as the decision judges it; the same frames all still in
-    the window let it go."""
+def test_after_a_loss_the_unseen_place_lets_go_of_a_track_on_the_window_only() -> None:
+    """After a loss, a track that followed the robot through a corridor the map lacks (16
+    keyframes at the clip, 6 nats a frame below the unseen place, 96 in all) and explains the
+    window's 4 better (4 nats a frame above) is kept, as the decision judges it; a first search,
+    or the same frames all still in the window, let it go."""
     g = GlobalConfig.for_kind("schematic")
     n = 20
     empty = np.zeros(0)
@@ -66,5 +66,6 @@ def test_the_unseen_place_lets_go_of_a_track_on_the_window_only() -> None:
     t = _track(0.0, -19.0, n)
     t.ll.update({k: -9.0 for k in range(16, n)})
     t.null = {k: 0.7 for k in keys}
-    assert t in prune([t], frames[16:], keys, None, g)
-    assert t not in prune([t], frames, keys, None, g)
+    assert t in prune([t], frames[16:], keys, None, g, lost=True)
+    assert t not in prune([t], frames[16:], keys, None, g)
+    assert t not in prune([t], frames, keys, None, g, lost=True)
