@@ -3,9 +3,9 @@ the rest, over the drive's frames, with a prior.
 
 A hypothesis' evidence is ``E_h = sum_k L_h,k + log pi(h)``: its log-likelihoods (nats) on the
 drive's frames (:mod:`.drive`) and its prior. The *rest* are the distinct alternatives and the
-*unseen place* (what the search has not found), which explains every frame of the window at
-``null_cost`` and counts as the leader on a keyframe that left it. The leader, the largest
-``E`` among the tracks scored on every frame, wins when
+*unseen place* (what the search has not found), which explains every frame at ``null_cost``;
+after a loss, only the window's, and a keyframe that left it as the leader. The leader, the
+largest ``E`` among the tracks scored on every frame, wins when
 
     LLR = E_leader - log(sum over the rest of exp(E_a))  >=  fix_llr,
 
@@ -122,9 +122,9 @@ def decide(
         return total + prior.log(t.pose)
 
     best_e, leader = max(((evidence(t), t) for t in full), key=lambda x: x[0])
-    # the unseen place: on the window as the true place in the leader's region, before it as the
-    # leader (a corridor the map lacks is no evidence for a place elsewhere); its prior: a place's
-    # kidnap share and, if fixes are final, the dead-reckoned mass left
+    # the unseen place: as the true place in the leader's region; after a loss, before the window
+    # as the leader (the corridor that lost it is no evidence for a place elsewhere); its prior:
+    # a place's kidnap share and, if fixes are final, the dead-reckoned mass left
     lost = prior.mean is not None
     gone = {k: leader.ll[k] for k in set(leader.ll) - {f.key for f in frames}} if lost else {}
     null = sum(

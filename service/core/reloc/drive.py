@@ -159,9 +159,7 @@ class Drive:
         """The frames the decision sums over: every keyframe of the drive, or without odometry
         the window's plain scans (consecutive scans see nearly the same)."""
         win = window(self.frames, g)
-        if win and win[-1].odom is None:
-            return [f.key for f in win]
-        return list(self.keyframes)
+        return [f.key for f in win] if win and win[-1].odom is None else list(self.keyframes)
 
     def composite(
         self, ranges: np.ndarray, angles: np.ndarray, odom: np.ndarray | None
@@ -230,9 +228,7 @@ def judged(frames: list[Frame]) -> list[int]:
     """Keys of the window's frames a track must be scored on to be judged: every keyframe
     (back-scoring reaches those before it was found), or without odometry the newest scan
     only (nothing carries a place found later back to an earlier scan)."""
-    if frames and frames[-1].odom is None:
-        return [frames[-1].key]
-    return [f.key for f in frames]
+    return [frames[-1].key] if frames and frames[-1].odom is None else [f.key for f in frames]
 
 
 def loglik(cost: float) -> float:
@@ -408,10 +404,7 @@ def prune(
     recent = {f.key for f in frames} if lost else set(keys)
 
     def dropped(t: Track) -> bool:
-        mine = [k for k in keys if k in t.ll]
-        if len(mine) < 3:
-            return False
-        now = [k for k in mine if k in recent]  # the unseen place is judged on the window
+        now = [k for k in keys if k in t.ll and k in recent]  # where the unseen place is judged
         null = sum(-EFFECTIVE_BEAMS * (t.null.get(k, g.null_cost) - gs.COST_FLOOR) for k in now)
         if len(now) >= 3 and sum(t.ll[k] for k in now) < null - EVIDENCE_DROP:
             return True
