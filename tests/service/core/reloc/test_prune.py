@@ -11,6 +11,12 @@ from service.core.reloc.drive import EVIDENCE_DROP, Frame, Track, prune
 from service.core.reloc.global_search import Hypothesis
 
 
+def _frames(n: int) -> tuple[list[Frame], list[int]]:
+    empty = np.zeros(0)
+    frames = [Frame(k, empty, empty, np.zeros((0, 2)), np.zeros(3), 0.3 * k) for k in range(n)]
+    return frames, list(range(n))
+
+
 def _track(x: float, per_frame: float, frames: int) -> Track:
     pose = np.array([x, 0.0, 0.0])
     return Track(pose, Hypothesis(pose.copy(), 0.3), ll={k: per_frame for k in range(frames)})
@@ -19,9 +25,7 @@ def _track(x: float, per_frame: float, frames: int) -> Track:
 def test_a_track_trailing_the_leader_by_evidence_drop_in_all_goes() -> None:
     g = GlobalConfig.for_kind("schematic")
     n = 10
-    empty = np.zeros(0)
-    frames = [Frame(k, empty, empty, np.zeros((0, 2)), np.zeros(3), 0.3 * k) for k in range(n)]
-    keys = list(range(n))
+    frames, keys = _frames(n)
     leader = _track(0.0, -1.0, n)
     # 7 nats a frame behind (a mean beam cost 0.35 worse) over 10 frames: 70 > evidence_drop
     behind = _track(5.0, -8.0, n)
@@ -41,9 +45,7 @@ def test_a_track_trailing_the_unseen_place_goes_as_the_decision_weighs_it() -> N
     g = GlobalConfig.for_kind("schematic")
     assert g.null_cost == 0.7 and g.null_slope > 0.0
     n = 12
-    empty = np.zeros(0)
-    frames = [Frame(k, empty, empty, np.zeros((0, 2)), np.zeros(3), 0.3 * k) for k in range(n)]
-    keys = list(range(n))
+    frames, keys = _frames(n)
     # 19 nats a frame (the clip): 228 in all, 72 below the flat unseen place (13 a frame)
     far, near = _track(0.0, -19.0, n), _track(5.0, -19.0, n)
     far.null = {k: 0.9 for k in keys}  # far walls: the unseen place at 17 a frame, 204 in all
@@ -60,9 +62,7 @@ def test_after_a_loss_the_unseen_place_lets_go_of_a_track_on_the_window_only() -
     or the same frames all still in the window, let it go."""
     g = GlobalConfig.for_kind("schematic")
     n = 20
-    empty = np.zeros(0)
-    frames = [Frame(k, empty, empty, np.zeros((0, 2)), np.zeros(3), 0.3 * k) for k in range(n)]
-    keys = list(range(n))
+    frames, keys = _frames(n)
     t = _track(0.0, -19.0, n)
     t.ll.update({k: -9.0 for k in range(16, n)})
     t.null = {k: 0.7 for k in keys}
