@@ -339,7 +339,7 @@ def backfill(
             pose = polished[0]
             cost, null = frame_cost(index, pose, f, config, g)
             if not t.ll:
-                # a first keyframe: a wide polish and the pose as given (a place degrees off)
+                # first keyframe: a wide polish and the pose as given too, for a place degrees off
                 wide, _ = index.sensor.polish(start[None, :], f.points, gs.FINE_SCALE, WIDE_POLISH)
                 for alt in (wide[0], start):
                     c, n = frame_cost(index, alt, f, config, g)
