@@ -100,10 +100,12 @@ class GlobalConfig(Settings):
         "this cost. Schematic: 0.7, the true pose's 90th percentile on tuning floor plans.",
     )
     null_slope: NonNegative = Field(
-        0.0,
+        0.05,
         description="The unseen place's cost on a keyframe rises by this per metre the map's "
-        "walls stand beyond drive.NULL_REACH on average: unmapped furniture stands before far "
-        "walls, and the true place explains less. Schematic: 0.05. Metric: 0.",
+        "walls stand beyond drive.NULL_REACH on average: what the map lacks (furniture a floor "
+        "plan leaves out, a corridor missing from a metric map) stands before far walls, and "
+        "the true place explains less there. The true place's median cost on the tuning logs' "
+        "metric maps with corridors removed rises so (0.80 at 6-7 m, 0.97 at 8-10 m).",
     )
     kidnap_weight: PositiveShare = Field(
         0.01,
@@ -183,7 +185,6 @@ class GlobalConfig(Settings):
                 min_enclosed=0.6,
                 good_support=0.5,
                 null_cost=0.7,
-                null_slope=0.05,
                 collapse_score=0.45,
                 scan_odometry_violation=0.15,
                 relock_window=False,
