@@ -478,7 +478,7 @@ def _searching(ctx: Context, s: Searching, scan: Scan) -> tuple[State, Estimate]
     if lead is not None and not lead.checked and drv.twin is None:
         caps = {"shortlist": TWIN_SHORTLIST, "refine_top": TWIN_REFINE_TOP}
         tg = g.model_copy(update={k: min(getattr(g, k), v) for k, v in caps.items()})
-        n = TWIN_KEEP if g.probation_travel > 0.0 else 1
+        n = TWIN_KEEP if o.reading is not None and g.probation_travel > 0.0 else 1
         steps = gs.self_similar_steps(ctx.index, lead.hyp, rs, as_, P, ctx.config, tg, n)
         drv.twin = dr.Job(steps, None if o.reading is None else o.reading.copy(), track=lead)
     if lead is not None and verdict.llr >= g.fix_llr and lead.checked:
