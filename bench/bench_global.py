@@ -360,6 +360,13 @@ def main(argv: list[str] | None = None) -> int:
         "(bench/calibrate_llr.py reads them)",
     )
     drive.add_argument(
+        "--calibrate-pass",
+        default=None,
+        help="the probation's calibration (floor plans): no probation ever passes; at the end "
+        "of each, the decision's LLR, the winner's error and whether it led are saved per trial "
+        "into this dir (bench/calibrate_llr.py --pass reads them)",
+    )
+    drive.add_argument(
         "--cache",
         type=Path,
         default=Path(__file__).resolve().parents[1] / "build" / "bench_global" / "index",

@@ -139,6 +139,10 @@ def run_drive_trial(task: DriveTask) -> DriveTrial:
     rows: list[tuple[float, ...]] = []
     if task.calibrate:
         loc.gconfig = loc.gconfig.model_copy(update={"fix_llr": math.inf})
+    if task.calibrate_pass:
+        loc.gconfig = loc.gconfig.model_copy(update={"pass_llr": math.inf})
+    ends: list[tuple[float, ...]] = []
+    winner = (math.inf, math.inf)  # the probation's winner's error on its last scan
     status: list[str] = []
     work: list[float] = []
     close: list[bool | None] = []
@@ -189,6 +193,14 @@ def run_drive_trial(task: DriveTask) -> DriveTrial:
             )
             if x["llr"] >= CALIBRATE_STOP and rows[-1][2] <= 0.5:
                 break  # any threshold up to CALIBRATE_STOP would have fixed the true place
+        x = est.extras
+        if task.calibrate_pass and "probation_llr" in x:
+            ends.append((travel[-1], x["probation_llr"], *winner, x["probation_lead"]))
+            if x["probation_llr"] >= CALIBRATE_STOP and winner[0] <= 0.5 and x["probation_lead"]:
+                break  # any pass threshold up to CALIBRATE_STOP would have fixed it here
+        if task.calibrate_pass and scored and "probation" in x:
+            err = float(np.hypot(*(est.pose[:2] - t[:2])))
+            winner = (err, abs(float(wrap_angle(float(est.pose[2] - t[2])))))
         if searching:
             search_ms.append(1e3 * (w1 - w0))
             work.append(float(getattr(loc, "work_ms", math.nan)))
@@ -202,6 +214,11 @@ def run_drive_trial(task: DriveTask) -> DriveTrial:
         np.save(
             Path(task.calibrate) / f"{tag}.npy", np.asarray(rows, dtype=np.float64).reshape(-1, 6)
         )
+    if task.calibrate_pass:
+        Path(task.calibrate_pass).mkdir(parents=True, exist_ok=True)
+        tag = f"{m.group}_{m.world}_{m.kind}_{task.start}"
+        ends_a = np.asarray(ends, dtype=np.float64).reshape(-1, 5)
+        np.save(Path(task.calibrate_pass) / f"{tag}.npy", ends_a)
     out = classify(status, close, after, travel, m.limit)
     s0 = src.truth[task.start]
     sm = np.asarray(search_ms)
@@ -337,15 +354,18 @@ def drive_main(args: argparse.Namespace, argv: Sequence[str]) -> int:
             notes.append(f"{m.label()}: only {starts.size} distinct start scans (of {want})")
         budget = args.budget_ms if args.budget_ms > 0 else None
         tasks += [
-            DriveTask(m, int(s), k, data, cache, strides[m], budget, args.calibrate)
+            DriveTask(
+                m, int(s), k, data, cache, strides[m], budget, args.calibrate, args.calibrate_pass
+            )
             for k, s in enumerate(starts)
         ]
     for n in notes:
         print(n)
-    if args.calibrate:
-        # the threshold's page (bench/calibrate_llr.py) names the run its tables come from
-        Path(args.calibrate).mkdir(parents=True, exist_ok=True)
-        (Path(args.calibrate) / COMMAND_FILE).write_text(f"{command}\n{commit}\n", encoding="utf-8")
+    for out in (args.calibrate, args.calibrate_pass):
+        if out:
+            # the threshold's page (bench/calibrate_llr.py) names the run its tables come from
+            Path(out).mkdir(parents=True, exist_ok=True)
+            (Path(out) / COMMAND_FILE).write_text(f"{command}\n{commit}\n", encoding="utf-8")
 
     # 3. trials: grouped by map, so that each process loads each index once; the longest
     # (real logs, then floor plans) first, so that both processes finish together

@@ -91,8 +91,13 @@ class GlobalConfig(Settings):
         25.0,
         description="A hypothesis is fixed once its log-likelihood ratio against the rest reaches "
         "this (nats), set from the false fixes of 100 tuning drives (docs/results/llr-threshold"
-        ".md): metric maps none from 8 (an earlier sample had one at 15), floor plans none from "
-        "30, those below caught by the 2 m probation (docs/decisions/0019).",
+        ".md): metric maps none from 8 (an earlier sample had one at 15). With probation_travel "
+        "a winner enters probation here and is fixed at pass_llr (docs/decisions/0029).",
+    )
+    pass_llr: Positive = Field(
+        25.0,
+        description="A probation passes if the decision names its winner at this LLR (nats; "
+        "fix_llr if higher). Schematic: the rule of docs/results/llr-probation.md.",
     )
     null_cost: Positive = Field(
         0.8,

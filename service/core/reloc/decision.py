@@ -107,19 +107,11 @@ def decide(
     plain = {f.key for f in frames if f.odom is None}
 
     def evidence(t: Track, fill: Track | None = None) -> float:
-        total = 0.0
         own = [t.ll[k] for k in keys if k in t.ll]
         rate = sum(own) / len(own) if own else unseen
-        for k in keys:
-            if k in t.ll:
-                total += t.ll[k]
-            elif fill is not None and k in plain:
-                total += rate
-            elif fill is not None and k in fill.ll:
-                total += fill.ll[k]
-            else:
-                total += unseen
-        return total + prior.log(t.pose)
+        got = {} if fill is None else fill.ll  # the leader lends what this track lacks
+        lent = {k: rate if k in plain else got.get(k, unseen) for k in keys} if fill else {}
+        return sum(t.ll.get(k, lent.get(k, unseen)) for k in keys) + prior.log(t.pose)
 
     best_e, leader = max(((evidence(t), t) for t in full), key=lambda x: x[0])
     # the unseen place: as the true place in the leader's region; after a loss, before the window

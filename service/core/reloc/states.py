@@ -609,11 +609,13 @@ def _probation(ctx: Context, p: Probation, scan: Scan) -> tuple[State, Estimate]
         # it passes on an accepted scan once the winner is scored on the whole window
         return p, _probation_estimate(p, est)
     verdict = _decide(ctx, drv, p.prior)
-    if verdict.leader is p.winner and verdict.llr >= g.fix_llr:
+    if verdict.leader is p.winner and verdict.llr >= max(g.fix_llr, g.pass_llr):
         est.ambiguity = verdict.ambiguity
         est.extras.update(global_fix=1.0, probation_passed=1.0, llr=min(verdict.llr, 99.0))
         return Tracking(est.pose.copy(), fit_cov(est), since_fix=0), est
-    return _fail(ctx, p, {"probation_failed": 1.0, "probation_beaten": 1.0})
+    lead = float(verdict.leader is p.winner)  # beaten: bench/calibrate_llr sets pass_llr so
+    ends = {"probation_llr": min(verdict.llr, 99.0), "probation_lead": lead}
+    return _fail(ctx, p, {"probation_failed": 1.0, **ends})
 
 
 def _fail(ctx: Context, p: Probation, extras: dict[str, float]) -> tuple[State, Estimate]:
