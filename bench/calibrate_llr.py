@@ -1,6 +1,7 @@
 """The decision's threshold from the false-fix rate on the tuning split.
 
 ``python -m bench.calibrate_llr DIR [DIR ...] [--results docs/results]``
+``python -m bench.calibrate_llr --pass DIR [DIR ...] [--results docs/results]``
 
 Reads the per-trial tables that ``python -m bench.bench_global --drive --calibrate DIR`` writes
 (tuning maps only: the office, generated buildings below 1000, the logs intel and fr079): for
@@ -19,6 +20,13 @@ the rule for a preset's ``fix_llr`` is that threshold times :data:`SAFETY` (the 
 are not the tuning maps; docs/decisions/0019 says where a preset departs from it). With
 ``--results`` it writes ``llr-threshold.md`` there, naming the command and commit that wrote
 the tables (the directory's ``command.txt``) and each preset's ``fix_llr``.
+
+With ``--pass`` it reads the tables of ``--calibrate-pass DIR`` instead: one row per probation
+end (a floor plan's winner tracked ``probation_travel`` metres, then judged), where no probation
+ever passed. A run whose probations never pass is, up to its first pass, the run of every pass
+threshold ``P``; so the first end whose winner leads at ``P`` or more is that threshold's fix,
+false when the winner is more than 0.5 m or 10 degrees off, and the count is exact. The rule for
+a preset's ``pass_llr`` is as for ``fix_llr``; the page is ``llr-probation.md``.
 """
 
 from __future__ import annotations
@@ -63,6 +71,18 @@ def outcome(rows: np.ndarray, t: float) -> tuple[str, float]:
     return "none", float("inf")
 
 
+def pass_outcome(rows: np.ndarray, p: float) -> tuple[str, float]:
+    """``("right" | "wrong" | "unjudged" | "none", travel)`` of one trial whose probations
+    pass at ``p``; unjudged: its winner was never on a scan with a reference."""
+    for travel, llr, err, dth, lead in rows:
+        if lead >= 1.0 and llr >= p:
+            if np.isnan(err):
+                return "unjudged", float(travel)
+            ok = err <= 0.5 and dth <= np.deg2rad(10.0)
+            return ("right" if ok else "wrong"), float(travel)
+    return "none", float("inf")
+
+
 def limit_of(name: str, kind: str) -> float:
     return 15.0 if kind == "schematic" or name.startswith("real") else 5.0
 
@@ -80,56 +100,89 @@ def source(dirs: list[Path]) -> list[str]:
     return out
 
 
+FIX_TEXT = (
+    "Per-trial tables written by (`--calibrate`: the decision never fixes):",
+    "At a threshold T the first scan whose leader was checked and reaches T counts as the "
+    "fix, false when the leader is more than 0.5 m or 10 degrees off. On floor plans the "
+    "preset then tracks the winner for `probation_travel` metres and fixes it at `pass_llr` "
+    "(docs/results/llr-probation.md), which this count does not model: it counts more false "
+    "fixes than the localiser makes. Definitions: `bench/calibrate_llr.py`.",
+)
+PASS_TEXT = (
+    "Per-trial tables written by (`--calibrate-pass`: no probation ever passes):",
+    "A winner enters probation at `fix_llr`, is tracked `probation_travel` metres and is "
+    "judged then. At a pass threshold P the first probation end whose winner leads at P or "
+    "more counts as the fix, false when the winner is more than 0.5 m or 10 degrees off "
+    "(unjudged: its winner was never on a scan with a reference). Up to that end the run is "
+    "the run at P, so the count is exact; the tracker's checks after a fix, which catch some "
+    "wrong ones, are not counted. Definitions: `bench/calibrate_llr.py`.",
+)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("dirs", nargs="+", type=Path)
-    ap.add_argument("--results", type=Path, default=None, help="write llr-threshold.md here")
+    ap.add_argument(
+        "--pass",
+        dest="probation",
+        action="store_true",
+        help="the probation's pass from --calibrate-pass tables (llr-probation.md)",
+    )
+    ap.add_argument("--results", type=Path, default=None, help="write the page here")
     args = ap.parse_args(argv)
     data = load(args.dirs)
+    judge, (intro, rule) = (pass_outcome, PASS_TEXT) if args.probation else (outcome, FIX_TEXT)
+    what = "pass" if args.probation else "fix"
     lines = [
-        "# The decision's threshold from the tuning split",
+        "# The probation's pass from the tuning split"
+        if args.probation
+        else "# The decision's threshold from the tuning split",
         "",
-        "Per-trial tables written by (`--calibrate`: the decision never fixes):",
+        intro,
         "",
         *source(args.dirs),
         "",
-        "At a threshold T the first scan whose leader was checked and reaches T counts as the "
-        "fix, false when the leader is more than 0.5 m or 10 degrees off. On floor plans the "
-        "preset then tracks the winner for `probation_travel` metres before the fix, which "
-        "this count does not model: it counts more false fixes than the localiser makes. "
-        "Definitions: `bench/calibrate_llr.py`.",
+        rule,
         "",
     ]
     for kind, trials in data.items():
-        if not trials:
-            continue
         preset = GlobalConfig.for_kind(kind)
+        if not trials or (args.probation and not preset.probation_travel):
+            continue
         lines += [
             f"## {kind} ({len(trials)} tuning trials)",
             "",
-            "| T (nats) | false fixes | fixed within limit | travel to fix p50 m |",
-            "|---|---|---|---|",
+            f"| T (nats) | false {what}es | fixed within limit | travel to fix p50 m |"
+            + (" unjudged |" if args.probation else ""),
+            "|---|---|---|---|" + ("---|" if args.probation else ""),
         ]
         best = None
         for t in GRID:
-            res = [(outcome(r, t), n) for n, r in trials]
+            res = [(judge(r, t), n) for n, r in trials]
             wrong = sum(o == "wrong" for (o, _), _ in res)
             within = sum(o == "right" and tr <= limit_of(n, kind) for (o, tr), n in res)
             travel = [tr for (o, tr), _ in res if o == "right"]
             p50 = float(np.median(travel)) if travel else float("nan")
-            lines.append(f"| {t:g} | {wrong} | {within}/{len(res)} | {p50:.2f} |")
+            blind = sum(o == "unjudged" for (o, _), _ in res)
+            lines.append(
+                f"| {t:g} | {wrong} | {within}/{len(res)} | {p50:.2f} |"
+                + (f" {blind} |" if args.probation else "")
+            )
             if wrong == 0 and best is None:
                 best = t
         pick = "none" if best is None else f"{best:g} x {SAFETY} = {best * SAFETY:g}"
-        lines += [
-            "",
-            f"Smallest threshold without a false fix: {pick}. The preset's `fix_llr`: "
-            f"{preset.fix_llr:g}, probation {preset.probation_travel:g} m.",
-            "",
-        ]
+        preset_line = (
+            f"The preset's `pass_llr`: {max(preset.pass_llr, preset.fix_llr):g}, "
+            f"entered at `fix_llr` {preset.fix_llr:g}."
+            if args.probation
+            else f"The preset's `fix_llr`: {preset.fix_llr:g}, probation "
+            f"{preset.probation_travel:g} m."
+        )
+        lines += ["", f"Smallest threshold without a false {what}: {pick}. {preset_line}", ""]
     text = "\n".join(lines) + "\n"
     print(text)
-    publish(args.results, "llr-threshold", text, ["bench.calibrate_llr", *(argv or sys.argv[1:])])
+    page = "llr-probation" if args.probation else "llr-threshold"
+    publish(args.results, page, text, ["bench.calibrate_llr", *(argv or sys.argv[1:])])
     return 0
 
 

@@ -142,7 +142,8 @@ def run_drive_trial(task: DriveTask) -> DriveTrial:
     if task.calibrate_pass:
         loc.gconfig = loc.gconfig.model_copy(update={"pass_llr": math.inf})
     ends: list[tuple[float, ...]] = []
-    winner = (math.inf, math.inf)  # the probation's winner's error on its last scan
+    nan = (math.nan, math.nan)  # a winner never seen on a scan with a reference
+    winner = nan  # the probation's winner's error and heading error on its last scored scan
     status: list[str] = []
     work: list[float] = []
     close: list[bool | None] = []
@@ -198,6 +199,8 @@ def run_drive_trial(task: DriveTask) -> DriveTrial:
             ends.append((travel[-1], x["probation_llr"], *winner, x["probation_lead"]))
             if x["probation_llr"] >= CALIBRATE_STOP and winner[0] <= 0.5 and x["probation_lead"]:
                 break  # any pass threshold up to CALIBRATE_STOP would have fixed it here
+        if task.calibrate_pass and "probation_failed" in x:
+            winner = nan
         if task.calibrate_pass and scored and "probation" in x:
             err = float(np.hypot(*(est.pose[:2] - t[:2])))
             winner = (err, abs(float(wrap_angle(float(est.pose[2] - t[2])))))

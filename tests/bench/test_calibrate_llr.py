@@ -6,11 +6,15 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.calibrate_llr import main, outcome
+from bench.calibrate_llr import main, outcome, pass_outcome
 from bench.global_drive_run import COMMAND_FILE
 
 
 def _rows(*rows: tuple[float, float, float, float, float, float]) -> np.ndarray:
+    return np.asarray(rows, dtype=np.float64)
+
+
+def _rows5(*rows: tuple[float, float, float, float, float]) -> np.ndarray:
     return np.asarray(rows, dtype=np.float64)
 
 
@@ -41,3 +45,28 @@ def test_the_page_names_the_run_and_the_presets(tmp_path: Path) -> None:
     assert "Smallest threshold without a false fix: 15 x 1.25 = 18.75." in page
     assert "The preset's `fix_llr`: 25, probation 2 m." in page
     assert "## metric" not in page
+
+
+def test_a_probation_whose_wrong_winner_leads_at_the_pass_is_a_false_pass() -> None:
+    # travel, llr at the probation's end, winner's error m, heading error rad, winner led
+    rows = _rows5(
+        (2.0, 30.0, 9.0, 0.1, 1.0), (4.0, 99.0, 0.1, 0.0, 0.0), (6.0, 50.0, 0.2, 0.0, 1.0)
+    )
+    assert pass_outcome(rows, 25.0) == ("wrong", 2.0)
+    assert pass_outcome(rows, 40.0) == ("right", 6.0)  # the 99 at 4 m was another place's lead
+    assert pass_outcome(rows, 60.0)[0] == "none"
+
+
+def test_the_pass_page_counts_probation_ends_of_floor_plans_only(tmp_path: Path) -> None:
+    tables = tmp_path / "tables"
+    tables.mkdir()
+    (tables / COMMAND_FILE).write_text("python -m bench.bench_global --drive\nabc1234\n")
+    np.save(tables / "real_fr079_schematic_3.npy", _rows5((2.0, 33.0, 15.0, 3.1, 1.0)))
+    np.save(tables / "real_fr079_metric_3.npy", _rows5((2.0, 33.0, 15.0, 3.1, 1.0)))
+    results = tmp_path / "results"
+    assert main(["--pass", str(tables), "--results", str(results)]) == 0
+    page = (results / "llr-probation.md").read_text()
+    assert "# The probation's pass from the tuning split" in page
+    assert "| 30 | 1 | 0/1 |" in page and "| 40 | 0 | 0/1 |" in page
+    assert "Smallest threshold without a false pass: 40 x 1.25 = 50." in page
+    assert "## metric" not in page  # no probation on metric maps

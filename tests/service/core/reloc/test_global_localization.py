@@ -316,14 +316,18 @@ def test_field_score_kernel_agrees_with_the_numpy_reference(
 # ------------------------------------------------------------------------- look-around start
 
 
-def _sim_run(start: float, scans: int) -> list[tuple[str, bool, bool]]:
+def _sim_run(
+    start: float, scans: int, ends: list[dict[str, float]] | None = None, **update: float
+) -> list[tuple[str, bool, bool]]:
     """A simulated robot on the schematic map with a 3-scan look-around start and no initial
-    pose; (status, pose passes 0.5 m / 10 deg, winner on probation) per scan."""
+    pose; (status, pose passes 0.5 m / 10 deg, winner on probation) per scan. ``update`` sets
+    GlobalConfig fields; a beaten probation's extras are appended to ``ends``."""
     fleet = SimFleet.from_specs(
         fleet_specs(1, ["schematic"], starts=[start]), global_localization=True, look_around=3
     )
     robot = fleet.robots[0]
     loc = create_localizer("shape", next(iter(fleet.maps.values())), None)
+    loc.gconfig = loc.gconfig.model_copy(update=update)
     out = []
     for k in range(scans):
         scan, truth = robot.step(float(k))
@@ -332,6 +336,8 @@ def _sim_run(start: float, scans: int) -> list[tuple[str, bool, bool]]:
         est = loc.update(r, a, np.asarray(scan.odom))
         ok = _found(est.pose, np.asarray(truth.pose))
         out.append((est.status, ok, "probation" in est.extras))
+        if ends is not None and "probation_llr" in est.extras:
+            ends.append(dict(est.extras))
     return out
 
 
@@ -357,6 +363,18 @@ def test_look_around_start_fixes_within_five_metres_and_keeps_tracking(start: fl
     assert "tracking" in statuses, run
     fix = statuses.index("tracking")
     assert fix > first and all(s == "tracking" for s in statuses[fix:]), run
+
+
+def test_a_probation_passes_only_once_its_winner_leads_at_pass_llr() -> None:
+    """A winner enters probation at fix_llr and is fixed only if, after probation_travel, the
+    decision names it at pass_llr (fix_llr if higher). Out of reach, every probation ends
+    beaten and says how far its winner led: the robot is never published as tracking."""
+    ends: list[dict[str, float]] = []
+    run = _sim_run(0.35, LOOK_AROUND_START_SCANS + 30, ends, pass_llr=1e6)
+    assert not any(s == "tracking" for s, _ok, _p in run), run
+    assert any(p for _s, _ok, p in run), "no winner ever entered probation"
+    led = [e for e in ends if e["probation_lead"] == 1.0]
+    assert led and all(e["probation_llr"] >= 25.0 for e in led), ends
 
 
 def test_predict_moves_the_tracker_pose_by_a_relative_motion() -> None:
