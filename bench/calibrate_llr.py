@@ -21,10 +21,11 @@ are not the tuning maps; docs/decisions/0019 says where a preset departs from it
 ``--results`` it writes ``llr-threshold.md`` there, naming the command and commit that wrote
 the tables (the directory's ``command.txt``) and each preset's ``fix_llr``.
 
-With ``--pass`` it reads the tables of ``--calibrate-pass DIR`` instead: one row per probation
-end (a floor plan's winner tracked ``probation_travel`` metres, then judged), where no probation
-ever passed. A run whose probations never pass is, up to its first pass, the run of every pass
-threshold ``P``; so the first end whose winner leads at ``P`` or more is that threshold's fix,
+With ``--pass`` it reads the tables of ``--calibrate-pass DIR`` instead: one row per judged
+probation scan (a floor plan's winner, tracked ``probation_travel`` metres, judged on every scan
+from then on), where no probation ever passed. A run whose probations never pass is, up to its
+first pass, the run of every pass threshold ``P``; so the first judged scan whose winner leads
+at ``P`` or more is that threshold's fix,
 false when the winner is more than 0.5 m or 10 degrees off, and the count is exact. The rule for
 a preset's ``pass_llr`` is as for ``fix_llr``; the page is ``llr-probation.md``.
 """
@@ -47,6 +48,9 @@ SAFETY = 1.25
 #: Travel limits (m) as the drive bench's: metric maps of the simulated buildings and office
 #: 5 m, floor plans and the real logs 15 m.
 GRID = (1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 8.0, 10.0, 12.0, 15.0, 20.0, 25.0, 30.0, 40.0, 60.0)
+#: Pass thresholds: a probation passes at fix_llr or more, and a calibration drive ends once a
+#: right winner leads at CALIBRATE_STOP (80), so every threshold up to it is counted exactly.
+PASS_GRID = tuple(float(t) for t in range(25, 85, 5))
 
 
 def load(dirs: list[Path]) -> dict[str, list[tuple[str, np.ndarray]]]:
@@ -74,7 +78,7 @@ def outcome(rows: np.ndarray, t: float) -> tuple[str, float]:
 def pass_outcome(rows: np.ndarray, p: float) -> tuple[str, float]:
     """``("right" | "wrong" | "unjudged" | "none", travel)`` of one trial whose probations
     pass at ``p``; unjudged: its winner was never on a scan with a reference."""
-    for travel, llr, err, dth, lead in rows:
+    for travel, llr, err, dth, lead in rows:  # p >= fix_llr: a winner short of it failed
         if lead >= 1.0 and llr >= p:
             if np.isnan(err):
                 return "unjudged", float(travel)
@@ -110,8 +114,9 @@ FIX_TEXT = (
 )
 PASS_TEXT = (
     "Per-trial tables written by (`--calibrate-pass`: no probation ever passes):",
-    "A winner enters probation at `fix_llr`, is tracked `probation_travel` metres and is "
-    "judged then. At a pass threshold P the first probation end whose winner leads at P or "
+    "A winner enters probation at `fix_llr` and is tracked `probation_travel` metres; from "
+    "then on each scan's decision passes it at P, fails it if it no longer leads at `fix_llr`, "
+    "else goes on. At a pass threshold P the first such scan whose winner leads at P or "
     "more counts as the fix, false when the winner is more than 0.5 m or 10 degrees off "
     "(unjudged: its winner was never on a scan with a reference). Up to that end the run is "
     "the run at P, so the count is exact; the tracker's checks after a fix, which catch some "
@@ -157,7 +162,7 @@ def main(argv: list[str] | None = None) -> int:
             "|---|---|---|---|" + ("---|" if args.probation else ""),
         ]
         best = None
-        for t in GRID:
+        for t in PASS_GRID if args.probation else GRID:
             res = [(judge(r, t), n) for n, r in trials]
             wrong = sum(o == "wrong" for (o, _), _ in res)
             within = sum(o == "right" and tr <= limit_of(n, kind) for (o, tr), n in res)

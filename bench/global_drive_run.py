@@ -195,15 +195,15 @@ def run_drive_trial(task: DriveTask) -> DriveTrial:
             if x["llr"] >= CALIBRATE_STOP and rows[-1][2] <= 0.5:
                 break  # any threshold up to CALIBRATE_STOP would have fixed the true place
         x = est.extras
+        if task.calibrate_pass and scored and "probation" in x:  # the winner's tracked pose
+            err = float(np.hypot(*(est.pose[:2] - t[:2])))
+            winner = (err, abs(float(wrap_angle(float(est.pose[2] - t[2])))))
         if task.calibrate_pass and "probation_llr" in x:
             ends.append((travel[-1], x["probation_llr"], *winner, x["probation_lead"]))
             if x["probation_llr"] >= CALIBRATE_STOP and winner[0] <= 0.5 and x["probation_lead"]:
                 break  # any pass threshold up to CALIBRATE_STOP would have fixed it here
         if task.calibrate_pass and "probation_failed" in x:
             winner = nan
-        if task.calibrate_pass and scored and "probation" in x:
-            err = float(np.hypot(*(est.pose[:2] - t[:2])))
-            winner = (err, abs(float(wrap_angle(float(est.pose[2] - t[2])))))
         if searching:
             search_ms.append(1e3 * (w1 - w0))
             work.append(float(getattr(loc, "work_ms", math.nan)))

@@ -67,6 +67,7 @@ def test_the_pass_page_counts_probation_ends_of_floor_plans_only(tmp_path: Path)
     assert main(["--pass", str(tables), "--results", str(results)]) == 0
     page = (results / "llr-probation.md").read_text()
     assert "# The probation's pass from the tuning split" in page
-    assert "| 30 | 1 | 0/1 |" in page and "| 40 | 0 | 0/1 |" in page
-    assert "Smallest threshold without a false pass: 40 x 1.25 = 50." in page
+    assert "| 30 | 1 | 0/1 | nan | 0 |" in page and "| 35 | 0 | 0/1 | nan | 0 |" in page
+    assert "| 20 |" not in page  # a probation passes at fix_llr (25) or more
+    assert "Smallest threshold without a false pass: 35 x 1.25 = 43.75." in page
     assert "## metric" not in page  # no probation on metric maps

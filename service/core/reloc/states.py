@@ -129,8 +129,8 @@ class Searching:
 @dataclass
 class Probation:
     """With odometry a ``winner`` among the ``drive``'s tracks is tracked ``probation_travel``
-    m (``left`` to go), fixed if the decision still names it then; ``rejected``: scans in a row
-    that contradicted it; ``ambiguity``: the decision's."""
+    m (``left`` to go), then fixed once the decision names it at ``pass_llr``, failed once not
+    at ``fix_llr``; ``rejected``: contradicting scans in a row; ``ambiguity``: the decision's."""
 
     drive: dr.Drive
     prior: Prior
@@ -465,11 +465,7 @@ def _searching(ctx: Context, s: Searching, scan: Scan) -> tuple[State, Estimate]
     ):
         relocked.extras["relocked"] = 1.0
         return Tracking(relocked.pose.copy(), fit_cov(relocked)), relocked
-    extras: dict[str, float] = {
-        "hypotheses": float(len(drv.tracks)),
-        "llr": max(-99.0, min(verdict.llr, 99.0)),
-        "work_ms": spent,
-    }
+    extras: dict[str, float] = {"llr": max(-99.0, min(verdict.llr, 99.0)), "work_ms": spent}
     if found >= 0:
         extras["search_done"] = 1.0
     if lead is not None:
@@ -568,7 +564,8 @@ def outside(prior: Prior, pose: np.ndarray) -> bool:
     return mahalanobis2(pose, prior.mean, prior.cov + FIX_COV) > GATE_SIGMAS**2
 
 
-def _probation_estimate(p: Probation, est: Estimate) -> Estimate:
+def _probation_estimate(p: Probation, est: Estimate, extras: dict | None = None) -> Estimate:
+    est.extras.update(extras or {})
     est.status = p.status
     est.ambiguity = p.ambiguity
     est.extras["probation"] = max(0.0, p.left)
@@ -609,18 +606,19 @@ def _probation(ctx: Context, p: Probation, scan: Scan) -> tuple[State, Estimate]
         # it passes on an accepted scan once the winner is scored on the whole window
         return p, _probation_estimate(p, est)
     verdict = _decide(ctx, drv, p.prior)
-    if verdict.leader is p.winner and verdict.llr >= max(g.fix_llr, g.pass_llr):
+    lead, llr = verdict.leader is p.winner, min(verdict.llr, 99.0)
+    if lead and verdict.llr >= max(g.fix_llr, g.pass_llr):
         est.ambiguity = verdict.ambiguity
-        est.extras.update(global_fix=1.0, probation_passed=1.0, llr=min(verdict.llr, 99.0))
+        est.extras.update(global_fix=1.0, probation_passed=1.0, llr=llr)
         return Tracking(est.pose.copy(), fit_cov(est), since_fix=0), est
-    lead = float(verdict.leader is p.winner)  # beaten: bench/calibrate_llr sets pass_llr so
-    ends = {"probation_llr": min(verdict.llr, 99.0), "probation_lead": lead}
-    return _fail(ctx, p, {"probation_failed": 1.0, **ends})
+    judged = {"probation_llr": llr, "probation_lead": float(lead)}  # bench/calibrate_llr's
+    if lead and verdict.llr >= g.fix_llr:  # still the winner, short of the pass: it goes on
+        return p, _probation_estimate(p, est, judged)
+    return _fail(ctx, p, {"probation_failed": 1.0, **judged})
 
 
 def _fail(ctx: Context, p: Probation, extras: dict[str, float]) -> tuple[State, Estimate]:
     """A failed probation: the search goes on with its hypotheses, the winner among them."""
     ctx.tracker.reset(None)
     s = Searching(p.drive, p.prior, p.status)
-    extras["hypotheses"] = float(len(p.drive.tracks))
     return s, _guess(s, Verdict(None, -math.inf), extras, ctx.gconfig.fix_llr)
