@@ -17,7 +17,9 @@ catch some of them.)
 Per map kind it prints, for a grid of thresholds, the false fixes, the trials fixed within the
 travel limit and the median travel to the fix, and the smallest threshold with no false fix;
 the rule for a preset's ``fix_llr`` is that threshold times :data:`SAFETY` (the held-out maps
-are not the tuning maps; docs/decisions/0019 says where a preset departs from it). With
+are not the tuning maps). Where every threshold of the grid leaves some false ones, the rule
+takes the smallest threshold at the fewest: those no threshold removes are the sensor model's
+to remove, not the threshold's (docs/decisions/0029). With
 ``--results`` it writes ``llr-threshold.md`` there, naming the command and commit that wrote
 the tables (the directory's ``command.txt``) and each preset's ``fix_llr``.
 
@@ -25,9 +27,9 @@ With ``--pass`` it reads the tables of ``--calibrate-pass DIR`` instead: one row
 probation scan (a floor plan's winner, tracked ``probation_travel`` metres, judged on every scan
 from then on), where no probation ever passed. A run whose probations never pass is, up to its
 first pass, the run of every pass threshold ``P``; so the first judged scan whose winner leads
-at ``P`` or more is that threshold's fix,
-false when the winner is more than 0.5 m or 10 degrees off, and the count is exact. The rule for
-a preset's ``pass_llr`` is as for ``fix_llr``; the page is ``llr-probation.md``.
+at ``P`` or more is that threshold's fix, false when the winner is more than 0.5 m or 10
+degrees off, and the count is exact. The rule for a preset's ``pass_llr`` is as for
+``fix_llr``; the page is ``llr-probation.md``.
 """
 
 from __future__ import annotations
@@ -51,6 +53,7 @@ GRID = (1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 8.0, 10.0, 12.0, 15.0, 20.0, 25.0, 30.0, 4
 #: Pass thresholds: a probation passes at fix_llr or more, and a calibration drive ends once a
 #: right winner leads at CALIBRATE_STOP (80), so every threshold up to it is counted exactly.
 PASS_GRID = tuple(float(t) for t in range(25, 85, 5))
+GRID_TOP = {False: GRID[-1], True: PASS_GRID[-1]}
 
 
 def load(dirs: list[Path]) -> dict[str, list[tuple[str, np.ndarray]]]:
@@ -161,7 +164,7 @@ def main(argv: list[str] | None = None) -> int:
             + (" unjudged |" if args.probation else ""),
             "|---|---|---|---|" + ("---|" if args.probation else ""),
         ]
-        best = None
+        counts: list[tuple[int, float]] = []
         for t in PASS_GRID if args.probation else GRID:
             res = [(judge(r, t), n) for n, r in trials]
             wrong = sum(o == "wrong" for (o, _), _ in res)
@@ -173,9 +176,9 @@ def main(argv: list[str] | None = None) -> int:
                 f"| {t:g} | {wrong} | {within}/{len(res)} | {p50:.2f} |"
                 + (f" {blind} |" if args.probation else "")
             )
-            if wrong == 0 and best is None:
-                best = t
-        pick = "none" if best is None else f"{best:g} x {SAFETY} = {best * SAFETY:g}"
+            counts.append((wrong, t))
+        least, best = min(counts)  # the fewest false ones, at the smallest threshold
+        pick = f"{best:g} x {SAFETY} = {best * SAFETY:g}"
         preset_line = (
             f"The preset's `pass_llr`: {max(preset.pass_llr, preset.fix_llr):g}, "
             f"entered at `fix_llr` {preset.fix_llr:g}."
@@ -183,7 +186,13 @@ def main(argv: list[str] | None = None) -> int:
             else f"The preset's `fix_llr`: {preset.fix_llr:g}, probation "
             f"{preset.probation_travel:g} m."
         )
-        lines += ["", f"Smallest threshold without a false {what}: {pick}. {preset_line}", ""]
+        head = (
+            f"Smallest threshold without a false {what}"
+            if least == 0
+            else f"No threshold up to {GRID_TOP[args.probation]:g} is without a false {what}; "
+            f"the smallest at the fewest ({least})"
+        )
+        lines += ["", f"{head}: {pick}. {preset_line}", ""]
     text = "\n".join(lines) + "\n"
     print(text)
     page = "llr-probation" if args.probation else "llr-threshold"

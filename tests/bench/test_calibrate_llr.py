@@ -71,3 +71,27 @@ def test_the_pass_page_counts_probation_ends_of_floor_plans_only(tmp_path: Path)
     assert "| 20 |" not in page  # a probation passes at fix_llr (25) or more
     assert "Smallest threshold without a false pass: 35 x 1.25 = 43.75." in page
     assert "## metric" not in page  # no probation on metric maps
+
+
+def test_where_every_threshold_leaves_a_false_pass_the_rule_takes_the_fewest(
+    tmp_path: Path,
+) -> None:
+    tables = tmp_path / "tables"
+    tables.mkdir()
+    # a wrong winner leading at 40 nats; another drive's winner right at 50, 0.6 m off at 99
+    np.save(tables / "real_intel_schematic_1.npy", _rows5((2.0, 40.0, 9.0, 1.5, 1.0)))
+    np.save(
+        tables / "real_intel_schematic_2.npy",
+        _rows5((2.0, 50.0, 0.3, 0.0, 1.0), (3.0, 99.0, 0.6, 0.0, 1.0)),
+    )
+    results = tmp_path / "results"
+    assert main(["--pass", str(tables), "--results", str(results)]) == 0
+    page = (results / "llr-probation.md").read_text()
+    assert "| 40 | 1 | 1/2 |" in page and "| 45 | 0 | 1/2 |" in page
+    assert "| 55 | 1 | 0/2 |" in page
+    assert "Smallest threshold without a false pass: 45 x 1.25 = 56.25." in page
+    np.save(tables / "real_intel_schematic_3.npy", _rows5((2.0, 80.0, 5.0, 0.0, 1.0)))
+    assert main(["--pass", str(tables), "--results", str(results)]) == 0
+    page = (results / "llr-probation.md").read_text()
+    assert "No threshold up to 80 is without a false pass; the smallest at the fewest (1): " in page
+    assert "45 x 1.25 = 56.25" in page

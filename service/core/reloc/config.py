@@ -187,7 +187,7 @@ class GlobalConfig(Settings):
                 violation_margin=0.5,
                 evidence_short_scale=1.0,
                 probation_travel=2.0,
-                pass_llr=60.0,
+                pass_llr=62.5,
                 min_enclosed=0.6,
                 good_support=0.5,
                 null_cost=0.7,
