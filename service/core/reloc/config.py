@@ -96,8 +96,9 @@ class GlobalConfig(Settings):
     )
     pass_llr: Positive = Field(
         25.0,
-        description="A probation passes if the decision names its winner at this LLR (nats; "
-        "fix_llr if higher). Schematic: the rule of docs/results/llr-probation.md.",
+        description="After probation_travel a probation passes once the decision names its "
+        "winner at this LLR (nats; fix_llr if higher) and fails once not at fix_llr. Schematic: "
+        "62.5, the rule of docs/results/llr-probation.md (50 x 1.25; decisions/0029).",
     )
     null_cost: Positive = Field(
         0.8,
