@@ -96,8 +96,8 @@ class GlobalConfig(Settings):
     )
     pass_llr: Positive = Field(
         25.0,
-        description="After probation_travel a probation passes once the decision names its "
-        "winner at this LLR (nats; fix_llr if higher) and fails once not at fix_llr. Schematic: "
+        description="A first fix's probation (no prior pose) passes, after probation_travel, "
+        "once the decision names its winner at this (nats; at fix_llr after a loss). Schematic: "
         "62.5, the rule of docs/results/llr-probation.md (50 x 1.25; decisions/0029).",
     )
     null_cost: Positive = Field(

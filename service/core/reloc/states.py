@@ -129,8 +129,8 @@ class Searching:
 @dataclass
 class Probation:
     """With odometry a ``winner`` among the ``drive``'s tracks is tracked ``probation_travel``
-    m (``left`` to go), then fixed once the decision names it at ``pass_llr``, failed once not
-    at ``fix_llr``; ``rejected``: contradicting scans in a row; ``ambiguity``: the decision's."""
+    m (``left`` to go), then fixed once the decision names it at ``pass_llr`` (``fix_llr`` after
+    a loss), failed once not at ``fix_llr``; ``rejected``: contradicting scans in a row."""
 
     drive: dr.Drive
     prior: Prior
@@ -607,7 +607,8 @@ def _probation(ctx: Context, p: Probation, scan: Scan) -> tuple[State, Estimate]
         return p, _probation_estimate(p, est)
     verdict = _decide(ctx, drv, p.prior)
     lead, llr = verdict.leader is p.winner, min(verdict.llr, 99.0)
-    if lead and verdict.llr >= max(g.fix_llr, g.pass_llr):
+    need = max(g.fix_llr, g.pass_llr if p.prior.mean is None else 0.0)  # decisions/0029
+    if lead and verdict.llr >= need:
         est.ambiguity = verdict.ambiguity
         est.extras.update(global_fix=1.0, probation_passed=1.0, llr=llr)
         return Tracking(est.pose.copy(), fit_cov(est), since_fix=0), est

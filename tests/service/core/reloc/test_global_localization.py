@@ -293,6 +293,25 @@ def test_kidnapped_robot_goes_lost_and_relocalises(setup: int, stride: int, lase
     assert statuses[-1] == "tracking"
 
 
+def test_after_a_kidnap_a_probation_passes_at_fix_llr_not_at_the_first_fixes_pass() -> None:
+    """pass_llr is set on first fixes (no prior pose); after a loss the search weighs the
+    dead-reckoned prior and its winner passes at fix_llr: with the first fixes' pass out of
+    reach the kidnapped robot on the floor plan is still fixed again, at the truth."""
+    su = make_setup(2)
+    n = len(su)
+    a0, b0 = round(0.1 * (n - 1)), round(0.6 * (n - 1))
+    loc = create_localizer("shape", su.map_data, su.truth[a0], laser_odometry=True)
+    loc.gconfig = loc.gconfig.model_copy(update={"pass_llr": 1e6})  # the inner localiser's
+    for i in range(a0, a0 + 8):
+        loc.update(*su.scan(i))
+    statuses = []
+    for i in range(b0, b0 + 35):
+        est = loc.update(*su.scan(i))
+        statuses.append(est.status)
+    assert "lost" in statuses[:3] and statuses[-1] == "tracking", statuses
+    assert _found(est.pose, su.truth[b0 + 34])
+
+
 # ------------------------------------------------------------------ kernels, evidence, composite
 
 
