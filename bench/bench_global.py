@@ -362,9 +362,9 @@ def main(argv: list[str] | None = None) -> int:
     drive.add_argument(
         "--calibrate-pass",
         default=None,
-        help="the probation's calibration (floor plans): no probation ever passes; at the end "
-        "of each, the decision's LLR, the winner's error and whether it led are saved per trial "
-        "into this dir (bench/calibrate_llr.py --pass reads them)",
+        help="the probation's calibration (floor plans): no probation ever passes; on each "
+        "scan a probation is judged, the decision's LLR, the winner's error and whether it led "
+        "are saved per trial into this dir (bench/calibrate_llr.py --pass reads them)",
     )
     drive.add_argument(
         "--cache",

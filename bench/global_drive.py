@@ -145,8 +145,8 @@ class DriveTask:
     #: calibration (``--calibrate DIR``): the decision never fixes; each searching scan's LLR,
     #: its leader's position error and whether its twin check ran go to ``DIR``
     calibrate: str | None = None
-    #: the probation's calibration (``--calibrate-pass DIR``): no probation ever passes; at the
-    #: end of each, its LLR, its winner's error and whether the winner led go to ``DIR``
+    #: the probation's calibration (``--calibrate-pass DIR``): no probation ever passes; on each
+    #: scan one is judged, its LLR, its winner's error and whether the winner led go to ``DIR``
     calibrate_pass: str | None = None
 
 

@@ -564,8 +564,8 @@ def outside(prior: Prior, pose: np.ndarray) -> bool:
     return mahalanobis2(pose, prior.mean, prior.cov + FIX_COV) > GATE_SIGMAS**2
 
 
-def _probation_estimate(p: Probation, est: Estimate, extras: dict | None = None) -> Estimate:
-    est.extras.update(extras or {})
+def _probation_estimate(p: Probation, est: Estimate, x: dict[str, float] | None = None) -> Estimate:
+    est.extras.update(x or {})
     est.status = p.status
     est.ambiguity = p.ambiguity
     est.extras["probation"] = max(0.0, p.left)
@@ -612,7 +612,7 @@ def _probation(ctx: Context, p: Probation, scan: Scan) -> tuple[State, Estimate]
         est.ambiguity = verdict.ambiguity
         est.extras.update(global_fix=1.0, probation_passed=1.0, llr=llr)
         return Tracking(est.pose.copy(), fit_cov(est), since_fix=0), est
-    judged = {"probation_llr": llr, "probation_lead": float(lead)}  # bench/calibrate_llr's
+    judged = {"probation_llr": llr, "probation_lead": float(lead)}  # calibrate_llr's input
     if lead and verdict.llr >= g.fix_llr:  # still the winner, short of the pass: it goes on
         return p, _probation_estimate(p, est, judged)
     return _fail(ctx, p, {"probation_failed": 1.0, **judged})
