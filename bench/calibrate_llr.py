@@ -19,17 +19,18 @@ travel limit and the median travel to the fix, and the smallest threshold with n
 the rule for a preset's ``fix_llr`` is that threshold times :data:`SAFETY` (the held-out maps
 are not the tuning maps). Where every threshold of the grid leaves some false ones, the rule
 takes the smallest threshold at the fewest: those no threshold removes are the sensor model's
-to remove, not the threshold's (docs/decisions/0029). With
-``--results`` it writes ``llr-threshold.md`` there, naming the command and commit that wrote
-the tables (the directory's ``command.txt``) and each preset's ``fix_llr``.
+to remove, not the threshold's (docs/decisions/0029). With ``--results`` it writes
+``llr-threshold.md`` there, naming the command and commit that wrote the tables (the
+directory's ``command.txt``) and each preset's ``fix_llr``.
 
 With ``--pass`` it reads the tables of ``--calibrate-pass DIR`` instead: one row per judged
 probation scan (a floor plan's winner, tracked ``probation_travel`` metres, judged on every scan
-from then on), where no probation ever passed. A run whose probations never pass is, up to its
-first pass, the run of every pass threshold ``P``; so the first judged scan whose winner leads
-at ``P`` or more is that threshold's fix, false when the winner is more than 0.5 m or 10
-degrees off, and the count is exact. The rule for a preset's ``pass_llr`` is as for
-``fix_llr``; the page is ``llr-probation.md``.
+from then on; a calibration drive starts with no pose, so these are first fixes), where no
+probation ever passed. A run whose probations never pass is, up to its first pass, the run of
+every pass threshold ``P``; so the first judged scan whose winner leads at ``P`` or more is that
+threshold's fix, false when the winner is more than 0.5 m or 10 degrees off, and the count is
+exact. The rule for a preset's ``pass_llr`` is as for ``fix_llr``; the page is
+``llr-probation.md``.
 """
 
 from __future__ import annotations
