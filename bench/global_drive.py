@@ -289,12 +289,16 @@ def holds_from(travel: Sequence[float], shares: Sequence[float]) -> float:
     return math.inf
 
 
+def pose_error(pose: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
+    """``pose``'s position error (m) and absolute heading error (rad) against ``truth``."""
+    d = math.hypot(float(pose[0] - truth[0]), float(pose[1] - truth[1]))
+    return d, abs(float(wrap_angle(float(pose[2] - truth[2]))))
+
+
 def fix_ok(pose: np.ndarray, truth: np.ndarray) -> bool:
     """The first fix's test: within FIX_DIST m and FIX_DEG deg of ``truth``."""
-    d = math.hypot(float(pose[0] - truth[0]), float(pose[1] - truth[1]))
-    return d < FIX_DIST and abs(float(wrap_angle(float(pose[2] - truth[2])))) < math.radians(
-        FIX_DEG
-    )
+    d, dth = pose_error(pose, truth)
+    return d < FIX_DIST and dth < math.radians(FIX_DEG)
 
 
 def classify(

@@ -45,6 +45,7 @@ from bench.global_drive import (
     map_stride,
     office_room,
     parse_worlds,
+    pose_error,
     spread,
     trial_end,
 )
@@ -58,7 +59,6 @@ from bench.global_drive_tables import (
 from bench.plan_share import HOLDS_SHARE, PlanShare
 from bench.results import publish
 from service.core.factory import create_localizer
-from service.core.types import wrap_angle
 
 _PLANS: dict[DriveMap, PlanShare] = {}
 
@@ -186,8 +186,7 @@ def run_drive_trial(task: DriveTask) -> DriveTrial:
                 (
                     travel[-1],
                     x["llr"],
-                    float(np.hypot(*(est.pose[:2] - t[:2]))),
-                    abs(float(wrap_angle(float(est.pose[2] - t[2])))),
+                    *pose_error(est.pose, t),
                     x.get("lead_checked", 0.0),
                     x.get("lead_found", 0.0),
                 )
@@ -196,8 +195,7 @@ def run_drive_trial(task: DriveTask) -> DriveTrial:
                 break  # any threshold up to CALIBRATE_STOP would have fixed the true place
         x = est.extras
         if task.calibrate_pass and scored and "probation" in x:  # the winner's tracked pose
-            err = float(np.hypot(*(est.pose[:2] - t[:2])))
-            winner = (err, abs(float(wrap_angle(float(est.pose[2] - t[2])))))
+            winner = pose_error(est.pose, t)
         if task.calibrate_pass and "probation_llr" in x:
             ends.append((travel[-1], x["probation_llr"], *winner, x["probation_lead"]))
             if x["probation_llr"] >= CALIBRATE_STOP and winner[0] <= 0.5 and x["probation_lead"]:

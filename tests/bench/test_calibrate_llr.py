@@ -48,7 +48,7 @@ def test_the_page_names_the_run_and_the_presets(tmp_path: Path) -> None:
 
 
 def test_a_probation_whose_wrong_winner_leads_at_the_pass_is_a_false_pass() -> None:
-    # travel, llr at the probation's end, winner's error m, heading error rad, winner led
+    # travel, llr on a judged probation scan, winner's error m, heading error rad, winner led
     rows = _rows5(
         (2.0, 30.0, 9.0, 0.1, 1.0), (4.0, 99.0, 0.1, 0.0, 0.0), (6.0, 50.0, 0.2, 0.0, 1.0)
     )
@@ -57,7 +57,7 @@ def test_a_probation_whose_wrong_winner_leads_at_the_pass_is_a_false_pass() -> N
     assert pass_outcome(rows, 60.0)[0] == "none"
 
 
-def test_the_pass_page_counts_probation_ends_of_floor_plans_only(tmp_path: Path) -> None:
+def test_the_pass_page_counts_judged_probation_scans_of_floor_plans_only(tmp_path: Path) -> None:
     tables = tmp_path / "tables"
     tables.mkdir()
     (tables / COMMAND_FILE).write_text("python -m bench.bench_global --drive\nabc1234\n")

@@ -109,8 +109,8 @@ def decide(
     def evidence(t: Track, fill: Track | None = None) -> float:
         own = [t.ll[k] for k in keys if k in t.ll]
         rate = sum(own) / len(own) if own else unseen
-        got = {} if fill is None else fill.ll  # the leader lends what this track lacks
-        lent = {k: rate if k in plain else got.get(k, unseen) for k in keys} if fill else {}
+        # the leader (fill) lends the frames this track lacks
+        lent = {k: rate if k in plain else fill.ll.get(k, unseen) for k in keys} if fill else {}
         return sum(t.ll.get(k, lent.get(k, unseen)) for k in keys) + prior.log(t.pose)
 
     best_e, leader = max(((evidence(t), t) for t in full), key=lambda x: x[0])
