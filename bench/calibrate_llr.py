@@ -7,10 +7,11 @@ Reads the per-trial tables that ``python -m bench.bench_global --drive --calibra
 (tuning maps only: the office, generated buildings below 1000, the logs intel and fr079): for
 every searching scan with a reference, the travel (m), the decision's LLR (nats,
 :mod:`service.core.reloc.decision`), the leader's position and heading error and whether its
-self-similarity check ran and how many searches found it. In those runs nothing is ever fixed,
-so each table shows what every threshold ``T`` would have done: the first scan whose leader
-has been checked and reaches ``T`` is the fix; it is a
-false fix when the leader is more than 0.5 m or 10 degrees off. (Counting every such leader
+self-similarity check ran and how many searches found it, its LLR against the unseen place
+alone and whether a place the search keeps holds the true place. In those runs nothing is
+ever fixed, so each table shows what every threshold ``T`` would have done: the first scan
+whose leader has been checked and reaches ``T`` is the fix; it is a false fix when the leader
+is more than 0.5 m or 10 degrees off. (Counting every such leader
 as a false fix is conservative: the tracker's confirmation and a floor plan's probation
 catch some of them.)
 
@@ -19,7 +20,8 @@ travel limit and the median travel to the fix, and the smallest threshold with n
 the rule for a preset's ``fix_llr`` is that threshold times :data:`SAFETY` (the held-out maps
 are not the tuning maps). Where every threshold of the grid leaves some false ones, the rule
 takes the smallest threshold at the fewest: those no threshold removes are the sensor model's
-to remove, not the threshold's (docs/decisions/0029). With ``--results`` it writes
+to remove, not the threshold's (docs/decisions/0029). It then counts why the slow first fixes
+are slow (:func:`cause`). With ``--results`` it writes
 ``llr-threshold.md`` there, naming the command and commit that wrote the tables (the
 directory's ``command.txt``) and each preset's ``fix_llr``.
 
@@ -72,7 +74,7 @@ def load(dirs: list[Path]) -> dict[str, list[tuple[str, np.ndarray]]]:
 
 def outcome(rows: np.ndarray, t: float) -> tuple[str, float]:
     """``("right" | "wrong" | "none", travel)`` of one trial at threshold ``t``."""
-    for travel, llr, err, dth, checked, _found in rows:
+    for travel, llr, err, dth, checked, _found in rows[:, :6]:
         if llr >= t and checked >= 1.0:
             ok = err <= 0.5 and dth <= np.deg2rad(10.0)
             return ("right" if ok else "wrong"), float(travel)
@@ -89,6 +91,55 @@ def pass_outcome(rows: np.ndarray, p: float) -> tuple[str, float]:
             ok = err <= 0.5 and dth <= np.deg2rad(10.0)
             return ("right" if ok else "wrong"), float(travel)
     return "none", float("inf")
+
+
+#: A first fix later than this (m of travel) is slow; the causes are counted from this travel
+#: on (a floor plan's probation_travel: before it no winner can be published).
+SLOW = 8.0
+CAUSES_FROM = 2.0
+CAUSES = {
+    "not found": "no place the search keeps holds the true place",
+    "not leading": "a place kept holds it, another leads",
+    "places": "it leads; the other places found hold its LLR short",
+    "unseen": "it leads; the unseen place alone holds its LLR short",
+}
+
+
+def cause(rows: np.ndarray, need: float, limit: float) -> str | None:
+    """Why a trial's true place is fixed at ``need`` nats only after :data:`SLOW` m (``None``:
+    it is not, or the table predates the LLR's split): the cause (:data:`CAUSES`) of most of
+    its searching scans from :data:`CAUSES_FROM` m to that fix or ``limit``."""
+    if rows.shape[1] < 8 or not rows.size:
+        return None
+    travel, llr, err, dth, unseen, held = rows[:, [0, 1, 2, 3, 6, 7]].T
+    right = (err <= 0.5) & (dth <= np.deg2rad(10.0))
+    fixed = travel[right & (llr >= need)]
+    at = float(fixed[0]) if fixed.size else np.inf
+    span = (travel >= CAUSES_FROM) & (travel < min(at, limit))
+    if at <= SLOW or not span.any():
+        return None
+    per_scan = np.where(
+        ~right,
+        np.where(held >= 1.0, "not leading", "not found"),
+        np.where(unseen < need, "unseen", "places"),
+    )[span]
+    names, counts = np.unique(per_scan, return_counts=True)
+    return str(names[int(np.argmax(counts))])
+
+
+def causes_lines(trials: list[tuple[str, np.ndarray]], kind: str, need: float) -> list[str]:
+    """The page's account of the slow first fixes of ``kind`` at ``need`` nats."""
+    found = [cause(r, need, limit_of(n, kind)) for n, r in trials]
+    slow = [c for c in found if c is not None]
+    if not slow:
+        return []
+    parts = "; ".join(f"{CAUSES[c]}: {slow.count(c)}" for c in CAUSES)
+    return [
+        f"Slow first fixes (the true place fixed at {need:g} nats only after {SLOW:g} m, or not "
+        f"within the limit): {len(slow)} of {len(trials)}. By what held most of their scans "
+        f"from {CAUSES_FROM:g} m on: {parts}.",
+        "",
+    ]
 
 
 def limit_of(name: str, kind: str) -> float:
@@ -194,6 +245,8 @@ def main(argv: list[str] | None = None) -> int:
             f"the smallest at the fewest ({least})"
         )
         lines += ["", f"{head}: {pick}. {preset_line}", ""]
+        if not args.probation:  # at what the preset publishes: pass_llr on floor plans
+            lines += causes_lines(trials, kind, max(preset.fix_llr, preset.pass_llr))
     text = "\n".join(lines) + "\n"
     print(text)
     page = "llr-probation" if args.probation else "llr-threshold"

@@ -182,6 +182,7 @@ def run_drive_trial(task: DriveTask) -> DriveTrial:
         flags.append(searching)
         if task.calibrate and scored and "llr" in est.extras:
             x = est.extras
+            cands = est.candidates if est.candidates is not None else np.zeros((0, 4))
             rows.append(
                 (
                     travel[-1],
@@ -189,6 +190,8 @@ def run_drive_trial(task: DriveTask) -> DriveTrial:
                     *pose_error(est.pose, t),
                     x.get("lead_checked", 0.0),
                     x.get("lead_found", 0.0),
+                    x.get("llr_unseen", math.nan),
+                    float(any(fix_ok(c[:3], t) for c in cands)),  # a place kept holds the truth
                 )
             )
             if x["llr"] >= CALIBRATE_STOP and rows[-1][2] <= 0.5:
@@ -213,7 +216,7 @@ def run_drive_trial(task: DriveTask) -> DriveTrial:
         Path(task.calibrate).mkdir(parents=True, exist_ok=True)
         tag = f"{m.group}_{m.world}_{m.kind}_{task.start}"
         np.save(
-            Path(task.calibrate) / f"{tag}.npy", np.asarray(rows, dtype=np.float64).reshape(-1, 6)
+            Path(task.calibrate) / f"{tag}.npy", np.asarray(rows, dtype=np.float64).reshape(-1, 8)
         )
     if task.calibrate_pass:
         Path(task.calibrate_pass).mkdir(parents=True, exist_ok=True)

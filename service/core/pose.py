@@ -66,6 +66,13 @@ def relative(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return compose(invert(a), b)
 
 
+def mahalanobis2(pose: np.ndarray, mean: np.ndarray, cov: np.ndarray) -> float:
+    """Squared Mahalanobis distance of ``pose`` from ``mean`` under ``cov`` (heading wrapped)."""
+    e = np.asarray(pose, dtype=np.float64) - mean
+    e[2] = wrap_angle(float(e[2]))
+    return float(numeric.quadratic(e, numeric.inv(cov)))
+
+
 def propagate(
     pose: np.ndarray, cov: np.ndarray, delta: np.ndarray, noise: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:

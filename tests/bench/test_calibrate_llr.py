@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.calibrate_llr import main, outcome, pass_outcome
+from bench.calibrate_llr import cause, main, outcome, pass_outcome
 from bench.global_drive_run import COMMAND_FILE
 
 
@@ -95,3 +95,52 @@ def test_where_every_threshold_leaves_a_false_pass_the_rule_takes_the_fewest(
     page = (results / "llr-probation.md").read_text()
     assert "No threshold up to 80 is without a false pass; the smallest at the fewest (1): " in page
     assert "45 x 1.25 = 56.25" in page
+
+
+def _drive(*scans: tuple[float, float, bool, float, bool]) -> np.ndarray:
+    """Rows of a --calibrate table from (travel, llr, leader right, LLR against the unseen
+    place alone, a place kept holds the truth)."""
+    rows = [
+        (tr, llr, 0.1 if ok else 9.0, 0.0, 1.0, 1.0, unseen, float(held))
+        for tr, llr, ok, unseen, held in scans
+    ]
+    return np.asarray(rows, dtype=np.float64)
+
+
+def test_a_slow_fix_is_put_down_to_what_held_most_of_its_scans() -> None:
+    # true place fixed at 62.5 nats at 3 m: not slow
+    assert (
+        cause(_drive((1.0, 10.0, True, 10.0, True), (3.0, 70.0, True, 70.0, True)), 62.5, 15)
+        is None
+    )
+    # a wrong place leads to 9 m, the truth held by a kept place on most of those scans
+    rows = _drive(
+        *[(2.0 + 0.5 * k, 20.0, False, 20.0, k > 2) for k in range(14)],
+        (9.5, 70.0, True, 70.0, True),
+    )
+    assert cause(rows, 62.5, 15.0) == "not leading"
+    # the true place leads from 2 m, short of 62.5 against the unseen place alone
+    rows = _drive(*[(2.0 + 0.5 * k, 40.0, True, 45.0, True) for k in range(20)])
+    assert cause(rows, 62.5, 15.0) == "unseen"
+    # ... or against the places found, the unseen place far behind
+    rows = _drive(*[(2.0 + 0.5 * k, 40.0, True, 90.0, True) for k in range(20)])
+    assert cause(rows, 62.5, 15.0) == "places"
+    # tables written before the LLR's split give no cause
+    assert cause(rows[:, :6], 62.5, 15.0) is None
+
+
+def test_the_page_counts_the_slow_first_fixes_by_cause(tmp_path: Path) -> None:
+    tables = tmp_path / "tables"
+    tables.mkdir()
+    np.save(
+        tables / "real_fr079_schematic_3.npy",
+        _drive(*[(2.0 + 0.5 * k, 40.0, True, 45.0, True) for k in range(30)]),
+    )
+    np.save(tables / "real_fr079_schematic_4.npy", _drive((3.0, 70.0, True, 70.0, True)))
+    results = tmp_path / "results"
+    assert main([str(tables), "--results", str(results)]) == 0
+    page = (results / "llr-threshold.md").read_text()
+    assert "Slow first fixes (the true place fixed at 62.5 nats only after 8 m" in page
+    assert ": 1 of 2." in page
+    assert "the unseen place alone holds its LLR short: 1" in page
+    assert "the other places found hold its LLR short: 0" in page

@@ -24,12 +24,11 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from service.core import numeric
-from service.core.pose import propagate
+from service.core.pose import mahalanobis2, propagate
 from service.core.reloc.config import GlobalConfig
 from service.core.reloc.drive import Frame, Track, judged
 from service.core.reloc.global_search import COST_FLOOR, DISTINCT_ANGLE, DISTINCT_DISTANCE, distinct
 from service.core.sensor.scoring import EFFECTIVE_BEAMS
-from service.core.types import wrap_angle
 
 
 @dataclass
@@ -67,19 +66,14 @@ class Prior:
         return replace(self, mean=mean, cov=cov)
 
 
-def mahalanobis2(pose: np.ndarray, mean: np.ndarray, cov: np.ndarray) -> float:
-    """Squared Mahalanobis distance of ``pose`` from ``mean`` under ``cov``."""
-    e = np.asarray(pose, dtype=np.float64) - mean
-    e[2] = wrap_angle(float(e[2]))
-    return float(numeric.quadratic(e, numeric.inv(cov)))
-
-
 @dataclass(frozen=True)
 class Verdict:
-    """The ``leader`` scored on the whole window (or ``None``) and its ``llr`` (nats)."""
+    """The ``leader`` scored on the whole window (or ``None``), its ``llr`` (nats) against the
+    rest and against the ``unseen`` place alone (less: what the places found take from it)."""
 
     leader: Track | None
     llr: float
+    unseen: float = -math.inf
 
     @property
     def ambiguity(self) -> float:
@@ -130,4 +124,6 @@ def decide(
         if t is not leader and distinct(t.pose, leader.pose)
     ]
     top = max(rest)
-    return Verdict(leader, best_e - top - math.log(sum(math.exp(e - top) for e in rest)))
+    return Verdict(
+        leader, best_e - top - math.log(sum(math.exp(e - top) for e in rest)), best_e - null
+    )

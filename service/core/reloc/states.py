@@ -13,11 +13,11 @@ from typing import Protocol
 
 import numpy as np
 
-from service.core.pose import compose, invert, propagate, sigma_xy
+from service.core.pose import compose, invert, mahalanobis2, propagate, sigma_xy
 from service.core.reloc import drive as dr
 from service.core.reloc import global_search as gs
 from service.core.reloc.config import GlobalConfig
-from service.core.reloc.decision import CELL_VOLUME, Prior, Verdict, decide, mahalanobis2
+from service.core.reloc.decision import CELL_VOLUME, Prior, Verdict, decide
 from service.core.reloc.view_index import ViewIndex
 from service.core.reloc.view_index.viewpoints import SPACING
 from service.core.shapes.configuration import Configuration, scan_configuration
@@ -466,6 +466,7 @@ def _searching(ctx: Context, s: Searching, scan: Scan) -> tuple[State, Estimate]
         relocked.extras["relocked"] = 1.0
         return Tracking(relocked.pose.copy(), fit_cov(relocked)), relocked
     extras: dict[str, float] = {"llr": max(-99.0, min(verdict.llr, 99.0)), "work_ms": spent}
+    extras["llr_unseen"] = max(-99.0, min(verdict.unseen, 99.0))  # bench.calibrate_llr's
     if found >= 0:
         extras["search_done"] = 1.0
     if lead is not None:

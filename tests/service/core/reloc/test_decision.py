@@ -45,6 +45,7 @@ def test_the_llr_is_the_leaders_evidence_over_the_rest_and_the_unseen_place() ->
     want = -8.0 - math.log(math.exp(-20.0) + math.exp(unseen))
     assert v.llr == pytest.approx(want)
     assert v.ambiguity == pytest.approx(1.0 / (1.0 + math.exp(want)))
+    assert v.unseen == pytest.approx(-8.0 - unseen)  # against the unseen place alone
 
 
 def test_a_place_at_the_leaders_place_is_no_alternative() -> None:

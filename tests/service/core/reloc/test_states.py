@@ -16,11 +16,12 @@ import numpy as np
 import pytest
 
 from service.core.factory import create_localizer
+from service.core.pose import mahalanobis2
 from service.core.reloc import drive as dr
 from service.core.reloc import global_search as gs
 from service.core.reloc import states as st
 from service.core.reloc.config import GlobalConfig
-from service.core.reloc.decision import Prior, mahalanobis2
+from service.core.reloc.decision import Prior
 from service.core.reloc.global_localization import GlobalShapeLocalizer
 from service.core.sensor.raycast import RayCaster
 from service.core.tracking.laser_odometry import LaserOdometryLocalizer
