@@ -191,7 +191,7 @@ def run_drive_trial(task: DriveTask) -> DriveTrial:
                     x.get("lead_checked", 0.0),
                     x.get("lead_found", 0.0),
                     x.get("llr_unseen", math.nan),
-                    float(any(fix_ok(c[:3], t) for c in cands)),  # a place kept holds the truth
+                    float(any(fix_ok(c[:3], t) for c in cands)),  # one of the best 5 holds it
                 )
             )
             if x["llr"] >= CALIBRATE_STOP and rows[-1][2] <= 0.5:
