@@ -69,7 +69,7 @@ class Prior:
 @dataclass(frozen=True)
 class Verdict:
     """The ``leader`` scored on the whole window (or ``None``), its ``llr`` (nats) against the
-    rest and against the ``unseen`` place alone (less: what the places found take from it)."""
+    rest, and against the ``unseen`` place alone (the difference: what the places found cost)."""
 
     leader: Track | None
     llr: float

@@ -466,7 +466,7 @@ def _searching(ctx: Context, s: Searching, scan: Scan) -> tuple[State, Estimate]
         relocked.extras["relocked"] = 1.0
         return Tracking(relocked.pose.copy(), fit_cov(relocked)), relocked
     extras: dict[str, float] = {"llr": max(-99.0, min(verdict.llr, 99.0)), "work_ms": spent}
-    extras["llr_unseen"] = max(-99.0, min(verdict.unseen, 99.0))  # bench.calibrate_llr's
+    extras["llr_unseen"] = max(-99.0, min(verdict.unseen, 99.0))  # for bench.calibrate_llr
     if found >= 0:
         extras["search_done"] = 1.0
     if lead is not None:
