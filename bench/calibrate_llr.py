@@ -72,11 +72,17 @@ def load(dirs: list[Path]) -> dict[str, list[tuple[str, np.ndarray]]]:
     return out
 
 
+def is_right(err: np.ndarray | float, dth: np.ndarray | float) -> np.ndarray:
+    """Whether a leader ``err`` m and ``dth`` rad off is the true place: within 0.5 m and
+    10 degrees (the drive bench's test, ``bench.global_drive.fix_ok``)."""
+    return np.asarray((np.asarray(err) <= 0.5) & (np.asarray(dth) <= np.deg2rad(10.0)))
+
+
 def outcome(rows: np.ndarray, t: float) -> tuple[str, float]:
     """``("right" | "wrong" | "none", travel)`` of one trial at threshold ``t``."""
     for travel, llr, err, dth, checked, _found in rows[:, :6]:
         if llr >= t and checked >= 1.0:
-            ok = err <= 0.5 and dth <= np.deg2rad(10.0)
+            ok = bool(is_right(err, dth))
             return ("right" if ok else "wrong"), float(travel)
     return "none", float("inf")
 
@@ -88,7 +94,7 @@ def pass_outcome(rows: np.ndarray, p: float) -> tuple[str, float]:
         if lead >= 1.0 and llr >= p:
             if np.isnan(err):
                 return "unjudged", float(travel)
-            ok = err <= 0.5 and dth <= np.deg2rad(10.0)
+            ok = bool(is_right(err, dth))
             return ("right" if ok else "wrong"), float(travel)
     return "none", float("inf")
 
@@ -112,7 +118,7 @@ def cause(rows: np.ndarray, need: float, limit: float) -> str | None:
     if rows.shape[1] < 8 or not rows.size:
         return None
     travel, llr, err, dth, unseen, held = rows[:, [0, 1, 2, 3, 6, 7]].T
-    right = (err <= 0.5) & (dth <= np.deg2rad(10.0))
+    right = is_right(err, dth)
     fixed = travel[right & (llr >= need)]
     at = float(fixed[0]) if fixed.size else np.inf
     span = (travel >= CAUSES_FROM) & (travel < min(at, limit))
