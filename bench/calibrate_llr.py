@@ -43,6 +43,7 @@ from pathlib import Path
 
 import numpy as np
 
+from bench.global_drive import FIX_DEG, FIX_DIST
 from bench.global_drive_run import COMMAND_FILE
 from bench.results import publish
 from service.core.reloc.config import GlobalConfig
@@ -73,9 +74,9 @@ def load(dirs: list[Path]) -> dict[str, list[tuple[str, np.ndarray]]]:
 
 
 def is_right(err: np.ndarray | float, dth: np.ndarray | float) -> np.ndarray:
-    """Whether a leader ``err`` m and ``dth`` rad off is the true place: within 0.5 m and
-    10 degrees (the drive bench's test, ``bench.global_drive.fix_ok``)."""
-    return np.asarray((np.asarray(err) <= 0.5) & (np.asarray(dth) <= np.deg2rad(10.0)))
+    """Whether a leader ``err`` m and ``dth`` rad off is the true place: within the drive
+    bench's FIX_DIST and FIX_DEG (``bench.global_drive.fix_ok``)."""
+    return np.asarray((np.asarray(err) <= FIX_DIST) & (np.asarray(dth) <= np.deg2rad(FIX_DEG)))
 
 
 def outcome(rows: np.ndarray, t: float) -> tuple[str, float]:
